@@ -1,0 +1,1 @@
+"""socmon agent package."""

@@ -1,0 +1,1 @@
+"""socmon broker_free_net package."""
