@@ -1,0 +1,62 @@
+"""The ``socmon`` command line: one subcommand per module of :mod:`agent.commands`.
+
+Each command module defines ``HELP`` (one line), ``add_arguments(parser)`` and
+``run(args) -> int``; heavy imports happen inside ``run`` so that ``socmon --help`` stays
+fast. Exit status: 0 success, 1 the command ran but the result is negative (e.g. no
+stabilising gain), 2 bad input (named in the message), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: subcommand -> module under agent.commands, in the order shown by --help
+COMMANDS = {
+    "analyze": "analyze",
+    "plan": "plan",
+    "certify": "certify",
+    "design": "design_cmd",
+    "simulate": "simulate",
+    "reproduce": "reproduce",
+    "world": "world",
+    "agent": "agent_cmd",
+    "up": "up",
+    "inject": "inject",
+    "monitor": "monitor",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="socmon",
+        description="Resilient distributed monitoring of social dynamics by collaborating agents.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, module_name in COMMANDS.items():
+        try:
+            module = importlib.import_module(f"agent.commands.{module_name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"agent.commands.{module_name}":
+                continue  # command not part of this build
+            raise
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print("socmon: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Subcommands of the ``socmon`` command line (see :mod:`agent.cli`)."""

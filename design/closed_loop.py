@@ -1,0 +1,276 @@
+"""The exact error dynamics of the distributed estimator, with link delays.
+
+Per agent i, with ``L_i = I - G_i H_i`` (``G_i = K^i H_i^T``, n x p_i), the estimator of
+:mod:`design.estimator` has the exact error recursion (e = x - xhat, stacked over agents)
+
+    e_k = sum_{r=0..taubar} F_r e_{k-1-r}  +  sum_{s=0..taubar} B_s nu_{k-1-s}  -  G zeta_k
+
+    F_r = L (W_r (x) A^(r+1)),   B_s = L (c_s (x) A^s),   c_s[i] = sum_{j: tau_ij >= s} w_ij
+
+where ``W_r`` keeps the links of W with delay r (self links have delay 0) and ``L``, ``G``
+are block-diagonal. The process noise enters through a moving average over the delay
+window: a delayed estimate propagated by ``A^(1+tau)`` misses the noise of the steps in
+between. The companion matrix of order (taubar+1) nN is the exact closed loop; its
+spectral radius < 1 is the exact stability certificate, and the steady covariance of the
+state augmented with the noise window solves a discrete Lyapunov equation.
+
+Examples
+--------
+>>> import numpy as np
+>>> A = np.array([[1.1]]); W = np.array([[1.0]])
+>>> loop = ClosedLoop(A, W, np.zeros((1, 1), int), [(0,)], [np.array([[0.5]])])
+>>> round(loop.spectral_radius(), 6)     # (1 - 0.5) * 1.1
+0.55
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .errors import GainsError
+
+__all__ = [
+    "ClosedLoop",
+    "closed_loop_for",
+    "delay_free_matrix",
+    "theorem1_matrix",
+    "spectral_radius",
+    "DENSE_EIG_MAX_ORDER",
+]
+
+#: Above this companion order the spectral radius is computed by ARPACK.
+DENSE_EIG_MAX_ORDER = 2000
+
+
+def spectral_radius(M) -> float:
+    """Largest eigenvalue modulus of a dense or sparse square matrix (or LinearOperator)."""
+    order = M.shape[0]
+    if order == 0:
+        return 0.0
+    if not (sp.issparse(M) or isinstance(M, spla.LinearOperator)) and order <= DENSE_EIG_MAX_ORDER:
+        return float(np.max(np.abs(sla.eigvals(np.asarray(M), check_finite=True))))
+    if order <= DENSE_EIG_MAX_ORDER and sp.issparse(M):
+        return float(np.max(np.abs(sla.eigvals(M.toarray()))))
+    k = min(6, order - 2)
+    vals = spla.eigs(M, k=k, which="LM", ncv=min(order - 1, max(4 * k + 1, 40)),
+                     tol=1e-12, maxiter=50 * order, return_eigenvectors=False)
+    return float(np.max(np.abs(vals)))
+
+
+class ClosedLoop:
+    """Exact delayed error dynamics for one gain, one W and one delay matrix.
+
+    Parameters
+    ----------
+    A : (n, n) array
+    W : (N, N) row-stochastic array
+    delays : (N, N) int array, ``delays[i, j]`` on link j -> i
+    measure : sequence of sequences of node indices (0-based), one per agent
+    G : sequence of arrays, ``G[i]`` of shape (n, p_i): agent i's ``K^i H_i^T``
+    """
+
+    def __init__(self, A, W, delays, measure, G):
+        self.A = np.asarray(A, dtype=float)
+        self.W = np.asarray(W, dtype=float)
+        self.delays = np.asarray(delays, dtype=int)
+        self.measure = [tuple(int(j) for j in m) for m in measure]
+        self.G = [np.asarray(g, dtype=float) for g in G]
+        n, N = self.A.shape[0], self.W.shape[0]
+        if len(self.measure) != N or len(self.G) != N:
+            raise GainsError(
+                f"gains: {len(self.G)} gain blocks and {len(self.measure)} sensor sets "
+                f"for N = {N} agents"
+            )
+        for i, (g, m) in enumerate(zip(self.G, self.measure)):
+            if g.shape != (n, len(m)):
+                raise GainsError(
+                    f"gains: K{i + 1} must be {n} x {len(m)} (n x nodes measured by agent "
+                    f"{i + 1}), got {g.shape[0]} x {g.shape[1] if g.ndim > 1 else 1}"
+                )
+            if not np.all(np.isfinite(g)):
+                raise GainsError(f"gains: K{i + 1} has non-finite entries")
+        self.n, self.N = n, N
+        self.taubar = int(self.delays.max()) if self.delays.size else 0
+
+    # -- building blocks ------------------------------------------------------------
+    @cached_property
+    def A_powers(self) -> list:
+        """``[A^0, A^1, ..., A^(taubar+1)]``."""
+        P = [np.eye(self.n)]
+        for _ in range(self.taubar + 1):
+            P.append(P[-1] @ self.A)
+        return P
+
+    @cached_property
+    def L(self) -> list:
+        """``L_i = I - G_i H_i`` per agent."""
+        out = []
+        for g, m in zip(self.G, self.measure):
+            Li = np.eye(self.n)
+            Li[:, list(m)] -= g
+            out.append(Li)
+        return out
+
+    @cached_property
+    def LA_powers(self) -> list:
+        """``LA[i][r] = L_i A^(r)`` for r = 0..taubar+1 (only the powers in use are filled)."""
+        used = {0, 1} | {int(t) + 1 for t in np.unique(self.delays)}
+        return [
+            {r: self.L[i] @ self.A_powers[r] for r in used} for i in range(self.N)
+        ]
+
+    def F(self, r: int) -> np.ndarray:
+        """Block matrix ``F_r = L (W_r (x) A^(r+1))`` of order nN."""
+        n, N = self.n, self.N
+        out = np.zeros((n * N, n * N))
+        for i in range(N):
+            for j in range(N):
+                if self.W[i, j] > 0 and self.delays[i, j] == r:
+                    out[i * n:(i + 1) * n, j * n:(j + 1) * n] = (
+                        self.W[i, j] * self.LA_powers[i][r + 1]
+                    )
+        return out
+
+    @cached_property
+    def lags(self) -> list:
+        """Delays r for which ``F_r`` is non-zero."""
+        return sorted({int(self.delays[i, j]) for i in range(self.N) for j in range(self.N)
+                       if self.W[i, j] > 0})
+
+    @property
+    def order(self) -> int:
+        return (self.taubar + 1) * self.n * self.N
+
+    def companion(self, sparse: bool | None = None):
+        """Companion matrix of order (taubar+1) nN: first block row [F_0 ... F_taubar]."""
+        m = self.n * self.N
+        T = self.taubar
+        if sparse is None:
+            sparse = self.order > DENSE_EIG_MAX_ORDER
+        if not sparse:
+            M = np.zeros((self.order, self.order))
+            for r in self.lags:
+                M[:m, r * m:(r + 1) * m] = self.F(r)
+            if T:
+                M[m:, : T * m] = np.eye(T * m)
+            return M
+        blocks = [[None] * (T + 1) for _ in range(T + 1)]
+        for r in range(T + 1):
+            blocks[0][r] = sp.csr_matrix(self.F(r)) if r in self.lags else None
+        for r in range(1, T + 1):
+            blocks[r][r - 1] = sp.identity(m, format="csr")
+        if blocks[0][0] is None:
+            blocks[0][0] = sp.csr_matrix((m, m))
+        return sp.bmat(blocks, format="csr")
+
+    # -- certificates -----------------------------------------------------------------
+    def spectral_radius(self) -> float:
+        """Exact spectral radius of the delayed closed loop."""
+        if self.taubar == 0:
+            return spectral_radius(self.F(0))
+        return spectral_radius(self.companion())
+
+    def is_stable(self, margin: float = 0.0) -> bool:
+        return self.spectral_radius() < 1.0 - margin
+
+    # -- noise and steady error -----------------------------------------------------
+    def noise_input(self, q: float, r: float):
+        """``(B, Gz)``: process-noise blocks ``B_s`` (nN x n, s = 0..taubar) and ``G``.
+
+        ``B[s] = L (c_s (x) A^s)`` with ``c_s[i] = sum_{j: tau_ij >= s} w_ij``.
+        """
+        n, N = self.n, self.N
+        B = []
+        for s in range(self.taubar + 1):
+            Bs = np.zeros((n * N, n))
+            for i in range(N):
+                c = sum(self.W[i, j] for j in range(N) if self.W[i, j] > 0 and self.delays[i, j] >= s)
+                if c:
+                    Bs[i * n:(i + 1) * n] = c * (self.L[i] @ self.A_powers[s])
+            B.append(Bs)
+        p = sum(len(m) for m in self.measure)
+        Gz = np.zeros((n * N, p))
+        col = 0
+        for i, g in enumerate(self.G):
+            Gz[i * n:(i + 1) * n, col:col + g.shape[1]] = g
+            col += g.shape[1]
+        return B, Gz
+
+    def steady_error_covariance(self, q: float, r: float) -> np.ndarray:
+        """Steady covariance (nN x nN) of the stacked error with ``Q = qI``, ``R = rI``.
+
+        Solves the discrete Lyapunov equation of the companion system augmented with the
+        process-noise window. Raises ValueError if the loop is not stable.
+        """
+        rho = self.spectral_radius()
+        if not rho < 1:
+            raise ValueError(f"closed loop is not stable (rho = {rho:.6g}): no steady error")
+        m, n, T = self.n * self.N, self.n, self.taubar
+        B, Gz = self.noise_input(q, r)
+        if T == 0:
+            S = q * (B[0] @ B[0].T) + r * (Gz @ Gz.T)
+            return _solve_lyapunov(self.F(0), S)
+        # state: (e_k, ..., e_{k-T}, nu_{k-1}, ..., nu_{k-T}); fresh inputs nu_k, zeta_{k+1}
+        order = (T + 1) * m + T * n
+        M = np.zeros((order, order))
+        M[: (T + 1) * m, : (T + 1) * m] = self.companion(sparse=False)
+        nu0 = (T + 1) * m
+        for s in range(1, T + 1):
+            M[:m, nu0 + (s - 1) * n: nu0 + s * n] = B[s]
+        if T > 1:
+            M[nu0 + n:, nu0: nu0 + (T - 1) * n] = np.eye((T - 1) * n)
+        Bin = np.zeros((order, n))
+        Bin[:m] = B[0]
+        Bin[nu0: nu0 + n] = np.eye(n)
+        Gin = np.zeros((order, Gz.shape[1]))
+        Gin[:m] = Gz
+        S = q * (Bin @ Bin.T) + r * (Gin @ Gin.T)
+        P = _solve_lyapunov(M, S)
+        return P[:m, :m]
+
+    def mse_steady(self, q: float, r: float) -> float:
+        """Steady mean-squared error per agent and per state: ``trace(P) / (nN)``."""
+        P = self.steady_error_covariance(q, r)
+        return float(np.trace(P) / (self.n * self.N))
+
+
+def _solve_lyapunov(M, S):
+    P = sla.solve_discrete_lyapunov(M, S)
+    return 0.5 * (P + P.T)
+
+
+def closed_loop_for(scenario, G, delays=None) -> ClosedLoop:
+    """The :class:`ClosedLoop` of ``scenario`` with gains ``G`` and ``delays``.
+
+    ``delays`` defaults to the scenario's own delay matrix.
+    """
+    D = scenario.delays if delays is None else delays
+    return ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
+
+
+def delay_free_matrix(A, W, measure, G) -> np.ndarray:
+    """``Ahat = (I - K D_H)(W (x) A)``, the delay-free closed loop."""
+    return ClosedLoop(A, W, np.zeros(np.shape(W), int), measure, G).F(0)
+
+
+def theorem1_matrix(A, W, measure, G, tau: int) -> np.ndarray:
+    """The paper's Theorem 1 matrix ``(I - K D_H)(W (x) A^(tau+1))``.
+
+    Theorem 1's criterion is ``rho(theorem1_matrix) < 1``; it is exact (to the power
+    tau+1) only when every link, self links included, carries delay tau.
+    """
+    loop = ClosedLoop(A, W, np.zeros(np.shape(W), int), measure, G)
+    Ap = np.linalg.matrix_power(loop.A, tau + 1)
+    n, N = loop.n, loop.N
+    out = np.zeros((n * N, n * N))
+    for i in range(N):
+        LAp = loop.L[i] @ Ap
+        for j in range(N):
+            if loop.W[i, j] > 0:
+                out[i * n:(i + 1) * n, j * n:(j + 1) * n] = loop.W[i, j] * LAp
+    return out

@@ -1,0 +1,718 @@
+"""Scenarios: one deployment of the social system, its sensors and the agent network.
+
+A scenario is a frozen :class:`Scenario`; it is read from a TOML file (or a built-in name)
+by :func:`load_scenario`, which reports every violated invariant at once, naming the
+field. Agents are numbered 1..N wherever a person sees them; inside :class:`Scenario`
+they are rows 0..N-1 of ``W``. Nodes are named by label.
+
+Examples
+--------
+>>> s = load_scenario("paper-14")
+>>> s.n, s.N, [s.agent_labels(i) for i in range(s.N)]
+(14, 3, [['7'], ['9'], ['12']])
+>>> round(s.rho_A, 4)
+1.0857
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import importlib.resources
+import json
+import math
+import tomllib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ScenarioError
+
+__all__ = [
+    "Scenario",
+    "load_scenario",
+    "scenario_from_dict",
+    "builtin_scenarios",
+    "resolve_delays",
+    "uniform_delays",
+    "strongly_connected_agent_sets",
+    "RankDeficientWarning",
+]
+
+_TOP_KEYS = {"name", "social", "agents", "network", "runtime"}
+_SOCIAL_KEYS = {
+    "A", "transpose", "edges", "labels", "self_weight", "seed", "spectral_radius",
+    "process_noise",
+}
+_AGENT_KEYS = {"measure", "measurement_noise", "standby"}
+_NETWORK_KEYS = {"topology", "self_weight", "weights", "delays", "max_delay", "delay_seed"}
+_RUNTIME_KEYS = {"step_ms"}
+_EDGE_HEADERS = (("source", "target"), ("i", "j"))
+_ROW_SUM_TOL = 1e-9
+
+
+class RankDeficientWarning(UserWarning):
+    """A is numerically rank deficient (the paper's Assumption 1 fails)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """One deployment: social dynamics, sensors, agent network, noise and timing.
+
+    Attributes
+    ----------
+    name : str
+    A : ndarray (n, n)
+        Social dynamics ``x_{k+1} = A x_k + nu_k``; ``A[i, j] != 0`` means j influences i.
+    labels : tuple of str
+        Node labels, index i <-> ``labels[i]``.
+    process_noise : float
+        ``Q = process_noise * I`` (variance).
+    measure : tuple of tuple of int
+        Node indices (0-based) measured by agents 1..N.
+    measurement_noise : float
+        ``R_i = measurement_noise * I`` (variance).
+    standby : int
+        Spare agents available for recovery (ids N+1..N+standby).
+    W : ndarray (N, N)
+        Row-stochastic fusion weights; ``W[i, j]`` is what agent i+1 gives to agent j+1.
+    delays : ndarray of int (N, N)
+        ``delays[i, j]`` = delay in steps on link j -> i (0 on the diagonal and off links).
+    step_ms : int
+        Period of one step in the live runtime.
+    source : str
+        Where it was read from (file path or ``builtin:NAME``).
+    """
+
+    name: str
+    A: np.ndarray
+    labels: tuple
+    process_noise: float
+    measure: tuple
+    measurement_noise: float
+    standby: int
+    W: np.ndarray
+    delays: np.ndarray
+    step_ms: int = 20
+    source: str = "<dict>"
+    warnings: tuple = field(default=())
+
+    # -- sizes ------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Number of individuals (social nodes)."""
+        return self.A.shape[0]
+
+    @property
+    def N(self) -> int:
+        """Number of active agents."""
+        return self.W.shape[0]
+
+    @property
+    def taubar(self) -> int:
+        """Largest delay on any link of the scenario."""
+        return int(self.delays.max()) if self.delays.size else 0
+
+    @property
+    def rho_A(self) -> float:
+        """Spectral radius of A."""
+        return float(np.max(np.abs(np.linalg.eigvals(self.A))))
+
+    @property
+    def Q(self) -> np.ndarray:
+        return self.process_noise * np.eye(self.n)
+
+    def R(self, i: int) -> np.ndarray:
+        """Measurement noise covariance of agent ``i`` (0-based)."""
+        return self.measurement_noise * np.eye(len(self.measure[i]))
+
+    # -- sensors ----------------------------------------------------------------
+    def H(self, i: int) -> np.ndarray:
+        """Canonical measurement matrix ``H_i`` (p_i x n) of agent ``i`` (0-based)."""
+        return np.eye(self.n)[list(self.measure[i])]
+
+    @property
+    def H_all(self) -> np.ndarray:
+        """All agents' measurement rows stacked (p x n)."""
+        return np.eye(self.n)[[j for m in self.measure for j in m]]
+
+    @property
+    def D_H(self) -> np.ndarray:
+        """``blockdiag(H_i^T H_i)`` of order nN."""
+        d = np.zeros(self.n * self.N)
+        for i, m in enumerate(self.measure):
+            d[i * self.n + np.asarray(m, dtype=int)] = 1.0
+        return np.diag(d)
+
+    def agent_labels(self, i: int) -> list:
+        """Labels of the nodes agent ``i`` (0-based) measures."""
+        return [self.labels[j] for j in self.measure[i]]
+
+    def index_of(self, label) -> int:
+        """Index of the node with ``label``; ScenarioError if unknown."""
+        try:
+            return self.labels.index(str(label))
+        except ValueError:
+            raise ScenarioError(f"unknown node label {label!r}", self.source) from None
+
+    @property
+    def neighbours(self) -> list:
+        """``neighbours[i]`` = agents j != i (0-based) with ``W[i, j] > 0``."""
+        return [
+            [j for j in range(self.N) if j != i and self.W[i, j] > 0] for i in range(self.N)
+        ]
+
+    # -- identity ---------------------------------------------------------------
+    def digest(self) -> str:
+        """Hash of everything that determines the estimator (not the name or timing)."""
+        h = hashlib.sha256()
+        for arr in (self.A, self.W):
+            h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+        h.update(np.ascontiguousarray(self.delays, dtype="<i8").tobytes())
+        h.update(json.dumps([list(map(int, m)) for m in self.measure]).encode())
+        h.update(json.dumps([self.process_noise, self.measurement_noise]).encode())
+        return h.hexdigest()[:16]
+
+    def replace(self, **changes) -> "Scenario":
+        """A copy with ``changes`` applied (validated like a loaded scenario)."""
+        new = dataclasses.replace(self, **changes)
+        problems = _check_network(new.W, new.delays, "network")
+        problems += _check_measure_indices(new.measure, new.n)
+        if problems:
+            raise ScenarioError(problems, new.source)
+        return new
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary with 1-based agents and node labels."""
+        return {
+            "name": self.name,
+            "n": self.n,
+            "N": self.N,
+            "labels": list(self.labels),
+            "A": self.A.tolist(),
+            "W": self.W.tolist(),
+            "delays": self.delays.tolist(),
+            "measure": [self.agent_labels(i) for i in range(self.N)],
+            "process_noise": self.process_noise,
+            "measurement_noise": self.measurement_noise,
+            "standby": self.standby,
+            "step_ms": self.step_ms,
+        }
+
+
+# ---------------------------------------------------------------------------------
+# loading
+
+
+def builtin_scenarios() -> list:
+    """Names of the scenarios shipped with socmon."""
+    folder = importlib.resources.files("design") / "scenarios"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def load_scenario(spec) -> Scenario:
+    """Load a scenario from a TOML file path or a built-in name.
+
+    Parameters
+    ----------
+    spec : str or Path
+        A path to a ``.toml`` file, or one of :func:`builtin_scenarios`.
+
+    Raises
+    ------
+    ScenarioError
+        Listing every problem found, each naming its field.
+    """
+    path = Path(spec)
+    if path.is_file():
+        try:
+            data = tomllib.loads(path.read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ScenarioError(f"not valid TOML: {exc}", str(path)) from None
+        return scenario_from_dict(data, base_dir=path.parent, source=str(path))
+    name = str(spec)
+    if name in builtin_scenarios():
+        res = importlib.resources.files("design") / "scenarios" / f"{name}.toml"
+        data = tomllib.loads(res.read_text())
+        return scenario_from_dict(data, base_dir=None, source=f"builtin:{name}")
+    raise ScenarioError(
+        f"no scenario file {name!r} and no built-in scenario of that name "
+        f"(built-in: {', '.join(builtin_scenarios())})"
+    )
+
+
+def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Scenario:
+    """Build and validate a :class:`Scenario` from the parsed TOML mapping.
+
+    ``base_dir`` resolves a relative ``social.edges`` path.
+    """
+    problems: list = []
+    if not isinstance(data, dict):
+        raise ScenarioError("scenario must be a table", source)
+    _unknown_keys(data, _TOP_KEYS, "", problems)
+    social = _table(data, "social", problems, required=True)
+    agents = _table(data, "agents", problems, required=True)
+    network = _table(data, "network", problems, required=False)
+    runtime = _table(data, "runtime", problems, required=False)
+    _unknown_keys(social, _SOCIAL_KEYS, "social.", problems)
+    _unknown_keys(agents, _AGENT_KEYS, "agents.", problems)
+    _unknown_keys(network, _NETWORK_KEYS, "network.", problems)
+    _unknown_keys(runtime, _RUNTIME_KEYS, "runtime.", problems)
+
+    name = data.get("name", Path(source).stem if source else "scenario")
+    if not isinstance(name, str) or not name:
+        problems.append("name: must be a non-empty string")
+        name = "scenario"
+
+    A, labels = _parse_social(social, base_dir, problems)
+    q = _positive_number(social, "process_noise", "social.process_noise", problems, 0.05)
+    r = _positive_number(agents, "measurement_noise", "agents.measurement_noise", problems, 0.05)
+    standby = agents.get("standby", 0)
+    if not _is_int(standby) or standby < 0:
+        problems.append(f"agents.standby: must be a non-negative integer, got {standby!r}")
+        standby = 0
+    measure = _parse_measure(agents, labels, problems)
+    N = len(measure) if measure is not None else 0
+    W = _parse_weights(network, N, problems) if N else None
+    delays = _parse_delays(network, W, problems) if W is not None else None
+    step_ms = runtime.get("step_ms", 20)
+    if not _is_int(step_ms) or step_ms <= 0:
+        problems.append(f"runtime.step_ms: must be a positive integer, got {step_ms!r}")
+        step_ms = 20
+
+    if problems:
+        raise ScenarioError(problems, source)
+
+    notes = []
+    rank = np.linalg.matrix_rank(A)
+    if rank < A.shape[0]:
+        msg = (
+            f"social.A: rank {rank} < n = {A.shape[0]}: A is rank deficient "
+            "(Assumption 1 fails; structural verdicts may not hold numerically)"
+        )
+        warnings.warn(f"{source}: {msg}", RankDeficientWarning, stacklevel=2)
+        notes.append(msg)
+    return Scenario(
+        name=name,
+        A=A,
+        labels=tuple(labels),
+        process_noise=float(q),
+        measure=tuple(tuple(m) for m in measure),
+        measurement_noise=float(r),
+        standby=int(standby),
+        W=W,
+        delays=delays,
+        step_ms=int(step_ms),
+        source=source,
+        warnings=tuple(notes),
+    )
+
+
+# ---------------------------------------------------------------------------------
+# delays
+
+
+def uniform_delays(W: np.ndarray, tau: int) -> np.ndarray:
+    """Delay matrix with every inter-agent link of ``W`` delayed by ``tau`` steps."""
+    if not _is_int(tau) or tau < 0:
+        raise ScenarioError(f"delay: must be a non-negative integer, got {tau!r}")
+    D = np.where(np.asarray(W) > 0, int(tau), 0).astype(int)
+    np.fill_diagonal(D, 0)
+    return D
+
+
+def resolve_delays(scenario: Scenario, spec: str = "scenario") -> np.ndarray:
+    """The delay matrix named by ``spec``: ``scenario``, ``none`` or ``uniform:T``.
+
+    >>> s = load_scenario("paper-14")
+    >>> resolve_delays(s, "uniform:3")
+    array([[0, 3, 0],
+           [0, 0, 3],
+           [3, 0, 0]])
+    """
+    spec = str(spec).strip()
+    if spec == "scenario":
+        return scenario.delays.copy()
+    if spec == "none":
+        return np.zeros_like(scenario.delays)
+    if spec.startswith("uniform:"):
+        text = spec.split(":", 1)[1]
+        try:
+            tau = int(text)
+        except ValueError:
+            tau = None
+        if tau is None or tau < 0:
+            raise ScenarioError(
+                f"--delays: uniform:T needs a non-negative integer T, got {text!r}"
+            )
+        return uniform_delays(scenario.W, tau)
+    raise ScenarioError(f"--delays: expected scenario, none or uniform:T, got {spec!r}")
+
+
+# ---------------------------------------------------------------------------------
+# graph helper used by validation (kept here so validation has no import cycle)
+
+
+def strongly_connected_agent_sets(W: np.ndarray) -> list:
+    """Strongly connected components of the agent graph of ``W`` (0-based sets)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    k, lab = connected_components(csr_matrix(np.asarray(W) != 0), connection="strong")
+    return [sorted(np.flatnonzero(lab == c).tolist()) for c in range(k)]
+
+
+# ---------------------------------------------------------------------------------
+# parsing helpers
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+
+def _unknown_keys(table, allowed, prefix, problems):
+    if isinstance(table, dict):
+        for key in table:
+            if key not in allowed:
+                problems.append(
+                    f"{prefix}{key}: unknown key (allowed: {', '.join(sorted(allowed))})"
+                )
+
+
+def _table(data, key, problems, required):
+    value = data.get(key)
+    if value is None:
+        if required:
+            problems.append(f"[{key}]: missing table")
+        return {}
+    if not isinstance(value, dict):
+        problems.append(f"[{key}]: must be a table")
+        return {}
+    return value
+
+
+def _positive_number(table, key, where, problems, default):
+    value = table.get(key, default)
+    if not _is_number(value) or not math.isfinite(value) or value < 0:
+        problems.append(f"{where}: must be a finite non-negative number, got {value!r}")
+        return default
+    return float(value)
+
+
+def _matrix(value, where, problems):
+    """Parse a list of lists of numbers into a float array, or report why not."""
+    if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
+        problems.append(f"{where}: must be a non-empty list of rows")
+        return None
+    widths = {len(r) for r in value}
+    if len(widths) != 1:
+        problems.append(f"{where}: rows have different lengths {sorted(widths)}")
+        return None
+    if not all(_is_number(x) for r in value for x in r):
+        problems.append(f"{where}: entries must be numbers")
+        return None
+    M = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(M)):
+        bad = np.argwhere(~np.isfinite(M))[0]
+        problems.append(f"{where}: non-finite entry at row {bad[0] + 1}, column {bad[1] + 1}")
+        return None
+    return M
+
+
+def _parse_social(social, base_dir, problems):
+    has_A, has_edges = "A" in social, "edges" in social
+    labels = social.get("labels")
+    if labels is not None:
+        if not isinstance(labels, list) or not all(isinstance(x, (str, int)) for x in labels):
+            problems.append("social.labels: must be a list of strings")
+            labels = None
+        else:
+            labels = [str(x) for x in labels]
+            dup = sorted({x for x in labels if labels.count(x) > 1})
+            if dup:
+                problems.append(f"social.labels: duplicate labels {dup}")
+    if has_A == has_edges:
+        problems.append("social: give exactly one of A (dense matrix) or edges (CSV file)")
+        return np.eye(1), ["1"]
+    if has_A:
+        for key in ("self_weight", "seed"):
+            if key in social:
+                problems.append(f"social.{key}: only meaningful with social.edges")
+        A = _matrix(social["A"], "social.A", problems)
+        if A is None:
+            return np.eye(1), ["1"]
+        if A.shape[0] != A.shape[1]:
+            problems.append(f"social.A: must be square, got {A.shape[0]} x {A.shape[1]}")
+            return np.eye(1), ["1"]
+        transpose = social.get("transpose", False)
+        if not isinstance(transpose, bool):
+            problems.append("social.transpose: must be true or false")
+        elif transpose:
+            A = A.T.copy()
+    else:
+        A, labels = _edges_matrix(social, base_dir, labels, problems)
+        if A is None:
+            return np.eye(1), ["1"]
+    n = A.shape[0]
+    if labels is None:
+        labels = [str(i + 1) for i in range(n)]
+    elif len(labels) != n:
+        problems.append(f"social.labels: {len(labels)} labels for n = {n} nodes")
+        labels = [str(i + 1) for i in range(n)]
+    if "spectral_radius" in social:
+        target = social["spectral_radius"]
+        if not _is_number(target) or not math.isfinite(target) or target <= 0:
+            problems.append(f"social.spectral_radius: must be a positive number, got {target!r}")
+        else:
+            rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+            if rho == 0:
+                problems.append("social.spectral_radius: A is nilpotent (rho = 0), cannot rescale")
+            else:
+                A = A * (float(target) / rho)
+    return A, labels
+
+
+def _edges_matrix(social, base_dir, labels, problems):
+    """Read the edges CSV and draw the weights (see the scenario file contract)."""
+    rel = social["edges"]
+    if not isinstance(rel, str):
+        problems.append("social.edges: must be a path string")
+        return None, labels
+    path = Path(rel)
+    if not path.is_absolute() and base_dir is not None:
+        path = Path(base_dir) / path
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as exc:
+        problems.append(f"social.edges: cannot read {str(path)!r}: {exc.strerror}")
+        return None, labels
+    rows = [r for r in csv.reader(ln for ln in lines if ln.strip() and not ln.lstrip().startswith("#"))]
+    if not rows:
+        problems.append(f"social.edges: {path} has no header and no rows")
+        return None, labels
+    header = tuple(c.strip().lower() for c in rows[0][:2])
+    if header not in _EDGE_HEADERS:
+        problems.append(
+            f"social.edges: {path}: bad header {rows[0]!r}; the first two columns must be "
+            "named source,target (or i,j): row 'i,j' means i listens to j"
+        )
+        return None, labels
+    pairs = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if len(row) < 2 or not row[0].strip() or not row[1].strip():
+            problems.append(f"social.edges: {path} data row {lineno}: needs two ids, got {row!r}")
+            continue
+        pairs.append((row[0].strip(), row[1].strip()))
+    if not pairs:
+        problems.append(f"social.edges: {path} has no edges")
+        return None, labels
+    ids = sorted({x for p in pairs for x in p})
+    if labels is None:
+        if all(x.isdigit() and int(x) >= 1 for x in ids):
+            labels = [str(i + 1) for i in range(max(int(x) for x in ids))]
+            canon = {x: str(int(x)) for x in ids}
+        else:
+            labels = ids
+            canon = {x: x for x in ids}
+    else:
+        canon = {x: x for x in ids}
+    index = {lab: i for i, lab in enumerate(labels)}
+    unknown = sorted({x for x in ids if canon[x] not in index})
+    if unknown:
+        problems.append(f"social.edges: {path}: ids not among social.labels: {unknown[:10]}")
+        return None, labels
+    n = len(labels)
+    mask = np.zeros((n, n), dtype=bool)
+    for a, b in pairs:
+        mask[index[canon[a]], index[canon[b]]] = True
+    self_weight = social.get("self_weight", True)
+    if not isinstance(self_weight, bool):
+        problems.append("social.self_weight: must be true or false")
+        self_weight = True
+    if self_weight:
+        np.fill_diagonal(mask, True)
+    seed = social.get("seed", 0)
+    if not _is_int(seed) or seed < 0:
+        problems.append(f"social.seed: must be a non-negative integer, got {seed!r}")
+        seed = 0
+    rng = np.random.default_rng(int(seed))
+    A = np.zeros((n, n))
+    A[mask] = rng.uniform(0.1, 1.0, size=int(mask.sum()))
+    return A, labels
+
+
+def _parse_measure(agents, labels, problems):
+    measure = agents.get("measure")
+    if not isinstance(measure, list) or not measure:
+        problems.append("agents.measure: must be a non-empty list of lists of node labels")
+        return None
+    index = {lab: i for i, lab in enumerate(labels)}
+    out = []
+    for a, group in enumerate(measure, start=1):
+        if not isinstance(group, list) or not group:
+            problems.append(f"agents.measure[{a}]: agent {a} must measure a non-empty list of labels")
+            out.append(())
+            continue
+        idx = []
+        for lab in group:
+            if str(lab) not in index:
+                problems.append(f"agents.measure[{a}]: unknown node label {lab!r}")
+            else:
+                idx.append(index[str(lab)])
+        if len(set(idx)) != len(idx):
+            problems.append(f"agents.measure[{a}]: agent {a} lists a node twice")
+        out.append(tuple(idx))
+    return out
+
+
+def _parse_weights(network, N, problems):
+    where = "network"
+    if "weights" in network:
+        for key in ("topology", "self_weight"):
+            if key in network:
+                problems.append(f"network.{key}: give either weights or topology/self_weight")
+        W = _matrix(network["weights"], "network.weights", problems)
+        if W is None:
+            return None
+        if W.shape != (N, N):
+            problems.append(
+                f"network.weights: must be {N} x {N} (one row per agent in agents.measure), "
+                f"got {W.shape[0]} x {W.shape[1]}"
+            )
+            return None
+    else:
+        topology = network.get("topology", "cycle")
+        sw = network.get("self_weight", 0.5)
+        if not _is_number(sw) or not 0 < sw <= 1:
+            problems.append(f"network.self_weight: must be in (0, 1], got {sw!r}")
+            return None
+        W = np.zeros((N, N))
+        if N == 1:
+            W[0, 0] = 1.0
+        elif topology == "cycle":
+            # agent i listens to agent i+1: information flows N -> ... -> 2 -> 1 -> N
+            for i in range(N):
+                W[i, i] = sw
+                W[i, (i + 1) % N] = 1.0 - sw
+        elif topology == "complete":
+            W[:] = (1.0 - sw) / (N - 1)
+            np.fill_diagonal(W, sw)
+        else:
+            problems.append(f"network.topology: expected 'cycle' or 'complete', got {topology!r}")
+            return None
+        if sw == 1 and N > 1:
+            problems.append("network.self_weight: 1 leaves no weight for neighbours")
+    problems.extend(_check_weights(W, where))
+    return W
+
+
+def _check_weights(W, where):
+    problems = []
+    if np.any(W < 0):
+        i, j = np.argwhere(W < 0)[0]
+        problems.append(f"{where}.weights: negative weight at agent {i + 1}, neighbour {j + 1}")
+    sums = W.sum(axis=1)
+    bad = np.flatnonzero(np.abs(sums - 1.0) > _ROW_SUM_TOL)
+    if bad.size:
+        problems.append(
+            f"{where}.weights: not row-stochastic: rows of agents "
+            f"{[int(i) + 1 for i in bad]} sum to {[round(float(sums[i]), 12) for i in bad]}"
+        )
+    zero_self = np.flatnonzero(np.diag(W) <= 0)
+    if zero_self.size:
+        problems.append(
+            f"{where}.weights: zero self weight w_ii for agents {[int(i) + 1 for i in zero_self]}"
+        )
+    comps = strongly_connected_agent_sets(W)
+    if len(comps) > 1:
+        problems.append(
+            f"{where}: agent graph G_W is not strongly connected; its components are "
+            f"{[[a + 1 for a in c] for c in comps]}"
+        )
+    return problems
+
+
+def _parse_delays(network, W, problems):
+    N = W.shape[0]
+    has_matrix = "delays" in network
+    has_random = "max_delay" in network or "delay_seed" in network
+    if has_matrix and has_random:
+        problems.append("network: give either delays or max_delay/delay_seed, not both")
+        return np.zeros((N, N), dtype=int)
+    if has_matrix:
+        raw = network["delays"]
+        if (
+            not isinstance(raw, list)
+            or not all(isinstance(r, list) for r in raw)
+            or len(raw) != N
+            or any(len(r) != N for r in raw)
+        ):
+            problems.append(f"network.delays: must be a {N} x {N} matrix of integers")
+            return np.zeros((N, N), dtype=int)
+        if not all(_is_int(x) for r in raw for x in r):
+            bad = [x for r in raw for x in r if not _is_int(x)]
+            problems.append(f"network.delays: entries must be integers (steps), got {bad[0]!r}")
+            return np.zeros((N, N), dtype=int)
+        D = np.asarray(raw, dtype=int)
+    elif has_random:
+        tmax = network.get("max_delay", 0)
+        seed = network.get("delay_seed", 0)
+        if not _is_int(tmax) or tmax < 0:
+            problems.append(f"network.max_delay: must be a non-negative integer, got {tmax!r}")
+            return np.zeros((N, N), dtype=int)
+        if not _is_int(seed) or seed < 0:
+            problems.append(f"network.delay_seed: must be a non-negative integer, got {seed!r}")
+            return np.zeros((N, N), dtype=int)
+        rng = np.random.default_rng(int(seed))
+        D = np.where(W > 0, rng.integers(0, int(tmax) + 1, size=W.shape), 0)
+        np.fill_diagonal(D, 0)
+        return D.astype(int)
+    else:
+        return np.zeros((N, N), dtype=int)
+    problems.extend(_check_delays(D, W, "network.delays"))
+    return D
+
+
+def _check_delays(D, W, where):
+    problems = []
+    if np.any(D < 0):
+        i, j = np.argwhere(D < 0)[0]
+        problems.append(f"{where}: negative delay {D[i, j]} on link {j + 1} -> {i + 1}")
+    off = (D != 0) & ~(W > 0)
+    if np.any(off):
+        i, j = np.argwhere(off)[0]
+        problems.append(
+            f"{where}: delay {D[i, j]} on link {j + 1} -> {i + 1}, which is not a link of W"
+        )
+    if np.any(np.diag(D) != 0):
+        i = int(np.flatnonzero(np.diag(D) != 0)[0])
+        problems.append(f"{where}: self link of agent {i + 1} must have delay 0")
+    return problems
+
+
+def _check_network(W, delays, where):
+    W = np.asarray(W, dtype=float)
+    delays = np.asarray(delays)
+    if W.ndim != 2 or W.shape[0] != W.shape[1]:
+        return [f"{where}.weights: must be square, got shape {W.shape}"]
+    if delays.shape != W.shape:
+        return [f"{where}.delays: shape {delays.shape} does not match W {W.shape}"]
+    return _check_weights(W, where) + _check_delays(delays, W, f"{where}.delays")
+
+
+def _check_measure_indices(measure, n):
+    problems = []
+    for a, m in enumerate(measure, start=1):
+        if not m:
+            problems.append(f"agents.measure[{a}]: agent {a} measures nothing")
+        for j in m:
+            if not 0 <= int(j) < n:
+                problems.append(f"agents.measure[{a}]: node index {j} out of range")
+    return problems
