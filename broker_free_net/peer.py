@@ -202,7 +202,7 @@ class Peer:
         token_key = keys.alive_key(net.run, role, id)  # validates role and id
         self._pid = os.getpid()
         self._lock = threading.Lock()
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, tuple[zenoh.Publisher, bool]] = {}
         self._inboxes: list[Inbox] = []
         self._watch: LivelinessWatch | None = None
         self._closed = False
@@ -243,7 +243,7 @@ class Peer:
             return  # forked child: the session belongs to the parent
         for inbox in self._inboxes:
             inbox.close()
-        for pub in self._publishers.values():
+        for pub, _ in self._publishers.values():
             try:
                 pub.undeclare()
             except zenoh.ZError:
@@ -272,14 +272,35 @@ class Peer:
 
     # -- publish -----------------------------------------------------------------
 
-    def publisher(self, key: str) -> zenoh.Publisher:
-        """Return the publisher of `key`, declaring it on first use."""
+    def publisher(self, key: str, *, block: bool | None = None) -> zenoh.Publisher:
+        """Return the publisher of `key`, declaring it on first use.
+
+        Parameters
+        ----------
+        key : str
+        block : bool, optional
+            Congestion control, fixed when the publisher is declared:
+            ``False`` (default; zenoh's ``DROP``) lets zenoh drop the message
+            when the outgoing queue stays full, which suits periodic
+            estimates; ``True`` (``BLOCK``) makes ``put`` wait instead, for
+            messages that must not be lost (control, impairments). ``None``
+            reuses the existing publisher whatever its mode.
+
+        Raises
+        ------
+        ValueError
+            If `block` contradicts the mode of the already declared publisher.
+        """
         self._check_usable()
-        pub = self._publishers.get(key)
-        if pub is None:
-            pub = self._session.declare_publisher(key)
-            self._publishers[key] = pub
-        return pub
+        entry = self._publishers.get(key)
+        if entry is None:
+            mode = bool(block)
+            cc = zenoh.CongestionControl.BLOCK if mode else zenoh.CongestionControl.DROP
+            entry = (self._session.declare_publisher(key, congestion_control=cc), mode)
+            self._publishers[key] = entry
+        elif block is not None and block != entry[1]:
+            raise ValueError(f"block: publisher of {key!r} already declared with block={entry[1]}")
+        return entry[0]
 
     def put(self, key: str, payload: bytes) -> None:
         """Publish `payload` on `key` through its (cached) publisher."""
