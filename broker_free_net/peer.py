@@ -189,6 +189,13 @@ class Peer:
     id : int or str
         Process id within its role.
 
+    Raises
+    ------
+    zenoh.ZError
+        If the session cannot be opened (e.g. the listen port is taken).
+        Unreachable ``connect`` endpoints are not an error: zenoh keeps
+        retrying them, so processes may start in any order.
+
     Examples
     --------
     >>> with Peer(NetConfig(run="demo"), "agent", 3) as peer:        # doctest: +SKIP

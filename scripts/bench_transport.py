@@ -2,13 +2,15 @@
 
 Starts a pong process (this script with ``--pong``), then from this process:
 
+0. baseline: raw 16-byte ping/pong answered inside the zenoh callbacks
+   (no inbox, no thread hop: the floor of zenoh + its Python binding);
 1. ping/pong round trips with a raw 16-byte payload (echoed as is);
 2. ping/pong round trips with a codec message holding a 14-float64 array
    (encoded here, decoded + validated + re-encoded by the pong, decoded here);
 3. a one-way flood of codec messages (``block`` congestion control), rate
    measured at the receiver.
 
-Everything goes through :class:`broker_free_net.peer.Peer` (zenoh peer mode,
+Cases 1-3 go through :class:`broker_free_net.peer.Peer` (zenoh peer mode,
 callback -> bounded inbox -> owning thread), i.e. the path socmon uses.
 
 Usage::
@@ -25,6 +27,7 @@ import socket
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -47,6 +50,7 @@ def bench_keys(run: str) -> dict:
     return {
         "raw_ping": keys.ctl_key(run, 1), "raw_pong": keys.status_key(run, 1),
         "msg_ping": keys.ctl_key(run, 2), "msg_pong": keys.status_key(run, 2),
+        "cb_ping": keys.ctl_key(run, 4), "cb_pong": keys.status_key(run, 4),
         "flood": keys.est_key(run, 0), "flood_end": keys.ctl_key(run, 3), "flood_report": keys.status_key(run, 3),
     }
 
@@ -61,8 +65,11 @@ def run_pong(run: str, listen: str) -> int:
         msg_in = peer.subscribe(k["msg_ping"])
         flood_in = peer.subscribe(k["flood"], maxlen=1 << 20)
         end_in = peer.subscribe(k["flood_end"])
-        for key in (k["raw_pong"], k["msg_pong"], k["flood_report"]):
+        for key in (k["raw_pong"], k["msg_pong"], k["flood_report"], k["cb_pong"]):
             peer.publisher(key, block=True)
+        # Baseline: echo straight from the zenoh callback (Peer never does this).
+        cb_pub = peer.publisher(k["cb_pong"])
+        cb_sub = peer.session.declare_subscriber(k["cb_ping"], lambda sample: cb_pub.put(sample.payload))
         first = last = None
         count = 0
 
@@ -104,6 +111,7 @@ def run_pong(run: str, listen: str) -> int:
                 busy = True
             if not busy:
                 peer.wait(timeout=0.5)
+        cb_sub.undeclare()
     return 0
 
 
@@ -166,7 +174,36 @@ def main(n: int = 2000, warmup: int = 200, flood: int = 20000) -> list[dict]:
                     raise RuntimeError("raw echo mismatch")
 
             times = _round_trips(peer, raw_in, k["raw_ping"], lambda i: RAW_PAYLOAD, check_raw, n, warmup)
-            rows.append({"case": "raw bytes round trip", "bytes": len(RAW_PAYLOAD), "n": n,
+            rows.append({"case": "raw bytes, Peer inboxes", "bytes": len(RAW_PAYLOAD), "n": n,
+                         "median_us": 1e6 * statistics.median(times), "p99_us": 1e6 * _percentile(times, 99)})
+
+            # Baseline: zenoh callbacks on both sides, no inbox/condition hop.
+            got, event = [], threading.Event()
+
+            def on_pong(sample):
+                got.append(sample.payload.to_bytes())
+                event.set()
+
+            cb_sub = peer.session.declare_subscriber(k["cb_pong"], on_pong)
+            cb_pub = peer.publisher(k["cb_ping"], block=True)
+            deadline = time.monotonic() + 30.0
+            while not got and time.monotonic() < deadline:
+                cb_pub.put(RAW_PAYLOAD)
+                event.wait(0.2)
+            time.sleep(0.2)
+            times = []
+            for i in range(warmup + n):
+                event.clear()
+                got.clear()
+                t0 = time.perf_counter()
+                cb_pub.put(RAW_PAYLOAD)
+                if not event.wait(10.0):
+                    raise RuntimeError(f"no callback pong for round trip {i}")
+                t1 = time.perf_counter()
+                if i >= warmup:
+                    times.append(t1 - t0)
+            cb_sub.undeclare()
+            rows.insert(0, {"case": "raw bytes, zenoh callbacks", "bytes": len(RAW_PAYLOAD), "n": n,
                          "median_us": 1e6 * statistics.median(times), "p99_us": 1e6 * _percentile(times, 99)})
 
             def check_msg(i, payload):
@@ -176,7 +213,7 @@ def main(n: int = 2000, warmup: int = 200, flood: int = 20000) -> list[dict]:
             msg_len = len(encode({"seq": 1, "x": x}))
             times = _round_trips(peer, msg_in, k["msg_ping"], lambda i: encode({"seq": i, "x": x}),
                                  check_msg, n, warmup)
-            rows.append({"case": "codec 14 x f64 round trip", "bytes": msg_len, "n": n,
+            rows.append({"case": "codec 14 x f64, Peer inboxes", "bytes": msg_len, "n": n,
                          "median_us": 1e6 * statistics.median(times), "p99_us": 1e6 * _percentile(times, 99)})
 
             t0 = time.perf_counter()

@@ -92,3 +92,12 @@ def test_two_peers_in_one_process_wait_and_drain():
         assert keys.parse_agent_key(run, "est", got[0].key) == 0
         assert a.zid() != b.zid()
     assert a.closed and b.closed
+
+
+def test_start_order_does_not_matter():
+    """A peer whose seed is not up yet keeps retrying and joins when it starts."""
+    run = f"late{free_port()}"
+    port = free_port()
+    with Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as early:
+        with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0):
+            assert early.wait_for_peers(lambda alive: ("agent", "0") in alive, 30)
