@@ -268,16 +268,25 @@ class Analysis:
                 f"nodes without self-loop (a_ii = 0): {_label_ranges(missing)} "
                 "(Assumption 1 / Lemma 3 premise)"
             )
-        for name, s_ok, n_ok, rank, order in (
+        rank_W = int(np.linalg.matrix_rank(self.scenario.W))
+        dist_premise = list(premise)
+        if rank_W < self.scenario.N:
+            dist_premise.append(
+                f"W has rank {rank_W} < N = {self.scenario.N}, so W (x) A has eigenvalue 0 "
+                f"with multiplicity >= {(self.scenario.N - rank_W) * self.n}, mostly unseen by "
+                "D_H (Kronecker premise of Lemma 3; such modes at 0 do not harm detectability)"
+            )
+        for name, s_ok, n_ok, rank, order, why_list in (
             ("(A, H)", self.structurally_observable, self.observable,
-             self.observability_rank, self.n),
+             self.observability_rank, self.n, premise),
             ("(W (x) A, D_H)", self.distributed_structurally_observable,
-             self.distributed_observable, self.distributed_rank, self.distributed_order),
+             self.distributed_observable, self.distributed_rank, self.distributed_order,
+             dist_premise),
         ):
             if s_ok == n_ok:
                 continue
             if s_ok:
-                why = "; ".join(premise) if premise else (
+                why = "; ".join(why_list) if why_list else (
                     "non-generic weights: the entries of A cancel numerically"
                 )
                 out.append(

@@ -114,6 +114,8 @@ class RecoveryPlan:
         failed agent -> lost nodes of child SCCs (no equivalent; dropped).
     unrecoverable : dict
         failed agent -> lost nodes of single-node parent SCCs (no candidate).
+    unassigned : dict
+        failed agent -> lost nodes that have candidates but no agent is left to take them.
     replacements : list of Replacement
     agent_ids : list of int
         1-based id of the agent in each row of the new W (survivors keep their id, a
@@ -135,6 +137,7 @@ class RecoveryPlan:
     candidates_by_node: dict
     no_equivalent: dict
     unrecoverable: dict
+    unassigned: dict
     replacements: list
     agent_ids: list
     W_removed: np.ndarray
@@ -193,6 +196,9 @@ class RecoveryPlan:
             },
             "unrecoverable_nodes": {
                 str(a + 1): [lab[v] for v in c] for a, c in self.unrecoverable.items() if c
+            },
+            "unassigned_nodes": {
+                str(a + 1): [lab[v] for v in c] for a, c in self.unassigned.items() if c
             },
             "replacements": reps,
             "agents_after": list(self.agent_ids),
@@ -277,9 +283,9 @@ def _plan(ctx: _Context, failed: tuple, add_links: bool) -> RecoveryPlan:
     measure = {i: list(s.measure[i]) if i not in failed_set else [] for i in slot_id}
     measured = {v for m in measure.values() for v in m}
     # 2.-3. replacements
-    candidates, by_node, no_eq, unrec, reps = {}, {}, {}, {}, []
+    candidates, by_node, no_eq, unrec, unassigned, reps = {}, {}, {}, {}, {}, []
     for f in failed:
-        candidates[f], by_node[f], no_eq[f], unrec[f] = [], {}, [], []
+        candidates[f], by_node[f], no_eq[f], unrec[f], unassigned[f] = [], {}, [], [], []
         for v in s.measure[f]:
             if not ctx.is_parent[ctx.structure.labels[v]]:
                 no_eq[f].append(v)
@@ -287,8 +293,11 @@ def _plan(ctx: _Context, failed: tuple, add_links: bool) -> RecoveryPlan:
             cands = ctx.candidates(v)
             by_node[f][v] = sorted(cands)
             candidates[f].extend(u for u in sorted(cands) if u not in candidates[f])
-            if not cands or not slot_id:
+            if not cands:
                 unrec[f].append(v)
+                continue
+            if not slot_id:
+                unassigned[f].append(v)
                 continue
             fresh = [u for u in cands if u not in measured]
             to = (fresh or cands)[0]
@@ -338,6 +347,7 @@ def _plan(ctx: _Context, failed: tuple, add_links: bool) -> RecoveryPlan:
         candidates_by_node=by_node,
         no_equivalent=no_eq,
         unrecoverable=unrec,
+        unassigned=unassigned,
         replacements=reps,
         agent_ids=ids,
         W_removed=W0,

@@ -291,3 +291,25 @@ def test_cli_analyze_rank_deficient_warns_on_stderr(tmp_path, capsys):
     assert "warning:" in cap.err and "rank 1 < n = 2" in cap.err
     d = json.loads(cap.out)
     assert d["full_rank"] is False and d["warnings"]
+
+
+@pytest.mark.parametrize("self_weight, rank", [(0.5, 58), (0.6, 72)])
+def test_sampson_even_cycle_with_half_self_weight_has_singular_W(tmp_path, sampson_edges,
+                                                                   self_weight, rank):
+    from design.scenario import load_scenario
+
+    path = tmp_path / "sampson.toml"
+    path.write_text(
+        f'[social]\nedges = "{sampson_edges}"\nseed = 3\nspectral_radius = 1.1\n'
+        '[agents]\nmeasure = [["1"], ["5"], ["12"], ["18"]]\n'
+        f'[network]\ntopology = "cycle"\nself_weight = {self_weight}\n'
+    )
+    r = analyze(load_scenario(path))
+    assert r.observable and len(r.equivalence_classes) == 1 and r.structural.n_sccs == 1
+    # 0.5 I + 0.5 P with P a 4-cycle has eigenvalue 0: W (x) A loses rank, modes at 0
+    assert r.distributed_rank == rank and r.distributed_detectable
+    if rank < 72:
+        assert np.max(np.abs(r.distributed_unobservable_modes)) < 1e-9
+        assert "W has rank 3 < N = 4" in r.reasons()[0]
+    else:
+        assert r.reasons() == []

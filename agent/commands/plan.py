@@ -76,6 +76,8 @@ def format_text(d: dict) -> str:
             line += f"; nodes {', '.join(d['no_equivalent'][a])} are in child SCCs (no equivalent, not needed)"
         if a in d["unrecoverable_nodes"]:
             line += f"; nodes {', '.join(d['unrecoverable_nodes'][a])} have no equivalent (single-node parent SCC)"
+        if a in d["unassigned_nodes"]:
+            line += f"; nodes {', '.join(d['unassigned_nodes'][a])} not replaced: no agent left"
         lines.append(line)
     lines.append("replacements:")
     if not d["replacements"]:
