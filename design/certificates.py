@@ -38,7 +38,7 @@ import math
 
 import numpy as np
 
-from .closed_loop import ClosedLoop, delay_free_matrix, spectral_radius, theorem1_matrix
+from .closed_loop import ClosedLoop, spectral_radius, theorem1_matrix
 from .errors import SocmonError
 from .gains import check_gains_fit
 from .scenario import uniform_delays

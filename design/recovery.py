@@ -253,7 +253,9 @@ class _Context:
 
     def __init__(self, scenario):
         self.scenario = scenario
-        self.structure = influence_structure(scenario.A)
+        from .analysis import structural_analysis
+
+        self.structure = structural_analysis(scenario.A).structure
         self.G = influence_graph(scenario.A)  # G[j, i] = 1 iff j -> i
         self.is_parent = self.structure.is_parent
         self._cand: dict = {}
@@ -416,7 +418,10 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
         }
     else:
         num = {"observable_after": False, "observability_rank_after": None,
-               "distributed_observable_after": False, "distributed_rank_after": None}
+               "detectable_after": None, "distributed_observable_after": False,
+               "distributed_rank_after": None, "distributed_order_after": None,
+               "distributed_detectable_after": None,
+               "distributed_unobservable_modes_after": None}
     return RecoveryPlan(**{**plan.__dict__, "scenario_after": new, "numerical": num})
 
 

@@ -82,12 +82,17 @@ def bench_structure(nodes, edges, seed, repeat, baseline):
     from design.analysis import structural_analysis
 
     rng = np.random.default_rng(seed)
-    rows = rng.integers(0, nodes, edges)
-    cols = rng.integers(0, nodes, edges)
+    # exactly `edges` distinct off-diagonal pairs (draw a few more, drop loops/duplicates)
+    keys = np.empty(0, dtype=np.int64)
+    while keys.size < edges:
+        extra = rng.integers(0, nodes * nodes, int(1.05 * edges) + 10, dtype=np.int64)
+        keys = np.unique(np.concatenate([keys, extra[extra // nodes != extra % nodes]]))
+    keys = rng.permutation(keys)[:edges]
+    rows, cols = keys // nodes, keys % nodes
     A = sp.csr_matrix((rng.uniform(0.1, 1.0, edges), (rows, cols)), shape=(nodes, nodes))
     measured = rng.choice(nodes, size=min(1000, nodes), replace=False)
     t, s = _best(lambda: structural_analysis(A, measured), repeat)
-    print(f"[structure] random digraph: {nodes} nodes, {A.nnz} edges (seed {seed})")
+    print(f"[structure] random digraph: {nodes} nodes, {s.n_edges} edges (seed {seed})")
     print(f"  structural_analysis (SCCs + condensation + parents + minimal sensor set): "
           f"{t:.3f} s (best of {repeat})")
     print(f"  -> {s.n_sccs} SCCs, {len(s.parents)} parent SCCs, {s.condensation_edges} "
