@@ -1,0 +1,189 @@
+"""Key expressions of a socmon run.
+
+Every key lives under ``socmon/<run>/``::
+
+    socmon/<run>/est/<agent>          estimate published by an agent
+    socmon/<run>/sensor/<label>       sensor reading published by the world
+    socmon/<run>/ctl/<agent>          control message to an agent
+    socmon/<run>/status/<agent>       status of an agent
+    socmon/<run>/truth                ground truth (world -> monitor)
+    socmon/<run>/impair               impairment changes (socmon inject)
+    socmon/<run>/alive/<role>/<id>    liveliness token of a process
+
+Agent ids are non-negative ints written in decimal without leading zeros.
+Run ids, labels, roles and liveliness ids are single key chunks: non-empty,
+without ``* $ / # ?``, whitespace or a leading ``@``.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "PREFIX",
+    "InvalidKey",
+    "agent_key",
+    "alive_key",
+    "alive_pattern",
+    "any_agent_pattern",
+    "ctl_key",
+    "est_key",
+    "impair_key",
+    "parse_agent_key",
+    "parse_alive_key",
+    "parse_sensor_key",
+    "run_prefix",
+    "sensor_key",
+    "status_key",
+    "truth_key",
+    "validate_chunk",
+]
+
+PREFIX = "socmon"
+AGENT_KINDS = ("est", "ctl", "status")
+_FORBIDDEN = set("*$/#?")
+
+
+class InvalidKey(ValueError):
+    """A key, or a part of a key, is malformed.
+
+    Attributes
+    ----------
+    field : str
+        What was being validated (``"run"``, ``"label"``, ``"key"``, ...).
+    """
+
+    def __init__(self, field: str, message: str):
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+def validate_chunk(value, field: str = "chunk") -> str:
+    """Check that `value` is a valid single key chunk and return it.
+
+    Raises
+    ------
+    InvalidKey
+        If `value` is not a str, is empty, contains ``* $ / # ?`` or
+        whitespace/control characters, or starts with ``@``.
+    """
+    if not isinstance(value, str):
+        raise InvalidKey(field, f"expected str, got {type(value).__name__}")
+    if not value:
+        raise InvalidKey(field, "empty")
+    bad = _FORBIDDEN.intersection(value)
+    if bad:
+        raise InvalidKey(field, f"{value!r} contains forbidden character(s) {''.join(sorted(bad))!r}")
+    if value.startswith("@"):
+        raise InvalidKey(field, f"{value!r} starts with '@' (reserved by zenoh)")
+    if any(c.isspace() or not c.isprintable() for c in value):
+        raise InvalidKey(field, f"{value!r} contains whitespace or control characters")
+    return value
+
+
+def _agent_chunk(agent) -> str:
+    if isinstance(agent, bool) or not isinstance(agent, int):
+        raise InvalidKey("agent", f"expected int, got {type(agent).__name__}")
+    if agent < 0:
+        raise InvalidKey("agent", f"negative agent id {agent}")
+    return str(agent)
+
+
+def run_prefix(run: str) -> str:
+    """Return ``socmon/<run>``."""
+    return f"{PREFIX}/{validate_chunk(run, 'run')}"
+
+
+def agent_key(run: str, kind: str, agent: int) -> str:
+    """Return ``socmon/<run>/<kind>/<agent>`` for kind in ``est``, ``ctl``, ``status``."""
+    if kind not in AGENT_KINDS:
+        raise InvalidKey("kind", f"{kind!r} not in {AGENT_KINDS}")
+    return f"{run_prefix(run)}/{kind}/{_agent_chunk(agent)}"
+
+
+def est_key(run: str, agent: int) -> str:
+    """Return ``socmon/<run>/est/<agent>``."""
+    return agent_key(run, "est", agent)
+
+
+def ctl_key(run: str, agent: int) -> str:
+    """Return ``socmon/<run>/ctl/<agent>``."""
+    return agent_key(run, "ctl", agent)
+
+
+def status_key(run: str, agent: int) -> str:
+    """Return ``socmon/<run>/status/<agent>``."""
+    return agent_key(run, "status", agent)
+
+
+def any_agent_pattern(run: str, kind: str) -> str:
+    """Return the subscription pattern ``socmon/<run>/<kind>/*``."""
+    if kind not in AGENT_KINDS + ("sensor",):
+        raise InvalidKey("kind", f"{kind!r} not in {AGENT_KINDS + ('sensor',)}")
+    return f"{run_prefix(run)}/{kind}/*"
+
+
+def sensor_key(run: str, label: str) -> str:
+    """Return ``socmon/<run>/sensor/<label>``."""
+    return f"{run_prefix(run)}/sensor/{validate_chunk(label, 'label')}"
+
+
+def truth_key(run: str) -> str:
+    """Return ``socmon/<run>/truth``."""
+    return f"{run_prefix(run)}/truth"
+
+
+def impair_key(run: str) -> str:
+    """Return ``socmon/<run>/impair``."""
+    return f"{run_prefix(run)}/impair"
+
+
+def alive_key(run: str, role: str, id) -> str:
+    """Return the liveliness key ``socmon/<run>/alive/<role>/<id>``.
+
+    `id` may be a non-negative int or a key chunk.
+    """
+    id_chunk = _agent_chunk(id) if isinstance(id, int) and not isinstance(id, bool) else validate_chunk(id, "id")
+    return f"{run_prefix(run)}/alive/{validate_chunk(role, 'role')}/{id_chunk}"
+
+
+def alive_pattern(run: str) -> str:
+    """Return the liveliness subscription pattern ``socmon/<run>/alive/**``."""
+    return f"{run_prefix(run)}/alive/**"
+
+
+def _split(run: str, key, n_after: int, kind: str) -> list[str]:
+    if not isinstance(key, str):
+        key = str(key)  # zenoh.KeyExpr
+    parts = key.split("/")
+    if len(parts) != 3 + n_after or parts[0] != PREFIX or parts[1] != run or parts[2] != kind:
+        raise InvalidKey("key", f"{key!r} is not a socmon/{run}/{kind}/... key with {n_after} trailing chunk(s)")
+    return parts[3:]
+
+
+def parse_agent_key(run: str, kind: str, key) -> int:
+    """Extract the agent id from ``socmon/<run>/<kind>/<agent>``.
+
+    Raises
+    ------
+    InvalidKey
+        If the key has another run, kind or shape, or the agent chunk is not
+        a canonical non-negative decimal int.
+    """
+    (chunk,) = _split(run, key, 1, kind)
+    if not (chunk.isascii() and chunk.isdigit()) or (len(chunk) > 1 and chunk[0] == "0") or len(chunk) > 9:
+        raise InvalidKey("agent", f"{chunk!r} in {key!s} is not a canonical agent id")
+    return int(chunk)
+
+
+def parse_sensor_key(run: str, key) -> str:
+    """Extract the label from ``socmon/<run>/sensor/<label>``."""
+    (chunk,) = _split(run, key, 1, "sensor")
+    return validate_chunk(chunk, "label")
+
+
+def parse_alive_key(run: str, key) -> tuple[str, str]:
+    """Extract ``(role, id)`` from ``socmon/<run>/alive/<role>/<id>``.
+
+    The id is returned as the str chunk; agents use ``int(id)``.
+    """
+    role, id_chunk = _split(run, key, 2, "alive")
+    return validate_chunk(role, "role"), validate_chunk(id_chunk, "id")

@@ -1,0 +1,356 @@
+"""One zenoh session per process, with a liveliness token and inboxes.
+
+Threading model: zenoh calls subscriber callbacks on its own threads. Our
+callbacks only copy ``(payload bytes, key, arrival time)`` into a bounded
+:class:`Inbox` (drop-oldest on overflow, counted) and notify a condition;
+they never call zenoh and never block beyond a short lock. The owning thread
+reads with :meth:`Inbox.poll` / :meth:`Inbox.get` / :meth:`Inbox.drain` and
+does all decoding and publishing.
+
+Processes: never ``fork`` after a session is open (zenoh's runtime threads
+do not survive it). Start socmon processes with ``subprocess`` or the
+``spawn`` multiprocessing context. A :class:`Peer` used from a forked child
+raises ``RuntimeError`` and its close() there does nothing.
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import threading
+import time
+from collections import deque
+from typing import Callable, NamedTuple
+
+import zenoh
+
+from . import keys
+from .config import NetConfig, build_zenoh_config
+
+__all__ = ["Inbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received"]
+
+DEFAULT_INBOX_SIZE = 4096
+
+
+class Received(NamedTuple):
+    """A sample as queued by a subscriber callback."""
+
+    payload: bytes
+    key: str
+    arrival: float  # time.monotonic() at enqueue
+
+
+class LivelinessEvent(NamedTuple):
+    """A peer appeared (``alive=True``) or disappeared (``alive=False``)."""
+
+    role: str
+    id: str
+    alive: bool
+    key: str
+    arrival: float
+
+
+class Inbox:
+    """Bounded, thread-safe FIFO filled by a zenoh callback.
+
+    When full, the oldest item is dropped and counted in :attr:`overflows`.
+
+    Attributes
+    ----------
+    received : int
+        Items enqueued so far (including those later dropped by overflow).
+    overflows : int
+        Items dropped because the inbox was full.
+    ignored : int
+        Samples the callback discarded (DELETE samples on data keys, bad
+        liveliness keys, internal errors).
+    """
+
+    def __init__(self, maxlen: int = DEFAULT_INBOX_SIZE):
+        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
+            raise ValueError(f"maxlen: expected int >= 1, got {maxlen!r}")
+        self.maxlen = maxlen
+        self._items: deque = deque()
+        self._cond = threading.Condition(threading.Lock())
+        self.received = 0
+        self.overflows = 0
+        self.ignored = 0
+        self._subscriber = None
+
+    # called from zenoh threads -------------------------------------------------
+    def _push(self, item) -> None:
+        with self._cond:
+            if len(self._items) >= self.maxlen:
+                self._items.popleft()
+                self.overflows += 1
+            self._items.append(item)
+            self.received += 1
+            self._cond.notify()
+
+    def _ignore(self) -> None:
+        with self._cond:
+            self.ignored += 1
+
+    # called from the owning thread ----------------------------------------------
+    def poll(self):
+        """Return the oldest item, or ``None`` if empty (never blocks)."""
+        with self._cond:
+            return self._items.popleft() if self._items else None
+
+    def get(self, timeout: float | None = None):
+        """Return the oldest item, waiting up to `timeout` s (None: forever); ``None`` on timeout."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._items, timeout):
+                return None
+            return self._items.popleft()
+
+    def drain(self, max_items: int | None = None) -> list:
+        """Return (and remove) up to `max_items` queued items, oldest first."""
+        with self._cond:
+            n = len(self._items) if max_items is None else min(max_items, len(self._items))
+            return [self._items.popleft() for _ in range(n)]
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def close(self) -> None:
+        """Undeclare the subscriber feeding this inbox (idempotent)."""
+        sub, self._subscriber = self._subscriber, None
+        if sub is not None:
+            try:
+                sub.undeclare()
+            except zenoh.ZError:
+                pass  # session already closed
+
+
+class LivelinessWatch(Inbox):
+    """Inbox of :class:`LivelinessEvent` that also tracks who is alive.
+
+    :meth:`alive` and :meth:`wait_until` read the tracked set and do not
+    consume events, so a thread can wait for peers while another (or the
+    same, later) drains the events.
+    """
+
+    def __init__(self, run: str, maxlen: int = DEFAULT_INBOX_SIZE):
+        super().__init__(maxlen)
+        self.run = run
+        self._alive: set[tuple[str, str]] = set()
+
+    def _on_sample(self, sample) -> None:
+        try:
+            key = str(sample.key_expr)
+            try:
+                role, id_ = keys.parse_alive_key(self.run, key)
+            except keys.InvalidKey:
+                self._ignore()
+                return
+            alive = sample.kind == zenoh.SampleKind.PUT
+            with self._cond:
+                (self._alive.add if alive else self._alive.discard)((role, id_))
+            self._push(LivelinessEvent(role, id_, alive, key, time.monotonic()))
+        except Exception:  # never raise into zenoh
+            self._ignore()
+
+    def alive(self) -> frozenset:
+        """Return the set of ``(role, id)`` currently alive (ids are str)."""
+        with self._cond:
+            return frozenset(self._alive)
+
+    def wait_until(self, predicate: Callable[[frozenset], bool], timeout: float) -> bool:
+        """Wait until ``predicate(alive_set)`` is true; return False on timeout."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not predicate(frozenset(self._alive)):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._cond.wait(min(remaining, 0.25))
+        return True
+
+
+class Peer:
+    """A socmon process on the zenoh mesh.
+
+    Opens one zenoh session in peer mode and declares the liveliness token
+    ``socmon/<run>/alive/<role>/<id>``. Closing (context manager exit,
+    :meth:`close`, or interpreter exit) undeclares everything; it is
+    idempotent.
+
+    Parameters
+    ----------
+    net : NetConfig
+    role : str
+        ``"agent"``, ``"world"``, ``"monitor"``, ... (a key chunk).
+    id : int or str
+        Process id within its role.
+
+    Examples
+    --------
+    >>> with Peer(NetConfig(run="demo"), "agent", 3) as peer:        # doctest: +SKIP
+    ...     inbox = peer.subscribe(keys.any_agent_pattern("demo", "est"))
+    ...     peer.put(keys.est_key("demo", 3), payload)
+    ...     item = inbox.get(timeout=1.0)
+    """
+
+    def __init__(self, net: NetConfig, role: str, id):
+        if not isinstance(net, NetConfig):
+            raise TypeError(f"net: expected NetConfig, got {type(net).__name__}")
+        self.net = net
+        self.run = net.run
+        self.role = role
+        self.id = id
+        token_key = keys.alive_key(net.run, role, id)  # validates role and id
+        self._pid = os.getpid()
+        self._lock = threading.Lock()
+        self._publishers: dict[str, tuple[zenoh.Publisher, bool]] = {}
+        self._inboxes: list[Inbox] = []
+        self._watch: LivelinessWatch | None = None
+        self._closed = False
+        self._session = zenoh.open(build_zenoh_config(net))
+        try:
+            self._token = self._session.liveliness().declare_token(token_key)
+        except BaseException:
+            self._session.close()
+            raise
+        atexit.register(self.close)
+
+    # -- lifecycle -------------------------------------------------------------
+
+    def __enter__(self) -> Peer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_usable(self) -> None:
+        if os.getpid() != self._pid:
+            raise RuntimeError("Peer used in a forked child; start processes with subprocess or 'spawn'")
+        if self._closed:
+            raise RuntimeError("Peer is closed")
+
+    def close(self) -> None:
+        """Undeclare the token, subscribers and publishers and close the session (idempotent)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        atexit.unregister(self.close)
+        if os.getpid() != self._pid:
+            return  # forked child: the session belongs to the parent
+        for inbox in self._inboxes:
+            inbox.close()
+        for pub, _ in self._publishers.values():
+            try:
+                pub.undeclare()
+            except zenoh.ZError:
+                pass
+        try:
+            self._token.undeclare()
+        except zenoh.ZError:
+            pass
+        self._session.close()
+
+    # -- info ----------------------------------------------------------------------
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The underlying zenoh session (for advanced use)."""
+        self._check_usable()
+        return self._session
+
+    def zid(self) -> str:
+        """Return this session's zenoh id."""
+        return str(self.session.zid())
+
+    def connected_peers(self) -> list[str]:
+        """Return the zenoh ids of directly connected peers."""
+        return [str(z) for z in self.session.info.peers_zid()]
+
+    # -- publish -----------------------------------------------------------------
+
+    def publisher(self, key: str, *, block: bool | None = None) -> zenoh.Publisher:
+        """Return the publisher of `key`, declaring it on first use.
+
+        Parameters
+        ----------
+        key : str
+        block : bool, optional
+            Congestion control, fixed when the publisher is declared:
+            ``False`` (default; zenoh's ``DROP``) lets zenoh drop the message
+            when the outgoing queue stays full, which suits periodic
+            estimates; ``True`` (``BLOCK``) makes ``put`` wait instead, for
+            messages that must not be lost (control, impairments). ``None``
+            reuses the existing publisher whatever its mode.
+
+        Raises
+        ------
+        ValueError
+            If `block` contradicts the mode of the already declared publisher.
+        """
+        self._check_usable()
+        entry = self._publishers.get(key)
+        if entry is None:
+            mode = bool(block)
+            cc = zenoh.CongestionControl.BLOCK if mode else zenoh.CongestionControl.DROP
+            entry = (self._session.declare_publisher(key, congestion_control=cc), mode)
+            self._publishers[key] = entry
+        elif block is not None and block != entry[1]:
+            raise ValueError(f"block: publisher of {key!r} already declared with block={entry[1]}")
+        return entry[0]
+
+    def put(self, key: str, payload: bytes) -> None:
+        """Publish `payload` on `key` through its (cached) publisher."""
+        self.publisher(key).put(payload)
+
+    # -- subscribe ---------------------------------------------------------------
+
+    def subscribe(self, keyexpr: str, maxlen: int = DEFAULT_INBOX_SIZE) -> Inbox:
+        """Subscribe to `keyexpr`; return an :class:`Inbox` of :class:`Received`.
+
+        DELETE samples are ignored (counted in ``inbox.ignored``).
+        """
+        self._check_usable()
+        inbox = Inbox(maxlen)
+
+        def on_sample(sample, inbox=inbox):
+            try:
+                if sample.kind != zenoh.SampleKind.PUT:
+                    inbox._ignore()
+                    return
+                inbox._push(Received(sample.payload.to_bytes(), str(sample.key_expr), time.monotonic()))
+            except Exception:  # never raise into zenoh
+                inbox._ignore()
+
+        inbox._subscriber = self._session.declare_subscriber(keyexpr, on_sample)
+        self._inboxes.append(inbox)
+        return inbox
+
+    def watch_liveliness(self, maxlen: int = DEFAULT_INBOX_SIZE) -> LivelinessWatch:
+        """Watch ``socmon/<run>/alive/**`` (with history: peers already alive are reported).
+
+        Returns a :class:`LivelinessWatch`; this peer's own token is included.
+        """
+        self._check_usable()
+        watch = LivelinessWatch(self.run, maxlen)
+        watch._subscriber = self._session.liveliness().declare_subscriber(
+            keys.alive_pattern(self.run), watch._on_sample, history=True)
+        self._inboxes.append(watch)
+        return watch
+
+    def wait_for_peers(self, predicate: Callable[[frozenset], bool], timeout: float) -> bool:
+        """Wait until ``predicate(alive)`` holds, `alive` being a set of ``(role, id)`` str pairs.
+
+        Uses (and creates on first call) a liveliness watch owned by the peer.
+        Returns False on timeout.
+
+        Examples
+        --------
+        >>> peer.wait_for_peers(lambda alive: {("agent", "0"), ("agent", "1")} <= alive, 10.0)  # doctest: +SKIP
+        """
+        if self._watch is None:
+            self._watch = self.watch_liveliness()
+        return self._watch.wait_until(predicate, timeout)

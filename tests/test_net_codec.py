@@ -1,0 +1,249 @@
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from broker_free_net.codec import (
+    MAX_PAYLOAD_BYTES,
+    REASONS,
+    Bool,
+    F64Array,
+    Float,
+    Ident,
+    Int,
+    MalformedMessage,
+    MessageStats,
+    Schema,
+    Str,
+    decode,
+    encode,
+    try_decode,
+)
+
+SCHEMA = Schema(
+    {
+        "step": Int(0, 10**9),
+        "sender": Ident(),
+        "x": F64Array((3,)),
+        "P": F64Array((3, 3)),
+        "gain": Float(0.0, 10.0),
+        "ok": Bool(),
+        "note": Str(max_len=8, required=False),
+    },
+    stamp="step",
+    sender="sender",
+)
+
+
+def good(**over):
+    msg = {"step": 10, "sender": 1, "x": np.arange(3.0), "P": np.eye(3), "gain": 0.5, "ok": True}
+    msg.update(over)
+    return msg
+
+
+def raw(obj):
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def arr_map(a, dtype="<f8", shape=None):
+    a = np.asarray(a, dtype="<f8")
+    return {"dtype": dtype, "shape": list(a.shape) if shape is None else shape, "data": a.tobytes()}
+
+
+def good_raw(**over):
+    msg = {"v": 1, "step": 10, "sender": 1, "x": arr_map(np.arange(3.0)), "P": arr_map(np.eye(3)),
+           "gain": 0.5, "ok": True}
+    msg.update(over)
+    return msg
+
+
+def reason_of(payload, **kw):
+    with pytest.raises(MalformedMessage) as info:
+        decode(payload, SCHEMA, **kw)
+    assert info.value.reason in REASONS
+    return info.value
+
+
+def test_round_trip_and_zero_copy():
+    payload = encode(good(note="hi"))
+    msg = decode(payload, SCHEMA, now_step=10, window=2, senders={0, 1})
+    assert msg["step"] == 10 and msg["sender"] == 1 and msg["ok"] is True and msg["note"] == "hi"
+    np.testing.assert_array_equal(msg["x"], np.arange(3.0))
+    np.testing.assert_array_equal(msg["P"], np.eye(3))
+    assert msg["x"].dtype == np.dtype("<f8")
+    assert not msg["x"].flags.writeable  # a view on the payload bytes
+    assert msg["x"].base is not None
+
+
+def test_encode_converts_numpy_scalars_and_non_contiguous():
+    a = np.arange(9.0).reshape(3, 3).T  # not C-contiguous
+    payload = encode(good(step=np.int64(4), gain=np.float32(0.25), ok=np.bool_(False), P=a))
+    msg = decode(payload, SCHEMA)
+    assert msg["step"] == 4 and msg["gain"] == 0.25 and msg["ok"] is False
+    np.testing.assert_array_equal(msg["P"], a)
+
+
+def test_encode_rejects():
+    with pytest.raises(TypeError):
+        encode([1, 2])
+    with pytest.raises(TypeError):
+        encode({1: 2})
+    with pytest.raises(TypeError):
+        encode({"a": object()})
+    with pytest.raises(ValueError):
+        encode({"v": 2})
+
+
+@pytest.mark.parametrize(
+    "payload, reason, field",
+    [
+        (b"\xc1", "bad_msgpack", None),
+        (b"", "bad_msgpack", None),
+        (raw(good_raw()) + b"\x00", "bad_msgpack", None),
+        (raw(good_raw())[:-3], "bad_msgpack", None),
+        (b"\x91" * 5000, "bad_msgpack", None),  # too nested
+        (msgpack.packb(msgpack.ExtType(5, b"abc")), "bad_msgpack", None),
+        (raw([1, 2]), "not_map", None),
+        (raw(3), "not_map", None),
+        (raw({k: v for k, v in good_raw().items() if k != "v"}), "version", "v"),
+        (raw(good_raw(v=2)), "version", "v"),
+        (raw(good_raw(v=True)), "version", "v"),
+        (raw({k: v for k, v in good_raw().items() if k != "gain"}), "missing", "gain"),
+        (raw(good_raw(extra=1)), "extra", "extra"),
+        (raw(good_raw(step="10")), "type", "step"),
+        (raw(good_raw(step=True)), "type", "step"),
+        (raw(good_raw(step=-1)), "range", "step"),
+        (raw(good_raw(step=2**64 - 1)), "range", "step"),
+        (raw(good_raw(gain=float("nan"))), "nonfinite", "gain"),
+        (raw(good_raw(gain=float("inf"))), "nonfinite", "gain"),
+        (raw(good_raw(gain=11.0)), "range", "gain"),
+        (raw(good_raw(ok=1)), "type", "ok"),
+        (raw(good_raw(note="x" * 9)), "range", "note"),
+        (raw(good_raw(sender=1.5)), "type", "sender"),
+        (raw(good_raw(sender=-3)), "range", "sender"),
+        (raw(good_raw(x=[0.0, 1.0, 2.0])), "type", "x"),
+        (raw(good_raw(x={"dtype": "<f8", "shape": [3]})), "type", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(3), dtype=">f8"))), "dtype", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(3), dtype="<f4"))), "dtype", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(4)))), "shape", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(3), shape=[4]))), "shape", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(3), shape=[3, 1]))), "shape", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(3), shape=[-3]))), "shape", "x"),
+        (raw(good_raw(x=arr_map(np.zeros(3), shape="3"))), "shape", "x"),
+        (raw(good_raw(x={"dtype": "<f8", "shape": [3], "data": "abc"})), "type", "x"),
+        (raw(good_raw(P=arr_map(np.zeros((3, 2))))), "shape", "P"),
+        (raw(good_raw(x=arr_map([0.0, np.nan, 1.0]))), "nonfinite", "x"),
+        (raw(good_raw(x=arr_map([0.0, -np.inf, 1.0]))), "nonfinite", "x"),
+        (b"\xc6\xff\xff\xff\xf0" + b"x" * 10, "bad_msgpack", None),  # bin32 claiming ~4 GiB
+        (b"\xdd\xff\xff\xff\xf0", "bad_msgpack", None),  # array32 claiming 4G items
+        (b"\xdf\xff\xff\xff\xf0", "bad_msgpack", None),  # map32 claiming 4G items
+        (raw({1: 2}), "bad_msgpack", None),  # non-str key (strict_map_key)
+        (raw({"v": 1, b"step": 1}), "missing", "step"),  # bytes key is not the str field
+        (b"\x00" * (MAX_PAYLOAD_BYTES + 1), "too_large", None),
+        ("not bytes", "type", None),
+    ],
+)
+def test_malformed(payload, reason, field):
+    exc = reason_of(payload)
+    assert exc.reason == reason, exc
+    assert exc.field == field
+    if field is not None:
+        assert repr(field) in str(exc)
+
+
+def test_sender_and_stamp_checks():
+    payload = encode(good(step=10, sender=5))
+    assert reason_of(payload, senders={0, 1}).reason == "sender"
+    assert decode(payload, SCHEMA, senders={5})["sender"] == 5
+    assert reason_of(payload, now_step=20, window=5).reason == "stale"
+    assert reason_of(payload, now_step=2, window=5).reason == "future"
+    assert decode(payload, SCHEMA, now_step=15, window=5)["step"] == 10  # window is inclusive
+    assert decode(payload, SCHEMA, now_step=5, window=5)["step"] == 10
+
+
+def test_schema_validation():
+    with pytest.raises(ValueError):
+        Schema({"v": Int()})
+    with pytest.raises(ValueError):
+        Schema({"a": Int()}, stamp="b")
+    with pytest.raises(TypeError):
+        Schema({"a": int})
+
+
+def test_stats_and_try_decode():
+    stats = MessageStats()
+    assert try_decode(b"\xc1", SCHEMA, stats) is None
+    assert try_decode(encode(good(step=-1)), SCHEMA, stats) is None
+    assert try_decode(encode(good()), SCHEMA, stats) is not None
+    assert stats.as_dict() == {"accepted": 1, "dropped": {"bad_msgpack": 1, "range": 1}}
+    assert stats.total_dropped == 2
+
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+
+
+@given(
+    step=st.integers(0, 10**9),
+    sender=st.one_of(st.integers(0, 2**31 - 1), st.text(min_size=1, max_size=64)),
+    x=st.lists(finite, min_size=3, max_size=3),
+    P=st.lists(finite, min_size=9, max_size=9),
+    gain=st.floats(0.0, 10.0),
+    ok=st.booleans(),
+    note=st.one_of(st.none(), st.text(max_size=8)),
+)
+def test_round_trip_property(step, sender, x, P, gain, ok, note):
+    msg = good(step=step, sender=sender, x=np.array(x), P=np.array(P).reshape(3, 3), gain=gain, ok=ok)
+    if note is not None:
+        msg["note"] = note
+    out = decode(encode(msg), SCHEMA)
+    assert out.keys() == msg.keys()
+    for k, v in msg.items():
+        if isinstance(v, np.ndarray):
+            assert np.array_equal(out[k], v) and out[k].shape == v.shape
+        else:
+            assert out[k] == v
+
+
+@given(st.binary(max_size=512))
+@settings(max_examples=500)
+def test_random_bytes_only_raise_malformed(data):
+    try:
+        decode(data, SCHEMA)
+    except MalformedMessage as exc:
+        assert exc.reason in REASONS
+
+
+msgpack_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats() | st.text(max_size=10)
+    | st.binary(max_size=40),
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    max_leaves=12,
+)
+
+
+@given(st.dictionaries(st.sampled_from(["v", "step", "sender", "x", "P", "gain", "ok", "note", "zz"]),
+                       msgpack_values | st.builds(lambda a: arr_map(a), st.lists(st.floats(), max_size=10))))
+@settings(max_examples=500)
+def test_random_structures_only_raise_malformed(obj):
+    try:
+        msg = decode(raw(obj), SCHEMA)
+    except MalformedMessage as exc:
+        assert exc.reason in REASONS
+    else:
+        assert msg.keys() <= set(SCHEMA.fields)
+        assert all(np.isfinite(msg[k]).all() for k in ("x", "P"))
+        assert math.isfinite(msg["gain"])
+
+
+@given(st.binary(min_size=1, max_size=200), st.integers(0, 199))
+def test_corrupted_good_payload_only_raises_malformed(noise, pos):
+    payload = bytearray(encode(good()))
+    pos %= len(payload)
+    payload[pos:pos + len(noise)] = noise
+    try:
+        decode(bytes(payload), SCHEMA)
+    except MalformedMessage:
+        pass

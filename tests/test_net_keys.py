@@ -1,0 +1,77 @@
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from broker_free_net import keys
+from broker_free_net.keys import InvalidKey
+
+
+def test_builders():
+    assert keys.est_key("r", 3) == "socmon/r/est/3"
+    assert keys.ctl_key("r", 0) == "socmon/r/ctl/0"
+    assert keys.status_key("r", 12) == "socmon/r/status/12"
+    assert keys.sensor_key("r", "poll_a") == "socmon/r/sensor/poll_a"
+    assert keys.truth_key("r") == "socmon/r/truth"
+    assert keys.impair_key("r") == "socmon/r/impair"
+    assert keys.alive_key("r", "agent", 4) == "socmon/r/alive/agent/4"
+    assert keys.alive_key("r", "world", "w") == "socmon/r/alive/world/w"
+    assert keys.alive_pattern("r") == "socmon/r/alive/**"
+    assert keys.any_agent_pattern("r", "est") == "socmon/r/est/*"
+    assert keys.any_agent_pattern("r", "sensor") == "socmon/r/sensor/*"
+
+
+@pytest.mark.parametrize("bad", ["", "a*", "a$b", "a/b", "#", "x?", "@x", "a b", "a\nb", 5, None])
+def test_bad_chunks(bad):
+    with pytest.raises(InvalidKey) as info:
+        keys.sensor_key("r", bad)
+    assert info.value.field == "label"
+    with pytest.raises(InvalidKey) as info:
+        keys.truth_key(bad)
+    assert info.value.field == "run"
+
+
+@pytest.mark.parametrize("bad", [-1, True, "3", 1.0])
+def test_bad_agent_ids(bad):
+    with pytest.raises(InvalidKey) as info:
+        keys.est_key("r", bad)
+    assert info.value.field == "agent"
+
+
+def test_parsers():
+    assert keys.parse_agent_key("r", "est", "socmon/r/est/7") == 7
+    assert keys.parse_alive_key("r", "socmon/r/alive/agent/7") == ("agent", "7")
+    assert keys.parse_sensor_key("r", "socmon/r/sensor/s1") == "s1"
+
+
+@pytest.mark.parametrize("key", [
+    "socmon/r/est", "socmon/r/est/", "socmon/r/est/07", "socmon/r/est/-1", "socmon/r/est/x",
+    "socmon/r/est/1/2", "socmon/other/est/1", "soc/r/est/1", "socmon/r/ctl/1", "socmon/r/est/*",
+    "socmon/r/est/1234567890", "socmon/r/est/\u0663",
+])
+def test_parse_agent_rejects(key):
+    with pytest.raises(InvalidKey):
+        keys.parse_agent_key("r", "est", key)
+
+
+@pytest.mark.parametrize("key", [
+    "socmon/r/alive/agent", "socmon/r/alive/agent/1/x", "socmon/r/alive//1", "socmon/r/alive/agent/*",
+    "socmon/r/alive/agent/@1", "socmon/q/alive/agent/1", "socmon/r/est/agent/1",
+])
+def test_parse_alive_rejects(key):
+    with pytest.raises(InvalidKey):
+        keys.parse_alive_key("r", key)
+
+
+@given(agent=st.integers(0, 10**9 - 1))
+def test_agent_round_trip(agent):
+    for kind in keys.AGENT_KINDS:
+        assert keys.parse_agent_key("run1", kind, keys.agent_key("run1", kind, agent)) == agent
+
+
+@given(text=st.text(max_size=20))
+def test_parse_never_raises_other_errors(text):
+    for parse in (lambda k: keys.parse_alive_key("r", k), lambda k: keys.parse_agent_key("r", "est", k)):
+        try:
+            parse("socmon/r/" + text)
+        except InvalidKey:
+            pass
