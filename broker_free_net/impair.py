@@ -170,7 +170,7 @@ class LinkImpairments:
     Examples
     --------
     >>> table = LinkImpairments(seed=1)
-    >>> table.set((0, 1), delay_steps=2)
+    >>> _ = table.set((0, 1), delay_steps=2)
     >>> table.offer(0, 1, "m", stamp_step=5)
     Decision(action='hold', due_step=7, due_time=None)
     >>> table.release(now_step=7)

@@ -1,0 +1,103 @@
+"""In-process tests of Inbox and Peer (no child processes)."""
+
+import socket
+import threading
+import time
+
+import pytest
+
+from broker_free_net import keys
+from broker_free_net.config import NetConfig
+from broker_free_net.keys import InvalidKey
+from broker_free_net.peer import Inbox, LivelinessWatch, Peer, Received
+
+
+def test_inbox_drop_oldest_and_counters():
+    wake = threading.Event()
+    inbox = Inbox(maxlen=3, wakeup=wake)
+    assert inbox.poll() is None and inbox.get(timeout=0.01) is None
+    for i in range(5):
+        inbox._push(Received(bytes([i]), "k", float(i)))
+    assert wake.is_set()
+    assert len(inbox) == 3 and inbox.received == 5 and inbox.overflows == 2
+    assert inbox.poll().payload == b"\x02"
+    assert [r.payload for r in inbox.drain()] == [b"\x03", b"\x04"]
+    assert inbox.drain() == []
+
+
+def test_inbox_get_wakes_on_push():
+    inbox = Inbox()
+    timer = threading.Timer(0.05, inbox._push, args=(Received(b"x", "k", 0.0),))
+    timer.start()
+    try:
+        assert inbox.get(timeout=30).payload == b"x"
+    finally:
+        timer.cancel()
+
+
+def test_inbox_rejects_bad_maxlen():
+    with pytest.raises(ValueError):
+        Inbox(0)
+
+
+class FakeSample:
+    def __init__(self, key, kind):
+        self.key_expr = key
+        self.kind = kind
+
+
+def test_liveliness_watch_tracks_alive_and_ignores_bad_keys():
+    import zenoh
+
+    watch = LivelinessWatch("r")
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1", zenoh.SampleKind.PUT))
+    watch._on_sample(FakeSample("socmon/r/alive/world/w", zenoh.SampleKind.PUT))
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1/extra", zenoh.SampleKind.PUT))
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1", zenoh.SampleKind.DELETE))
+    assert watch.alive() == {("world", "w")}
+    assert watch.ignored == 1
+    assert [(e.role, e.id, e.alive) for e in watch.drain()] == [
+        ("agent", "1", True), ("world", "w", True), ("agent", "1", False)]
+    assert watch.wait_until(lambda alive: ("world", "w") in alive, 0.01)
+    assert not watch.wait_until(lambda alive: ("agent", "1") in alive, 0.01)
+
+
+def test_peer_rejects_bad_role_and_config():
+    with pytest.raises(TypeError):
+        Peer({"run": "r"}, "agent", 0)
+    with pytest.raises(InvalidKey):
+        Peer(NetConfig(), "a/b", 0)
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_peers_in_one_process_wait_and_drain():
+    run = f"inproc{free_port()}"
+    port = free_port()
+    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        inbox = b.subscribe(keys.any_agent_pattern(run, "est"))
+        assert b.wait_for_peers(lambda alive: {("agent", "0"), ("agent", "1")} <= alive, 20)
+        deadline = time.monotonic() + 20
+        got = []
+        while not got and time.monotonic() < deadline:
+            a.put(keys.est_key(run, 0), b"hello")
+            b.wait(timeout=0.2)
+            got = inbox.drain()
+        assert got and got[0].payload == b"hello" and got[0].key == keys.est_key(run, 0)
+        assert keys.parse_agent_key(run, "est", got[0].key) == 0
+        assert a.zid() != b.zid()
+    assert a.closed and b.closed
+
+
+def test_start_order_does_not_matter():
+    """A peer whose seed is not up yet keeps retrying and joins when it starts."""
+    run = f"late{free_port()}"
+    port = free_port()
+    with Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as early:
+        with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0):
+            assert early.wait_for_peers(lambda alive: ("agent", "0") in alive, 30)
