@@ -207,18 +207,9 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                 publish_status()
                 print(f"agent {me}: world left after step {core.step}; exiting", file=log)
                 return 0
-            # wait for the message that moves the agent on, or a deadline
+            # wait for any message, a step deadline or the next status
             wake = core.next_wakeup(now)
-            timeout = min(0.005, next_status - now) if wake is None else \
-                min(0.005, max(0.0, wake - now))
-            if core.sensor.get(core.step + 1) is not None and core.active:
-                item = est_in.get(timeout=max(timeout, 0.0))
-                if item is not None:
-                    handle_est(item, time.monotonic())
-            else:
-                label = core.wanted_labels()[0]
-                item = sensor_in[label].get(timeout=max(timeout, 0.0))
-                if item is not None:
-                    handle_sensor(label, item)
+            until = next_status if wake is None else min(wake, next_status)
+            peer.wait(timeout=min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0

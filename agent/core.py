@@ -15,8 +15,13 @@ Timeline (the same as the simulator's; every random number comes from
 - step k >= 1: ``x_k = A x_{k-1} + process_noise(seed, k-1)``; agent i reads
   ``y^i_k = H_i x_k + measurement_noise(seed, i, k, p_i)`` and runs
   :func:`design.estimator.estimator_step` with, from each neighbour j, the estimate stamped
-  ``k - 1 - tau_ij`` (age ``1 + tau_ij``). A stamp below 0 means the initial estimate
-  ``xhat^j_0`` (it is a function of the run seed, so every agent holds it from the start).
+  ``k - 1 - tau_ij`` (age ``1 + tau_ij``). Nothing exists before step 0: while no
+  estimate of j is held (``k - 1 - tau_ij < 0``), j's weight goes to the agent's own
+  prediction, as in :func:`design.estimator.estimator_step`;
+- an agent that gets a role while it has no estimate (a standby agent) starts from the
+  estimate of the agent named in the assignment's ``take_over`` (the freshest one held,
+  propagated by A to step ``activate_at - 1``), or cold from
+  ``initial_estimate(seed, id)``.
 
 Timing invariants (one place):
 
@@ -88,6 +93,7 @@ class Role:
     neighbours: dict
     self_weight: float
     gain: np.ndarray
+    take_over: int | None = None
 
 
 def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
@@ -122,9 +128,12 @@ def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
     if gain.shape != (n, len(msg["measure"])):
         problems.append(f"gain: shape {gain.shape}, expected ({n}, {len(msg['measure'])}) "
                         "(n x measured nodes)")
+    take_over = msg.get("take_over")
+    if take_over is not None and (take_over == agent or take_over not in set(agents)):
+        problems.append(f"take_over: {take_over} is not another agent of the run")
     if problems:
         raise AssignmentError("; ".join(problems))
-    return Role(epoch=int(msg["epoch"]), activate_at=int(msg["activate_at"]),
+    return Role(take_over=take_over, epoch=int(msg["epoch"]), activate_at=int(msg["activate_at"]),
                 measure=tuple(msg["measure"]),
                 neighbours={a: w for a, w in nbrs.items() if w > 0},
                 self_weight=w_self, gain=gain.copy())
@@ -233,8 +242,6 @@ class AgentCore:
         self.ctl_rejected = 0
         self.ctl_last_error = ""
         self.heard: set = set()
-        if self.role is not None:
-            self._seed_initial(self.role.neighbours)
 
     # -- helpers ------------------------------------------------------------------
     @property
@@ -246,14 +253,6 @@ class AgentCore:
         if nb is None:
             nb = self.nbrs[agent] = _Neighbour(self.config.learn_window)
         return nb
-
-    def _seed_initial(self, neighbours):
-        """Hold every neighbour's initial estimate (stamp 0): it is a function of the seed."""
-        if self.step > 0:
-            return
-        for j in neighbours:
-            nb = self._nb(j)
-            nb.est.setdefault(0, noise.initial_estimate(self.config.seed, j, self.n)[0])
 
     def wanted_labels(self) -> tuple:
         """Sensor labels this agent must receive (current and pending roles, or a clock)."""
@@ -419,18 +418,13 @@ class AgentCore:
 
     def _activate(self, role: Role, k: int) -> None:
         if self.x is None and self.step >= 0:
-            # joining with no estimate of its own: start from the neighbours' freshest ones
-            acc, wsum = np.zeros(self.n), 0.0
-            for j, w in role.neighbours.items():
-                nb = self.nbrs.get(j)
-                s = nb.freshest(k - 1) if nb is not None else None
-                if s is not None:
-                    acc += w * (self.powers[k - 1 - s] @ nb.est[s])
-                    wsum += w
-            self.x = acc / wsum if wsum > 0 else \
-                noise.initial_estimate(self.config.seed, self.id, self.n)[0]
+            nb = self.nbrs.get(role.take_over) if role.take_over else None
+            s = nb.freshest(k - 1) if nb is not None else None
+            if s is not None:
+                self.x = self.powers[k - 1 - s] @ nb.est[s]
+            else:
+                self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
         self.role, self.pending, self.epoch = role, None, role.epoch
-        self._seed_initial(role.neighbours)
 
     def _plan(self, k: int, now: float):
         """Which estimate of each neighbour step k uses, or None to keep waiting."""

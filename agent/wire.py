@@ -193,6 +193,7 @@ def ctl_schema(n: int) -> Schema:
         "neighbours": WeightMap(),
         "self_weight": Float(0.0, 1.0),
         "gain": F64Array((n, None)),
+        "take_over": Int(1, MAX_AGENT, required=False),
     })
 
 
@@ -237,9 +238,10 @@ def encode_est(agent: int, step: int, x, epoch: int, t: float) -> bytes:
 
 
 def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: dict,
-               self_weight: float, gain) -> bytes:
+               self_weight: float, gain, take_over: int | None = None) -> bytes:
     """Encode a role assignment; ``neighbours`` maps agent id (int) -> weight."""
-    return encode({
+    extra = {} if take_over is None else {"take_over": int(take_over)}
+    return encode({**extra,
         "kind": "assign", "agent": int(agent), "epoch": int(epoch),
         "activate_at": int(activate_at), "measure": [str(m) for m in measure],
         "neighbours": {str(int(a)): _f(w) for a, w in neighbours.items()},

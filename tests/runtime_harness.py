@@ -67,8 +67,9 @@ def reference(scenario, G, steps, seed=0, delays=None):
         for i in range(N):
             nbs = []
             for j in s.neighbours[i]:
-                stamp = max(k - 1 - D[i, j], 0)
-                nbs.append(NeighbourEstimate(s.W[i, j], k - stamp, xh[stamp][j]))
+                stamp = k - 1 - D[i, j]  # nothing exists before step 0
+                x_j = xh[stamp][j] if stamp >= 0 else None
+                nbs.append(NeighbourEstimate(s.W[i, j], k - stamp, x_j))
             p = len(s.measure[i])
             y = x[list(s.measure[i])] + noise.measurement_noise(seed, i + 1, k, p,
                                                                  s.measurement_noise)[0]
