@@ -498,7 +498,7 @@ class AgentCore:
                        "missed": self.sensor_missed},
             "heard": sorted(self.heard),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
-                      for (src, dst), p in self.impair.links().items()},
+                      for (src, dst), p in self.impair.links().items() if not p.is_identity},
             "ctl": {"accepted": self.ctl_accepted, "rejected": self.ctl_rejected,
                     "last_error": self.ctl_last_error,
                     "pending": self.pending.epoch if self.pending else 0},

@@ -213,6 +213,7 @@ def _up(args) -> int:
     summary = {
         "scenario": scenario.name,
         "run": run_id,
+        "ports": ports,
         "seed": args.seed,
         "steps": int(steps_done[-1]) if steps_done else -1,
         "steps_requested": K,
