@@ -28,7 +28,8 @@ Timing invariants (one place):
 - the world's step is the clock: an agent computes step k once the sensor readings for k
   have arrived and, from every live neighbour j, the estimate stamped ``k - 1 - tau_ij``
   (``tau_ij`` learned), or ``deadline_s`` after the readings arrived, whichever is first;
-- a neighbour estimate missing at the deadline counts one drop and is replaced by the
+- a neighbour estimate missing at the deadline (or as soon as a fresher one from the same
+  neighbour is held, or the neighbour's liveliness token is gone) counts one drop and is replaced by the
   freshest estimate held from that neighbour (stamp <= k - 1), propagated by ``A^(k - stamp)``;
   if none is held at all its weight goes to the agent's own prediction;
 - ``tau_ij`` is the smallest lateness ``max(0, k_done - stamp)`` among the last
@@ -435,7 +436,8 @@ class AgentCore:
             need = max(k - 1 - tau, 0)
             if need in nb.est:
                 plan[j] = need
-            elif nb.alive:
+            elif nb.alive and not (nb.est and max(nb.est) > need):
+                # (a fresher estimate held means the one needed was lost: no use waiting)
                 waiting = True
                 plan[j] = None
             else:
