@@ -110,6 +110,16 @@ class Recovery:
     replaces: dict = field(default_factory=dict)
     delays: object = None
 
+    @classmethod
+    def from_plan(cls, plan, G, delays=None) -> "Recovery":
+        """From a :class:`design.recovery.RecoveryPlan`: standbys take over the estimate
+        of the failed agent whose place in W they take; survivors keep theirs."""
+        if plan.scenario_after is None:
+            raise SimulationError("recover: the recovery plan has no new configuration")
+        replaces = {r.by: r.failed for r in plan.replacements if r.by_standby}
+        return cls(scenario=plan.scenario_after, G=list(G), ids=tuple(plan.agent_ids),
+                   replaces=replaces, delays=delays)
+
 
 @dataclass(frozen=True, eq=False)
 class SimulationResult:
