@@ -125,10 +125,8 @@ def minimal_sensor_set(structure: InfluenceStructure, prefer=()) -> list:
     Nodes in ``prefer`` (e.g. the ones already measured) are taken first; otherwise the
     smallest node of each parent SCC.
     """
-    prefer = list(prefer)
-    chosen = []
-    for c in structure.parents:
-        members = structure.components[c]
-        pick = next((v for v in prefer if structure.labels[v] == c), members[0])
-        chosen.append(int(pick))
-    return sorted(chosen)
+    first_preferred = {}
+    for v in prefer:  # one pass: linear in len(prefer) + number of parents
+        first_preferred.setdefault(int(structure.labels[v]), int(v))
+    chosen = [first_preferred.get(c, structure.components[c][0]) for c in structure.parents]
+    return sorted(int(v) for v in chosen)

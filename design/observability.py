@@ -21,7 +21,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["observable_basis", "observability_rank", "is_observable", "default_tolerance"]
+__all__ = [
+    "observable_basis",
+    "observability_rank",
+    "is_observable",
+    "unobservable_modes",
+    "default_tolerance",
+]
 
 
 def default_tolerance(A, C) -> float:
@@ -71,6 +77,44 @@ def observability_rank(A, C, tol=None) -> int:
 def is_observable(A, C, tol=None) -> bool:
     """True iff (A, C) is observable (numerically, with tolerance ``tol``)."""
     return observability_rank(A, C, tol) == A.shape[0]
+
+
+def unobservable_modes(A, C, tol=None) -> np.ndarray:
+    """Eigenvalues of A restricted to the unobservable subspace of (A, C).
+
+    The unobservable subspace is the orthogonal complement of the staircase basis
+    ``V`` of :func:`observable_basis`; it is A-invariant, so with ``U`` an orthonormal
+    basis of it, ``A U = U (U^T A U)`` and the unobservable modes are the eigenvalues of
+    ``U^T A U``. (A, C) is detectable iff all of them lie strictly inside the unit
+    circle. Empty when (A, C) is observable. A sparse ``A`` is made dense only for the
+    (n - r)-column product ``A U``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> A = np.array([[0.5, 0], [1, 2.0]])    # node 1 -> node 2; measure node 1 only
+    >>> unobservable_modes(A, np.array([[1., 0]]))
+    array([2.])
+    >>> unobservable_modes(A, np.array([[0., 1]])).size
+    0
+    """
+    V = observable_basis(A, C, tol)
+    n, r = A.shape[0], V.shape[1]
+    if r >= n:
+        return np.zeros(0)
+    # complete V to an orthonormal basis of R^n; the last n - r columns span V^perp
+    Qfull, _ = np.linalg.qr(np.hstack([V, np.eye(n)]), mode="complete")
+    U = Qfull[:, r:n]
+    # re-orthogonalise against V (QR of [V, I] already gives it; this guards rounding)
+    U = U - V @ (V.T @ U)
+    U, _ = np.linalg.qr(U)
+    AU = A @ U
+    AU = np.asarray(AU.todense()) if sp.issparse(AU) else np.asarray(AU)
+    vals = np.linalg.eigvals(U.T @ AU)
+    if np.all(np.abs(vals.imag) <= 1e-12 * max(1.0, float(np.max(np.abs(vals))))):
+        vals = vals.real
+    order = np.lexsort((vals.imag if np.iscomplexobj(vals) else np.zeros(vals.size), -np.abs(vals)))
+    return vals[order]
 
 
 def _orth(Z, tol) -> np.ndarray:

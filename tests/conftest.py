@@ -5,7 +5,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
+# the shared folder sits beside the project (../shared); from a worktree two levels
+# down (/work/wt/<branch>) it is ../../shared: take the nearest ancestor that has it
+SHARED = next(
+    (p / "shared" for p in ROOT.parents if (p / "shared" / "data").is_dir()),
+    ROOT.parent / "shared",
+)
 SAMPSON_EDGES = SHARED / "data" / "sampson" / "sampson_samplike_edges.csv"
 
 

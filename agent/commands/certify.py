@@ -1,0 +1,120 @@
+"""``socmon certify SCENARIO --gains FILE [--taus 0,3,7,15] [--json]``: exact certificates.
+
+What each figure means is documented in :mod:`design.certificates`. Exit status: 0 when
+the gain is stable with the scenario's own delays (exact radius < 1), 1 when it is not,
+2 for bad input (scenario, gains file, gains that do not fit, bad ``--taus``).
+"""
+
+from __future__ import annotations
+
+from ._common import (
+    EXIT_NEGATIVE,
+    EXIT_OK,
+    CommandError,
+    add_scenario_argument,
+    load_gains_arg,
+    load_scenario_arg,
+    print_json,
+    run_command,
+)
+
+HELP = "exact stability radius, Theorem 1 criterion, paper formula, steady MSE and Phi of a gain"
+
+
+def add_arguments(parser) -> None:
+    add_scenario_argument(parser)
+    parser.add_argument("--gains", required=True, metavar="FILE",
+                        help="gains file (.npz with K1..KN and meta)")
+    parser.add_argument("--taus", default="0,3,7,15", metavar="T1,T2,...",
+                        help="uniform inter-agent delays to certify (default 0,3,7,15)")
+    parser.add_argument("--tau-cap", type=int, default=None, metavar="T",
+                        help="largest tau examined in the Theorem 1 tau_star search "
+                             "(default 100)")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+
+
+def parse_taus(text: str) -> list:
+    """``"0,3,7"`` -> ``[0, 3, 7]``; CommandError naming the bad entry otherwise."""
+    out = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if not part.isdigit():
+            raise CommandError(
+                f"--taus: expected comma-separated non-negative integers, got {part!r}")
+        out.append(int(part))
+    if not out:
+        raise CommandError("--taus: give at least one delay")
+    return out
+
+
+def run(args) -> int:
+    return run_command(lambda: _run(args))
+
+
+def _run(args) -> int:
+    from design.certificates import DEFAULT_TAU_CAP, certify
+
+    taus = parse_taus(args.taus)
+    cap = DEFAULT_TAU_CAP if args.tau_cap is None else args.tau_cap
+    if cap < 0:
+        raise CommandError(f"--tau-cap: must be a non-negative integer, got {cap}")
+    scenario = load_scenario_arg(args.scenario)
+    gains = load_gains_arg(args.gains, scenario)
+    result = certify(scenario, gains.G, taus=taus, tau_cap=cap)
+    result["gains_file"] = str(args.gains)
+    result["gains_meta"] = gains.meta
+    digest = gains.meta.get("scenario_digest")
+    if digest is not None and digest != scenario.digest():
+        result["warning"] = (
+            f"gains were designed for scenario digest {digest}, this scenario is "
+            f"{scenario.digest()}")
+    if args.json:
+        print_json(result)
+    else:
+        print(format_text(result))
+    return EXIT_OK if result["stable_scenario_delays"] else EXIT_NEGATIVE
+
+
+def _f(x, digits=5) -> str:
+    return "-" if x is None else f"{x:.{digits}g}"
+
+
+def format_text(d: dict) -> str:
+    lines = [
+        f"scenario {d['scenario']}, gains {d['gains_file']}",
+        f"exact radius, delay-free:          {_f(d['rho_delay_free'])}"
+        f" ({'stable' if d['stable_delay_free'] else 'UNSTABLE'})",
+        f"exact radius, scenario delays (taubar = {d['scenario_taubar']}): "
+        f"{_f(d['rho_scenario_delays'])} ({'stable' if d['stable_scenario_delays'] else 'UNSTABLE'})",
+        f"steady MSE (exact), delay-free:    {_f(d['mse_steady_delay_free'])}",
+        f"steady MSE (exact), scenario delays: {_f(d['mse_steady_scenario_delays'])}",
+    ]
+    ts = d["tau_star"]
+    if ts is None:
+        lines.append("paper's Theorem 1: criterion fails already at tau = 0 (no tau_star)")
+    else:
+        lines.append(
+            f"paper's Theorem 1: holds for tau = 0..{ts}"
+            + (f" (search capped at {d['tau_star_cap']})" if d["tau_star_capped"]
+               else f" (tau_star = {ts}; searched up to {d['tau_star_cap']})"))
+    lines.append("")
+    lines.append("  tau   exact radius  stable   paper's formula   Theorem 1 rho  holds")
+    for r in d["rows"]:
+        lines.append(
+            f"  {r['tau']:>3}   {r['rho_exact']:12.6f}  {'yes' if r['stable'] else 'NO ':<6}"
+            f"   {r['paper_formula']:15.6f}   {r['theorem1_rho']:13.6g}  "
+            f"{'yes' if r['theorem1_holds'] else 'no'}")
+    lines.append("  (paper's formula = rho(Ahat)^(1/(tau+1)), Tables 2-4; not a certificate)")
+    lines.append("")
+    if d["phi"] is None:
+        lines.append(f"paper's Phi (Remark 2): undefined: {d['phi_note']}")
+    else:
+        lines.append(
+            f"paper's Phi (Remark 2): {_f(d['phi'], 4)} with {d['phi_beta_choice']} = "
+            f"{_f(d['phi_beta'], 4)}; alpha1 = {_f(d['phi_alpha1'], 4)}, "
+            f"alpha2 = {_f(d['phi_alpha2'], 4)}")
+    if "warning" in d:
+        lines.append(f"warning: {d['warning']}")
+    return "\n".join(lines)
