@@ -28,8 +28,10 @@ Timing invariants (one place):
 - the world's step is the clock: an agent computes step k once the sensor readings for k
   have arrived and, from every live neighbour j, the estimate stamped ``k - 1 - tau_ij``
   (``tau_ij`` learned), or ``deadline_s`` after the readings arrived, whichever is first;
-- a neighbour estimate missing at the deadline (or as soon as a fresher one from the same
-  neighbour is held, or the neighbour's liveliness token is gone) counts one drop and is replaced by the
+- a neighbour estimate missing at the deadline (or at once when a fresher one from the
+  same neighbour is held, when an injected step delay holds the neighbour's messages until
+  this agent's step moves on, or when the neighbour's liveliness token is gone) counts one
+  drop and is replaced by the
   freshest estimate held from that neighbour (stamp <= k - 1), propagated by ``A^(k - stamp)``;
   if none is held at all its weight goes to the agent's own prediction;
 - ``tau_ij`` is the smallest lateness ``max(0, k_done - stamp)`` among the last
@@ -188,7 +190,7 @@ class AgentConfig:
 class _Neighbour:
     """What an agent holds from one other agent."""
 
-    __slots__ = ("est", "lateness", "heard", "missed", "alive")
+    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held")
 
     def __init__(self, window: int):
         self.est: dict = {}              # stamp -> x
@@ -196,6 +198,7 @@ class _Neighbour:
         self.heard = False               # at least one estimate delivered
         self.missed: set = set()         # stamps needed but missing at a deadline
         self.alive = True
+        self.step_held = 0               # messages held by an injected step delay
 
     @property
     def tau(self):
@@ -286,11 +289,16 @@ class AgentCore:
         """An estimate of agent ``sender`` stamped ``stamp``; returns the link's decision."""
         if sender == self.id:
             return "self"
-        decision = self.impair.offer(sender, self.id, (stamp, np.array(x, dtype=float)),
+        x = np.array(x, dtype=float)
+        step_held = self.impair.get((sender, self.id)).delay_steps > 0
+        decision = self.impair.offer(sender, self.id, (stamp, x, step_held),
                                      stamp_step=stamp, arrival=now)
         if decision.action == DELIVER:
-            self._deliver(sender, stamp, np.array(x, dtype=float))
-        elif decision.action != HOLD:
+            self._deliver(sender, stamp, x)
+        elif decision.action == HOLD:
+            if step_held:
+                self._nb(sender).step_held += 1
+        else:
             self.impaired += 1
         return decision.action
 
@@ -348,7 +356,10 @@ class AgentCore:
 
     # -- stepping ------------------------------------------------------------------
     def _release(self, now: float) -> None:
-        for src, _dst, (stamp, x) in self.impair.release(now_step=self.step, now_time=now):
+        for src, _dst, (stamp, x, step_held) in self.impair.release(now_step=self.step,
+                                                                    now_time=now):
+            if step_held:
+                self._nb(src).step_held -= 1
             self._deliver(src, stamp, x)
 
     def next_wakeup(self, now: float, poll_s: float = 0.001):
@@ -436,8 +447,10 @@ class AgentCore:
             need = max(k - 1 - tau, 0)
             if need in nb.est:
                 plan[j] = need
-            elif nb.alive and not (nb.est and max(nb.est) > need):
-                # (a fresher estimate held means the one needed was lost: no use waiting)
+            elif nb.alive and not nb.step_held and not (nb.est and max(nb.est) > need):
+                # no use waiting when a fresher estimate is held (the one needed was lost)
+                # or when this link's injected step delay holds the neighbour's messages
+                # until this agent's step moves on
                 waiting = True
                 plan[j] = None
             else:

@@ -177,3 +177,14 @@ def test_partition_counts_drops_and_injected_delay_is_learned(paper14, gains14):
         mesh.pass_time(0.2)
     assert core.learned_delays() == {2: 3}
     assert core.status()["links"] == {"2": {"delay_steps": 3}}
+
+
+@pytest.mark.parametrize("D", [None, np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])])
+def test_mesh_equals_the_simulator(paper14, gains14, D):
+    from design.simulate import simulate
+
+    mesh = _run(Mesh(paper14, gains14, seed=4, delays=D, deadline_s=1.0), STEPS, wait=1.1)
+    res = simulate(paper14, gains14, steps=STEPS, trials=1, seed=4, delays=D)
+    mse = [np.mean([np.mean((mesh.estimates[(a, k)] - mesh.truth[k]) ** 2) for a in (1, 2, 3)])
+           for k in range(STEPS + 1)]
+    np.testing.assert_allclose(mse, res.mse, rtol=1e-9)
