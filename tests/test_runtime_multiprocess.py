@@ -294,3 +294,38 @@ def test_sigkill_of_an_agent_does_not_hang_the_others(deployment):
         assert dep.children.children["agent-2"].returncode is None
         dep.peer.wait(timeout=0.1)
     assert dep.status[2]["drops"] >= 1  # agent 2 listens to agent 3
+
+
+def test_up_stops_everything_when_a_child_dies(tmp_path, gains_files):
+    path, _, _ = gains_files["paper-14-live"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = tmp_path / "r"
+    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "up", "paper-14-live",
+                             "--steps", "100000", "--gains", str(path), "--out", str(out),
+                             "--json"],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    marker = f"up{proc.pid}x"
+    try:
+        deadline = time.monotonic() + DEADLINE
+        while "clock starts" not in _read(out / "logs" / "world.log"):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the run did not start"
+            time.sleep(0.1)
+        victim = [pid for pid in _processes_with(marker)
+                  if " --id 2 " in Path(f"/proc/{pid}/cmdline").read_bytes()
+                  .replace(b"\0", b" ").decode()]
+        assert len(victim) == 1
+        os.kill(victim[0], signal.SIGKILL)
+        stdout, err = proc.communicate(timeout=DEADLINE)
+        assert proc.returncode == 1, err
+        assert "agent-2 exited with status -9" in err
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+        for pid in _processes_with(marker):
+            os.kill(pid, signal.SIGKILL)
+    assert _processes_with(marker) == []
+    summary = json.loads(stdout)
+    assert summary["orphans"] == [] and summary["exit_status"]["agent-2"] == -9

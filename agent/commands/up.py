@@ -261,8 +261,8 @@ def _up(args) -> int:
               + (f", max_rel_diff_vs_simulator {summary['max_rel_diff_vs_simulator']:.3g}"
                  if "max_rel_diff_vs_simulator" in summary else "")
               + f"\nrun folder: {out}")
-        if failure:
-            print(f"socmon up: {failure}", file=sys.stderr)
+    if failure:
+        print(f"socmon up: {failure}", file=sys.stderr)
     return status_code
 
 
