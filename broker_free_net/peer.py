@@ -331,8 +331,20 @@ class Peer:
 
     # -- subscribe ---------------------------------------------------------------
 
-    def subscribe(self, keyexpr: str, maxlen: int = DEFAULT_INBOX_SIZE) -> Inbox:
+    def subscribe(self, keyexpr: str, maxlen: int = DEFAULT_INBOX_SIZE, *,
+                  include_local: bool = True) -> Inbox:
         """Subscribe to `keyexpr`; return an :class:`Inbox` of :class:`Received`.
+
+        Parameters
+        ----------
+        keyexpr : str
+            Key or pattern (``*`` one chunk, ``**`` any number).
+        maxlen : int
+            Inbox capacity; on overflow the oldest item is dropped and counted.
+        include_local : bool
+            If False, publications of this same session are not delivered
+            (by default zenoh delivers them, e.g. an agent subscribed to
+            ``est/*`` receives its own estimates).
 
         DELETE samples are ignored (counted in ``inbox.ignored``).
         """
@@ -348,7 +360,8 @@ class Peer:
             except Exception:  # never raise into zenoh
                 inbox._ignore()
 
-        inbox._subscriber = self._session.declare_subscriber(keyexpr, on_sample)
+        origin = zenoh.Locality.ANY if include_local else zenoh.Locality.REMOTE
+        inbox._subscriber = self._session.declare_subscriber(keyexpr, on_sample, allowed_origin=origin)
         self._inboxes.append(inbox)
         return inbox
 

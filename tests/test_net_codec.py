@@ -194,6 +194,7 @@ finite = st.floats(allow_nan=False, allow_infinity=False)
     ok=st.booleans(),
     note=st.one_of(st.none(), st.text(max_size=8)),
 )
+@settings(deadline=None)
 def test_round_trip_property(step, sender, x, P, gain, ok, note):
     msg = good(step=step, sender=sender, x=np.array(x), P=np.array(P).reshape(3, 3), gain=gain, ok=ok)
     if note is not None:
@@ -208,7 +209,7 @@ def test_round_trip_property(step, sender, x, P, gain, ok, note):
 
 
 @given(st.binary(max_size=512))
-@settings(max_examples=500)
+@settings(max_examples=500, deadline=None)
 def test_random_bytes_only_raise_malformed(data):
     try:
         decode(data, SCHEMA)
@@ -226,7 +227,7 @@ msgpack_values = st.recursive(
 
 @given(st.dictionaries(st.sampled_from(["v", "step", "sender", "x", "P", "gain", "ok", "note", "zz"]),
                        msgpack_values | st.builds(lambda a: arr_map(a), st.lists(st.floats(), max_size=10))))
-@settings(max_examples=500)
+@settings(max_examples=500, deadline=None)
 def test_random_structures_only_raise_malformed(obj):
     try:
         msg = decode(raw(obj), SCHEMA)
@@ -239,6 +240,7 @@ def test_random_structures_only_raise_malformed(obj):
 
 
 @given(st.binary(min_size=1, max_size=200), st.integers(0, 199))
+@settings(deadline=None)
 def test_corrupted_good_payload_only_raises_malformed(noise, pos):
     payload = bytearray(encode(good()))
     pos %= len(payload)

@@ -1,5 +1,5 @@
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from broker_free_net import keys
@@ -63,12 +63,14 @@ def test_parse_alive_rejects(key):
 
 
 @given(agent=st.integers(0, 10**9 - 1))
+@settings(deadline=None)
 def test_agent_round_trip(agent):
     for kind in keys.AGENT_KINDS:
         assert keys.parse_agent_key("run1", kind, keys.agent_key("run1", kind, agent)) == agent
 
 
 @given(text=st.text(max_size=20))
+@settings(deadline=None)
 def test_parse_never_raises_other_errors(text):
     for parse in (lambda k: keys.parse_alive_key("r", k), lambda k: keys.parse_agent_key("r", "est", k)):
         try:

@@ -75,12 +75,22 @@ def free_port():
         return s.getsockname()[1]
 
 
+def wait_for_item(inbox, predicate, timeout=20):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        item = inbox.get(timeout=0.2)
+        if item is not None and predicate(item):
+            return True
+    return False
+
+
 def test_two_peers_in_one_process_wait_and_drain():
     run = f"inproc{free_port()}"
     port = free_port()
     with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
             Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
         inbox = b.subscribe(keys.any_agent_pattern(run, "est"))
+        remote_only = b.subscribe(keys.any_agent_pattern(run, "est"), include_local=False)
         assert b.wait_for_peers(lambda alive: {("agent", "0"), ("agent", "1")} <= alive, 20)
         deadline = time.monotonic() + 20
         got = []
@@ -91,6 +101,9 @@ def test_two_peers_in_one_process_wait_and_drain():
         assert got and got[0].payload == b"hello" and got[0].key == keys.est_key(run, 0)
         assert keys.parse_agent_key(run, "est", got[0].key) == 0
         assert a.zid() != b.zid()
+        b.put(keys.est_key(run, 1), b"own")
+        assert wait_for_item(inbox, lambda r: r.payload == b"own")  # local delivery
+        assert {r.payload for r in remote_only.drain()} == {b"hello"}
     assert a.closed and b.closed
 
 
