@@ -106,8 +106,10 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
               file=log)
         t0 = time.monotonic()
         warned = False
+        worst_lag = 0.0
         while not stop.flag:
             k = world.step
+            worst_lag = max(worst_lag, time.monotonic() - (t0 + k * step_s))
             for key, value in zip(sensor_keys, world.x):
                 peer.put(key, wire.encode_sensor(k, key.rsplit("/", 1)[1], value))
             peer.put(truth_key, wire.encode_truth(k, world.x))
@@ -137,5 +139,6 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
             if all(last_step.get(a, -1) >= world.step for a in expected & alive):
                 break
             read_statuses(timeout=0.05)
-        print(f"world: done after step {world.step}", file=log)
+        print(f"world: done after step {world.step}; worst lag {1e3 * worst_lag:.1f} ms "
+              "behind the schedule", file=log)
     return 0
