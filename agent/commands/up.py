@@ -314,6 +314,7 @@ def _save_estimates(path, steps_done, truth, est, agents, n):
 def _write_run_folder(out, summary, steps_done, mse, predicted):
     import csv
     import json
+    import sys
 
     from ._common import to_jsonable
 
@@ -332,14 +333,22 @@ def _write_run_folder(out, summary, steps_done, mse, predicted):
         import matplotlib.pyplot as plt
     except ImportError:
         return
+    import numpy as np
+
+    mse = np.asarray(mse, dtype=float)
+    ok = np.isfinite(mse) & (mse > 0) & (mse < 1e250)
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.semilogy(steps_done, mse, lw=1, label="live run")
+    ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
     if predicted and predicted != float("inf"):
         ax.axhline(predicted, color="k", ls="--", lw=0.8, label="predicted steady MSE")
     ax.set_xlabel("step")
     ax.set_ylabel("MSE (mean over agents and states)")
     ax.set_title(f"{summary['scenario']}: {summary['agents']} agents, seed {summary['seed']}")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "mse.png", dpi=110)
-    plt.close(fig)
+    try:
+        fig.tight_layout()
+        fig.savefig(out / "mse.png", dpi=110)
+    except (OverflowError, ValueError) as exc:  # e.g. a diverged run's huge values
+        print(f"up: warning: no mse.png ({type(exc).__name__}: {exc})", file=sys.stderr)
+    finally:
+        plt.close(fig)
