@@ -382,9 +382,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
             est.update(new)
             for a in new:
                 published[a][k] = new[a]
-                old = k - 1 - max_delay
-                for s in [s for s in published[a] if s < old]:
-                    del published[a][s]
+                # stamps below k - 1 - max_delay can no longer arrive on time
+                published[a].pop(k - 2 - max_delay, None)
             mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)
             if progress is not None:
                 progress(k, steps)
