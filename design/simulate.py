@@ -224,10 +224,7 @@ def _check_int(value, name, minimum):
 
 def _gain_list(G, scenario, where):
     G = G.G if isinstance(G, Gains) else list(G)
-    try:
-        check_gains_fit(G, scenario, where=where)
-    except GainsError:
-        raise
+    check_gains_fit(G, scenario, where=where)
     out = [np.asarray(g, dtype=float) for g in G]
     for i, g in enumerate(out):
         if not np.all(np.isfinite(g)):
@@ -337,8 +334,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     track_x = not error_coords or cold
 
     # -- state at step 0 ----------------------------------------------------------
-    x = noise.initial_state(seed, n, trials) if track_x else None
     x0 = noise.initial_state(seed, n, trials)
+    x = x0 if track_x else None
     est = {}        # id -> (trials, n): xhat (absolute) or xhat - x (error coordinates)
     for a in ids0:
         v = noise.initial_estimate(seed, a, n, trials)
@@ -382,9 +379,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
             est.update(new)
             for a in new:
                 published[a][k] = new[a]
-                old = k - 1 - max_delay
-                for s in [s for s in published[a] if s < old]:
-                    del published[a][s]
+                # stamps below k - 1 - max_delay can no longer arrive on time
+                published[a].pop(k - 2 - max_delay, None)
             mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)
             if progress is not None:
                 progress(k, steps)
@@ -408,9 +404,9 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
 
 
 def _recovery_config(recover, scenario, failed, ids0) -> _Config:
-    new = recover.scenario
     if not isinstance(recover, Recovery):
         raise SimulationError(f"recover: expected a Recovery, got {type(recover).__name__}")
+    new = recover.scenario
     if new.A.shape != scenario.A.shape or not np.array_equal(new.A, scenario.A):
         raise SimulationError("recover: the new configuration must keep the social matrix A")
     if new.process_noise != scenario.process_noise:

@@ -38,15 +38,15 @@ def plot_mse(path, curves, title=None, events=(), band=(10.0, 90.0), reference=(
                        label=label)
     for step, label in events:
         ax.axvline(step, color="k", linestyle="--", linewidth=0.9)
-        ax.annotate(label, xy=(step, 1.0), xycoords=("data", "axes fraction"),
-                    xytext=(3, -12), textcoords="offset points", fontsize=8)
+        ax.annotate(label, xy=(step, 0.0), xycoords=("data", "axes fraction"),
+                    xytext=(3, 4), textcoords="offset points", fontsize=7)
     ax.set_yscale("log")
     ax.set_xlabel("time step k")
     ax.set_ylabel("mean-squared estimation error")
     if title:
         ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right")
+    ax.legend(fontsize=7, loc="best", framealpha=0.8)
     if curves:
         ax.set_xlim(0, max(res.steps for _, res in curves))
     band_note = f"mean over trials; band: {band[0]:g}-{band[1]:g} percentile across trials"
