@@ -130,7 +130,10 @@ def estimator_step(powers: PowerCache, role: AgentRole, x_prev, neighbours, y):
             terms.append((nb.weight, nb.age, nb.x))
     prior = w_self * (np.asarray(x_prev) @ powers.transposed(1))
     for w, age, x in terms:
-        prior = prior + w * (np.asarray(x) @ powers.transposed(age))
+        if age == 0:  # A^0 = I: no product needed
+            prior = prior + w * np.asarray(x)
+        else:
+            prior = prior + w * (np.asarray(x) @ powers.transposed(age))
     innovation = np.asarray(y) - prior[..., list(role.measured)]
     post = prior + innovation @ role.G.T
     return prior, post

@@ -24,16 +24,19 @@ __all__ = [
     "initial_estimate",
     "process_noise",
     "measurement_noise",
+    "message_dropped",
     "STREAM_INIT_STATE",
     "STREAM_INIT_ESTIMATE",
     "STREAM_PROCESS",
     "STREAM_MEASUREMENT",
+    "STREAM_DROP",
 ]
 
 STREAM_INIT_STATE = 1
 STREAM_INIT_ESTIMATE = 2
 STREAM_PROCESS = 3
 STREAM_MEASUREMENT = 4
+STREAM_DROP = 5
 
 
 def _rng(*key) -> np.random.Generator:
@@ -62,3 +65,19 @@ def measurement_noise(seed: int, agent: int, step: int, p: int, r: float, trials
     own noise stream; ``p`` is the number of nodes it measures at that step.
     """
     return np.sqrt(r) * _rng(seed, STREAM_MEASUREMENT, agent, step).standard_normal((trials, p))
+
+
+def message_dropped(seed: int, sender: int, receiver: int, stamp: int, p: float,
+                    trials: int = 1) -> np.ndarray:
+    """Whether the estimate stamped ``stamp`` from ``sender`` to ``receiver`` is lost.
+
+    Agents are 1-based ids. One uniform number ``u`` per trial is drawn from the key
+    ``(seed, STREAM_DROP, sender, receiver, stamp)`` and the message is lost iff
+    ``u < p``: so ``p = 0`` never drops, and the messages lost at ``p`` are also lost at
+    any larger ``p``. Returns a bool array of shape (trials,).
+
+    >>> bool(message_dropped(3, 1, 2, 10, 0.0)[0]), bool(message_dropped(3, 1, 2, 10, 1.0)[0])
+    (False, True)
+    """
+    u = _rng(seed, STREAM_DROP, sender, receiver, stamp).random(trials)
+    return u < p

@@ -1,0 +1,215 @@
+"""The agent process: feeds an :class:`agent.core.AgentCore` from a zenoh peer.
+
+Subscriptions (in this order; the status subscription is declared last, so that a peer
+which receives this agent's status also knows all its other subscriptions: the start
+handshake relies on it): its control key, the impairment key, every agent's estimates,
+the sensor keys of the nodes it measures (or of the first node, as a clock, while it has
+no role), then every agent's status. Publications: its estimate every step, its status
+every ``status_s`` (and at once after a control message). It never reads the truth key.
+
+The process ends on SIGTERM/SIGINT, or once the world has left and every reading
+received has been used.
+"""
+
+from __future__ import annotations
+
+import signal
+import statistics
+import sys
+import time
+from collections import deque
+
+import numpy as np
+
+from broker_free_net import keys
+from broker_free_net.codec import MalformedMessage, MessageStats, try_decode
+from broker_free_net.impair import InvalidImpairment, decode_impairment
+from broker_free_net.peer import Peer
+
+from . import wire
+from .core import AgentConfig, AgentCore, AssignmentError, Role
+
+__all__ = ["agent_config", "run_agent", "initial_role"]
+
+STATUS_S = 0.2
+PRESTART_STATUS_S = 0.1
+#: stamps farther than this from the agent's step are rejected as malformed ("stale"/"future")
+STAMP_WINDOW = 100_000
+
+
+def initial_role(scenario, gains, agent: int):
+    """The scenario's role of agent ``agent`` (1-based), or None for a standby agent."""
+    i = agent - 1
+    if i >= scenario.N:
+        return None
+    return Role(epoch=0, activate_at=0, measure=tuple(scenario.agent_labels(i)),
+                neighbours={j + 1: float(scenario.W[i, j]) for j in scenario.neighbours[i]},
+                self_weight=float(scenario.W[i, i]), gain=np.asarray(gains[i], dtype=float))
+
+
+def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: float,
+                 impair_seed: int = 0) -> AgentConfig:
+    """The :class:`AgentConfig` of agent ``agent`` (1-based) of ``scenario``.
+
+    ``delays[i, j]`` (0-based, steps) becomes the receiver-side delay of link j+1 -> i+1.
+    """
+    M = scenario.N + scenario.standby
+    if not 1 <= agent <= M:
+        raise ValueError(f"--id: no agent {agent} in scenario {scenario.name!r} "
+                         f"(agents 1..{scenario.N}, standby {scenario.N + 1}..{M})")
+    i = agent - 1
+    link_delays = {}
+    if i < scenario.N:
+        link_delays = {j + 1: int(delays[i, j]) for j in range(scenario.N)
+                       if j != i and delays[i, j] > 0}
+    return AgentConfig(
+        agent=agent, A=scenario.A, labels=scenario.labels, agents=tuple(range(1, M + 1)),
+        seed=int(seed), measurement_noise=scenario.measurement_noise,
+        role=initial_role(scenario, gains, agent) if gains is not None or i >= scenario.N
+        else None,
+        link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed)
+
+
+class _Stop:
+    def __init__(self):
+        self.flag = False
+
+    def __call__(self, *_):
+        self.flag = True
+
+
+def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
+    """Run one agent until stopped or the world leaves. Returns the exit status."""
+    stop = stop or _Stop()
+    if stop is not None and isinstance(stop, _Stop):
+        signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGINT, stop)
+    core = AgentCore(config)
+    run, me = net.run, config.agent
+    stats = MessageStats()
+    est_schema = wire.est_schema(core.n)
+    ctl_schema = wire.ctl_schema(core.n)
+    sensor_schema = wire.sensor_schema()
+    senders = set(config.agents)
+    hops = deque(maxlen=4000)
+
+    def bad(reason):
+        stats.count_dropped(reason)
+
+    with Peer(net, "agent", me) as peer:
+        ctl_in = peer.subscribe(keys.ctl_key(run, me))
+        imp_in = peer.subscribe(keys.impair_key(run))
+        est_in = peer.subscribe(keys.any_agent_pattern(run, "est"))
+        sensor_in: dict = {}
+
+        def sync_sensors():
+            wanted = set(core.wanted_labels())
+            for label in wanted - set(sensor_in):
+                sensor_in[label] = peer.subscribe(keys.sensor_key(run, label))
+            for label in set(sensor_in) - wanted:
+                sensor_in.pop(label).close()
+
+        sync_sensors()
+        watch = peer.watch_liveliness()
+        status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+        est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
+        peer.publisher(est_key)
+        peer.publisher(status_key)
+        world_seen = world_alive = False
+        next_status = 0.0
+
+        def publish_status():
+            st = core.status()
+            st["malformed"] = stats.total_dropped
+            st["malformed_reasons"] = dict(stats.dropped)
+            st["overflows"] = sum(i.overflows for i in [ctl_in, imp_in, est_in, status_in,
+                                                         *sensor_in.values()])
+            if hops:
+                ordered = sorted(hops)
+                st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
+                                "p99": 1e3 * ordered[min(len(ordered) - 1,
+                                                         int(0.99 * len(ordered)))]}
+            peer.put(status_key, wire.encode_status(st))
+
+        def handle_sensor(label, item):
+            msg = try_decode(item.payload, sensor_schema, stats)
+            if msg is None:
+                return
+            if msg["label"] != label:
+                bad("key")
+                return
+            core.on_sensor(label, msg["step"], msg["x"])
+
+        def handle_est(item, now):
+            msg = try_decode(item.payload, est_schema, stats, senders=senders,
+                             now_step=max(core.step, 0), window=STAMP_WINDOW)
+            if msg is None:
+                return
+            try:
+                if keys.parse_agent_key(run, "est", item.key) != msg["agent"]:
+                    bad("key")
+                    return
+            except keys.InvalidKey:
+                bad("key")
+                return
+            if msg["agent"] != me:
+                hops.append(time.time() - msg["t"])
+            core.on_estimate(msg["agent"], msg["step"], msg["x"], now)
+
+        while not stop.flag:
+            now = time.monotonic()
+            urgent_status = False
+            for ev in watch.drain():
+                if ev.role == "world":
+                    world_alive = ev.alive
+                    world_seen = world_seen or ev.alive
+                elif ev.role == "agent" and ev.id.isdigit():
+                    core.set_alive(int(ev.id), ev.alive)
+            for item in ctl_in.drain():
+                msg = try_decode(item.payload, ctl_schema, stats)
+                if msg is None:
+                    continue
+                try:
+                    role = core.on_assignment(msg)
+                    print(f"agent {me}: accepted epoch {role.epoch} "
+                          f"(activate at step {role.activate_at})", file=log)
+                except AssignmentError as exc:
+                    print(f"agent {me}: rejected assignment: {exc}", file=log)
+                urgent_status = True
+            for item in imp_in.drain():
+                try:
+                    msg = decode_impairment(item.payload)
+                except MalformedMessage as exc:
+                    bad(exc.reason)
+                    continue
+                try:
+                    if core.on_impairment(msg):
+                        urgent_status = True
+                except InvalidImpairment:
+                    bad("range")
+            for item in status_in.drain():
+                msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats, senders=senders)
+                if msg is not None:
+                    core.note_heard(msg["agent"])
+            for label, inbox in list(sensor_in.items()):
+                for item in inbox.drain():
+                    handle_sensor(label, item)
+            for item in est_in.drain():
+                handle_est(item, now)
+            for step, x in core.poll(time.monotonic()):
+                peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
+            sync_sensors()
+            now = time.monotonic()
+            if urgent_status or now >= next_status:
+                publish_status()
+                next_status = now + (STATUS_S if core.step >= 0 else PRESTART_STATUS_S)
+            if world_seen and not world_alive and not core.sensor and not len(est_in):
+                publish_status()
+                print(f"agent {me}: world left after step {core.step}; exiting", file=log)
+                return 0
+            # wait for any message, a step deadline or the next status
+            wake = core.next_wakeup(now)
+            until = next_status if wake is None else min(wake, next_status)
+            peer.wait(timeout=min(0.25, max(0.0, until - time.monotonic())))
+        publish_status()
+    return 0

@@ -1,0 +1,79 @@
+"""``socmon agent SCENARIO --id I``: one agent process of a live run."""
+
+from __future__ import annotations
+
+HELP = "run one agent: the shared estimator step every step, over zenoh"
+
+
+def add_arguments(parser) -> None:
+    from broker_free_net.config import add_net_arguments
+
+    from ._common import add_scenario_argument
+
+    add_scenario_argument(parser)
+    parser.add_argument("--id", type=int, required=True,
+                        help="agent id (1..N active, N+1.. standby agents of the scenario)")
+    parser.add_argument("--gains", help="gains file (.npz); default: design with the default "
+                                        "method (every agent designs the same gain)")
+    parser.add_argument("--seed", type=int, default=0, help="run seed (same as the world's)")
+    parser.add_argument("--delays", default="scenario",
+                        help="link delays injected at start (receiver side): scenario, none "
+                             "or uniform:T (default: scenario)")
+    parser.add_argument("--deadline-ms", type=float, default=None,
+                        help="wait this long after a step's readings for late neighbour "
+                             "estimates (default: the step period)")
+    add_net_arguments(parser)
+
+
+def gains_for(scenario, gains_path, delays):
+    """Load ``gains_path`` or design the default gain; CommandError when impossible."""
+    from ._common import CommandError, load_gains_arg
+
+    if gains_path:
+        return load_gains_arg(gains_path, scenario).G
+    try:
+        from design.gain_design import design_gains
+    except ImportError:
+        raise CommandError("--gains: required (gain design is not available in this build)") \
+            from None
+    result = design_gains(scenario, delays=delays)
+    if not result.rho < 1:
+        raise CommandError(f"gain design found no stabilising gain (rho = {result.rho:.4g})",
+                           status=1)
+    return list(result.G)
+
+
+def run(args) -> int:
+    from ._common import CommandError, run_command
+
+    def body():
+        from broker_free_net.config import InvalidNetConfig, net_config_from_args
+        from design.errors import ScenarioError
+        from design.scenario import resolve_delays
+
+        from ..agent_process import agent_config, run_agent
+        from ._common import load_scenario_arg
+
+        scenario = load_scenario_arg(args.scenario)
+        M = scenario.N + scenario.standby
+        if not 1 <= args.id <= M:
+            raise CommandError(f"--id: no agent {args.id} (agents 1..{scenario.N}"
+                               + (f", standby {scenario.N + 1}..{M}" if scenario.standby else "")
+                               + ")")
+        try:
+            delays = resolve_delays(scenario, args.delays)
+        except ScenarioError as exc:
+            raise CommandError(str(exc)) from None
+        G = gains_for(scenario, args.gains, delays) if args.id <= scenario.N else None
+        deadline_ms = args.deadline_ms if args.deadline_ms is not None else scenario.step_ms
+        if not deadline_ms > 0:
+            raise CommandError(f"--deadline-ms: must be > 0, got {deadline_ms}")
+        try:
+            net = net_config_from_args(args)
+        except InvalidNetConfig as exc:
+            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
+                              impair_seed=args.seed * 1000 + args.id)
+        return run_agent(config, net)
+
+    return run_command(body)

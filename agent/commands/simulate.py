@@ -1,0 +1,297 @@
+"""``socmon simulate SCENARIO --gains FILE ...``: Monte-Carlo MSE of the distributed estimator.
+
+Runs :func:`design.simulate.simulate` (timeline and conventions in docs/simulation.md).
+Exit status: 0 when the run stays bounded, 1 when it diverged (or ``--recover`` finds no
+recovery / no stabilising gain for it), 2 for bad input (named in the message).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from ._common import (
+    EXIT_NEGATIVE,
+    EXIT_OK,
+    CommandError,
+    add_scenario_argument,
+    load_gains_arg,
+    load_scenario_arg,
+    parse_agent_list,
+    print_json,
+    run_command,
+)
+
+HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops, failures"
+
+
+def add_arguments(parser) -> None:
+    add_scenario_argument(parser)
+    parser.add_argument("--gains", required=True, metavar="FILE",
+                        help="gains file (.npz with K1..KN and meta)")
+    parser.add_argument("--trials", default="20", metavar="T",
+                        help="Monte-Carlo trials (default 20)")
+    parser.add_argument("--steps", default="300", metavar="K", help="time steps (default 300)")
+    parser.add_argument("--seed", default="0", metavar="S",
+                        help="seed of every random number (default 0)")
+    parser.add_argument("--delays", default="scenario", metavar="SPEC",
+                        help="link delays: scenario (default), none or uniform:T")
+    parser.add_argument("--drop", default="0", metavar="P",
+                        help="probability that one message is lost (default 0)")
+    parser.add_argument("--fail", default=None, metavar="STEP:AGENTS",
+                        help="agents (1-based ids, comma-separated) fail at STEP, e.g. 150:1,2")
+    parser.add_argument("--recover", action="store_true",
+                        help="at the failure step, switch to the recovery plan with gains "
+                             "designed for the new configuration")
+    parser.add_argument("--plot", default=None, metavar="OUT.png",
+                        help="write the MSE figure (log scale, 10-90 percentile band)")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+
+
+def run(args) -> int:
+    return run_command(lambda: _run(args))
+
+
+# ---------------------------------------------------------------------------------
+# argument parsing (each raises CommandError naming the flag)
+
+
+def parse_positive_int(text, flag, minimum=1) -> int:
+    try:
+        value = int(str(text).strip())
+    except ValueError:
+        raise CommandError(f"{flag}: expected an integer >= {minimum}, got {text!r}") from None
+    if value < minimum:
+        raise CommandError(f"{flag}: expected an integer >= {minimum}, got {value}")
+    return value
+
+
+def parse_drop(text) -> float:
+    try:
+        p = float(str(text).strip())
+    except ValueError:
+        raise CommandError(f"--drop: expected a probability in [0, 1), got {text!r}") from None
+    if not 0.0 <= p < 1.0:
+        raise CommandError(f"--drop: expected a probability in [0, 1), got {text!r}")
+    return p
+
+
+def parse_fail(text, scenario, steps) -> tuple:
+    """``"150:1,2"`` -> ``(150, [0, 1])`` (agents 0-based)."""
+    step_text, sep, agents_text = str(text).partition(":")
+    if not sep:
+        raise CommandError(f"--fail: expected STEP:AGENTS (e.g. 150:1,2), got {text!r}")
+    step = parse_positive_int(step_text, "--fail STEP")
+    if step > steps:
+        raise CommandError(f"--fail: step {step} is after the last step ({steps})")
+    rows = parse_agent_list(agents_text, scenario, flag="--fail")
+    return step, rows
+
+
+def resolve_delays_arg(scenario, spec):
+    from design.errors import ScenarioError
+    from design.scenario import resolve_delays
+
+    try:
+        return resolve_delays(scenario, spec)
+    except ScenarioError as exc:
+        raise CommandError(str(exc)) from None
+
+
+# ---------------------------------------------------------------------------------
+# recovery
+
+
+def design_for(scenario, delays, seed: int):
+    """Gains for ``scenario`` with ``delays`` from the gain design (``design_gains``)."""
+    from design.gain_design import design_gains
+
+    return design_gains(scenario, delays=delays, seed=seed)
+
+
+def build_recovery(scenario, failed, delay_spec, seed: int):
+    """Recovery plan for ``failed`` (0-based) and gains designed for its configuration.
+
+    Returns ``(Recovery, info)``; raises CommandError (status 1) when the failure cannot
+    be recovered or no stabilising gain is found for the new configuration.
+    """
+    from design.recovery import plan_recovery
+    from design.simulate import Recovery
+
+    plan = plan_recovery(scenario, failed)
+    new = plan.scenario_after
+    if new is None or not plan.structurally_observable_after:
+        raise CommandError(
+            "--recover: the failure of agents "
+            f"{[a + 1 for a in failed]} cannot be recovered (no equivalent sensor or "
+            "no connected network left)", status=EXIT_NEGATIVE)
+    delays = resolve_delays_arg(new, delay_spec)
+    result = design_for(new, delays, seed)
+    if not result.stable:
+        raise CommandError(
+            f"--recover: no stabilising gain found for the recovered configuration "
+            f"(best radius {result.rho:.6g})", status=EXIT_NEGATIVE)
+    info = {
+        "agents_after": list(plan.agent_ids),
+        "measure_after": [new.agent_labels(i) for i in range(new.N)],
+        "replacements": [
+            {"failed": r.failed + 1, "from": scenario.labels[r.node_from],
+             "to": scenario.labels[r.node_to], "by": r.by}
+            for r in plan.replacements
+        ],
+        "added_links": [{"from": u, "to": v} for u, v in plan.added_links],
+        "rho_after": float(result.rho),
+        "mse_steady_exact_after": _finite_or_none(getattr(result, "mse_steady", None)),
+    }
+    return Recovery.from_plan(plan, result.G, delays=delays), info
+
+
+def _finite_or_none(x):
+    import math
+
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+# ---------------------------------------------------------------------------------
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr, shown only on a terminal after a short delay."""
+
+    def __init__(self, label="simulate", stream=None, delay=0.5, width=30):
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.label, self.delay, self.width = label, delay, width
+        self.t0 = time.monotonic()
+        self.last = 0.0
+        self.shown = False
+
+    def __call__(self, done, total):
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if now - self.t0 < self.delay or (now - self.last < 0.1 and done < total):
+            return
+        self.last = now
+        frac = done / total if total else 1.0
+        bar = "#" * int(self.width * frac)
+        self.stream.write(f"\r{self.label} [{bar:<{self.width}}] {done}/{total}")
+        self.stream.flush()
+        self.shown = True
+
+    def close(self):
+        if self.shown:
+            self.stream.write("\r" + " " * (self.width + len(self.label) + 30) + "\r")
+            self.stream.flush()
+
+
+def exact_steady_mse(scenario, G, delays):
+    """The exact steady MSE of the loop (None when unstable or too large to solve)."""
+    from design.closed_loop import closed_loop_for
+
+    loop = closed_loop_for(scenario, G, delays)
+    if loop.order + loop.taubar * loop.n > 2000:
+        return None
+    try:
+        return float(loop.mse_steady(scenario.process_noise, scenario.measurement_noise))
+    except ValueError:
+        return None
+
+
+def _run(args) -> int:
+    from design.errors import SocmonError
+    from design.simulate import simulate
+
+    trials = parse_positive_int(args.trials, "--trials")
+    steps = parse_positive_int(args.steps, "--steps")
+    seed = parse_positive_int(args.seed, "--seed", minimum=0)
+    drop = parse_drop(args.drop)
+    scenario = load_scenario_arg(args.scenario)
+    gains = load_gains_arg(args.gains, scenario)
+    delays = resolve_delays_arg(scenario, args.delays)
+    fail = parse_fail(args.fail, scenario, steps) if args.fail is not None else None
+    if args.recover and fail is None:
+        raise CommandError("--recover: needs --fail STEP:AGENTS")
+    if fail is not None and not args.recover and len(fail[1]) == scenario.N:
+        raise CommandError("--fail: every agent fails; nothing is left to estimate "
+                           "(use --recover)")
+    recover, recovery_info = None, None
+    if args.recover:
+        recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed)
+
+    bar = ProgressBar()
+    try:
+        result = simulate(scenario, gains.G, steps=steps, trials=trials, seed=seed,
+                          delays=delays, drop=drop, fail=fail, recover=recover, progress=bar)
+    except SocmonError as exc:
+        raise CommandError(str(exc)) from None
+    finally:
+        bar.close()
+
+    out = result.to_dict()
+    lo, hi = result.band()
+    out["mse_p10"], out["mse_p90"] = lo.tolist(), hi.tolist()
+    out["scenario"] = scenario.name
+    out["gains_file"] = str(args.gains)
+    out["delays"] = delays.tolist()
+    out["mse_steady_exact"] = (
+        exact_steady_mse(scenario, gains.G, delays) if fail is None and drop == 0 else None)
+    if recovery_info is not None:
+        out["recovery"] = recovery_info
+    if args.plot:
+        from ._plot import plot_mse
+
+        events = []
+        if fail is not None:
+            what = "failure + recovery" if recover is not None else "failure"
+            events.append((fail[0], f"{what} (agents {', '.join(str(a + 1) for a in fail[1])})"))
+        ref = [(out["mse_steady_exact"], "exact steady MSE (Lyapunov)")]
+        try:
+            plot_mse(args.plot, [(f"{scenario.name}, {trials} trials", result)],
+                     title=f"{scenario.name} (delays: {args.delays})"
+                           + (f", drop {drop:g}" if drop else ""),
+                     events=events, reference=ref)
+        except OSError as exc:
+            raise CommandError(f"--plot: cannot write {args.plot!r}: {exc.strerror}") from None
+        out["plot"] = str(args.plot)
+    if args.json:
+        print_json(out)
+    else:
+        print(format_text(out))
+    return EXIT_NEGATIVE if result.diverged else EXIT_OK
+
+
+def _f(x, digits=5) -> str:
+    if x is None:
+        return "-"
+    return f"{x:.{digits}g}" if isinstance(x, float) else str(x)
+
+
+def format_text(d: dict) -> str:
+    mse = d["mse"]
+    lines = [
+        f"scenario {d['scenario']}, gains {d['gains_file']}: {d['trials']} trials x "
+        f"{d['steps']} steps, seed {d['seed']}"
+        + (f", drop {d['drop']:g}" if d["drop"] else ""),
+    ]
+    if d["fail_step"] is not None:
+        lines.append(f"failure of agents {d['failed']} at step {d['fail_step']}"
+                     + (" with recovery" if d["recovered"] else " (no recovery)"))
+    if "recovery" in d:
+        r = d["recovery"]
+        for rep in r["replacements"]:
+            lines.append(f"  node {rep['from']} of agent {rep['failed']} -> node {rep['to']} "
+                         f"measured by agent {rep['by']}")
+        if r["added_links"]:
+            lines.append("  added links: " + ", ".join(
+                f"{x['from']} -> {x['to']}" for x in r["added_links"]))
+        lines.append(f"  exact radius after recovery: {r['rho_after']:.6g}")
+    lines.append(f"MSE at step 0: {_f(mse[0] if isinstance(mse[0], float) else mse[0])}, "
+                 f"at step {d['steps']}: {_f(mse[-1] if isinstance(mse[-1], float) else mse[-1])}")
+    lines.append(f"steady MSE (mean over the last quarter): {_f(d['mse_steady'])}")
+    if d.get("mse_steady_exact") is not None:
+        lines.append(f"exact steady MSE (Lyapunov):            {_f(d['mse_steady_exact'])}")
+    lines.append("DIVERGED" if d["diverged"] else "bounded (did not diverge)")
+    if d.get("plot"):
+        lines.append(f"figure: {d['plot']}")
+    return "\n".join(lines)

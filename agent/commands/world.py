@@ -1,0 +1,66 @@
+"""``socmon world SCENARIO``: the social system and the clock of a live run."""
+
+from __future__ import annotations
+
+HELP = "run the world: simulate the social system and publish sensor readings (the clock)"
+
+
+def add_arguments(parser) -> None:
+    from broker_free_net.config import add_net_arguments
+
+    from ._common import add_scenario_argument
+
+    add_scenario_argument(parser)
+    parser.add_argument("--seed", type=int, default=0, help="run seed (default 0)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="last step to publish (default: run until stopped)")
+    parser.add_argument("--step-ms", type=float, default=None,
+                        help="period of one step in ms (default: the scenario's step_ms)")
+    parser.add_argument("--wait-agents", default=None, metavar="IDS",
+                        help="agent ids to wait for before the clock starts, e.g. 1,2,3 "
+                             "(default: every active and standby agent of the scenario)")
+    parser.add_argument("--start-timeout", type=float, default=60.0,
+                        help="seconds to wait for the agents (default 60)")
+    add_net_arguments(parser)
+
+
+def run(args) -> int:
+    from ._common import CommandError, run_command
+
+    def body():
+        from broker_free_net.config import InvalidNetConfig, net_config_from_args
+
+        from ..world_process import run_world
+        from ._common import load_scenario_arg
+
+        scenario = load_scenario_arg(args.scenario)
+        if args.steps is not None and args.steps < 0:
+            raise CommandError(f"--steps: must be >= 0, got {args.steps}")
+        if args.step_ms is not None and not args.step_ms > 0:
+            raise CommandError(f"--step-ms: must be > 0, got {args.step_ms}")
+        M = scenario.N + scenario.standby
+        wait = None
+        if args.wait_agents is not None:
+            wait = parse_ids(args.wait_agents, M, "--wait-agents")
+        try:
+            net = net_config_from_args(args)
+        except InvalidNetConfig as exc:
+            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        return run_world(scenario, net, seed=args.seed, steps=args.steps, step_ms=args.step_ms,
+                         wait_agents=wait, start_timeout=args.start_timeout)
+
+    return run_command(body)
+
+
+def parse_ids(text, M, flag):
+    from ._common import CommandError
+
+    ids = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if not part.isdigit() or not 1 <= int(part) <= M:
+            raise CommandError(f"{flag}: {part!r} is not an agent id in 1..{M}")
+        ids.append(int(part))
+    return ids

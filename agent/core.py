@@ -1,0 +1,568 @@
+"""The protocol of the world and of an agent, as state machines that never touch a socket.
+
+:class:`AgentCore` takes decoded messages in (sensor readings, neighbour estimates, role
+assignments, liveliness, impairment changes) with the time they arrived, and gives out the
+estimates to publish and a status. :class:`WorldCore` advances the social system one step at
+a time. The process shells (:mod:`agent.agent_process`, :mod:`agent.world_process`) only
+feed them from a :class:`broker_free_net.Peer`; unit tests step them by hand, so tests
+control time.
+
+Timeline (the same as the simulator's; every random number comes from
+:mod:`design.noise`):
+
+- step 0: the true state is ``x_0 = initial_state(seed)``; agent i's estimate is
+  ``xhat^i_0 = initial_estimate(seed, i)`` (no update at step 0); it is published stamped 0;
+- step k >= 1: ``x_k = A x_{k-1} + process_noise(seed, k-1)``; agent i reads
+  ``y^i_k = H_i x_k + measurement_noise(seed, i, k, p_i)`` and runs
+  :func:`design.estimator.estimator_step` with, from each neighbour j, the estimate stamped
+  ``k - 1 - tau_ij`` (age ``1 + tau_ij``). Nothing exists before step 0: while no
+  estimate of j is held (``k - 1 - tau_ij < 0``), j's weight goes to the agent's own
+  prediction, as in :func:`design.estimator.estimator_step`;
+- an agent that gets a role while it has no estimate (a standby agent) starts from the
+  estimate of the agent named in the assignment's ``take_over`` (the freshest one held,
+  propagated by A to step ``activate_at - 1``), or cold from
+  ``initial_estimate(seed, id)``.
+
+Timing invariants (one place):
+
+- the world's step is the clock: an agent computes step k once the sensor readings for k
+  have arrived and, from every live neighbour j, the estimate stamped ``k - 1 - tau_ij``
+  (``tau_ij`` learned), or ``deadline_s`` after the readings arrived, whichever is first;
+- a neighbour estimate missing at the deadline (or at once when a fresher one from the
+  same neighbour is held, when an injected step delay holds the neighbour's messages until
+  this agent's step moves on, or when the neighbour's liveliness token is gone) counts one
+  drop and is replaced by the
+  freshest estimate held from that neighbour (stamp <= k - 1), propagated by ``A^(k - stamp)``;
+  if none is held at all its weight goes to the agent's own prediction;
+- ``tau_ij`` is the smallest lateness ``max(0, k_done - stamp)`` among the last
+  ``learn_window`` estimates delivered from j (``k_done`` = the receiver's last computed
+  step when the estimate was delivered): a delay change is learned within ``learn_window``
+  messages, a single late message does not change it;
+- a receiver-side step delay of d on link j -> i (``LinkImpairments``) releases the estimate
+  stamped s once ``k_done >= s + d``, so it is learned as ``tau_ij = d``;
+- a role assignment is applied atomically before computing step ``activate_at``.
+
+Examples
+--------
+>>> import numpy as np
+>>> core = AgentCore(AgentConfig(agent=2, A=np.eye(2), labels=("a", "b"), agents=(1, 2),
+...                              seed=0, measurement_noise=0.0))
+>>> core.active, core.step
+(False, -1)
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from broker_free_net.impair import DELIVER, HOLD, LinkImpairments, apply_impairment_message
+from design import noise
+from design.estimator import AgentRole, NeighbourEstimate, PowerCache, estimator_step
+
+__all__ = [
+    "AssignmentError",
+    "Role",
+    "AgentConfig",
+    "AgentCore",
+    "WorldCore",
+    "validate_assignment",
+    "resolution_step",
+    "WEIGHT_SUM_TOL",
+]
+
+#: |self_weight + sum of neighbour weights - 1| allowed in a role.
+WEIGHT_SUM_TOL = 1e-9
+
+
+class AssignmentError(ValueError):
+    """A role assignment is invalid or cannot be applied; the message says why."""
+
+
+@dataclass(frozen=True, eq=False)
+class Role:
+    """What an agent does from step ``activate_at`` on.
+
+    ``measure`` are node labels (order = columns of ``gain``), ``neighbours`` maps agent id
+    (1-based) -> weight, ``gain`` is ``G_i`` (n x p_i).
+    """
+
+    epoch: int
+    activate_at: int
+    measure: tuple
+    neighbours: dict
+    self_weight: float
+    gain: np.ndarray
+    take_over: int | None = None
+
+
+def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
+    """Check a decoded assignment message for agent ``agent``; return its :class:`Role`.
+
+    Raises
+    ------
+    AssignmentError
+        Naming every problem found (wrong agent, unknown label or neighbour, weights not
+        summing to 1, gain of the wrong shape or not finite).
+    """
+    problems = []
+    if msg["agent"] != agent:
+        problems.append(f"agent: message for agent {msg['agent']}, this is agent {agent}")
+    label_set = set(labels)
+    unknown = [m for m in msg["measure"] if m not in label_set]
+    if unknown:
+        problems.append(f"measure: unknown node labels {unknown}")
+    nbrs = dict(msg["neighbours"])
+    if agent in nbrs:
+        problems.append("neighbours: an agent is not its own neighbour (use self_weight)")
+    strangers = sorted(a for a in nbrs if a not in set(agents))
+    if strangers:
+        problems.append(f"neighbours: unknown agents {strangers}")
+    w_self = float(msg["self_weight"])
+    if not w_self > 0:
+        problems.append(f"self_weight: must be > 0, got {w_self}")
+    total = w_self + sum(nbrs.values())
+    if abs(total - 1.0) > WEIGHT_SUM_TOL:
+        problems.append(f"weights: self_weight + neighbour weights = {total!r}, must be 1")
+    gain = np.asarray(msg["gain"], dtype=float)
+    if gain.shape != (n, len(msg["measure"])):
+        problems.append(f"gain: shape {gain.shape}, expected ({n}, {len(msg['measure'])}) "
+                        "(n x measured nodes)")
+    take_over = msg.get("take_over")
+    if take_over is not None and (take_over == agent or take_over not in set(agents)):
+        problems.append(f"take_over: {take_over} is not another agent of the run")
+    if problems:
+        raise AssignmentError("; ".join(problems))
+    return Role(take_over=take_over, epoch=int(msg["epoch"]), activate_at=int(msg["activate_at"]),
+                measure=tuple(msg["measure"]),
+                neighbours={a: w for a, w in nbrs.items() if w > 0},
+                self_weight=w_self, gain=gain.copy())
+
+
+@dataclass(frozen=True, eq=False)
+class AgentConfig:
+    """Everything an agent process is configured with (no networking).
+
+    Parameters
+    ----------
+    agent : int
+        This agent's id (1-based).
+    A : (n, n) array
+    labels : tuple of str
+        Node labels, index order of the state.
+    agents : tuple of int
+        Every agent id of the run (active and standby).
+    seed : int
+        Run seed (initial estimates and measurement noise, :mod:`design.noise`).
+    measurement_noise : float
+        Variance r of each sensor reading's noise.
+    role : Role or None
+        Initial role (epoch 0); None for a standby agent.
+    link_delays : dict
+        ``{source agent: d}``: receiver-side step delay injected at start on link source -> agent.
+    deadline_s : float
+        How long to wait for late neighbour estimates after the step's readings arrived.
+    learn_window : int
+        Number of recent deliveries the delay of a link is learned from.
+    history : int
+        Estimates kept per neighbour (stamps).
+    impair_seed : int
+        Seed of the random drops of injected impairments.
+    """
+
+    agent: int
+    A: np.ndarray
+    labels: tuple
+    agents: tuple
+    seed: int
+    measurement_noise: float
+    role: Role | None = None
+    link_delays: dict = field(default_factory=dict)
+    deadline_s: float = 0.02
+    learn_window: int = 8
+    history: int = 64
+    impair_seed: int = 0
+
+
+class _Neighbour:
+    """What an agent holds from one other agent."""
+
+    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held")
+
+    def __init__(self, window: int):
+        self.est: dict = {}              # stamp -> x
+        self.lateness = deque(maxlen=window)
+        self.heard = False               # at least one estimate delivered
+        self.missed: set = set()         # stamps needed but missing at a deadline
+        self.alive = True
+        self.step_held = 0               # messages held by an injected step delay
+
+    @property
+    def tau(self):
+        return min(self.lateness) if self.lateness else None
+
+    def freshest(self, at_most: int):
+        stamps = [s for s in self.est if s <= at_most]
+        return max(stamps) if stamps else None
+
+
+class AgentCore:
+    """The agent's protocol: stepped by the caller with explicit times (seconds).
+
+    Feed it with :meth:`on_sensor`, :meth:`on_estimate`, :meth:`on_assignment`,
+    :meth:`on_impairment`, :meth:`set_alive`, :meth:`note_heard`; call :meth:`poll` to
+    run every step that can run now; :meth:`next_wakeup` says when a deadline or a held
+    message falls due.
+    """
+
+    def __init__(self, config: AgentConfig):
+        self.config = config
+        self.id = int(config.agent)
+        self.A = np.asarray(config.A, dtype=float)
+        self.n = self.A.shape[0]
+        self.labels = tuple(config.labels)
+        self.powers = PowerCache(self.A)
+        self.role: Role | None = config.role
+        self.pending: Role | None = None
+        self.epoch = config.role.epoch if config.role is not None else 0
+        self.x = None                     # xhat_{k|k} at k = self.step (None: no role yet)
+        self.step = -1                    # last completed step
+        self.sensor: dict = {}            # step -> {label: value}
+        self.ready_at: float | None = None  # when the readings of step + 1 were in hand
+        self.nbrs: dict = {}
+        self.impair = LinkImpairments(seed=config.impair_seed)
+        for src, d in config.link_delays.items():
+            if d:
+                self.impair.set((int(src), self.id), delay_steps=int(d))
+        self.drops = 0
+        self.late = 0
+        self.impaired = 0
+        self.sensor_missed = 0
+        self.sensor_last = -1
+        self.ctl_accepted = 0
+        self.ctl_rejected = 0
+        self.ctl_last_error = ""
+        self.heard: set = set()
+
+    # -- helpers ------------------------------------------------------------------
+    @property
+    def active(self) -> bool:
+        return self.role is not None
+
+    def _nb(self, agent: int) -> _Neighbour:
+        nb = self.nbrs.get(agent)
+        if nb is None:
+            nb = self.nbrs[agent] = _Neighbour(self.config.learn_window)
+        return nb
+
+    def wanted_labels(self) -> tuple:
+        """Sensor labels this agent must receive (current and pending roles, or a clock)."""
+        wanted = []
+        for role in (self.role, self.pending):
+            if role is not None:
+                wanted += [m for m in role.measure if m not in wanted]
+        return tuple(wanted) if wanted else (self.labels[0],)
+
+    def learned_delays(self) -> dict:
+        """``{neighbour: tau}`` for the current neighbours heard from."""
+        if self.role is None:
+            return {}
+        out = {}
+        for j in self.role.neighbours:
+            nb = self.nbrs.get(j)
+            if nb is not None and nb.tau is not None:
+                out[j] = nb.tau
+        return out
+
+    # -- inputs ------------------------------------------------------------------
+    def on_sensor(self, label: str, step: int, value: float) -> None:
+        """A sensor reading of node ``label`` at ``step`` (the true state, without noise)."""
+        if step <= self.step:
+            return
+        self.sensor.setdefault(int(step), {})[label] = float(value)
+        self.sensor_last = max(self.sensor_last, int(step))
+
+    def on_estimate(self, sender: int, stamp: int, x, now: float) -> str:
+        """An estimate of agent ``sender`` stamped ``stamp``; returns the link's decision."""
+        if sender == self.id:
+            return "self"
+        x = np.array(x, dtype=float)
+        step_held = self.impair.get((sender, self.id)).delay_steps > 0
+        decision = self.impair.offer(sender, self.id, (stamp, x, step_held),
+                                     stamp_step=stamp, arrival=now)
+        if decision.action == DELIVER:
+            self._deliver(sender, stamp, x)
+        elif decision.action == HOLD:
+            if step_held:
+                self._nb(sender).step_held += 1
+        else:
+            self.impaired += 1
+        return decision.action
+
+    def _deliver(self, sender: int, stamp: int, x) -> None:
+        nb = self._nb(sender)
+        if stamp in nb.missed:
+            nb.missed.discard(stamp)
+            self.late += 1
+        nb.heard = True
+        nb.lateness.append(max(0, self.step - stamp))
+        nb.est[stamp] = x
+        if len(nb.est) > self.config.history:
+            newest = max(nb.est)
+            for s in [s for s in nb.est if s <= newest - self.config.history]:
+                del nb.est[s]
+
+    def on_impairment(self, msg: dict) -> bool:
+        """Apply a decoded impairment change if it concerns a link into this agent."""
+        if msg["op"] != "clear_all" and msg.get("dst") != self.id:
+            return False
+        apply_impairment_message(self.impair, msg)
+        return True
+
+    def on_assignment(self, msg: dict) -> Role:
+        """A decoded role assignment; applied before step ``activate_at``.
+
+        Raises
+        ------
+        AssignmentError
+            Invalid, older than the current or pending epoch, or ``activate_at`` already past.
+        """
+        try:
+            role = validate_assignment(msg, self.id, self.labels, self.config.agents, self.n)
+            newest = max(self.epoch, self.pending.epoch if self.pending else 0)
+            if role.epoch <= newest:
+                raise AssignmentError(f"epoch: {role.epoch} is not newer than epoch {newest}")
+            if role.activate_at <= self.step:
+                raise AssignmentError(
+                    f"activate_at: step {role.activate_at} already done (at step {self.step})")
+        except AssignmentError as exc:
+            self.ctl_rejected += 1
+            self.ctl_last_error = str(exc)
+            raise
+        self.pending = role
+        self.ctl_accepted += 1
+        return role
+
+    def set_alive(self, agent: int, alive: bool) -> None:
+        self._nb(agent).alive = bool(alive)
+
+    def note_heard(self, agent: int) -> None:
+        """A status of ``agent`` reached this agent (the start handshake)."""
+        if agent != self.id:
+            self.heard.add(agent)
+
+    # -- stepping ------------------------------------------------------------------
+    def _release(self, now: float) -> None:
+        for src, _dst, (stamp, x, step_held) in self.impair.release(now_step=self.step,
+                                                                    now_time=now):
+            if step_held:
+                self._nb(src).step_held -= 1
+            self._deliver(src, stamp, x)
+
+    def next_wakeup(self, now: float, poll_s: float = 0.001):
+        """Latest time at which :meth:`poll` must run again without a new message.
+
+        A step deadline, or ``now + poll_s`` while impaired messages are held (they fall
+        due by step or by time); None when only a new message can move the agent on.
+        """
+        times = []
+        if self.ready_at is not None:
+            times.append(self.ready_at + self.config.deadline_s)
+        if self.impair.held:
+            times.append(now + poll_s)
+        return min(times) if times else None
+
+    def _readings(self, k: int):
+        """(values by label, is_complete) for step k, or None to keep waiting."""
+        wanted = self.wanted_labels()
+        have = self.sensor.get(k, {})
+        if all(m in have for m in wanted):
+            return have, True
+        # a reading of a later step on a wanted label: the missing ones for k are lost
+        if any(s > k and any(m in v for m in wanted) for s, v in self.sensor.items()):
+            return have, False
+        return None
+
+    def poll(self, now: float) -> list:
+        """Run every step that can run at time ``now``; return ``[(step, x)]`` to publish."""
+        out = []
+        while True:
+            self._release(now)
+            k = self.step + 1
+            got = self._readings(k) if self.step >= 0 else self._first_readings()
+            if got is None:
+                return out
+            if self.step < 0:
+                out += self._start(got)
+                continue
+            readings, complete = got
+            if self.pending is not None and self.pending.activate_at <= k:
+                self._activate(self.pending, k)
+            if self.role is None:
+                self._finish(k, None)
+                continue
+            if self.ready_at is None:
+                self.ready_at = now
+            plan = self._plan(k, now)
+            if plan is None:
+                return out
+            if not complete:
+                self.sensor_missed += 1
+            out.append((k, self._compute(k, readings, plan)))
+
+    def _first_readings(self):
+        wanted = self.wanted_labels()
+        steps = [s for s, v in self.sensor.items() if any(m in v for m in wanted)]
+        return min(steps) if steps else None
+
+    def _start(self, k0: int) -> list:
+        """First reading seen at step k0 (0 in a normal run): hold the initial estimate."""
+        if self.pending is not None and self.pending.activate_at <= k0:
+            self._activate(self.pending, k0)
+        self._finish(k0, None)
+        if self.role is None:
+            return []
+        self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
+        return [(k0, self.x)]
+
+    def _activate(self, role: Role, k: int) -> None:
+        if self.x is None and self.step >= 0:
+            nb = self.nbrs.get(role.take_over) if role.take_over else None
+            s = nb.freshest(k - 1) if nb is not None else None
+            if s is not None:
+                self.x = self.powers[k - 1 - s] @ nb.est[s]
+            else:
+                self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
+        self.role, self.pending, self.epoch = role, None, role.epoch
+
+    def _plan(self, k: int, now: float):
+        """Which estimate of each neighbour step k uses, or None to keep waiting."""
+        plan, waiting = {}, False
+        for j in self.role.neighbours:
+            nb = self._nb(j)
+            tau = nb.tau if nb.tau is not None else 0
+            need = max(k - 1 - tau, 0)
+            if need in nb.est:
+                plan[j] = need
+            elif nb.alive and not nb.step_held and not (nb.est and max(nb.est) > need):
+                # no use waiting when a fresher estimate is held (the one needed was lost)
+                # or when this link's injected step delay holds the neighbour's messages
+                # until this agent's step moves on
+                waiting = True
+                plan[j] = None
+            else:
+                plan[j] = None
+        if waiting and now < self.ready_at + self.config.deadline_s:
+            return None
+        for j, s in plan.items():
+            if s is None:
+                nb = self.nbrs[j]
+                tau = nb.tau if nb.tau is not None else 0
+                if nb.heard:
+                    self.drops += 1
+                    nb.missed.add(k - 1 - tau)
+                    if len(nb.missed) > self.config.history:
+                        nb.missed.discard(min(nb.missed))
+                plan[j] = nb.freshest(k - 1)
+        return plan
+
+    def _compute(self, k: int, readings: dict, plan: dict):
+        role = self.role
+        cols = [c for c, m in enumerate(role.measure) if m in readings]
+        measured = tuple(self.labels.index(role.measure[c]) for c in cols)
+        z = noise.measurement_noise(self.config.seed, self.id, k, len(role.measure),
+                                    self.config.measurement_noise)[0]
+        y = np.array([readings[role.measure[c]] for c in cols]) + z[cols]
+        est_role = AgentRole(measured=measured, self_weight=role.self_weight,
+                             G=role.gain[:, cols])
+        nbs = []
+        for j, s in plan.items():
+            x = None if s is None else self.nbrs[j].est[s]
+            nbs.append(NeighbourEstimate(role.neighbours[j], k - s if s is not None else 1, x))
+        _, post = estimator_step(self.powers, est_role, self.x, nbs, y)
+        self._finish(k, post)
+        return post
+
+    def _finish(self, k: int, post) -> None:
+        if post is not None:
+            self.x = post
+        self.step = k
+        self.ready_at = None
+        for s in [s for s in self.sensor if s <= k]:
+            del self.sensor[s]
+
+    # -- status ------------------------------------------------------------------
+    def status(self) -> dict:
+        """The status fields of this agent (see docs/runtime.md)."""
+        role = self.role
+        return {
+            "agent": self.id,
+            "step": self.step,
+            "active": role is not None,
+            "epoch": self.epoch,
+            "measure": list(role.measure) if role else [],
+            "neighbours": dict(role.neighbours) if role else {},
+            "delays": self.learned_delays(),
+            "drops": self.drops,
+            "late": self.late,
+            "impaired": self.impaired,
+            "sensor": {"labels": list(self.wanted_labels()), "last_step": self.sensor_last,
+                       "missed": self.sensor_missed},
+            "heard": sorted(self.heard),
+            "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
+                      for (src, dst), p in self.impair.links().items() if not p.is_identity},
+            "ctl": {"accepted": self.ctl_accepted, "rejected": self.ctl_rejected,
+                    "last_error": self.ctl_last_error,
+                    "pending": self.pending.epoch if self.pending else 0},
+        }
+
+
+# ---------------------------------------------------------------------------------
+# the world
+
+
+class WorldCore:
+    """The social system ``x_{k+1} = A x_k + nu_k`` with the noise of :mod:`design.noise`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> w = WorldCore(np.eye(2), seed=3, q=0.0)
+    >>> x0 = w.x.copy(); w.advance(); w.step, bool((w.x == x0).all())
+    (1, True)
+    """
+
+    def __init__(self, A, seed: int, q: float):
+        self.A = np.asarray(A, dtype=float)
+        self.n = self.A.shape[0]
+        self.seed = int(seed)
+        self.q = float(q)
+        self.step = 0
+        self.x = noise.initial_state(self.seed, self.n)[0]
+
+    def advance(self) -> None:
+        """Go from step k to k + 1."""
+        nu = noise.process_noise(self.seed, self.step, self.n, self.q)[0]
+        self.x = self.A @ self.x + nu
+        self.step += 1
+
+
+def resolution_step(rho: float, x0_norm: float, digits: float = 6.0):
+    """First step at which an O(1) error keeps fewer than ``digits`` significant digits.
+
+    With ``|x_k| ~ |x_0| rho^k``, float64 resolves ``|x_k| * eps``; an error of 1 keeps
+    ``-log10(|x_k| eps)`` digits. None when rho <= 1 (the state does not grow).
+
+    >>> resolution_step(1.0857, 1.0, digits=0)   # |x| * eps reaches 1
+    439
+    >>> resolution_step(0.98, 1.0) is None
+    True
+    """
+    if rho <= 1.0:
+        return None
+    eps = np.finfo(float).eps
+    limit = 10.0 ** (-digits) / eps / max(x0_norm, 1e-300)
+    return max(0, math.ceil(math.log(limit) / math.log(rho)))

@@ -1,0 +1,144 @@
+"""The world process: the clock of a run.
+
+It waits until every expected agent is ready (the start handshake: each agent's status
+says it has heard the status of every other expected agent, so every estimate route is
+declared), then every ``step_ms`` publishes each node's state on its sensor key and the
+whole state on the truth key, both stamped with the step, and advances the social system
+(:class:`agent.core.WorldCore`). After the last step it waits (bounded) until the live
+agents report that step, then leaves; agents exit when the world's liveliness token goes.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+
+import numpy as np
+
+from broker_free_net import keys
+from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.peer import Peer
+
+from . import wire
+from .core import WorldCore, resolution_step
+
+__all__ = ["run_world", "StartTimeout"]
+
+RESOLUTION_DIGITS = 6.0
+
+
+class StartTimeout(RuntimeError):
+    """Not every expected agent became ready in time."""
+
+
+class _Stop:
+    def __init__(self):
+        self.flag = False
+
+    def __call__(self, *_):
+        self.flag = True
+
+
+def _warn_resolution(scenario, world, steps, log) -> int | None:
+    rho = scenario.rho_A
+    x0 = float(np.linalg.norm(world.x, np.inf))
+    k0 = resolution_step(rho, x0, digits=0.0)
+    k6 = resolution_step(rho, x0, digits=RESOLUTION_DIGITS)
+    if k6 is None:
+        return None
+    horizon = "" if steps is None else f" (this run: {steps} steps)"
+    if steps is None or steps >= k6:
+        print(f"world: warning: rho(A) = {rho:.4f} > 1: the state grows like rho^k; an error of "
+              f"order one keeps fewer than {RESOLUTION_DIGITS:g} significant digits in float64 "
+              f"from about step {k6} and none from about step {k0}{horizon}. Use a scenario "
+              "with rho(A) < 1 for long live runs (e.g. paper-14-live).", file=log)
+    return k6
+
+
+def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=None,
+              start_timeout: float = 60.0, end_timeout: float = 5.0, log=sys.stderr,
+              stop=None) -> int:
+    """Run the world. ``steps=None`` runs until stopped; ``wait_agents`` = ids to wait for."""
+    stop = stop or _Stop()
+    if isinstance(stop, _Stop):
+        signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGINT, stop)
+    run = net.run
+    step_s = (step_ms if step_ms is not None else scenario.step_ms) / 1000.0
+    M = scenario.N + scenario.standby
+    expected = set(range(1, M + 1)) if wait_agents is None else set(wait_agents)
+    world = WorldCore(scenario.A, seed, scenario.process_noise)
+    k_warn = _warn_resolution(scenario, world, steps, log)
+    stats = MessageStats()
+    with Peer(net, "world", 0) as peer:
+        status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+        watch = peer.watch_liveliness()
+        sensor_keys = [keys.sensor_key(run, label) for label in scenario.labels]
+        truth_key = keys.truth_key(run)
+        for key in sensor_keys + [truth_key]:
+            peer.publisher(key)
+        ready: dict = {}
+        last_step: dict = {}
+
+        def read_statuses(timeout=0.0):
+            item = status_in.get(timeout=timeout) if timeout > 0 else None
+            items = ([item] if item is not None else []) + status_in.drain()
+            for it in items:
+                msg = try_decode(it.payload, wire.STATUS_SCHEMA, stats)
+                if msg is None:
+                    continue
+                ready[msg["agent"]] = set(msg["heard"]) >= (expected - {msg["agent"]})
+                last_step[msg["agent"]] = msg["step"]
+
+        deadline = time.monotonic() + start_timeout
+        while not all(ready.get(a) for a in expected):
+            if stop.flag:
+                return 130
+            if time.monotonic() > deadline:
+                missing = sorted(a for a in expected if not ready.get(a))
+                print(f"world: agents {missing} not ready after {start_timeout:g} s "
+                      "(not started, or cannot reach every other agent)", file=log)
+                return 1
+            read_statuses(timeout=0.05)
+        print(f"world: {len(expected)} agents ready; clock starts, step {step_s * 1e3:g} ms",
+              file=log)
+        t0 = time.monotonic()
+        warned = False
+        worst_lag = 0.0
+        while not stop.flag:
+            k = world.step
+            worst_lag = max(worst_lag, time.monotonic() - (t0 + k * step_s))
+            for key, value in zip(sensor_keys, world.x):
+                peer.put(key, wire.encode_sensor(k, key.rsplit("/", 1)[1], value))
+            peer.put(truth_key, wire.encode_truth(k, world.x))
+            if k_warn is not None and k >= k_warn and not warned:
+                warned = True
+                print(f"world: warning: step {k}: |x| = {np.abs(world.x).max():.3g}; an O(1) "
+                      f"error now has fewer than {RESOLUTION_DIGITS:g} significant digits",
+                      file=log)
+            if steps is not None and k >= steps:
+                break
+            world.advance()
+            due = t0 + world.step * step_s
+            while not stop.flag:
+                left = due - time.monotonic()
+                if left <= 0:
+                    break
+                read_statuses(timeout=min(left, 0.05))
+            if not math.isfinite(float(np.abs(world.x).max())):
+                print(f"world: the state overflowed float64 at step {world.step}", file=log)
+                return 1
+        if stop.flag:
+            return 0
+        # wait (bounded) until the live agents have used the last readings
+        deadline = time.monotonic() + end_timeout
+        while time.monotonic() < deadline and not stop.flag:
+            alive = {int(i) for role, i in watch.alive() if role == "agent" and i.isdigit()}
+            if all(last_step.get(a, -1) >= world.step for a in expected & alive):
+                break
+            read_statuses(timeout=0.05)
+        print(f"world: done after step {world.step}; worst lag {1e3 * worst_lag:.1f} ms "
+              "behind the schedule", file=log)
+    return 0

@@ -1,0 +1,552 @@
+"""Monte-Carlo simulation of the distributed estimator, vectorised across trials.
+
+Every random number comes from :mod:`design.noise` and every estimator update is
+:func:`design.estimator.estimator_step` (with the trials as its batch axis), so a live
+run with the same seed reproduces trial 0 of a simulation.
+
+Timeline (k = 0, 1, ..., steps)
+-------------------------------
+- ``x_0 = noise.initial_state(seed)``; ``x_{k+1} = A x_k + nu_k`` with
+  ``nu_k = noise.process_noise(seed, k)``.
+- Agent with id ``a`` (1-based) holds ``xhat^a_0 = noise.initial_estimate(seed, a)`` at
+  step 0, stamped 0. Nothing exists before step 0: an estimate stamped s < 0 is never
+  held. Agents compute steps k = 1..steps.
+- At step k agent i first receives: on each link j -> i with delay tau (the current
+  configuration's), the estimate of j stamped ``s = k - 1 - tau`` arrives unless
+  ``s < 0``, j had not published stamp s, or ``noise.message_dropped(seed, j, i, s, drop)``
+  says it is lost. Agent i keeps, per neighbour, the freshest estimate received so far.
+- Then it calls ``estimator_step`` with its own ``xhat^i_{k-1}``, each neighbour's
+  freshest held estimate with ``age = k - stamp`` (``1 + tau`` when on time; older when
+  the on-time one was dropped, propagated by ``A^age``) or ``x=None`` when nothing is
+  held (its weight goes to self), and ``y^i_k = H_i x_k + zeta^i_k`` with
+  ``zeta^i_k = noise.measurement_noise(seed, i, k)``. The result ``xhat^i_k`` is
+  published with stamp k.
+- Failure at step f of agents F: they do not compute step f or later; from step f their
+  estimates are no longer received (held ones are discarded, messages in flight lost),
+  so their neighbours' weights go to self; their error leaves the MSE from step f on.
+- Recovery at step f: the configuration of :class:`Recovery` (its W, delays, sensors and
+  gains) is used from step f on. Surviving agents keep their estimates and what they
+  hold. A replacement agent takes over, as its own estimate stamped f - 1 (published
+  with that stamp), the last estimate ``xhat_{f-1}`` of the failed agent it replaces; a
+  new agent that replaces nobody starts from ``noise.initial_estimate(seed, id)``.
+  Agents hold nothing from a new agent until its messages arrive.
+
+Accuracy with unstable A
+------------------------
+``x_k`` grows like ``rho(A)^k``, so ``x - xhat`` computed from the two loses about
+``k log10(rho(A))`` digits. By default (``coordinates="error"``) the simulator runs the
+same estimator step on the estimates *relative to the truth*, ``z^i = xhat^i - x``: the
+step is linear, and with ``x_k = A^a x_{k-a} + S_a(k)``,
+``S_a(k) = sum_{m<a} A^m nu_{k-1-m}``, the relative prediction is the step's prediction
+on relative estimates minus ``w_self S_1(k) + sum_j w_ij S_{a_j}(k)`` (passed to the step
+as one extra input of age 0), and the relative measurement is ``zeta``. Nothing of the
+size of ``x`` is formed, so the error keeps full precision for any number of steps
+while the loop is stable (only a cold-started replacement forms ``x``, once).
+``coordinates="absolute"`` runs ``x`` and ``xhat`` as a live run does.
+
+Examples
+--------
+>>> import numpy as np
+>>> from design.scenario import load_scenario
+>>> s = load_scenario("paper-14")
+>>> res = simulate(s, [np.zeros((14, 1))] * 3, steps=20, trials=4, seed=1)
+>>> res.mse.shape, res.mse_trials.shape
+((21,), (4, 21))
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import noise
+from .errors import GainsError, SocmonError
+from .estimator import AgentRole, NeighbourEstimate, PowerCache, estimator_step
+from .gains import Gains, check_gains_fit
+
+__all__ = [
+    "Recovery",
+    "SimulationError",
+    "SimulationResult",
+    "simulate",
+    "DIVERGENCE_FACTOR",
+]
+
+#: A run has diverged if its steady MSE exceeds this factor times its initial MSE.
+DIVERGENCE_FACTOR = 1e3
+
+
+class SimulationError(SocmonError):
+    """Bad arguments to :func:`simulate` (the message names the argument)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Recovery:
+    """The configuration that takes over at the failure step.
+
+    Attributes
+    ----------
+    scenario : Scenario
+        The new configuration (same social system A and process noise; its own W,
+        delays, sensors and measurement noise).
+    G : list of arrays
+        Gains for it, ``G[i]`` of shape n x p_i for row i of ``scenario``.
+    ids : tuple of int
+        1-based agent id of each row of ``scenario``: survivors keep their ids,
+        replacement agents have new ids (e.g. standby ids N+1, ...).
+    replaces : dict
+        New id -> 0-based row (in the old configuration) of the failed agent whose last
+        estimate it takes over. A new id absent from it starts cold from
+        ``noise.initial_estimate(seed, id)``.
+    delays : array or None
+        Delay matrix used after the switch; default ``scenario.delays``.
+    """
+
+    scenario: object
+    G: list
+    ids: tuple
+    replaces: dict = field(default_factory=dict)
+    delays: object = None
+
+    @classmethod
+    def from_plan(cls, plan, G, delays=None) -> "Recovery":
+        """From a :class:`design.recovery.RecoveryPlan`: standbys take over the estimate
+        of the failed agent whose place in W they take; survivors keep theirs."""
+        if plan.scenario_after is None:
+            raise SimulationError("recover: the recovery plan has no new configuration")
+        replaces = {r.by: r.failed for r in plan.replacements if r.by_standby}
+        return cls(scenario=plan.scenario_after, G=list(G), ids=tuple(plan.agent_ids),
+                   replaces=replaces, delays=delays)
+
+
+@dataclass(frozen=True, eq=False)
+class SimulationResult:
+    """Mean-squared error of a Monte-Carlo run.
+
+    Attributes
+    ----------
+    mse : ndarray (steps+1,)
+        ``mse[k]`` = mean over trials, active agents and state components of
+        ``(xhat - x)^2`` at step k (k = 0 is the initial estimates' error).
+    mse_trials : ndarray (trials, steps+1)
+        The same per trial (mean over agents and states), for bands.
+    mse_steady : float
+        Mean of ``mse`` over the last quarter of the steps (``max(1, steps // 4)``
+        steps, ending at ``steps``).
+    diverged : bool
+        Any non-finite error, or ``mse_steady > DIVERGENCE_FACTOR * mse[0]``.
+    """
+
+    mse: np.ndarray
+    mse_trials: np.ndarray
+    mse_steady: float
+    diverged: bool
+    trials: int
+    steps: int
+    seed: int
+    drop: float = 0.0
+    fail_step: int | None = None
+    failed: tuple = ()
+    recovered: bool = False
+    coordinates: str = "error"
+
+    def band(self, lo: float = 10.0, hi: float = 90.0):
+        """Percentiles ``lo`` and ``hi`` across trials, per step."""
+        with np.errstate(invalid="ignore"):
+            return (np.percentile(self.mse_trials, lo, axis=0),
+                    np.percentile(self.mse_trials, hi, axis=0))
+
+    def to_dict(self, per_trial: bool = False) -> dict:
+        """JSON-ready record (agents 1-based)."""
+        out = {
+            "mse": self.mse.tolist(),
+            "mse_steady": float(self.mse_steady),
+            "diverged": bool(self.diverged),
+            "trials": int(self.trials),
+            "steps": int(self.steps),
+            "seed": int(self.seed),
+            "drop": float(self.drop),
+            "fail_step": self.fail_step,
+            "failed": [int(a) for a in self.failed],
+            "recovered": bool(self.recovered),
+            "coordinates": self.coordinates,
+        }
+        if per_trial:
+            out["mse_trials"] = self.mse_trials.tolist()
+        return out
+
+
+# ---------------------------------------------------------------------------------
+# configuration of one phase (before / after the failure step)
+
+
+@dataclass
+class _Config:
+    W: np.ndarray
+    delays: np.ndarray
+    ids: list           # row -> 1-based id
+    roles: list         # row -> AgentRole
+    r: float            # measurement noise variance
+    dead: frozenset = frozenset()   # ids of failed agents (rows kept, not computed)
+
+    @property
+    def live(self) -> list:
+        return [(i, a) for i, a in enumerate(self.ids) if a not in self.dead]
+
+    @property
+    def links(self):
+        """(row i, row j, weight, delay) for every neighbour link j -> i."""
+        out = []
+        N = self.W.shape[0]
+        for i in range(N):
+            for j in range(N):
+                if j != i and self.W[i, j] > 0:
+                    out.append((i, j, float(self.W[i, j]), int(self.delays[i, j])))
+        return out
+
+
+def _config(scenario, G, delays, ids) -> _Config:
+    roles = [
+        AgentRole(measured=scenario.measure[i], self_weight=float(scenario.W[i, i]), G=G[i])
+        for i in range(scenario.N)
+    ]
+    return _Config(W=np.asarray(scenario.W, float), delays=np.asarray(delays, int),
+                   ids=list(ids), roles=roles, r=float(scenario.measurement_noise))
+
+
+def _check_int(value, name, minimum):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise SimulationError(f"{name}: must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _gain_list(G, scenario, where):
+    G = G.G if isinstance(G, Gains) else list(G)
+    check_gains_fit(G, scenario, where=where)
+    out = [np.asarray(g, dtype=float) for g in G]
+    for i, g in enumerate(out):
+        if not np.all(np.isfinite(g)):
+            raise GainsError(f"{where}: K{i + 1} has non-finite entries")
+    return out
+
+
+def _check_delays(D, scenario, name):
+    D = np.asarray(D)
+    if D.shape != scenario.W.shape or not np.issubdtype(D.dtype, np.integer):
+        raise SimulationError(
+            f"{name}: must be an integer {scenario.N} x {scenario.N} matrix, got "
+            f"{D.dtype} array of shape {D.shape}"
+        )
+    if np.any(D < 0):
+        raise SimulationError(f"{name}: delays must be non-negative")
+    return D.astype(int)
+
+
+# ---------------------------------------------------------------------------------
+
+
+def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop: float = 0.0,
+             fail=None, recover: Recovery | None = None, progress=None,
+             coordinates: str = "error") -> SimulationResult:
+    """Run ``trials`` Monte-Carlo trials of the distributed estimator for ``steps`` steps.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    G : list of arrays or Gains
+        ``G[i]`` (n x p_i) for agent row i.
+    steps, trials : int >= 1
+    seed : int >= 0
+        Key of every random number (see :mod:`design.noise`).
+    delays : (N, N) int array, optional
+        Link delays; default ``scenario.delays``.
+    drop : float in [0, 1)
+        Probability that one message (one estimate on one link) is lost.
+    fail : (int, sequence of int), optional
+        ``(f, rows)``: the agents in 0-based ``rows`` fail at step f (1 <= f <= steps).
+    recover : Recovery, optional
+        Configuration that takes over at the failure step (needs ``fail``).
+    progress : callable, optional
+        Called as ``progress(k, steps)`` after each step.
+    coordinates : {"error", "absolute"}
+        Compute relative to the truth (default; accurate for unstable A over any
+        length) or in absolute coordinates as a live run does.
+
+    Returns
+    -------
+    SimulationResult
+
+    Raises
+    ------
+    SimulationError, GainsError
+        Naming the argument that is wrong.
+    """
+    steps = _check_int(steps, "steps", 1)
+    trials = _check_int(trials, "trials", 1)
+    seed = _check_int(seed, "seed", 0)
+    if coordinates not in ("error", "absolute"):
+        raise SimulationError(f"coordinates: expected 'error' or 'absolute', got {coordinates!r}")
+    if isinstance(drop, bool) or not isinstance(drop, (int, float, np.floating)) \
+            or not math.isfinite(drop) or not 0 <= drop < 1:
+        raise SimulationError(f"drop: must be a probability in [0, 1), got {drop!r}")
+    drop = float(drop)
+    n, N = scenario.n, scenario.N
+    G = _gain_list(G, scenario, "gains")
+    D = _check_delays(scenario.delays if delays is None else delays, scenario, "delays")
+    if np.any((D != 0) & ~(scenario.W > 0)) or np.any(np.diag(D) != 0):
+        raise SimulationError("delays: nonzero delay off the links of W or on a self link")
+
+    fail_step, failed = None, ()
+    if fail is not None:
+        try:
+            f, rows = fail
+            rows = list(rows)
+        except (TypeError, ValueError):
+            raise SimulationError(f"fail: expected (step, [agent rows]), got {fail!r}") from None
+        fail_step = _check_int(f, "fail step", 1)
+        if fail_step > steps:
+            raise SimulationError(f"fail step: {fail_step} is after the last step {steps}")
+        for a in rows:
+            _check_int(a, "fail agent row", 0)
+            if a >= N:
+                raise SimulationError(f"fail: no agent row {a} (rows are 0..{N - 1})")
+        if not rows or len(set(rows)) != len(rows):
+            raise SimulationError(f"fail: give distinct agent rows, got {rows!r}")
+        failed = tuple(int(a) for a in rows)
+        if recover is None and len(failed) == N:
+            raise SimulationError("fail: every agent fails and no recovery is given")
+    if recover is not None and fail is None:
+        raise SimulationError("recover: a recovery needs a failure (fail=...)")
+
+    A = np.asarray(scenario.A, float)
+    P = PowerCache(A)
+    q = float(scenario.process_noise)
+    ids0 = list(range(1, N + 1))
+    configs = [_config(scenario, G, D, ids0)]
+    if recover is not None:
+        configs.append(_recovery_config(recover, scenario, failed, ids0))
+    max_delay = max(int(c.delays.max()) if c.delays.size else 0 for c in configs)
+    error_coords = coordinates == "error"
+    cold = recover is not None and any(
+        a not in ids0 and a not in recover.replaces for a in recover.ids)
+    track_x = not error_coords or cold
+
+    # -- state at step 0 ----------------------------------------------------------
+    x0 = noise.initial_state(seed, n, trials)
+    x = x0 if track_x else None
+    est = {}        # id -> (trials, n): xhat (absolute) or xhat - x (error coordinates)
+    for a in ids0:
+        v = noise.initial_estimate(seed, a, n, trials)
+        est[a] = v - x0 if error_coords else v
+    published = {a: {0: est[a]} for a in ids0}    # id -> {stamp: value}
+    held = {}       # (receiver id, sender id) -> (stamp, value)
+    # S[a] = S_a(k) = x_k - A^a x_{k-a} for the current step (S[0] unused; at k = 0 the
+    # entries are placeholders: an age never exceeds k)
+    S = [None] + [np.zeros((trials, n))] * (max_delay + 1)
+    config = configs[0]
+    mse_trials = np.empty((trials, steps + 1))
+    mse_trials[:, 0] = _mse(est, [a for _, a in config.live], x, error_coords)
+
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(1, steps + 1):
+            if k == fail_step:
+                config = _apply_failure(config, configs, failed, recover, est, published,
+                                        held, x, seed, n, trials, error_coords, k)
+            nu = noise.process_noise(seed, k - 1, n, q, trials)
+            if track_x:
+                x = x @ P.transposed(1) + nu
+            _receive(config, published, held, seed, k, drop, trials)
+            if error_coords:
+                S = _advance_window(S, nu, P, max(_oldest_age(held, k), max_delay + 1))
+            new = {}
+            for i, a in config.live:
+                nbs, noise_parts = _neighbours(config, i, held, est[a], k)
+                role = config.roles[i]
+                zeta = noise.measurement_noise(seed, a, k, len(role.measured), config.r, trials)
+                if error_coords:
+                    # x_k = A^age x_{k-age} + S_age(k): subtract what the truth gained
+                    d = None
+                    for w, age, mask in noise_parts:
+                        t = w * S[age] if mask is None else (w * S[age]) * mask[:, None]
+                        d = t if d is None else d + t
+                    nbs.append(NeighbourEstimate(1.0, 0, -d))
+                    y = zeta
+                else:
+                    y = x[:, list(role.measured)] + zeta
+                _, new[a] = estimator_step(P, role, est[a], nbs, y)
+            est.update(new)
+            for a in new:
+                published[a][k] = new[a]
+                # stamps below k - 1 - max_delay can no longer arrive on time
+                published[a].pop(k - 2 - max_delay, None)
+            mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)
+            if progress is not None:
+                progress(k, steps)
+            if not np.isfinite(mse_trials[:, k]).any():
+                mse_trials[:, k + 1:] = np.inf
+                if progress is not None:
+                    progress(steps, steps)
+                break
+
+    mse = mse_trials.mean(axis=0)
+    q_len = max(1, steps // 4)
+    mse_steady = float(mse[-q_len:].mean())
+    finite = bool(np.all(np.isfinite(mse_trials)))
+    diverged = (not finite) or not (mse_steady <= DIVERGENCE_FACTOR * mse[0])
+    return SimulationResult(
+        mse=mse, mse_trials=mse_trials, mse_steady=mse_steady, diverged=bool(diverged),
+        trials=trials, steps=steps, seed=seed, drop=drop, fail_step=fail_step,
+        failed=tuple(a + 1 for a in failed), recovered=recover is not None,
+        coordinates=coordinates,
+    )
+
+
+def _recovery_config(recover, scenario, failed, ids0) -> _Config:
+    if not isinstance(recover, Recovery):
+        raise SimulationError(f"recover: expected a Recovery, got {type(recover).__name__}")
+    new = recover.scenario
+    if new.A.shape != scenario.A.shape or not np.array_equal(new.A, scenario.A):
+        raise SimulationError("recover: the new configuration must keep the social matrix A")
+    if new.process_noise != scenario.process_noise:
+        raise SimulationError("recover: the new configuration must keep the process noise")
+    G = _gain_list(recover.G, new, "recover gains")
+    ids = list(recover.ids)
+    if len(ids) != new.N or len(set(ids)) != len(ids):
+        raise SimulationError(
+            f"recover.ids: need {new.N} distinct agent ids (one per row), got {ids!r}")
+    for a in ids:
+        _check_int(a, "recover.ids entry", 1)
+    failed_ids = {r + 1 for r in failed}
+    back = sorted(failed_ids & set(ids))
+    if back:
+        raise SimulationError(f"recover.ids: failed agents {back} cannot be in the new configuration")
+    for a, row in dict(recover.replaces).items():
+        if a not in ids or a in ids0:
+            raise SimulationError(f"recover.replaces: {a!r} is not a new agent id of the plan")
+        if row not in failed:
+            raise SimulationError(
+                f"recover.replaces: agent {a} takes over row {row!r}, which did not fail")
+    D = new.delays if recover.delays is None else recover.delays
+    D = _check_delays(D, new, "recover.delays")
+    return _config(new, G, D, ids)
+
+
+def _apply_failure(config, configs, failed, recover, est, published, held, x, seed, n,
+                   trials, error_coords, k):
+    """Stop the failed agents at step k and switch to the recovery configuration."""
+    dead = frozenset(config.ids[r] for r in failed)
+    for key in [key for key in held if key[0] in dead or key[1] in dead]:
+        del held[key]
+    for a in dead:
+        published.pop(a, None)
+    if recover is None:
+        return _Config(config.W, config.delays, config.ids, config.roles, config.r, dead)
+    new = configs[1]
+    replaces = dict(recover.replaces)
+    for a in new.ids:
+        if a in est and a not in dead:
+            continue
+        if a in replaces:
+            value = est[config.ids[replaces[a]]]
+        else:
+            v = noise.initial_estimate(seed, a, n, trials)
+            value = v - x if error_coords else v
+        est[a] = value
+        published[a] = {k - 1: value}
+    return new
+
+
+def _mse(est, ids, x, error_coords):
+    total = 0.0
+    for a in ids:
+        e = est[a] if error_coords else est[a] - x
+        total = total + np.mean(e * e, axis=1)
+    return total / len(ids)
+
+
+def _neighbours(config, i, held, x_prev, k):
+    """Neighbour inputs of row i at step k, and the weights/ages of the noise window.
+
+    Where trials hold different stamps from one neighbour, one input per stamp is given,
+    with the other trials' rows zeroed; trials holding nothing from it give its weight to
+    self (an input of age 1 on the agent's own estimate, rows masked likewise).
+    """
+    a = config.ids[i]
+    role = config.roles[i]
+    nbs = []
+    parts = []
+    w_self = role.self_weight
+    for j, b in enumerate(config.ids):
+        w = float(config.W[i, j])
+        if j == i or w <= 0:
+            continue
+        h = held.get((a, b))
+        if h is not None and (h[0] == h[0][0]).all():
+            if h[0][0] < 0:
+                h = None
+            else:
+                age = k - int(h[0][0])
+                nbs.append(NeighbourEstimate(w, age, h[1]))
+                parts.append((w, age, None))
+                continue
+        if h is None:
+            nbs.append(NeighbourEstimate(w, 0, None))
+            w_self += w
+            continue
+        stamps, values = h
+        for s in np.unique(stamps):
+            mask = stamps == s
+            if s < 0:
+                nbs.append(NeighbourEstimate(w, 1, x_prev * mask[:, None]))
+                parts.append((w, 1, mask))
+            else:
+                nbs.append(NeighbourEstimate(w, k - int(s), values * mask[:, None]))
+                parts.append((w, k - int(s), mask))
+    parts.append((w_self, 1, None))
+    return nbs, parts
+
+
+def _oldest_age(held, k):
+    ages = [k - int(st[st >= 0].min()) for st, _ in held.values() if (st >= 0).any()]
+    return max(ages, default=1)
+
+
+def _advance_window(S, nu, P, needed):
+    """``S_a(k) = nu_{k-1} + A S_{a-1}(k-1)`` for a = 1..needed (S_1 = nu_{k-1})."""
+    out = [None, nu]
+    AT = P.transposed(1)
+    for a in range(2, needed + 1):
+        prev = S[a - 1] if a - 1 < len(S) else None
+        if prev is None:
+            raise AssertionError("noise window too short")  # pragma: no cover
+        out.append(nu + prev @ AT)
+    return out
+
+
+def _receive(config, published, held, seed, k, drop, trials):
+    """Deliver, on every link, the estimate stamped ``k - 1 - tau`` unless it is lost.
+
+    ``held[(receiver, sender)] = (stamps, values)``: per trial the stamp (-1 = nothing
+    held) and the value of the freshest estimate received.
+    """
+    for i, j, _w, tau in config.links:
+        a, b = config.ids[i], config.ids[j]
+        s = k - 1 - tau
+        value = published.get(b, {}).get(s)
+        if value is None:
+            continue
+        h = held.get((a, b))
+        take = np.ones(trials, dtype=bool) if h is None else h[0] < s
+        if drop > 0:
+            take &= ~noise.message_dropped(seed, b, a, s, drop, trials)
+        if not take.any():
+            continue
+        if take.all() or h is None and take.all():
+            held[(a, b)] = (np.full(trials, s), value)
+        elif h is None:
+            stamps = np.where(take, s, -1)
+            held[(a, b)] = (stamps, np.where(take[:, None], value, 0.0))
+        else:
+            held[(a, b)] = (np.where(take, s, h[0]), np.where(take[:, None], value, h[1]))

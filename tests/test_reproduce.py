@@ -1,0 +1,90 @@
+"""``socmon reproduce``: tables, figures and report, with a fast local gain design.
+
+The gain design is replaced by the tests' small gradient routine (delay-free gain for
+every delay bound) and the delay bounds by (0, 1) so that the whole command runs in a
+few seconds; the numbers it reports are checked against the exact closed loop.
+"""
+
+import json
+import types
+
+import numpy as np
+import pytest
+
+import agent.commands.reproduce as rep
+import agent.commands.simulate as sim
+from agent.cli import main
+from design.closed_loop import closed_loop_for
+from design.scenario import uniform_delays
+
+from _stabilise import stabilising_gain
+
+_CACHE = {}
+
+
+def _fast_design(scenario, delays, seed):
+    key = scenario.digest()
+    if key not in _CACHE:
+        _CACHE[key] = stabilising_gain(scenario, np.zeros_like(scenario.W, dtype=int),
+                                       target=0.9)
+    G, _ = _CACHE[key]
+    rho = closed_loop_for(scenario, G, delays).spectral_radius()
+    return types.SimpleNamespace(G=G, rho=rho, stable=rho < 1, mse_steady=None)
+
+
+@pytest.fixture
+def fast(monkeypatch):
+    monkeypatch.setattr(sim, "design_for", _fast_design)
+    paper = {k: dict(v, taus=[0, 1]) for k, v in rep.PAPER.items()}
+    monkeypatch.setattr(rep, "PAPER", paper)
+
+
+def test_reproduce_writes_report_tables_and_figures(fast, tmp_path, sampson_edges, capsys):
+    out = tmp_path / "out"
+    rc = main(["reproduce", "--out", str(out), "--steps", "60", "--trials", "4",
+               "--sampson", str(sampson_edges)])
+    assert rc == 0, capsys.readouterr()
+    for name in ("report.md", "results.json", "paper-14-mse.png", "paper-14-failure-mse.png",
+                 "sampson-mse.png"):
+        assert (out / name).is_file(), name
+    res = json.loads((out / "results.json").read_text())
+    p14 = res["paper-14"]
+    row = p14["rho_table"][1]
+    assert row["tau"] == 1 and row["paper"] == 0.970
+    rho0 = p14["rho_table"][0]["exact_designed_gain"]
+    assert row["paper_formula_ours"] == pytest.approx(rho0 ** 0.5)
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14")
+    G = _CACHE[s.digest()][0]
+    assert row["exact_delay_free_gain"] == pytest.approx(
+        closed_loop_for(s, G, uniform_delays(s.W, 1)).spectral_radius())
+    assert p14["simulations"][0]["mse_steady_exact"] == pytest.approx(
+        closed_loop_for(s, G, np.zeros((3, 3), int)).mse_steady(0.05, 0.05))
+    fail = p14["failure"]
+    assert fail["failed_agents"] == [1, 2] and sorted(fail["replacement_nodes"]) == ["10", "8"]
+    assert fail["measure_after"] == [["8"], ["10"], ["12"]]
+    assert res["sampson"]["n"] == 18 and res["sampson"]["trials"] == 4
+    report = (out / "report.md").read_text()
+    assert "| 1 | 0.970 |" in report and "Where our numbers differ" in report
+    assert "Sampson" in report and "paper's formula" in report
+
+
+def test_sampson_scenario_follows_the_papers_settings(sampson_edges):
+    s = rep.sampson_scenario(sampson_edges)
+    assert (s.n, s.N) == (18, 4)
+    assert s.rho_A == pytest.approx(1.1)
+    assert [s.agent_labels(i) for i in range(4)] == [["1"], ["5"], ["12"], ["18"]]
+    assert s.process_noise == s.measurement_noise == 0.1
+    assert int(np.count_nonzero(s.A)) == 88 + 18
+    assert s.A[0, 1] != 0 and s.A[1, 0] != 0   # 1,2 and 2,1: 2 influences 1 and back
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--sampson", "/no/such/edges.csv"], "--sampson: no such file"),
+    (["--steps", "0"], "--steps"),
+    (["--trials", "x"], "--trials"),
+])
+def test_bad_input_exits_2(tmp_path, capsys, flags, message):
+    assert main(["reproduce", "--out", str(tmp_path / "o")] + flags) == 2
+    assert message in capsys.readouterr().err

@@ -1,0 +1,190 @@
+"""AgentCore / WorldCore stepped by hand: the protocol without any socket."""
+
+import numpy as np
+import pytest
+
+from agent import wire
+from agent.core import AssignmentError
+from tests.runtime_harness import Mesh, reference
+
+STEPS = 40
+
+
+@pytest.fixture(scope="module")
+def gains14(paper14):
+    rng = np.random.default_rng(5)
+    return [0.4 * rng.normal(size=(paper14.n, 1)) for _ in range(paper14.N)]
+
+
+def _run(mesh, steps, wait=0.0):
+    for _ in range(steps + 1):
+        mesh.tick()
+        if wait:
+            mesh.pass_time(wait)
+    return mesh
+
+
+@pytest.mark.parametrize("D", [None, np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])])
+def test_mesh_equals_reference_timeline(paper14, gains14, D):
+    mesh = _run(Mesh(paper14, gains14, seed=3, delays=D, deadline_s=1.0), STEPS, wait=1.1)
+    xs, xh = reference(paper14, gains14, STEPS, seed=3, delays=D)
+    for k in range(STEPS + 1):
+        np.testing.assert_array_equal(mesh.truth[k], xs[k])
+        for i in range(paper14.N):
+            np.testing.assert_allclose(mesh.estimates[(i + 1, k)], xh[k][i],
+                                       rtol=1e-12, atol=1e-12 * np.abs(xs[k]).max())
+    # the delays were learned from the stamps
+    for i in range(paper14.N):
+        core = mesh.agents[i + 1]
+        want = {j + 1: (0 if D is None else int(D[i, j])) for j in paper14.neighbours[i]}
+        assert core.learned_delays() == want
+        assert core.drops == 0 and core.late == 0
+
+
+def test_standby_agent_has_no_role_and_follows_the_clock(paper14, gains14):
+    mesh = _run(Mesh(paper14, gains14), 5)
+    standby = mesh.agents[paper14.N + 1]
+    assert not standby.active and standby.step == 5
+    assert not any(a == paper14.N + 1 for a, _ in mesh.estimates)
+
+
+def test_lost_estimates_count_drops_and_use_the_freshest_propagated(paper14, gains14):
+    # link 2 -> 1 loses stamps 10..14; agent 1 waits the deadline, then uses stamp 9 with age
+    lost = lambda src, dst, stamp: src == 2 and dst == 1 and 10 <= stamp <= 14
+    mesh = Mesh(paper14, gains14, seed=1, deadline_s=0.5, lost=lost)
+    for _ in range(12):
+        mesh.tick()
+    core = mesh.agents[1]
+    assert core.step == 10  # step 11 needs stamp 10 of agent 2: waiting
+    mesh.pass_time(0.49)
+    assert core.step == 10
+    mesh.pass_time(0.02)
+    assert core.step == 11 and core.drops == 1
+    for _ in range(10):
+        mesh.tick()
+        mesh.pass_time(0.6)
+    assert core.drops == 5 and core.late == 0
+    assert core.learned_delays() == {2: 0}
+    # replay agent 1 by hand: stamp 9 propagated by A^(k - 9) for k = 11..15
+    from design.estimator import NeighbourEstimate, PowerCache, estimator_step, role_from
+    from design import noise
+    P = PowerCache(paper14.A)
+    x1 = mesh.estimates[(1, 10)]
+    for k in range(11, 17):
+        stamp = 9 if k <= 15 else k - 1
+        y = mesh.truth[k][[6]] + noise.measurement_noise(1, 1, k, 1, paper14.measurement_noise)[0]
+        _, x1 = estimator_step(P, role_from(paper14, gains14, 0), x1,
+                               [NeighbourEstimate(0.5, k - stamp, mesh.estimates[(2, stamp)])], y)
+        np.testing.assert_allclose(mesh.estimates[(1, k)], x1, rtol=1e-12)
+
+
+def test_dead_neighbour_is_not_waited_for(paper14, gains14):
+    mesh = Mesh(paper14, gains14, deadline_s=100.0, lost=lambda s, d, k: s == 2 and k >= 3)
+    for _ in range(5):
+        mesh.tick()
+    assert mesh.agents[1].step == 3  # step 4 needs stamp 3 of agent 2, lost: waiting
+    mesh.agents[1].set_alive(2, False)
+    mesh.pass_time(0.0)
+    assert mesh.agents[1].step == 4 and mesh.agents[1].drops == 1
+
+
+def _assignment(s, agent, epoch, at, measure, neighbours, self_weight, gain):
+    payload = wire.encode_ctl(agent, epoch, at, measure, neighbours, self_weight, gain)
+    return wire.decode(payload, wire.ctl_schema(s.n))
+
+
+def test_assignment_switches_measured_node_at_the_stated_step(paper14, gains14):
+    s = paper14
+    mesh = Mesh(s, gains14)
+    for _ in range(6):
+        mesh.tick()
+    core = mesh.agents[1]
+    g = np.full((s.n, 1), 0.1)
+    core.on_assignment(_assignment(s, 1, 1, 10, ["8"], {2: 0.5}, 0.5, g))
+    assert core.wanted_labels() == ("7", "8")
+    for _ in range(3):  # steps 6..8
+        mesh.tick()
+    assert core.status()["measure"] == ["7"] and core.step == 8
+    mesh.tick()  # step 9: still the old role
+    assert core.status()["measure"] == ["7"] and core.epoch == 0
+    mesh.tick()  # step 10: the new one
+    assert core.status()["measure"] == ["8"] and core.epoch == 1
+    assert core.wanted_labels() == ("8",)
+
+
+def test_assignment_activates_a_standby_agent(paper14, gains14):
+    s = paper14
+    mesh = Mesh(s, gains14)
+    for _ in range(5):
+        mesh.tick()
+    sb = mesh.agents[4]
+    sb.on_assignment(_assignment(s, 4, 1, 8, ["8"], {2: 0.5}, 0.5, np.full((s.n, 1), 0.1)))
+    for _ in range(5):
+        mesh.tick()
+    assert sb.active and (4, 8) in mesh.estimates and (4, 7) not in mesh.estimates
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(epoch=1, at=3), "activate_at"),           # already past
+    (dict(measure=["99"]), "unknown node labels"),
+    (dict(neighbours={9: 0.5}), "unknown agents"),
+    (dict(neighbours={1: 0.5}), "its own neighbour"),
+    (dict(self_weight=0.6), "must be 1"),
+    (dict(gain=np.zeros((14, 2))), "gain: shape"),
+    (dict(agent=2), "for agent 2"),
+])
+def test_invalid_assignments_are_rejected_with_a_reason(paper14, gains14, change, match):
+    s = paper14
+    mesh = _run(Mesh(s, gains14), 5)
+    core = mesh.agents[1]
+    args = dict(agent=1, epoch=1, at=20, measure=["8"], neighbours={2: 0.5}, self_weight=0.5,
+                gain=np.zeros((s.n, 1)))
+    args.update(change)
+    msg = _assignment(s, args["agent"], args["epoch"], args["at"], args["measure"],
+                      args["neighbours"], args["self_weight"], args["gain"])
+    with pytest.raises(AssignmentError, match=match):
+        core.on_assignment(msg)
+    assert core.ctl_rejected == 1 and core.pending is None
+
+
+def test_older_epochs_are_rejected(paper14, gains14):
+    s = paper14
+    core = _run(Mesh(s, gains14), 2).agents[1]
+    g = np.zeros((s.n, 1))
+    core.on_assignment(_assignment(s, 1, 5, 30, ["8"], {2: 0.5}, 0.5, g))
+    with pytest.raises(AssignmentError, match="not newer"):
+        core.on_assignment(_assignment(s, 1, 5, 31, ["8"], {2: 0.5}, 0.5, g))
+    with pytest.raises(AssignmentError, match="not newer"):
+        core.on_assignment(_assignment(s, 1, 4, 31, ["8"], {2: 0.5}, 0.5, g))
+    core.on_assignment(_assignment(s, 1, 6, 31, ["9"], {2: 0.5}, 0.5, g))
+    assert core.pending.epoch == 6
+
+
+def test_partition_counts_drops_and_injected_delay_is_learned(paper14, gains14):
+    s = paper14
+    mesh = Mesh(s, gains14, deadline_s=0.1)
+    for _ in range(5):
+        mesh.tick()
+    core = mesh.agents[1]
+    core.on_impairment({"op": "set", "src": 2, "dst": 1, "partition": True})
+    for _ in range(5):
+        mesh.tick()
+        mesh.pass_time(0.2)
+    assert core.drops == 4 and core.impaired == 5  # step 5 still had stamp 4
+    core.on_impairment({"op": "set", "src": 2, "dst": 1, "partition": False, "delay_steps": 3})
+    for _ in range(12):
+        mesh.tick()
+        mesh.pass_time(0.2)
+    assert core.learned_delays() == {2: 3}
+    assert core.status()["links"] == {"2": {"delay_steps": 3}}
+
+
+@pytest.mark.parametrize("D", [None, np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])])
+def test_mesh_equals_the_simulator(paper14, gains14, D):
+    from design.simulate import simulate
+
+    mesh = _run(Mesh(paper14, gains14, seed=4, delays=D, deadline_s=1.0), STEPS, wait=1.1)
+    res = simulate(paper14, gains14, steps=STEPS, trials=1, seed=4, delays=D)
+    mse = [np.mean([np.mean((mesh.estimates[(a, k)] - mesh.truth[k]) ** 2) for a in (1, 2, 3)])
+           for k in range(STEPS + 1)]
+    np.testing.assert_allclose(mse, res.mse, rtol=1e-9)
