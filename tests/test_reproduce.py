@@ -22,7 +22,7 @@ from _stabilise import stabilising_gain
 _CACHE = {}
 
 
-def _fast_design(scenario, delays, seed):
+def _fast_design(scenario, delays, seed, objective="rho"):
     key = scenario.digest()
     if key not in _CACHE:
         _CACHE[key] = stabilising_gain(scenario, np.zeros_like(scenario.W, dtype=int),

@@ -52,6 +52,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", default="0", metavar="S", help="seed (default 0)")
     parser.add_argument("--trials", default=None, metavar="T",
                         help="Monte-Carlo trials (default: the paper's, 20 and 50)")
+    parser.add_argument("--objective", default="rho", choices=("rho", "mse"),
+                        help="gain design objective: rho (smallest exact radius, as the "
+                             "paper designs for stability; default) or mse (smallest exact "
+                             "steady MSE)")
 
 
 def run(args) -> int:
@@ -88,14 +92,14 @@ def sampson_scenario(path, seed: int = 0):
         raise CommandError(f"--sampson: {exc}") from None
 
 
-def design_for_bound(scenario, tau: int, seed: int = 0):
+def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho"):
     """Gain designed for every inter-agent link delayed ``tau``: ``(G, delays, rho)``."""
     from design.scenario import uniform_delays
 
-    from .simulate import design_for
+    from . import simulate as sim_cmd
 
     D = uniform_delays(scenario.W, tau)
-    result = design_for(scenario, D, seed)
+    result = sim_cmd.design_for(scenario, D, seed, objective)
     return list(result.G), D, float(result.rho)
 
 
@@ -158,7 +162,7 @@ def _phi(scenario, G):
 
 
 def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=None,
-               replace_labels=None):
+               replace_labels=None, objective="rho"):
     """Designs, simulations, tables and figures for one network (and its recovery)."""
     from design.simulate import simulate
 
@@ -171,7 +175,7 @@ def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=
     designs = {}
     for tau in taus:
         t0 = time.perf_counter()
-        designs[tau] = design_for_bound(scenario, tau, seed)
+        designs[tau] = design_for_bound(scenario, tau, seed, objective)
         log(f"  designed {scenario.name} tau={tau}: exact radius {designs[tau][2]:.4f} "
             f"({time.perf_counter() - t0:.1f} s)")
     record["rho_table"] = rho_table(scenario, taus, paper["rho"], designs, log)
@@ -197,7 +201,7 @@ def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=
     if fail_labels:
         record["failure"] = failure_experiment(
             scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-            replace_labels)
+            replace_labels, objective)
         record["problems"] += record["failure"].pop("problems")
     return record
 
@@ -209,7 +213,7 @@ def _sim_row(tau, res, rho, exact):
 
 
 def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-                       replace_labels):
+                       replace_labels, objective="rho"):
     """Failure of the agents measuring ``fail_labels`` at step ``steps // 2``, recovered
     by the planner with gains designed for the new network, for each delay bound."""
     from design.certificates import paper_formula
@@ -240,7 +244,7 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, f
             rec["problems"].append(
                 f"recovery planner replaced {fail_labels} by {got}, the paper by {replace_labels}")
         t0 = time.perf_counter()
-        G2, D2, _ = design_for_bound(new, tau, seed)
+        G2, D2, _ = design_for_bound(new, tau, seed, objective)
         log(f"  designed recovered network tau={tau} ({time.perf_counter() - t0:.1f} s)")
         rho2, exact2 = _exact(new, G2, D2)
         if rho2 >= 1:
@@ -331,7 +335,9 @@ def write_report(out: Path, results: dict) -> Path:
          "(docs and NOTES section 1); for a delay bound tau every inter-agent link is delayed "
          "tau steps, the worst case of the bound, self links undelayed; MSE = mean over "
          "agents and states of e^2; simulated steady MSE = mean over the last quarter of "
-         "the steps, ± its standard error across trials.", ""]
+         "the steps, ± its standard error across trials. Gains: `design_gains` with "
+         f"objective `{results.get('objective', 'rho')}` for each network and delay "
+         "bound.", ""]
     for key, title in (("paper-14", "Pedagogical example (Section 5.1)"),
                        ("sampson", "Sampson's monastery (Section 5.2)")):
         if key not in results:
@@ -482,18 +488,19 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     cmd = "socmon reproduce" + (f" --sampson {args.sampson}" if args.sampson else "") \
         + f" --out {args.out} --steps {steps} --seed {seed}" \
-        + (f" --trials {trials}" if trials else "")
-    results = {"command": cmd}
+        + (f" --trials {trials}" if trials else "") + f" --objective {args.objective}"
+    results = {"command": cmd, "objective": args.objective}
     log("paper-14 (Section 5.1)")
     p14 = load_scenario("paper-14")
     results["paper-14"] = experiment(
         "paper-14", p14, PAPER["paper-14"]["taus"], trials or PAPER["paper-14"]["trials"],
-        steps, seed, out, log, fail_labels=["7", "9"], replace_labels=["8", "10"])
+        steps, seed, out, log, fail_labels=["7", "9"], replace_labels=["8", "10"],
+        objective=args.objective)
     if sampson is not None:
         log("Sampson (Section 5.2)")
         results["sampson"] = experiment(
             "sampson", sampson, PAPER["sampson"]["taus"], trials or PAPER["sampson"]["trials"],
-            steps, seed, out, log)
+            steps, seed, out, log, objective=args.objective)
         results["sampson"]["weights_seed"] = 0
     results["seconds"] = time.perf_counter() - t0
     report = write_report(out, results)
