@@ -22,7 +22,7 @@ from _stabilise import stabilising_gain
 _CACHE = {}
 
 
-def _fast_design(scenario, delays, seed, objective="rho"):
+def _fast_design(scenario, delays, seed, objective="rho", time_limit=None):
     key = scenario.digest()
     if key not in _CACHE:
         _CACHE[key] = stabilising_gain(scenario, np.zeros_like(scenario.W, dtype=int),
@@ -84,6 +84,7 @@ def test_sampson_scenario_follows_the_papers_settings(sampson_edges):
     (["--sampson", "/no/such/edges.csv"], "--sampson: no such file"),
     (["--steps", "0"], "--steps"),
     (["--trials", "x"], "--trials"),
+    (["--time-limit", "0"], "--time-limit"),
 ])
 def test_bad_input_exits_2(tmp_path, capsys, flags, message):
     assert main(["reproduce", "--out", str(tmp_path / "o")] + flags) == 2

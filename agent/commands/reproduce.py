@@ -56,6 +56,9 @@ def add_arguments(parser) -> None:
                         help="gain design objective: rho (smallest exact radius, as the "
                              "paper designs for stability; default) or mse (smallest exact "
                              "steady MSE)")
+    parser.add_argument("--time-limit", default=None, metavar="SECONDS",
+                        help="wall-time limit of each gain design (default: the gain "
+                             "design's own)")
 
 
 def run(args) -> int:
@@ -92,14 +95,15 @@ def sampson_scenario(path, seed: int = 0):
         raise CommandError(f"--sampson: {exc}") from None
 
 
-def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho"):
+def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho",
+                     time_limit=None):
     """Gain designed for every inter-agent link delayed ``tau``: ``(G, delays, rho)``."""
     from design.scenario import uniform_delays
 
     from . import simulate as sim_cmd
 
     D = uniform_delays(scenario.W, tau)
-    result = sim_cmd.design_for(scenario, D, seed, objective)
+    result = sim_cmd.design_for(scenario, D, seed, objective, time_limit)
     return list(result.G), D, float(result.rho)
 
 
@@ -162,7 +166,7 @@ def _phi(scenario, G):
 
 
 def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=None,
-               replace_labels=None, objective="rho"):
+               replace_labels=None, objective="rho", time_limit=None):
     """Designs, simulations, tables and figures for one network (and its recovery)."""
     from design.simulate import simulate
 
@@ -175,7 +179,7 @@ def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=
     designs = {}
     for tau in taus:
         t0 = time.perf_counter()
-        designs[tau] = design_for_bound(scenario, tau, seed, objective)
+        designs[tau] = design_for_bound(scenario, tau, seed, objective, time_limit)
         log(f"  designed {scenario.name} tau={tau}: exact radius {designs[tau][2]:.4f} "
             f"({time.perf_counter() - t0:.1f} s)")
     record["rho_table"] = rho_table(scenario, taus, paper["rho"], designs, log)
@@ -201,7 +205,7 @@ def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=
     if fail_labels:
         record["failure"] = failure_experiment(
             scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-            replace_labels, objective)
+            replace_labels, objective, time_limit)
         record["problems"] += record["failure"].pop("problems")
     return record
 
@@ -213,7 +217,7 @@ def _sim_row(tau, res, rho, exact):
 
 
 def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-                       replace_labels, objective="rho"):
+                       replace_labels, objective="rho", time_limit=None):
     """Failure of the agents measuring ``fail_labels`` at step ``steps // 2``, recovered
     by the planner with gains designed for the new network, for each delay bound."""
     from design.certificates import paper_formula
@@ -244,7 +248,7 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, f
             rec["problems"].append(
                 f"recovery planner replaced {fail_labels} by {got}, the paper by {replace_labels}")
         t0 = time.perf_counter()
-        G2, D2, _ = design_for_bound(new, tau, seed, objective)
+        G2, D2, _ = design_for_bound(new, tau, seed, objective, time_limit)
         log(f"  designed recovered network tau={tau} ({time.perf_counter() - t0:.1f} s)")
         rho2, exact2 = _exact(new, G2, D2)
         if rho2 >= 1:
@@ -475,6 +479,15 @@ def _run(args) -> int:
     steps = parse_positive_int(args.steps, "--steps")
     seed = parse_positive_int(args.seed, "--seed", minimum=0)
     trials = parse_positive_int(args.trials, "--trials") if args.trials is not None else None
+    time_limit = None
+    if args.time_limit is not None:
+        try:
+            time_limit = float(args.time_limit)
+        except ValueError:
+            time_limit = -1.0
+        if not time_limit > 0:
+            raise CommandError(f"--time-limit: expected a positive number of seconds, got "
+                               f"{args.time_limit!r}")
     sampson = sampson_scenario(args.sampson) if args.sampson else None
     out = Path(args.out)
     try:
@@ -488,19 +501,20 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     cmd = "socmon reproduce" + (f" --sampson {args.sampson}" if args.sampson else "") \
         + f" --out {args.out} --steps {steps} --seed {seed}" \
-        + (f" --trials {trials}" if trials else "") + f" --objective {args.objective}"
+        + (f" --trials {trials}" if trials else "") + f" --objective {args.objective}" \
+        + (f" --time-limit {args.time_limit}" if args.time_limit is not None else "")
     results = {"command": cmd, "objective": args.objective}
     log("paper-14 (Section 5.1)")
     p14 = load_scenario("paper-14")
     results["paper-14"] = experiment(
         "paper-14", p14, PAPER["paper-14"]["taus"], trials or PAPER["paper-14"]["trials"],
         steps, seed, out, log, fail_labels=["7", "9"], replace_labels=["8", "10"],
-        objective=args.objective)
+        objective=args.objective, time_limit=time_limit)
     if sampson is not None:
         log("Sampson (Section 5.2)")
         results["sampson"] = experiment(
             "sampson", sampson, PAPER["sampson"]["taus"], trials or PAPER["sampson"]["trials"],
-            steps, seed, out, log, objective=args.objective)
+            steps, seed, out, log, objective=args.objective, time_limit=time_limit)
         results["sampson"]["weights_seed"] = 0
     results["seconds"] = time.perf_counter() - t0
     report = write_report(out, results)

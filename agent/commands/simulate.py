@@ -102,11 +102,12 @@ def resolve_delays_arg(scenario, spec):
 # recovery
 
 
-def design_for(scenario, delays, seed: int, objective: str = "rho"):
+def design_for(scenario, delays, seed: int, objective: str = "rho", time_limit=None):
     """Gains for ``scenario`` with ``delays`` from the gain design (``design_gains``)."""
     from design.gain_design import design_gains
 
-    return design_gains(scenario, delays=delays, seed=seed, objective=objective)
+    options = {} if time_limit is None else {"time_limit": float(time_limit)}
+    return design_gains(scenario, delays=delays, seed=seed, objective=objective, **options)
 
 
 def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rho"):
