@@ -72,10 +72,13 @@ __all__ = [
     "SimulationResult",
     "simulate",
     "DIVERGENCE_FACTOR",
+    "GROWTH_FACTOR",
 ]
 
-#: A run has diverged if its steady MSE exceeds this factor times its initial MSE.
+#: A run has diverged if its steady MSE exceeds this factor times its initial MSE ...
 DIVERGENCE_FACTOR = 1e3
+#: ... and is still growing: more than this factor times the mean of the quarter before.
+GROWTH_FACTOR = 2.0
 
 
 class SimulationError(SocmonError):
@@ -136,7 +139,10 @@ class SimulationResult:
         Mean of ``mse`` over the last quarter of the steps (``max(1, steps // 4)``
         steps, ending at ``steps``).
     diverged : bool
-        Any non-finite error, or ``mse_steady > DIVERGENCE_FACTOR * mse[0]``.
+        Any non-finite error, or the error both grew a thousandfold and is still
+        growing: ``mse_steady > DIVERGENCE_FACTOR * mse[0]`` and ``mse_steady >
+        GROWTH_FACTOR *`` the mean of the quarter before. A stable loop with a large
+        steady MSE is not "diverged".
     """
 
     mse: np.ndarray
@@ -394,7 +400,9 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     q_len = max(1, steps // 4)
     mse_steady = float(mse[-q_len:].mean())
     finite = bool(np.all(np.isfinite(mse_trials)))
-    diverged = (not finite) or not (mse_steady <= DIVERGENCE_FACTOR * mse[0])
+    previous = float(mse[-2 * q_len:-q_len].mean()) if steps >= 2 * q_len + 1 else mse[0]
+    diverged = (not finite) or not (
+        mse_steady <= DIVERGENCE_FACTOR * mse[0] or mse_steady <= GROWTH_FACTOR * previous)
     return SimulationResult(
         mse=mse, mse_trials=mse_trials, mse_steady=mse_steady, diverged=bool(diverged),
         trials=trials, steps=steps, seed=seed, drop=drop, fail_step=fail_step,

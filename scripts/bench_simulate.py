@@ -7,9 +7,9 @@ plain per-trial loop of the very same code, ``simulate(..., trials=1, seed=s+t)`
 t = 0..T'-1 (T' <= T, scaled to trial-steps per second), and prints both rates and their
 ratio. Scenarios: paper-14 (n N = 42) and two synthetic ones with n N = 1000
 (n = 100, N = 10 and n = 50, N = 20: a random sparse A with rho(A) = 0.95, agents on a
-cycle, every link delayed 2 steps, two sensors per agent). The cost of a step does not
-depend on the gain values; the gains used are fixed random ones that keep the run
-bounded. With ``--sampson`` it also times the paper's Sampson experiment: gain design
+cycle, every link delayed 2 steps, two sensors per agent). paper-14 uses the gain of
+``design_gains``; the cost of a step does not depend on the gain values, so the
+synthetic ones use fixed random gains that keep the run bounded. With ``--sampson`` it also times the paper's Sampson experiment: gain design
 for the delay bounds 0, 5, 10, 20 and 50 trials x 300 steps for each.
 """
 
@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from design.closed_loop import closed_loop_for  # noqa: E402
+from design.gain_design import design_gains  # noqa: E402
 from design.scenario import load_scenario, scenario_from_dict  # noqa: E402
 from design.simulate import simulate  # noqa: E402
 
@@ -63,14 +64,6 @@ def bounded_gain(scenario, seed=0):
             return G
         G = [0.5 * g for g in G]
     raise RuntimeError("no bounded gain found")
-
-
-def stabilising_gain_paper14(s):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    from _stabilise import stabilising_gain
-
-    G, rho = stabilising_gain(s, target=0.85)
-    return G
 
 
 def rate(scenario, G, trials, steps, seed=0):
@@ -131,7 +124,7 @@ def main(argv=None):
     print(f"BLAS threads: OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}, "
           f"steps {args.steps} (n N = 1000 cases: {args.steps // 3})", flush=True)
     p14 = load_scenario("paper-14")
-    G14 = stabilising_gain_paper14(p14)
+    G14 = design_gains(p14).G
     for T in (20, 50, args.trials):
         bench(p14, G14, T, args.steps, args.loop_trials)
     for n, N in ((100, 10), (50, 20)):

@@ -8,14 +8,14 @@ import pytest
 from agent.cli import main
 from design.gains import gains_meta, save_gains
 
-from _stabilise import stabilising_gain
+from design.gain_design import design_gains
 
 
 @pytest.fixture(scope="module")
 def gains_file(paper14, tmp_path_factory):
-    G, rho = stabilising_gain(paper14, np.zeros((3, 3), int), target=0.85)
+    result = design_gains(paper14, starts=1, max_iter=40)
     path = tmp_path_factory.mktemp("g") / "g14.npz"
-    save_gains(path, G, gains_meta(paper14, "test", paper14.delays, rho))
+    save_gains(path, result.G, gains_meta(paper14, "default", paper14.delays, result.rho))
     return str(path)
 
 
@@ -100,7 +100,6 @@ def test_bad_scenario_exit_2(gains_file, capsys):
 
 
 def test_recover_designs_gains_for_the_new_configuration(gains_file, capsys):
-    pytest.importorskip("design.gain_design")
     rc = main(["simulate", "paper-14", "--gains", gains_file, "--trials", "4", "--steps",
                "200", "--fail", "100:1", "--recover", "--json"])
     out = json.loads(capsys.readouterr().out)

@@ -52,6 +52,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", default="0", metavar="S", help="seed (default 0)")
     parser.add_argument("--trials", default=None, metavar="T",
                         help="Monte-Carlo trials (default: the paper's, 20 and 50)")
+    parser.add_argument("--objective", default="rho", choices=("rho", "mse"),
+                        help="gain design objective: rho (smallest exact radius, as the "
+                             "paper designs for stability; default) or mse (smallest exact "
+                             "steady MSE)")
+    parser.add_argument("--time-limit", default=None, metavar="SECONDS",
+                        help="wall-time limit of each gain design (default: the gain "
+                             "design's own)")
 
 
 def run(args) -> int:
@@ -88,14 +95,15 @@ def sampson_scenario(path, seed: int = 0):
         raise CommandError(f"--sampson: {exc}") from None
 
 
-def design_for_bound(scenario, tau: int, seed: int = 0):
+def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho",
+                     time_limit=None):
     """Gain designed for every inter-agent link delayed ``tau``: ``(G, delays, rho)``."""
     from design.scenario import uniform_delays
 
-    from .simulate import design_for
+    from . import simulate as sim_cmd
 
     D = uniform_delays(scenario.W, tau)
-    result = design_for(scenario, D, seed)
+    result = sim_cmd.design_for(scenario, D, seed, objective, time_limit)
     return list(result.G), D, float(result.rho)
 
 
@@ -158,7 +166,7 @@ def _phi(scenario, G):
 
 
 def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=None,
-               replace_labels=None):
+               replace_labels=None, objective="rho", time_limit=None):
     """Designs, simulations, tables and figures for one network (and its recovery)."""
     from design.simulate import simulate
 
@@ -171,7 +179,7 @@ def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=
     designs = {}
     for tau in taus:
         t0 = time.perf_counter()
-        designs[tau] = design_for_bound(scenario, tau, seed)
+        designs[tau] = design_for_bound(scenario, tau, seed, objective, time_limit)
         log(f"  designed {scenario.name} tau={tau}: exact radius {designs[tau][2]:.4f} "
             f"({time.perf_counter() - t0:.1f} s)")
     record["rho_table"] = rho_table(scenario, taus, paper["rho"], designs, log)
@@ -197,9 +205,25 @@ def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=
     if fail_labels:
         record["failure"] = failure_experiment(
             scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-            replace_labels)
+            replace_labels, objective, time_limit)
         record["problems"] += record["failure"].pop("problems")
     return record
+
+
+def _unmeasured_parent_radius(scenario, failed):
+    """Spectral radius of A on the parent SCCs no surviving agent measures (None: none)."""
+    import numpy as np
+
+    from design.graph import influence_structure
+
+    st = influence_structure(scenario.A)
+    kept = {v for i in range(scenario.N) if i not in failed for v in scenario.measure[i]}
+    nodes = [v for c in st.parents for v in st.components[c]
+             if not kept & set(st.components[c])]
+    if not nodes:
+        return None
+    sub = scenario.A[np.ix_(nodes, nodes)]
+    return float(np.max(np.abs(np.linalg.eigvals(sub))))
 
 
 def _sim_row(tau, res, rho, exact):
@@ -209,7 +233,7 @@ def _sim_row(tau, res, rho, exact):
 
 
 def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-                       replace_labels):
+                       replace_labels, objective="rho", time_limit=None):
     """Failure of the agents measuring ``fail_labels`` at step ``steps // 2``, recovered
     by the planner with gains designed for the new network, for each delay bound."""
     from design.certificates import paper_formula
@@ -240,7 +264,7 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, f
             rec["problems"].append(
                 f"recovery planner replaced {fail_labels} by {got}, the paper by {replace_labels}")
         t0 = time.perf_counter()
-        G2, D2, _ = design_for_bound(new, tau, seed)
+        G2, D2, _ = design_for_bound(new, tau, seed, objective, time_limit)
         log(f"  designed recovered network tau={tau} ({time.perf_counter() - t0:.1f} s)")
         rho2, exact2 = _exact(new, G2, D2)
         if rho2 >= 1:
@@ -258,6 +282,7 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, f
             new_0 = new
             no_rec = simulate(s_tau, G, steps=steps, trials=trials, seed=seed,
                               fail=(f_step, failed))
+            rec["unmeasured_parent_radius"] = _unmeasured_parent_radius(scenario, failed)
     rho0 = table[0]["exact_designed_gain"]
     rows = []
     for t, paper in zip(table, PAPER["paper-14-recovered"]["rho"]):
@@ -293,7 +318,7 @@ def _f(x, d=4):
 
 
 def _rho_section(title, rows, with_theorem=True):
-    head = ("| tau | paper | paper's formula, our gain | exact, our delay-free gain |"
+    head = ("| tau | paper | paper's formula, our delay-free gain | exact, our delay-free gain |"
             + (" Theorem 1 rho, delay-free gain |" if with_theorem else "")
             + " exact, gain designed for tau |")
     sep = "|---" * (head.count("|") - 1) + "|"
@@ -307,17 +332,27 @@ def _rho_section(title, rows, with_theorem=True):
     return lines
 
 
+def _z(sim):
+    exact, got, se = sim["mse_steady_exact"], sim["mse_steady_sim"], sim["mse_steady_se"]
+    if exact is None or se is None or not se > 0 or not math.isfinite(got):
+        return None
+    return abs(got - exact) / se
+
+
 def _mse_section(title, sims, paper_phi, our_phi):
     lines = [f"### {title}", "",
              "| tau | exact radius | simulated steady MSE (± s.e.) | exact steady MSE (Lyapunov) |"
-             " paper's Phi | Phi (Remark 2) for our gain |", "|---|---|---|---|---|---|"]
+             " \\|sim - exact\\| / s.e. | paper's Phi | Phi (Remark 2) for our gain |",
+             "|---|---|---|---|---|---|---|"]
     for i, s in enumerate(sims):
         se = s["mse_steady_se"]
         sim = _f(s["mse_steady_sim"]) + (f" ± {_f(se)}" if se is not None else "")
         if s["diverged"]:
             sim += " (diverged)"
+        z = _z(s)
         lines.append(
             f"| {s['tau']} | {_f(s['rho_exact'])} | {sim} | {_f(s['mse_steady_exact'])} | "
+            f"{'-' if z is None else f'{z:.1f}'} | "
             f"{_f(paper_phi, 3) if i == 0 else '-'} | "
             f"{_f(our_phi.get('phi')) if i == 0 else '-'} |")
     return lines
@@ -331,7 +366,9 @@ def write_report(out: Path, results: dict) -> Path:
          "(docs and NOTES section 1); for a delay bound tau every inter-agent link is delayed "
          "tau steps, the worst case of the bound, self links undelayed; MSE = mean over "
          "agents and states of e^2; simulated steady MSE = mean over the last quarter of "
-         "the steps, ± its standard error across trials.", ""]
+         "the steps, ± its standard error across trials. Gains: `design_gains` with "
+         f"objective `{results.get('objective', 'rho')}` for each network and delay "
+         "bound.", ""]
     for key, title in (("paper-14", "Pedagogical example (Section 5.1)"),
                        ("sampson", "Sampson's monastery (Section 5.2)")):
         if key not in results:
@@ -361,9 +398,18 @@ def write_report(out: Path, results: dict) -> Path:
                                   PAPER["paper-14-recovered"]["phi"],
                                   f.get("phi_delay_free_gain", {}))
                 nr = f["no_recovery"]
+                rad = f.get("unmeasured_parent_radius")
                 L += ["", f"Without recovery (tau = {nr['tau']}): steady MSE "
                       f"{_f(nr['mse_steady_sim'])}"
-                      + (" (diverged)." if nr["diverged"] else "."), ""]
+                      + (" (diverged)" if nr["diverged"] else "")
+                      + ", the mean over the agents still running (their own gains, the "
+                      "failed neighbours' weights on themselves)."
+                      + ("" if rad is None else
+                         f" The parent SCCs left unmeasured have spectral radius {rad:.4f}"
+                         + (" < 1: the survivors' pair stays detectable, so their error "
+                            "can stay bounded without recovery; recovery restores "
+                            "observability." if rad < 1 else
+                            " >= 1: without recovery the error cannot stay bounded.")), ""]
         if r["problems"]:
             L += ["Problems: " + "; ".join(r["problems"]), ""]
     L += ["## Where our numbers differ from the paper's, and why", ""]
@@ -438,6 +484,24 @@ def differences(results) -> list:
             "- **Observability.** The distributed pair (W (x) A, D_H) of paper-14 is not "
             "observable (numerical rank 33 of 42: nodes 6..14 have a_ii = 0); its "
             "unobservable modes are stable, so it is detectable and stabilising gains exist.")
+    slow = []
+    for key in ("paper-14", "sampson"):
+        r = results.get(key)
+        if not r:
+            continue
+        for label, sims in ((key, r["simulations"]),
+                            (key + " recovered", r.get("failure", {}).get("simulations", []))):
+            for sim in sims:
+                z = _z(sim)
+                if z is not None and z > 3:
+                    slow.append(f"{label} tau = {sim['tau']} (radius {sim['rho_exact']:.4f})")
+    if slow:
+        out.append(
+            "- **Runs too short for slow loops.** The simulated steady MSE is more than 3 "
+            "standard errors from the exact value for " + ", ".join(slow) + ": with a "
+            "radius near 1 the transient decays like radius^k and has not died out within "
+            "the run (the band in the figure shows it); use more `--steps`. The exact "
+            "value is the steady state.")
     s = results.get("sampson")
     if s:
         row0, last = s["rho_table"][0], s["rho_table"][-1]
@@ -469,6 +533,15 @@ def _run(args) -> int:
     steps = parse_positive_int(args.steps, "--steps")
     seed = parse_positive_int(args.seed, "--seed", minimum=0)
     trials = parse_positive_int(args.trials, "--trials") if args.trials is not None else None
+    time_limit = None
+    if args.time_limit is not None:
+        try:
+            time_limit = float(args.time_limit)
+        except ValueError:
+            time_limit = -1.0
+        if not time_limit > 0:
+            raise CommandError(f"--time-limit: expected a positive number of seconds, got "
+                               f"{args.time_limit!r}")
     sampson = sampson_scenario(args.sampson) if args.sampson else None
     out = Path(args.out)
     try:
@@ -482,18 +555,20 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     cmd = "socmon reproduce" + (f" --sampson {args.sampson}" if args.sampson else "") \
         + f" --out {args.out} --steps {steps} --seed {seed}" \
-        + (f" --trials {trials}" if trials else "")
-    results = {"command": cmd}
+        + (f" --trials {trials}" if trials else "") + f" --objective {args.objective}" \
+        + (f" --time-limit {args.time_limit}" if args.time_limit is not None else "")
+    results = {"command": cmd, "objective": args.objective}
     log("paper-14 (Section 5.1)")
     p14 = load_scenario("paper-14")
     results["paper-14"] = experiment(
         "paper-14", p14, PAPER["paper-14"]["taus"], trials or PAPER["paper-14"]["trials"],
-        steps, seed, out, log, fail_labels=["7", "9"], replace_labels=["8", "10"])
+        steps, seed, out, log, fail_labels=["7", "9"], replace_labels=["8", "10"],
+        objective=args.objective, time_limit=time_limit)
     if sampson is not None:
         log("Sampson (Section 5.2)")
         results["sampson"] = experiment(
             "sampson", sampson, PAPER["sampson"]["taus"], trials or PAPER["sampson"]["trials"],
-            steps, seed, out, log)
+            steps, seed, out, log, objective=args.objective, time_limit=time_limit)
         results["sampson"]["weights_seed"] = 0
     results["seconds"] = time.perf_counter() - t0
     report = write_report(out, results)

@@ -102,14 +102,15 @@ def resolve_delays_arg(scenario, spec):
 # recovery
 
 
-def design_for(scenario, delays, seed: int):
+def design_for(scenario, delays, seed: int, objective: str = "rho", time_limit=None):
     """Gains for ``scenario`` with ``delays`` from the gain design (``design_gains``)."""
     from design.gain_design import design_gains
 
-    return design_gains(scenario, delays=delays, seed=seed)
+    options = {} if time_limit is None else {"time_limit": float(time_limit)}
+    return design_gains(scenario, delays=delays, seed=seed, objective=objective, **options)
 
 
-def build_recovery(scenario, failed, delay_spec, seed: int):
+def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rho"):
     """Recovery plan for ``failed`` (0-based) and gains designed for its configuration.
 
     Returns ``(Recovery, info)``; raises CommandError (status 1) when the failure cannot
@@ -126,7 +127,7 @@ def build_recovery(scenario, failed, delay_spec, seed: int):
             f"{[a + 1 for a in failed]} cannot be recovered (no equivalent sensor or "
             "no connected network left)", status=EXIT_NEGATIVE)
     delays = resolve_delays_arg(new, delay_spec)
-    result = design_for(new, delays, seed)
+    result = design_for(new, delays, seed, objective)
     if not result.stable:
         raise CommandError(
             f"--recover: no stabilising gain found for the recovered configuration "
@@ -217,7 +218,10 @@ def _run(args) -> int:
                            "(use --recover)")
     recover, recovery_info = None, None
     if args.recover:
-        recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed)
+        objective = gains.meta.get("objective")
+        objective = objective if objective in ("rho", "mse") else "rho"
+        recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed, objective)
+        recovery_info["objective"] = objective
 
     bar = ProgressBar()
     try:

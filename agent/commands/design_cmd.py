@@ -1,0 +1,164 @@
+"""``socmon design``: design the agents' gains and write the gains file.
+
+Exit status: 0 a stabilising gain was written; 1 no stabilising gain was found (no file
+unless ``--force``) or the conic solver failed; 2 bad input, or the pair is not
+observable (the message names the parent SCC without a sensor).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ._common import (
+    EXIT_BAD_INPUT,
+    EXIT_NEGATIVE,
+    EXIT_OK,
+    CommandError,
+    add_scenario_argument,
+    load_scenario_arg,
+    print_json,
+    run_command,
+)
+
+HELP = "design the agents' gains (the paper's LMI method or the delay-aware default)"
+
+
+def add_arguments(parser) -> None:
+    add_scenario_argument(parser)
+    parser.add_argument("--method", choices=("default", "ccl"), default="default",
+                        help="default: first-order design on the exact delayed loop; "
+                             "ccl: the paper's LMI algorithm (delay-free)")
+    parser.add_argument("--delays", default="scenario", metavar="scenario|none|uniform:T",
+                        help="delay matrix to design for and certify against (default: scenario)")
+    parser.add_argument("--objective", choices=("rho", "mse"), default="rho",
+                        help="minimise the exact spectral radius or the steady MSE (default: rho)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the extra starts (default 0)")
+    parser.add_argument("--solver", type=str.upper, choices=("CLARABEL", "SCS"), default=None,
+                        help="conic solver for --method ccl (default CLARABEL)")
+    parser.add_argument("--max-iter", type=int, default=None, metavar="N",
+                        help="iterations: BFGS per start and stage (default 200) or "
+                             "cone-complementarity iterations (default 50)")
+    parser.add_argument("--starts", type=int, default=None, metavar="K",
+                        help="--method default: number of starts (default 3)")
+    parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                        help="stop and keep the best gain found after this long")
+    parser.add_argument("--keep-iterating", action="store_true",
+                        help="--method ccl: go on after rho < 1 to lower rho")
+    parser.add_argument("--out", required=True, metavar="FILE", help="gains file to write (.npz)")
+    parser.add_argument("--json", action="store_true", help="print a JSON record")
+    parser.add_argument("--force", action="store_true",
+                        help="write the gains file even when the design is not stabilising")
+
+
+def _options(args) -> dict:
+    opts = {}
+    if args.method == "ccl":
+        for flag, value in (("--starts", args.starts),):
+            if value is not None:
+                raise CommandError(f"{flag} applies to --method default only")
+        if args.objective == "mse":
+            raise CommandError("--objective mse needs --method default (ccl designs for rho)")
+        opts["solver"] = args.solver or "CLARABEL"
+        opts["keep_iterating"] = bool(args.keep_iterating)
+    else:
+        if args.solver is not None:
+            raise CommandError("--solver applies to --method ccl only")
+        if args.keep_iterating:
+            raise CommandError("--keep-iterating applies to --method ccl only")
+        if args.starts is not None:
+            if args.starts < 1:
+                raise CommandError(f"--starts: must be at least 1, got {args.starts}")
+            opts["starts"] = args.starts
+    if args.max_iter is not None:
+        if args.max_iter < 0 or (args.method == "default" and args.max_iter < 1):
+            raise CommandError(f"--max-iter: must be a positive integer, got {args.max_iter}")
+        opts["max_iter"] = args.max_iter
+    if args.time_limit is not None:
+        if not args.time_limit > 0:
+            raise CommandError(f"--time-limit: must be positive, got {args.time_limit}")
+        opts["time_limit"] = args.time_limit
+    if args.seed < 0:
+        raise CommandError(f"--seed: must be a non-negative integer, got {args.seed}")
+    return opts
+
+
+def run(args) -> int:
+    return run_command(lambda: _run(args))
+
+
+def _run(args) -> int:
+    from design.ccl import SolverError
+    from design.closed_loop import ClosedLoop
+    from design.errors import NotObservableError, ScenarioError
+    from design.gain_design import DesignError, design_gains
+    from design.gains import gains_meta, load_gains, save_gains
+    from design.scenario import resolve_delays
+
+    scenario = load_scenario_arg(args.scenario)
+    try:
+        D = resolve_delays(scenario, args.delays)
+    except ScenarioError as exc:
+        raise CommandError(str(exc)) from None
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise CommandError(f"--out: folder {str(out.parent)!r} does not exist")
+    if out.is_dir():
+        raise CommandError(f"--out: {str(out)!r} is a folder, give a file name")
+    opts = _options(args)
+    try:
+        res = design_gains(scenario, delays=D, method=args.method, objective=args.objective,
+                           seed=args.seed, **opts)
+    except NotObservableError as exc:
+        raise CommandError(str(exc), EXIT_BAD_INPUT) from None
+    except SolverError as exc:
+        raise CommandError(f"ccl design failed: {exc}", EXIT_NEGATIVE) from None
+    except DesignError as exc:
+        raise CommandError(str(exc)) from None
+
+    record = res.summary()
+    record["scenario"] = scenario.name
+    record["written"] = None
+    if res.stable or args.force:
+        meta = gains_meta(
+            scenario, res.method, res.delays, res.rho, objective=res.objective,
+            mse_steady=res.mse_steady, stable=res.stable, seconds=res.seconds,
+            iterations=res.iterations, seed=res.seed, status=res.status,
+            rho_delay_free=res.rho_delay_free,
+            options={k: v for k, v in res.options.items() if k != "init"},
+        )
+        save_gains(out, res.G, meta)
+        # the radius reported is that of the file as written, computed afresh
+        written = load_gains(out, scenario)
+        loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, written.G)
+        record["rho"] = loop.spectral_radius()
+        record["stable"] = bool(record["rho"] < 1)
+        record["written"] = str(out)
+    status = EXIT_OK if record["stable"] else EXIT_NEGATIVE
+    if args.json:
+        print_json(record)
+    else:
+        _print_text(record, res)
+    if not record["stable"]:
+        where = f"written to {out} (--force)" if record["written"] else "no file written"
+        print(f"socmon: no stabilising gain found for these delays (rho = {record['rho']:.6g}); "
+              f"{where}", file=sys.stderr)
+    return status
+
+
+def _print_text(record, res) -> None:
+    delays = record["delays"]
+    taubar = max((max(r) for r in delays), default=0)
+    print(f"design {record['scenario']}: method {record['method']}, objective "
+          f"{record['objective']}, delays up to {taubar} steps")
+    print(f"  rho (exact, delays as designed for) = {record['rho']:.6f}  "
+          f"{'stable' if record['stable'] else 'NOT stable'}")
+    print(f"  rho (delay-free loop)              = {record['rho_delay_free']:.6f}")
+    if record["mse_steady"] is not None:
+        print(f"  steady MSE                         = {record['mse_steady']:.6g}")
+    det = record["detectability"]
+    print(f"  distributed pair rank {det['rank']} of {det['order']}"
+          f" ({'observable' if det['observable'] else 'detectable'})")
+    print(f"  {record['iterations']} iterations, {record['seconds']:.2f} s; stopped: {record['status']}")
+    if record["written"]:
+        print(f"  gains written to {record['written']}")

@@ -1,0 +1,398 @@
+"""Gain design: one entry point, :func:`design_gains`, for every method.
+
+Methods
+-------
+``ccl``
+    The paper's Algorithm 1 (:mod:`design.ccl`): LMIs for the *delay-free* loop solved by
+    cone-complementarity linearisation. The radius reported is nevertheless the exact
+    one for the delays asked, so a delay-free design that the delays destabilise is
+    reported unstable.
+``default``
+    First-order optimisation on the exact delayed closed loop (:mod:`design.gradient`):
+    BFGS on the spectral radius of the companion matrix (eigenvalue sensitivities),
+    and for ``objective="mse"`` then on the steady MSE (Lyapunov equation and adjoint),
+    rejecting unstable steps. Several deterministic starts derived from ``seed``.
+
+Before designing, the distributed pair ``(W (x) A, D_H)`` is checked: a parent SCC
+without a sensor raises :class:`NotObservableError` naming it; an unobservable mode
+on or outside the unit circle (not detectable) raises it too.
+
+Examples
+--------
+>>> from design.scenario import load_scenario
+>>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", seed=0, max_iter=30)
+>>> res.stable, res.rho < 1, len(res.G), res.G[0].shape
+(True, True, 3, (14, 1))
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from .ccl import SOLVERS, SolverError, ccl_design
+from .closed_loop import ClosedLoop
+from .errors import NotObservableError, SocmonError
+from .gradient import LoopModel, bfgs_minimise
+from .graph import influence_structure, unmeasured_parents
+from .observability import observable_basis
+from .scenario import resolve_delays
+
+__all__ = [
+    "design_gains",
+    "DesignResult",
+    "DesignError",
+    "blas_threads",
+    "SolverError",
+    "Detectability",
+    "check_detectable",
+    "METHODS",
+    "OBJECTIVES",
+]
+
+METHODS = ("default", "ccl")
+OBJECTIVES = ("rho", "mse")
+
+_DEFAULT_OPTIONS = {
+    "max_iter": 200,        # BFGS iterations per start and stage
+    "starts": 3,            # number of starts (the first is deterministic, the rest from seed)
+    "time_limit": 120.0,    # seconds for the whole design (the best so far is returned)
+    "margin": 1e-3,         # the MSE stage keeps rho <= 1 - margin
+    "smooth": 0.0,          # soft-max temperature over the top eigenvalue moduli
+    "init": None,           # an initial gain (list of G_i), tried first
+    "patience": 20,
+    "patience_tol": 1e-4,
+    "blas_threads": 1,
+}
+_CCL_OPTIONS = {
+    "solver": "CLARABEL",
+    "max_iter": 50,
+    "keep_iterating": False,
+    "eps": 1e-6,
+    "time_limit": None,
+    "blas_threads": 1,
+}
+
+
+class DesignError(SocmonError):
+    """Bad design arguments (unknown method, objective, option or delay matrix)."""
+
+
+@dataclass
+class DesignResult:
+    """What a design found.
+
+    Attributes
+    ----------
+    G : list of (n, p_i) arrays
+    method, objective : str
+    delays : (N, N) int array, the delay matrix designed for and certified against
+    rho : float, exact spectral radius of the delayed closed loop, recomputed from ``G``
+    mse_steady : float or None, exact steady MSE ``trace(P)/(nN)`` (None when unstable)
+    stable : bool, ``rho < 1``
+    seconds : float, wall time of the design
+    iterations : int, optimiser iterations (BFGS) or cone-complementarity iterations
+    history : list of dict, one record per iteration / solve (status of every solve)
+    status : str, why the design stopped
+    """
+
+    G: list
+    method: str
+    objective: str
+    delays: np.ndarray
+    rho: float
+    mse_steady: float | None
+    stable: bool
+    seconds: float
+    iterations: int
+    history: list = field(default_factory=list)
+    status: str = ""
+    seed: int = 0
+    rho_delay_free: float = float("nan")
+    detectability: dict = field(default_factory=dict)
+    options: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """JSON-ready record (no gain arrays)."""
+        return {
+            "method": self.method,
+            "objective": self.objective,
+            "delays": np.asarray(self.delays).tolist(),
+            "rho": float(self.rho),
+            "mse_steady": None if self.mse_steady is None else float(self.mse_steady),
+            "stable": bool(self.stable),
+            "seconds": float(self.seconds),
+            "iterations": int(self.iterations),
+            "status": self.status,
+            "seed": int(self.seed),
+            "rho_delay_free": float(self.rho_delay_free),
+            "detectability": self.detectability,
+        }
+
+
+# ---------------------------------------------------------------------------------
+# detectability
+
+
+@dataclass(frozen=True)
+class Detectability:
+    """Observability of the distributed pair ``(W (x) A, D_H)``.
+
+    ``rank`` of ``order`` = nN; ``unobservable_modes`` are the eigenvalues of the
+    unobservable part; ``detectable`` iff all of them lie strictly inside the unit circle.
+    """
+
+    rank: int
+    order: int
+    unobservable_modes: tuple
+    detectable: bool
+
+    @property
+    def observable(self) -> bool:
+        return self.rank == self.order
+
+    def to_dict(self) -> dict:
+        mods = [abs(z) for z in self.unobservable_modes]
+        return {"rank": self.rank, "order": self.order, "observable": self.observable,
+                "detectable": self.detectable,
+                "max_unobservable_modulus": max(mods) if mods else 0.0}
+
+
+def check_detectable(scenario) -> Detectability:
+    """Check that a stabilising structured gain can exist; raise if it cannot.
+
+    Raises
+    ------
+    NotObservableError
+        Some parent SCC of the influence graph holds no measured node (named by its
+        labels), or the distributed pair has an unobservable mode with ``|lambda| >= 1``.
+
+    Examples
+    --------
+    >>> from design.scenario import load_scenario
+    >>> d = check_detectable(load_scenario("paper-14"))
+    >>> d.rank, d.order, d.detectable
+    (33, 42, True)
+    """
+    structure = influence_structure(scenario.A)
+    measured = sorted({v for m in scenario.measure for v in m})
+    missing = unmeasured_parents(structure, measured)
+    if missing:
+        sccs = [[scenario.labels[v] for v in structure.components[c]] for c in missing]
+        names = "; ".join("{" + ", ".join(s) + "}" for s in sccs)
+        raise NotObservableError(
+            f"not observable: parent SCC{'s' if len(sccs) > 1 else ''} {names} "
+            f"{'have' if len(sccs) > 1 else 'has'} no sensor; let an agent measure a node "
+            "of each", sccs)
+    n, N = scenario.n, scenario.N
+    WA = sp.kron(sp.csr_matrix(scenario.W), sp.csr_matrix(scenario.A), format="csr")
+    rows = [i * n + v for i, m in enumerate(scenario.measure) for v in m]
+    C = np.zeros((len(rows), n * N))
+    C[np.arange(len(rows)), rows] = 1.0
+    V = observable_basis(WA, C)
+    r = V.shape[1]
+    modes = ()
+    if r < n * N:
+        # the unobservable subspace (orthogonal complement of V) is WA-invariant
+        U = sla.null_space(V.T) if r else np.eye(n * N)
+        modes = tuple(complex(z) for z in sla.eigvals(U.T @ (WA @ U)))
+    worst = max((abs(z) for z in modes), default=0.0)
+    d = Detectability(rank=r, order=n * N, unobservable_modes=modes, detectable=worst < 1)
+    if not d.detectable:
+        raise NotObservableError(
+            f"not detectable: the distributed pair (W (x) A, D_H) has rank {r} of {n * N} "
+            f"and an unobservable mode of modulus {worst:.6g} >= 1; no gain can "
+            "stabilise the estimator")
+    return d
+
+
+# ---------------------------------------------------------------------------------
+# entry point
+
+
+def design_gains(scenario, delays=None, method: str = "default", objective: str = "rho",
+                 seed: int = 0, **options) -> DesignResult:
+    """Design the per-agent gains ``G_i`` for ``scenario``.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    delays : None, str or (N, N) int array
+        The delay matrix to design for (``default``) and to certify against (both):
+        None = the scenario's, or ``"scenario"``, ``"none"``, ``"uniform:T"``.
+    method : "default" or "ccl"
+    objective : "rho" (minimise the exact spectral radius) or "mse" (minimise the exact
+        steady mean-squared error subject to stability; ``default`` only)
+    seed : int, seeds the extra starts of ``default`` (the result is deterministic)
+    **options
+        ``default``: ``max_iter`` (per start and stage, 200), ``starts`` (3),
+        ``time_limit`` (s, 120), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
+        start from), ``patience``/``patience_tol`` (20, 1e-4).
+        ``ccl``: ``solver`` ("CLARABEL"/"SCS"), ``max_iter`` (50), ``keep_iterating``
+        (False), ``eps`` (1e-6), ``time_limit`` (None).
+        Both: ``blas_threads`` (1; None leaves the BLAS thread pool alone), see
+        :func:`blas_threads`.
+
+    Returns
+    -------
+    DesignResult
+        ``stable`` False when no stabilising gain was found (the best gain is returned).
+
+    Raises
+    ------
+    NotObservableError
+        A parent SCC has no sensor, or the pair is not detectable.
+    SolverError
+        ``ccl``: a conic solve was infeasible, inaccurate or failed.
+    DesignError
+        Unknown method, objective or option.
+    """
+    t0 = time.perf_counter()
+    if method not in METHODS:
+        raise DesignError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if objective not in OBJECTIVES:
+        raise DesignError(f"objective: expected one of {', '.join(OBJECTIVES)}, got {objective!r}")
+    if method == "ccl" and objective == "mse":
+        raise DesignError("objective: method ccl designs for stability (rho) only; use "
+                          "method default for objective mse")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise DesignError(f"seed: must be a non-negative integer, got {seed!r}")
+    D = _resolve(scenario, delays)
+    allowed = _DEFAULT_OPTIONS if method == "default" else _CCL_OPTIONS
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise DesignError(f"options {unknown} are not known to method {method} "
+                          f"(known: {', '.join(sorted(allowed))})")
+    opts = {**allowed, **options}
+    with blas_threads(opts.pop("blas_threads")):
+        return _design(scenario, D, method, objective, int(seed), opts, t0)
+
+
+def blas_threads(count):
+    """Context limiting the BLAS/LAPACK thread pool to ``count`` threads (None: no limit).
+
+    Dense eigensolvers run one LAPACK call per iteration on matrices of a few hundred
+    rows; on a loaded 2-core machine a multi-threaded BLAS spends most of its time
+    waiting for its own threads (``scipy.linalg.eig`` of order 672: 0.45 s on one
+    thread, 21 s on two contended ones). Uses threadpoolctl when it is installed.
+    """
+    if count is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:          # pragma: no cover - optional dependency
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(count), user_api="blas")
+
+
+def _design(scenario, D, method, objective, seed, opts, t0):
+    detect = check_detectable(scenario)
+    if method == "ccl":
+        res = _design_ccl(scenario, D, opts)
+    else:
+        res = _design_default(scenario, D, objective, seed, opts, t0)
+    G, history, iterations, status = res
+    loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
+    rho = loop.spectral_radius()
+    stable = bool(rho < 1)
+    mse = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) if stable else None
+    rho0 = ClosedLoop(scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
+    shown = {k: v for k, v in opts.items() if k != "init"}
+    return DesignResult(
+        G=G, method=method, objective=objective, delays=D, rho=float(rho),
+        mse_steady=None if mse is None else float(mse), stable=stable,
+        seconds=time.perf_counter() - t0, iterations=int(iterations), history=history,
+        status=status, seed=int(seed), rho_delay_free=float(rho0),
+        detectability=detect.to_dict(), options=shown,
+    )
+
+
+def _resolve(scenario, delays) -> np.ndarray:
+    if delays is None:
+        return scenario.delays.copy()
+    if isinstance(delays, str):
+        return resolve_delays(scenario, delays)
+    D = np.asarray(delays)
+    if D.shape != (scenario.N, scenario.N) or not np.issubdtype(D.dtype, np.integer):
+        raise DesignError(f"delays: must be an {scenario.N} x {scenario.N} integer matrix, "
+                          f"got {D.dtype} of shape {D.shape}")
+    scenario.replace(delays=D.astype(int))      # validates: raises ScenarioError
+    return D.astype(int)
+
+
+def _design_ccl(scenario, D, opts):
+    deadline = None if opts["time_limit"] is None else time.perf_counter() + opts["time_limit"]
+    out = ccl_design(scenario.A, scenario.W, scenario.measure, solver=opts["solver"],
+                     max_iter=int(opts["max_iter"]), keep_iterating=bool(opts["keep_iterating"]),
+                     eps=float(opts["eps"]), deadline=deadline)
+    return out["G"], out["history"], out["iterations"], out["reason"]
+
+
+def _starts(model, scenario, seed, count, init):
+    """Deterministic starting gains: ``init`` if given, the 'reset' gain, seeded ones."""
+    reset = model.pack([np.eye(scenario.n)[:, list(m)] for m in scenario.measure])
+    starts = []
+    if init is not None:
+        starts.append(model.pack(init))
+    starts.append(reset)
+    rng = np.random.default_rng(seed)
+    while len(starts) < count:
+        starts.append(rng.uniform(0.3, 1.0) * reset + 0.3 * rng.standard_normal(model.size))
+    return starts[:max(count, 1 if init is None else 2)]
+
+
+def _design_default(scenario, D, objective, seed, opts, t0):
+    model = LoopModel(scenario.A, scenario.W, D, scenario.measure)
+    deadline = t0 + float(opts["time_limit"])
+    smooth = float(opts["smooth"])
+    common = dict(max_iter=int(opts["max_iter"]), deadline=deadline,
+                  patience=int(opts["patience"]), patience_tol=float(opts["patience_tol"]))
+    init = opts["init"]
+    if init is not None:
+        from .gains import check_gains_fit
+        check_gains_fit(list(init), scenario, where="init")
+    starts = _starts(model, scenario, seed, int(opts["starts"]), init)
+    q, r = scenario.process_noise, scenario.measurement_noise
+    rho_max = 1.0 - float(opts["margin"])
+
+    def f_rho(x):
+        return model.spectral_radius_and_gradient(x, smooth=smooth)
+
+    def f_mse(x):
+        J, g = model.mse_and_gradient(x, q, r, rho_max=rho_max)
+        return (np.inf, np.zeros_like(x)) if g is None else (J, g)
+
+    history, iterations = [], 0
+    best = None            # (key, x, status)
+    for k, x0 in enumerate(starts):
+        if k and time.perf_counter() > deadline:
+            history.append({"stage": "stop", "note": f"time limit before start {k}"})
+            break
+        label = f"start {k} rho"
+        stop = (lambda f: f < rho_max) if objective == "mse" else None
+        res = bfgs_minimise(f_rho, x0, stop=stop, label=label, **common)
+        history += res.history
+        iterations += res.iterations
+        x, status = res.x, res.reason
+        rho = model.spectral_radius(x)
+        if objective == "rho":
+            key = rho
+        else:
+            if rho < rho_max:
+                res2 = bfgs_minimise(f_mse, x, label=f"start {k} mse", **common)
+                history += res2.history
+                iterations += res2.iterations
+                x, status = res2.x, res2.reason
+                key = (0, res2.f)
+            else:
+                key = (1, rho)      # not stabilised: ranks after every stable start
+        history.append({"stage": f"start {k} done", "rho": float(rho), "status": status})
+        if best is None or key < best[0]:
+            best = (key, x, status)
+    _, x, status = best
+    return model.unpack(x), history, iterations, status

@@ -1,0 +1,402 @@
+"""First-order gain design on the exact delayed closed loop.
+
+The free numbers are the gains ``G_i`` (n x p_i); ``G_i`` enters only block row i of the
+first block row of the companion matrix (see :mod:`design.closed_loop`):
+
+    M[rows_i, :] = L_i R_i,   L_i = I - G_i H_i,
+    R_i = [ w_ij A^(tau_ij + 1) at column block (tau_ij, j) ]    (the companion part)
+
+so ``dM[rows_i, :] = -dG_i (H_i R_i)`` and every derivative below is a sum over agents.
+
+Spectral radius
+    For a simple eigenvalue ``lambda`` with right vector v and left vector u
+    (``u^H M = lambda u^H``), ``d lambda = u^H dM v / (u^H v)``, hence
+
+        d|lambda| / dG_i = -Re( conj(lambda)/|lambda| * conj(u_i) (H_i R_i v)^T / (u^H v) ).
+
+    ``spectral_radius_and_gradient`` returns the exact radius and the gradient of the top
+    eigenvalue's modulus (optionally a soft maximum over the top few, ``smooth > 0``).
+
+Steady MSE
+    The error augmented with the process-noise window obeys ``z+ = Ma z + Bin nu + Gin zeta``
+    (the construction of :meth:`ClosedLoop.steady_error_covariance`). With
+    ``P = Ma P Ma^T + S``, ``S = q Bin Bin^T + r Gin Gin^T`` and ``J = trace(C P)``,
+    ``C = E^T E / (nN)`` (E picks the current error), the adjoint ``X = Ma^T X Ma + C``
+    gives ``dJ = <2 X Ma P, dMa> + <X, dS>``. Block row i of ``Ma`` is ``L_i Ra_i``, of
+    ``Bin`` is ``L_i`` and of ``Gin`` is ``G_i`` at agent i's columns, so
+
+        dJ/dG_i = -(2 X Ma P)[rows_i] (H_i Ra_i)^T - 2q (X Bin)[rows_i] H_i^T
+                  + 2r (X Gin)[rows_i, cols_i].
+
+Both gradients are checked against finite differences in ``tests/test_gain_design.py``.
+The optimiser is BFGS with a weak Wolfe line search, which is known to behave well on
+the nonsmooth spectral radius (Lewis and Overton, 2013); unstable trial points are
+rejected by the line search (their value is +inf for the MSE objective).
+
+Examples
+--------
+>>> import numpy as np
+>>> model = LoopModel(np.array([[1.1]]), np.array([[1.0]]), np.zeros((1, 1), int), [(0,)])
+>>> rho, grad = model.spectral_radius_and_gradient(np.array([0.5]))
+>>> round(rho, 6), np.round(grad, 6)            # rho = 1.1 (1 - g)
+(0.55, array([-1.1]))
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .closed_loop import ClosedLoop
+
+__all__ = ["LoopModel", "bfgs_minimise", "OptimResult", "DENSE_SPECTRUM_MAX_ORDER"]
+
+#: Up to this companion order the spectrum is computed densely (all eigenpairs);
+#: above it, ARPACK computes a few eigenpairs of largest modulus, warm started.
+DENSE_SPECTRUM_MAX_ORDER = 400
+#: ARPACK restarts before falling back to the dense eigensolver for good.
+ARPACK_MAX_RESTARTS = 60
+
+
+class LoopModel:
+    """The closed loop of one (A, W, delays, measure) as a function of the gains.
+
+    Parameters
+    ----------
+    A, W, delays, measure
+        As for :class:`design.closed_loop.ClosedLoop`.
+
+    Notes
+    -----
+    The gains are packed in one vector ``x``: ``G_1`` flattened row-major, then ``G_2``,
+    and so on (``n * sum(p_i)`` numbers).
+    """
+
+    def __init__(self, A, W, delays, measure):
+        self.A = np.asarray(A, dtype=float)
+        self.W = np.asarray(W, dtype=float)
+        self.delays = np.asarray(delays, dtype=int)
+        self.measure = [tuple(int(j) for j in m) for m in measure]
+        self.n, self.N = self.A.shape[0], self.W.shape[0]
+        self.m = self.n * self.N
+        self.taubar = int(self.delays.max()) if self.delays.size else 0
+        self.order = (self.taubar + 1) * self.m
+        self.sizes = [self.n * len(mi) for mi in self.measure]
+        self.offsets = np.concatenate([[0], np.cumsum(self.sizes)]).astype(int)
+        self.size = int(self.offsets[-1])
+        P = [np.eye(self.n)]
+        for _ in range(self.taubar + 1):
+            P.append(P[-1] @ self.A)
+        self.A_powers = P
+        # links[i] = [(j, tau, w)]
+        self.links = [
+            [(j, int(self.delays[i, j]), float(self.W[i, j])) for j in range(self.N)
+             if self.W[i, j] > 0]
+            for i in range(self.N)
+        ]
+        # measured rows of A^(tau+1) per link: (p_i x n)
+        self._HA = [
+            [(j, tau, w * self.A_powers[tau + 1][list(self.measure[i]), :])
+             for (j, tau, w) in self.links[i]]
+            for i in range(self.N)
+        ]
+        self.dense_only = False
+        self._v0 = None     # ARPACK warm starts
+        self._u0 = None
+
+    # -- packing ----------------------------------------------------------------------
+    def unpack(self, x) -> list:
+        """Vector -> list of ``G_i`` (n x p_i)."""
+        x = np.asarray(x, dtype=float)
+        return [x[self.offsets[i]:self.offsets[i + 1]].reshape(self.n, len(self.measure[i]))
+                for i in range(self.N)]
+
+    def pack(self, G) -> np.ndarray:
+        """List of ``G_i`` -> vector."""
+        return np.concatenate([np.asarray(g, dtype=float).ravel() for g in G]) \
+            if self.N else np.zeros(0)
+
+    def closed_loop(self, x) -> ClosedLoop:
+        return ClosedLoop(self.A, self.W, self.delays, self.measure, self.unpack(x))
+
+    # -- spectral radius --------------------------------------------------------------
+    def _top_eigenpairs(self, M, k):
+        """Top-``k`` eigenvalues by modulus with right (columns) and left vectors."""
+        order = M.shape[0]
+        if order <= DENSE_SPECTRUM_MAX_ORDER or order - 2 <= k or self.dense_only:
+            Md = M.toarray() if sp.issparse(M) else M
+            lam, vl, vr = sla.eig(Md, left=True, right=True)
+            idx = np.argsort(-np.abs(lam), kind="stable")[:k]
+            return lam[idx], vr[:, idx], vl[:, idx]
+        ncv = min(order - 1, max(3 * k + 1, 30))
+        try:
+            lam, vr = spla.eigs(M, k=k, which="LM", ncv=ncv, tol=1e-10, v0=self._v0,
+                                maxiter=ARPACK_MAX_RESTARTS)
+            mu, vl = spla.eigs(M.T, k=k, which="LM", ncv=ncv, tol=1e-10, v0=self._u0,
+                               maxiter=ARPACK_MAX_RESTARTS)
+        except spla.ArpackNoConvergence:
+            # eigenvalues of nearly equal modulus (typical near a minimum of the radius):
+            # Arnoldi stalls; dense from now on for this model
+            self.dense_only = True
+            Md = M.toarray() if sp.issparse(M) else M
+            lam, vl, vr = sla.eig(Md, left=True, right=True)
+            idx = np.argsort(-np.abs(lam), kind="stable")[:k]
+            return lam[idx], vr[:, idx], vl[:, idx]
+        idx = np.argsort(-np.abs(lam), kind="stable")
+        lam, vr = lam[idx], vr[:, idx]
+        # left vectors: M^T y = mu y  <=>  u = conj(y) satisfies u^H M = mu u^H
+        left = np.empty_like(vr)
+        for c, l in enumerate(lam):
+            d = int(np.argmin(np.abs(mu - l)))
+            left[:, c] = np.conj(vl[:, d])
+        self._v0 = np.real(vr[:, 0]) + np.imag(vr[:, 0])
+        self._u0 = np.real(left[:, 0]) + np.imag(left[:, 0])
+        return lam, vr, left
+
+    def spectral_radius_and_gradient(self, x, smooth: float = 0.0, k: int = 6):
+        """Exact radius of the delayed closed loop and the gradient of the top modulus.
+
+        Parameters
+        ----------
+        x : gains vector
+        smooth : float
+            0: gradient of the largest modulus (an eigenvalue of a complex pair gives the
+            same modulus gradient as its conjugate). > 0: gradient of the soft maximum
+            ``smooth * log sum exp(|lambda_k| / smooth)`` over the top ``k`` eigenvalues
+            (the returned value is then that soft maximum).
+        """
+        loop = self.closed_loop(x)
+        M = loop.F(0) if self.taubar == 0 else loop.companion()
+        kk = max(1, min(k, M.shape[0]))
+        lam, vr, vl = self._top_eigenpairs(M, kk)
+        mod = np.abs(lam)
+        rho = float(mod.max())
+        if smooth > 0:
+            wts = np.exp((mod - rho) / smooth)
+            value = rho + smooth * float(np.log(wts.sum()))
+            wts = wts / wts.sum()
+        else:
+            wts = np.zeros(len(lam))
+            wts[int(np.argmax(mod))] = 1.0
+            value = rho
+        grad = np.zeros(self.size)
+        for c in np.flatnonzero(wts > 1e-12):
+            grad += wts[c] * self._modulus_gradient(lam[c], vr[:, c], vl[:, c])
+        return value, grad
+
+    def _modulus_gradient(self, lam, v, u):
+        n, m = self.n, self.m
+        uv = np.vdot(u, v)          # u^H v
+        if lam == 0 or uv == 0:
+            return np.zeros(self.size)
+        phase = np.conj(lam) / abs(lam)
+        g = np.zeros(self.size)
+        for i in range(self.N):
+            w = np.zeros(len(self.measure[i]), dtype=complex)
+            for (j, tau, HA) in self._HA[i]:
+                w += HA @ v[tau * m + j * n: tau * m + (j + 1) * n]
+            ui = u[i * n:(i + 1) * n]
+            gi = -np.real(phase * np.outer(np.conj(ui), w) / uv)
+            g[self.offsets[i]:self.offsets[i + 1]] = gi.ravel()
+        return g
+
+    def spectral_radius(self, x) -> float:
+        """Exact radius (through :class:`ClosedLoop`)."""
+        return self.closed_loop(x).spectral_radius()
+
+    # -- steady MSE -------------------------------------------------------------------
+    def _augmented(self, x, q, r):
+        """``(Ma, Bin, Gin, Ra)``: augmented closed loop, noise inputs, pre-L row blocks."""
+        loop = self.closed_loop(x)
+        n, m, T, N = self.n, self.m, self.taubar, self.N
+        order = (T + 1) * m + T * n
+        nu0 = (T + 1) * m
+        # pre-L row blocks Ra_i (n x order)
+        Ra = []
+        for i in range(N):
+            Ri = np.zeros((n, order))
+            for (j, tau, w) in self.links[i]:
+                Ri[:, tau * m + j * n: tau * m + (j + 1) * n] += w * self.A_powers[tau + 1]
+            for s in range(1, T + 1):
+                c = sum(w for (_, tau, w) in self.links[i] if tau >= s)
+                if c:
+                    Ri[:, nu0 + (s - 1) * n: nu0 + s * n] = c * self.A_powers[s]
+            Ra.append(Ri)
+        Ma = np.zeros((order, order))
+        for i in range(N):
+            Ma[i * n:(i + 1) * n] = loop.L[i] @ Ra[i]
+        if T:
+            Ma[m:(T + 1) * m, :T * m] = np.eye(T * m)
+        if T > 1:
+            Ma[nu0 + n:, nu0: nu0 + (T - 1) * n] = np.eye((T - 1) * n)
+        Bin = np.zeros((order, n))
+        c0 = np.array([sum(w for (_, _, w) in self.links[i]) for i in range(N)])
+        for i in range(N):
+            Bin[i * n:(i + 1) * n] = c0[i] * loop.L[i]
+        if T:
+            Bin[nu0: nu0 + n] = np.eye(n)
+        p = sum(len(mi) for mi in self.measure)
+        Gin = np.zeros((order, p))
+        col = 0
+        for i, g in enumerate(loop.G):
+            Gin[i * n:(i + 1) * n, col:col + g.shape[1]] = g
+            col += g.shape[1]
+        return Ma, Bin, Gin, Ra, c0
+
+    def mse_and_gradient(self, x, q: float, r: float, rho_max: float = 1.0):
+        """Steady MSE ``trace(P)/(nN)`` and its gradient; ``(inf, None)`` if unstable.
+
+        Stability is judged on the exact radius (``< rho_max``).
+        """
+        Ma, Bin, Gin, Ra, c0 = self._augmented(x, q, r)
+        n, m, N = self.n, self.m, self.N
+        rho = float(np.max(np.abs(sla.eigvals(Ma[: (self.taubar + 1) * m,
+                                                  : (self.taubar + 1) * m]))))
+        if not rho < rho_max:
+            return np.inf, None
+        S = q * (Bin @ Bin.T) + r * (Gin @ Gin.T)
+        P = _dlyap(Ma, S)
+        C = np.zeros_like(Ma)
+        C[:m, :m] = np.eye(m) / m
+        X = _dlyap(Ma.T, C)
+        J = float(np.trace(P[:m, :m]) / m)
+        Gam = 2.0 * (X[:m] @ Ma) @ P          # rows of 2 X Ma P that G touches
+        XB = X[:m] @ Bin
+        XG = X[:m] @ Gin
+        grad = np.zeros(self.size)
+        col = 0
+        for i in range(N):
+            rows = slice(i * n, (i + 1) * n)
+            mi = list(self.measure[i])
+            gi = -Gam[rows] @ Ra[i][mi].T
+            gi -= 2.0 * q * c0[i] * XB[rows][:, mi]
+            gi += 2.0 * r * XG[rows, col:col + len(mi)]
+            col += len(mi)
+            grad[self.offsets[i]:self.offsets[i + 1]] = gi.ravel()
+        return J, grad
+
+
+def _dlyap(M, S):
+    """``P = M P M^T + S`` (symmetrised)."""
+    P = sla.solve_discrete_lyapunov(M, S)
+    return 0.5 * (P + P.T)
+
+
+# ---------------------------------------------------------------------------------
+# BFGS with a weak Wolfe line search
+
+
+@dataclass
+class OptimResult:
+    x: np.ndarray
+    f: float
+    iterations: int
+    evaluations: int
+    reason: str
+    history: list = field(default_factory=list)
+
+
+def bfgs_minimise(fg, x0, max_iter=200, stop=None, deadline=None, f_tol=1e-9,
+                  patience=20, patience_tol=1e-4, step0=None, label="") -> OptimResult:
+    """Minimise ``fg(x) -> (f, g)`` by BFGS with a weak Wolfe line search.
+
+    ``f`` may be ``inf`` (rejected trial point). ``stop(f)`` ends the run early when it
+    returns True; ``deadline`` is a ``time.perf_counter()`` value. The run also ends when
+    the last ``patience`` iterations lowered ``f`` by less than ``patience_tol * |f|`` in
+    total (a nonsmooth minimum is approached slowly). Deterministic.
+    """
+    x = np.asarray(x0, dtype=float).copy()
+    f, g = fg(x)
+    evals = 1
+    history = [{"stage": label, "iteration": 0, "value": float(f)}]
+    if not np.isfinite(f):
+        return OptimResult(x, f, 0, evals, "infeasible start", history)
+    if stop is not None and stop(f):
+        return OptimResult(x, f, 0, evals, "target reached", history)
+    dim = x.size
+    Hinv = None
+    reason = "max iterations"
+    stall = 0
+    it = 0
+    for it in range(1, max_iter + 1):
+        gn = float(np.linalg.norm(g))
+        if gn == 0 or not np.isfinite(gn):
+            reason = "zero gradient"
+            break
+        if Hinv is None:
+            scale = step0 if step0 is not None else 0.1 * max(1.0, np.linalg.norm(x)) / gn
+            Hinv = scale * np.eye(dim)
+        d = -Hinv @ g
+        gd = float(g @ d)
+        if gd >= 0:
+            Hinv = (0.1 * max(1.0, np.linalg.norm(x)) / gn) * np.eye(dim)
+            d = -Hinv @ g
+            gd = float(g @ d)
+        t, xt, ft, gt, ne = _weak_wolfe(fg, x, f, g, d, gd)
+        evals += ne
+        if xt is None:
+            # no decrease along d: restart from steepest descent once, then give up
+            if stall:
+                reason = "line search failed"
+                break
+            stall = 1
+            Hinv = None
+            continue
+        stall = 0
+        s, y = xt - x, gt - g
+        sy = float(s @ y)
+        decrease = f - ft
+        x, f, g = xt, ft, gt
+        history.append({"stage": label, "iteration": it, "value": float(f), "step": float(t)})
+        if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+            rho_ = 1.0 / sy
+            Hy = Hinv @ y
+            Hinv = (Hinv - rho_ * (np.outer(s, Hy) + np.outer(Hy, s))
+                    + (rho_ * rho_ * float(y @ Hy) + rho_) * np.outer(s, s))
+        if stop is not None and stop(f):
+            reason = "target reached"
+            break
+        if decrease <= f_tol * max(1.0, abs(f)):
+            reason = "converged (no decrease)"
+            break
+        if patience and len(history) > patience and (
+                history[-1 - patience]["value"] - f <= patience_tol * max(abs(f), 1e-12)):
+            reason = f"converged (relative decrease < {patience_tol:g} in {patience} iterations)"
+            break
+        if deadline is not None and time.perf_counter() > deadline:
+            reason = "time limit"
+            break
+    return OptimResult(x, f, it, evals, reason, history)
+
+
+def _weak_wolfe(fg, x, f, g, d, gd, c1=1e-4, c2=0.9, max_evals=30):
+    """Lewis-Overton bracketing line search; returns (t, x_t, f_t, g_t, evals).
+
+    If the weak Wolfe conditions are not met within ``max_evals`` the best trial point
+    with sufficient decrease is returned, or ``x_t = None`` when there is none.
+    """
+    lo, hi, t = 0.0, np.inf, 1.0
+    best = None
+    for ne in range(1, max_evals + 1):
+        xt = x + t * d
+        ft, gt = fg(xt)
+        if not np.isfinite(ft) or ft > f + c1 * t * gd:
+            hi = t
+        else:
+            if best is None or ft < best[2]:
+                best = (t, xt, ft, gt)
+            if float(gt @ d) < c2 * gd:
+                lo = t
+            else:
+                return t, xt, ft, gt, ne
+        t = 0.5 * (lo + hi) if np.isfinite(hi) else 2.0 * t
+        if hi - lo < 1e-14 * max(1.0, lo):
+            break
+    if best is not None:
+        return (*best, ne)
+    return 0.0, None, f, g, ne
