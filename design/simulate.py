@@ -143,6 +143,8 @@ class SimulationResult:
         growing: ``mse_steady > DIVERGENCE_FACTOR * mse[0]`` and ``mse_steady >
         GROWTH_FACTOR *`` the mean of the quarter before. A stable loop with a large
         steady MSE is not "diverged".
+    estimates : ndarray (trials, steps+1, N, n) or None
+        With ``record_estimates``: ``xhat^i_k`` of agents 1..N (NaN once failed).
     """
 
     mse: np.ndarray
@@ -157,6 +159,7 @@ class SimulationResult:
     failed: tuple = ()
     recovered: bool = False
     coordinates: str = "error"
+    estimates: np.ndarray | None = None
 
     def band(self, lo: float = 10.0, hi: float = 90.0):
         """Percentiles ``lo`` and ``hi`` across trials, per step."""
@@ -255,7 +258,7 @@ def _check_delays(D, scenario, name):
 
 def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop: float = 0.0,
              fail=None, recover: Recovery | None = None, progress=None,
-             coordinates: str = "error") -> SimulationResult:
+             coordinates: str = "error", record_estimates: bool = False) -> SimulationResult:
     """Run ``trials`` Monte-Carlo trials of the distributed estimator for ``steps`` steps.
 
     Parameters
@@ -279,6 +282,9 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     coordinates : {"error", "absolute"}
         Compute relative to the truth (default; accurate for unstable A over any
         length) or in absolute coordinates as a live run does.
+    record_estimates : bool
+        Keep every estimate of agents 1..N in :attr:`SimulationResult.estimates`
+        (needs ``coordinates="absolute"``: the numbers a live run computes).
 
     Returns
     -------
@@ -294,6 +300,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     seed = _check_int(seed, "seed", 0)
     if coordinates not in ("error", "absolute"):
         raise SimulationError(f"coordinates: expected 'error' or 'absolute', got {coordinates!r}")
+    if record_estimates and coordinates != "absolute":
+        raise SimulationError("record_estimates: needs coordinates='absolute'")
     if isinstance(drop, bool) or not isinstance(drop, (int, float, np.floating)) \
             or not math.isfinite(drop) or not 0 <= drop < 1:
         raise SimulationError(f"drop: must be a probability in [0, 1), got {drop!r}")
@@ -354,6 +362,9 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     config = configs[0]
     mse_trials = np.empty((trials, steps + 1))
     mse_trials[:, 0] = _mse(est, [a for _, a in config.live], x, error_coords)
+    recorded = np.full((trials, steps + 1, N, n), np.nan) if record_estimates else None
+    if recorded is not None:
+        _record(recorded, 0, est, config, ids0)
 
     with np.errstate(over="ignore", invalid="ignore"):
         for k in range(1, steps + 1):
@@ -388,6 +399,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 # stamps below k - 1 - max_delay can no longer arrive on time
                 published[a].pop(k - 2 - max_delay, None)
             mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)
+            if recorded is not None:
+                _record(recorded, k, est, config, ids0)
             if progress is not None:
                 progress(k, steps)
             if not np.isfinite(mse_trials[:, k]).any():
@@ -407,8 +420,16 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         mse=mse, mse_trials=mse_trials, mse_steady=mse_steady, diverged=bool(diverged),
         trials=trials, steps=steps, seed=seed, drop=drop, fail_step=fail_step,
         failed=tuple(a + 1 for a in failed), recovered=recover is not None,
-        coordinates=coordinates,
+        coordinates=coordinates, estimates=recorded,
     )
+
+
+def _record(recorded, k, est, config, ids0):
+    """Store step k's estimates of agents 1..N that are running (NaN otherwise)."""
+    live = {a for _, a in config.live}
+    for i, a in enumerate(ids0):
+        if a in live:
+            recorded[:, k, i] = est[a]
 
 
 def _recovery_config(recover, scenario, failed, ids0) -> _Config:

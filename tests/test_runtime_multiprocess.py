@@ -91,6 +91,7 @@ def test_up_matches_the_simulator_and_learns_the_delays(tmp_path, gains_files, d
     assert summary["steps"] == 60 and summary["agents"] == 3
     assert summary["drops"] == 0 and summary["malformed"] == 0
     assert summary["max_rel_diff_vs_simulator"] <= 1e-9
+    assert summary["simulator_compared"] == "estimates"
     tau = 0 if delays == "none" else 2
     assert summary["learned_delays"] == {"1": {"2": tau}, "2": {"3": tau}, "3": {"1": tau},
                                          "4": {}}

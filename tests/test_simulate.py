@@ -283,3 +283,35 @@ def test_recovery_must_keep_A(paper14, gain0):
         simulate(paper14, gain0, 10, 1, 0, fail=(5, [1]), recover=plan)
     with pytest.raises(SimulationError, match="needs a failure"):
         simulate(paper14, gain0, 10, 1, 0, recover=plan)
+
+
+def test_recorded_estimates_are_the_absolute_run(paper14):
+    """record_estimates keeps xhat of every agent; its error reproduces the MSE."""
+    import numpy as np
+
+    from design import noise
+    from design.simulate import simulate
+
+    rng = np.random.default_rng(3)
+    G = [0.2 * rng.normal(size=(paper14.n, 1)) for _ in range(paper14.N)]
+    res = simulate(paper14, G, steps=12, trials=2, seed=5, coordinates="absolute",
+                   record_estimates=True)
+    assert res.estimates.shape == (2, 13, paper14.N, paper14.n)
+    x = noise.initial_state(5, paper14.n, 2)
+    for k in range(1, 13):
+        x = x @ paper14.A.T + noise.process_noise(5, k - 1, paper14.n, paper14.process_noise, 2)
+    e = res.estimates[:, 12] - x[:, None, :]
+    np.testing.assert_allclose(np.mean(e * e, axis=(1, 2)), res.mse_trials[:, 12], rtol=1e-10)
+    np.testing.assert_array_equal(res.estimates[:, 0, 0],
+                                  noise.initial_estimate(5, 1, paper14.n, 2))
+
+
+def test_record_estimates_needs_absolute_coordinates(paper14):
+    import numpy as np
+    import pytest
+
+    from design.simulate import SimulationError, simulate
+
+    G = [np.zeros((paper14.n, 1))] * paper14.N
+    with pytest.raises(SimulationError, match="record_estimates"):
+        simulate(paper14, G, steps=2, trials=1, seed=0, record_estimates=True)

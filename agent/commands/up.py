@@ -277,7 +277,8 @@ def _compare_simulator(scenario, G, K, seed, delays, truth, est, active, mse, st
 
     from design.simulate import simulate
 
-    res = simulate(scenario, G, steps=K, trials=1, seed=seed, delays=delays)
+    res = simulate(scenario, G, steps=K, trials=1, seed=seed, delays=delays,
+                   coordinates="absolute", record_estimates=True)
     if len(steps_done) != K + 1:
         return float("inf"), "incomplete run"
     sim_est = getattr(res, "estimates", None)
