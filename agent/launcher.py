@@ -57,6 +57,10 @@ class Children:
         env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"]
                                          if env.get("PYTHONPATH") else "")
         env.setdefault("PYTHONUNBUFFERED", "1")
+        # every child multiplies small matrices once per step: BLAS worker threads only
+        # contend for the cores with the other processes of the run
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env.setdefault(var, "1")
         proc = subprocess.Popen([sys.executable, "-m", "agent.cli", *argv], cwd=str(ROOT),
                                 env=env, stdin=subprocess.DEVNULL, stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True)
