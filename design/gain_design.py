@@ -68,6 +68,7 @@ _DEFAULT_OPTIONS = {
     "patience": 20,
     "patience_tol": 1e-4,
     "blas_threads": 1,
+    "target": None,         # objective rho: stop as soon as rho < target
 }
 _CCL_OPTIONS = {
     "solver": "CLARABEL",
@@ -75,6 +76,7 @@ _CCL_OPTIONS = {
     "keep_iterating": False,
     "eps": 1e-6,
     "time_limit": None,
+    "solver_options": None,
     "blas_threads": 1,
 }
 
@@ -232,9 +234,11 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
     **options
         ``default``: ``max_iter`` (per start and stage, 200), ``starts`` (3),
         ``time_limit`` (s, 120), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
-        start from), ``patience``/``patience_tol`` (20, 1e-4).
+        start from), ``patience``/``patience_tol`` (20, 1e-4), ``target`` (objective rho:
+        stop as soon as the radius is below it; default None = minimise).
         ``ccl``: ``solver`` ("CLARABEL"/"SCS"), ``max_iter`` (50), ``keep_iterating``
-        (False), ``eps`` (1e-6), ``time_limit`` (None).
+        (False), ``eps`` (1e-6), ``time_limit`` (None), ``solver_options`` (dict for the
+        solver).
         Both: ``blas_threads`` (1; None leaves the BLAS thread pool alone), see
         :func:`blas_threads`.
 
@@ -329,7 +333,8 @@ def _design_ccl(scenario, D, opts):
     deadline = None if opts["time_limit"] is None else time.perf_counter() + opts["time_limit"]
     out = ccl_design(scenario.A, scenario.W, scenario.measure, solver=opts["solver"],
                      max_iter=int(opts["max_iter"]), keep_iterating=bool(opts["keep_iterating"]),
-                     eps=float(opts["eps"]), deadline=deadline)
+                     eps=float(opts["eps"]), deadline=deadline,
+                     solver_options=opts["solver_options"])
     return out["G"], out["history"], out["iterations"], out["reason"]
 
 
@@ -374,7 +379,12 @@ def _design_default(scenario, D, objective, seed, opts, t0):
             history.append({"stage": "stop", "note": f"time limit before start {k}"})
             break
         label = f"start {k} rho"
-        stop = (lambda f: f < rho_max) if objective == "mse" else None
+        if objective == "mse":
+            stop = lambda f: f < rho_max            # noqa: E731
+        elif opts["target"] is not None:
+            stop = lambda f: f < float(opts["target"])  # noqa: E731
+        else:
+            stop = None
         res = bfgs_minimise(f_rho, x0, stop=stop, label=label, **common)
         history += res.history
         iterations += res.iterations
@@ -394,5 +404,7 @@ def _design_default(scenario, D, objective, seed, opts, t0):
         history.append({"stage": f"start {k} done", "rho": float(rho), "status": status})
         if best is None or key < best[0]:
             best = (key, x, status)
+        if objective == "rho" and opts["target"] is not None and rho < float(opts["target"]):
+            break
     _, x, status = best
     return model.unpack(x), history, iterations, status
