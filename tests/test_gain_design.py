@@ -196,12 +196,9 @@ def test_unmeasured_parent_scc_is_named(paper14):
     assert info.value.unmeasured == [["12", "13", "14"]]
 
 
-def test_undetectable_pair_raises():
-    # two agents both measure node 1; node 2 (unstable, a parent of nothing) is seen by no
-    # one through the dynamics: it is its own parent SCC only if unmeasured, so make it a
-    # child whose unstable mode is unobservable: 1 -> 2 is absent, 2 -> 1 absent.
-    A = np.array([[0.5, 0.0], [0.0, 1.3]])
-    s = _tiny(A, [["1"], ["1"]])
+def test_unmeasured_unstable_singleton_parent_is_named():
+    # node 2 (unstable) neither influences nor is influenced by node 1: its own parent SCC
+    s = _tiny([[0.5, 0.0], [0.0, 1.3]], [["1"], ["1"]])
     with pytest.raises(NotObservableError, match=r"\{2\} has no sensor"):
         design_gains(s)
 
