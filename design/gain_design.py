@@ -61,7 +61,7 @@ OBJECTIVES = ("rho", "mse")
 _DEFAULT_OPTIONS = {
     "max_iter": 200,        # BFGS iterations per start and stage
     "starts": 3,            # number of starts (the first is deterministic, the rest from seed)
-    "time_limit": 120.0,    # seconds for the whole design (the best so far is returned)
+    "time_limit": 60.0,     # seconds of optimisation (the best gain so far is returned)
     "margin": 1e-3,         # the MSE stage keeps rho <= 1 - margin
     "smooth": 0.0,          # soft-max temperature over the top eigenvalue moduli
     "init": None,           # an initial gain (list of G_i), tried first
@@ -233,7 +233,7 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
     seed : int, seeds the extra starts of ``default`` (the result is deterministic)
     **options
         ``default``: ``max_iter`` (per start and stage, 200), ``starts`` (3),
-        ``time_limit`` (s, 120), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
+        ``time_limit`` (s, 60), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
         start from), ``patience``/``patience_tol`` (20, 1e-4), ``target`` (objective rho:
         stop as soon as the radius is below it; default None = minimise).
         ``ccl``: ``solver`` ("CLARABEL"/"SCS"), ``max_iter`` (50), ``keep_iterating``
