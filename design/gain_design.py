@@ -20,7 +20,7 @@ on or outside the unit circle (not detectable) raises it too.
 Examples
 --------
 >>> from design.scenario import load_scenario
->>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", seed=0, max_iter=30)
+>>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", starts=1, max_iter=30)
 >>> res.stable, res.rho < 1, len(res.G), res.G[0].shape
 (True, True, 3, (14, 1))
 """
@@ -339,7 +339,9 @@ def _design_ccl(scenario, D, opts):
 
 
 def _starts(model, scenario, seed, count, init):
-    """Deterministic starting gains: ``init`` if given, the 'reset' gain, seeded ones."""
+    """``count`` deterministic starting gains: ``init`` if given, then the 'reset' gain
+    ``G_i = H_i^T`` (each agent replaces its measured states by the measurement), then
+    seeded perturbations of it."""
     reset = model.pack([np.eye(scenario.n)[:, list(m)] for m in scenario.measure])
     starts = []
     if init is not None:
@@ -348,7 +350,7 @@ def _starts(model, scenario, seed, count, init):
     rng = np.random.default_rng(seed)
     while len(starts) < count:
         starts.append(rng.uniform(0.3, 1.0) * reset + 0.3 * rng.standard_normal(model.size))
-    return starts[:max(count, 1 if init is None else 2)]
+    return starts[:max(count, 1)]
 
 
 def _design_default(scenario, D, objective, seed, opts, t0):
