@@ -44,7 +44,7 @@ CASES = {
     "random nN=300": ("random:50x6", "none"),
     "random nN=1000": ("random:100x10", "none"),
 }
-MEMORY_LIMIT = 8 * 2**30       # address-space cap of a child (bytes)
+MEMORY_GB = 8.0                # default address-space cap of a child (GiB)
 
 
 def random_scenario(n: int, N: int, p: int = 2, rho: float = 1.1, degree: float = 3.0,
@@ -96,9 +96,10 @@ def load(spec):
     return load_scenario(spec)
 
 
-def child(case: str, method: str, target: float | None) -> None:
+def child(case: str, method: str, target: float | None, memory_gb: float) -> None:
     """Run one case and print one JSON line."""
-    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+    limit = int(memory_gb * 2**30)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     sys.path.insert(0, str(ROOT))
     from design.closed_loop import ClosedLoop
     from design.gain_design import design_gains
@@ -127,8 +128,9 @@ def child(case: str, method: str, target: float | None) -> None:
                       "peak_mb": peak}))
 
 
-def run_case(case, method, cap, target=None):
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, method]
+def run_case(case, method, cap, target=None, memory_gb=MEMORY_GB):
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, method,
+           "--memory-gb", repr(memory_gb)]
     if target is not None:
         cmd += ["--target", repr(target)]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -142,6 +144,8 @@ def run_case(case, method, cap, target=None):
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
     if out.returncode != 0 or not lines:
         tail = (out.stderr.strip().splitlines() or ["?"])[-1]
+        if "memory allocation" in tail or "MemoryError" in tail:
+            tail = f"out of memory under the {memory_gb:g} GiB cap ({tail[:80]})"
         return {"case": case, "method": method, "failed": tail[:160],
                 "seconds": time.perf_counter() - t0}
     return json.loads(lines[-1])
@@ -152,19 +156,24 @@ def main(argv=None) -> int:
     ap.add_argument("--cap", type=float, default=600.0, help="seconds per case (default 600)")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     ap.add_argument("--only", default=None, help="comma-separated case names")
+    ap.add_argument("--methods", default="ccl-clarabel,ccl-scs,default,default@baseline-rho",
+                    help="comma-separated methods to run (default: all four)")
+    ap.add_argument("--memory-gb", type=float, default=MEMORY_GB,
+                    help=f"address-space cap per case in GiB (default {MEMORY_GB:g})")
     ap.add_argument("--child", nargs=2, metavar=("CASE", "METHOD"), help=argparse.SUPPRESS)
     ap.add_argument("--target", type=float, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        child(args.child[0], args.child[1], args.target)
+        child(args.child[0], args.child[1], args.target, args.memory_gb)
         return 0
     cases = list(CASES) if not args.only else [c.strip() for c in args.only.split(",")]
     rows, stopped_random = [], set()
-    print(f"# bench_design: cap {args.cap:.0f} s per case, {os.cpu_count()} cores, "
-          f"load {os.getloadavg()[0]:.2f}", flush=True)
+    methods = [m.strip() for m in args.methods.split(",")]
+    print(f"# bench_design: cap {args.cap:.0f} s and {args.memory_gb:g} GiB per case, "
+          f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}", flush=True)
     for case in cases:
         base = {}
-        for method in ("ccl-clarabel", "ccl-scs", "default", "default@baseline-rho"):
+        for method in methods:
             if method == "default@baseline-rho":
                 ref = base.get("ccl-clarabel") or base.get("ccl-scs")
                 if ref is None or ref["rho"] >= 1:
@@ -172,13 +181,13 @@ def main(argv=None) -> int:
                     method, target = "default@stabilise", 0.999
                 else:
                     target = ref["rho"]
-                row = run_case(case, method, args.cap, target=target)
+                row = run_case(case, method, args.cap, target=target, memory_gb=args.memory_gb)
                 row["target"] = target
             elif case.startswith("random") and method in stopped_random:
                 row = {"case": case, "method": method,
                        "stopped": "not run: a smaller random case already hit the cap"}
             else:
-                row = run_case(case, method, args.cap)
+                row = run_case(case, method, args.cap, memory_gb=args.memory_gb)
             if "rho" in row and method.startswith("ccl"):
                 base[method] = row
             if case.startswith("random") and ("stopped" in row or "failed" in row):
