@@ -110,12 +110,12 @@ class CCLProblem:
         return np.asarray(self.Ahat.value, dtype=float)
 
 
-def _solve(problem, solver, what, history, verbose=False):
+def _solve(problem, solver, what, history, verbose=False, solver_options=None):
     import cvxpy as cp
 
     t0 = time.perf_counter()
     try:
-        problem.solve(solver=solver, verbose=verbose)
+        problem.solve(solver=solver, verbose=verbose, **(solver_options or {}))
     except cp.error.SolverError as exc:
         history.append({"solve": what, "status": "solver_error", "seconds": time.perf_counter() - t0})
         raise SolverError(f"{what}: solver {solver} failed ({exc})", "solver_error", history) from None
@@ -133,7 +133,7 @@ def _solve(problem, solver, what, history, verbose=False):
 
 def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
                keep_iterating: bool = False, eps: float = 1e-6, trace_tol: float = 1e-3,
-               deadline=None, verbose: bool = False) -> dict:
+               deadline=None, verbose: bool = False, solver_options=None) -> dict:
     """Algorithm 1 of the paper; returns a dict with ``G``, ``rho_delay_free``, ``history``.
 
     Parameters
@@ -144,6 +144,7 @@ def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
         ``trace_tol * 2nN`` of ``2nN`` (or ``max_iter``), keeping the lowest-rho gain
     eps : margin of the strict LMIs
     deadline : ``time.perf_counter()`` value after which no new solve starts
+    solver_options : dict passed to the solver (e.g. ``{"max_iters": 10000}`` for SCS)
 
     Raises
     ------
@@ -157,7 +158,8 @@ def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
         raise ValueError(f"solver: expected one of {', '.join(SOLVERS)}, got {solver!r}")
     lmi = CCLProblem(A, W, measure, eps=eps)
     history = []
-    _solve(lmi.init_problem, solver, "initial feasibility solve", history, verbose)
+    _solve(lmi.init_problem, solver, "initial feasibility solve", history, verbose,
+           solver_options)
     G = lmi.gains()
     rho = spectral_radius(lmi.closed_loop_value())
     history[-1].update({"iteration": 0, "rho_delay_free": rho})
@@ -175,7 +177,7 @@ def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
                 break
             lmi.Qt.value = 0.5 * (Qk + Qk.T)
             lmi.Rt.value = 0.5 * (Rk + Rk.T)
-            _solve(lmi.problem, solver, f"iteration {it}", history, verbose)
+            _solve(lmi.problem, solver, f"iteration {it}", history, verbose, solver_options)
             iterations = it
             Qk, Rk = lmi.Q.value, lmi.R.value
             G = lmi.gains()

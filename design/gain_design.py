@@ -20,7 +20,7 @@ on or outside the unit circle (not detectable) raises it too.
 Examples
 --------
 >>> from design.scenario import load_scenario
->>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", seed=0, max_iter=30)
+>>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", starts=1, max_iter=30)
 >>> res.stable, res.rho < 1, len(res.G), res.G[0].shape
 (True, True, 3, (14, 1))
 """
@@ -61,13 +61,14 @@ OBJECTIVES = ("rho", "mse")
 _DEFAULT_OPTIONS = {
     "max_iter": 200,        # BFGS iterations per start and stage
     "starts": 3,            # number of starts (the first is deterministic, the rest from seed)
-    "time_limit": 120.0,    # seconds for the whole design (the best so far is returned)
+    "time_limit": 60.0,     # seconds of optimisation (the best gain so far is returned)
     "margin": 1e-3,         # the MSE stage keeps rho <= 1 - margin
     "smooth": 0.0,          # soft-max temperature over the top eigenvalue moduli
     "init": None,           # an initial gain (list of G_i), tried first
     "patience": 20,
     "patience_tol": 1e-4,
     "blas_threads": 1,
+    "target": None,         # objective rho: stop as soon as rho < target
 }
 _CCL_OPTIONS = {
     "solver": "CLARABEL",
@@ -75,6 +76,7 @@ _CCL_OPTIONS = {
     "keep_iterating": False,
     "eps": 1e-6,
     "time_limit": None,
+    "solver_options": None,
     "blas_threads": 1,
 }
 
@@ -231,10 +233,12 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
     seed : int, seeds the extra starts of ``default`` (the result is deterministic)
     **options
         ``default``: ``max_iter`` (per start and stage, 200), ``starts`` (3),
-        ``time_limit`` (s, 120), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
-        start from), ``patience``/``patience_tol`` (20, 1e-4).
+        ``time_limit`` (s, 60), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
+        start from), ``patience``/``patience_tol`` (20, 1e-4), ``target`` (objective rho:
+        stop as soon as the radius is below it; default None = minimise).
         ``ccl``: ``solver`` ("CLARABEL"/"SCS"), ``max_iter`` (50), ``keep_iterating``
-        (False), ``eps`` (1e-6), ``time_limit`` (None).
+        (False), ``eps`` (1e-6), ``time_limit`` (None), ``solver_options`` (dict for the
+        solver).
         Both: ``blas_threads`` (1; None leaves the BLAS thread pool alone), see
         :func:`blas_threads`.
 
@@ -329,12 +333,15 @@ def _design_ccl(scenario, D, opts):
     deadline = None if opts["time_limit"] is None else time.perf_counter() + opts["time_limit"]
     out = ccl_design(scenario.A, scenario.W, scenario.measure, solver=opts["solver"],
                      max_iter=int(opts["max_iter"]), keep_iterating=bool(opts["keep_iterating"]),
-                     eps=float(opts["eps"]), deadline=deadline)
+                     eps=float(opts["eps"]), deadline=deadline,
+                     solver_options=opts["solver_options"])
     return out["G"], out["history"], out["iterations"], out["reason"]
 
 
 def _starts(model, scenario, seed, count, init):
-    """Deterministic starting gains: ``init`` if given, the 'reset' gain, seeded ones."""
+    """``count`` deterministic starting gains: ``init`` if given, then the 'reset' gain
+    ``G_i = H_i^T`` (each agent replaces its measured states by the measurement), then
+    seeded perturbations of it."""
     reset = model.pack([np.eye(scenario.n)[:, list(m)] for m in scenario.measure])
     starts = []
     if init is not None:
@@ -343,7 +350,7 @@ def _starts(model, scenario, seed, count, init):
     rng = np.random.default_rng(seed)
     while len(starts) < count:
         starts.append(rng.uniform(0.3, 1.0) * reset + 0.3 * rng.standard_normal(model.size))
-    return starts[:max(count, 1 if init is None else 2)]
+    return starts[:max(count, 1)]
 
 
 def _design_default(scenario, D, objective, seed, opts, t0):
@@ -374,7 +381,12 @@ def _design_default(scenario, D, objective, seed, opts, t0):
             history.append({"stage": "stop", "note": f"time limit before start {k}"})
             break
         label = f"start {k} rho"
-        stop = (lambda f: f < rho_max) if objective == "mse" else None
+        if objective == "mse":
+            stop = lambda f: f < rho_max            # noqa: E731
+        elif opts["target"] is not None:
+            stop = lambda f: f < float(opts["target"])  # noqa: E731
+        else:
+            stop = None
         res = bfgs_minimise(f_rho, x0, stop=stop, label=label, **common)
         history += res.history
         iterations += res.iterations
@@ -394,5 +406,7 @@ def _design_default(scenario, D, objective, seed, opts, t0):
         history.append({"stage": f"start {k} done", "rho": float(rho), "status": status})
         if best is None or key < best[0]:
             best = (key, x, status)
+        if objective == "rho" and opts["target"] is not None and rho < float(opts["target"]):
+            break
     _, x, status = best
     return model.unpack(x), history, iterations, status

@@ -43,6 +43,8 @@ def add_arguments(parser) -> None:
                         help="--method default: number of starts (default 3)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                         help="stop and keep the best gain found after this long")
+    parser.add_argument("--target", type=float, default=None, metavar="RHO",
+                        help="--method default, --objective rho: stop once rho < RHO")
     parser.add_argument("--keep-iterating", action="store_true",
                         help="--method ccl: go on after rho < 1 to lower rho")
     parser.add_argument("--out", required=True, metavar="FILE", help="gains file to write (.npz)")
@@ -54,7 +56,7 @@ def add_arguments(parser) -> None:
 def _options(args) -> dict:
     opts = {}
     if args.method == "ccl":
-        for flag, value in (("--starts", args.starts),):
+        for flag, value in (("--starts", args.starts), ("--target", args.target)):
             if value is not None:
                 raise CommandError(f"{flag} applies to --method default only")
         if args.objective == "mse":
@@ -70,6 +72,10 @@ def _options(args) -> dict:
             if args.starts < 1:
                 raise CommandError(f"--starts: must be at least 1, got {args.starts}")
             opts["starts"] = args.starts
+        if args.target is not None:
+            if args.objective != "rho" or not 0 < args.target:
+                raise CommandError("--target: a positive radius, with --objective rho only")
+            opts["target"] = args.target
     if args.max_iter is not None:
         if args.max_iter < 0 or (args.method == "default" and args.max_iter < 1):
             raise CommandError(f"--max-iter: must be a positive integer, got {args.max_iter}")

@@ -1,0 +1,101 @@
+"""``socmon design``: files written, JSON record, exit statuses."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.cli import main
+from design.closed_loop import ClosedLoop
+from design.gains import load_gains
+from design.scenario import load_scenario, resolve_delays
+
+PAPER14_TOML = Path(__file__).resolve().parents[1] / "design" / "scenarios" / "paper-14.toml"
+
+
+def _run(capsys, *argv):
+    status = main(["design", *argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def test_json_record_and_gains_file_round_trip(capsys, tmp_path):
+    path = tmp_path / "g.npz"
+    status, out, err = _run(capsys, "paper-14", "--delays", "uniform:3", "--starts", "1",
+                            "--max-iter", "25", "--seed", "2", "--out", str(path), "--json")
+    assert status == 0, err
+    rec = json.loads(out)
+    for key in ("method", "objective", "delays", "rho", "mse_steady", "seconds", "iterations",
+                "stable"):
+        assert key in rec
+    assert rec["method"] == "default" and rec["objective"] == "rho" and rec["stable"] is True
+    s = load_scenario("paper-14")
+    D = resolve_delays(s, "uniform:3")
+    assert rec["delays"] == D.tolist()
+    g = load_gains(path, s)
+    rho = ClosedLoop(s.A, s.W, D, s.measure, g.G).spectral_radius()
+    assert rec["rho"] == pytest.approx(rho, abs=1e-12) and rho < 1
+    assert g.meta["method"] == "default" and g.meta["delays"] == D.tolist()
+    assert g.meta["scenario_digest"] == s.digest() and g.meta["seed"] == 2
+    assert g.meta["rho"] == pytest.approx(rho, abs=1e-12)
+    assert rec["mse_steady"] == pytest.approx(g.meta["mse_steady"])
+
+
+def test_delay_free_ccl_design_is_unstable_at_uniform7_and_writes_nothing(capsys, tmp_path):
+    path = tmp_path / "g.npz"
+    status, out, err = _run(capsys, "paper-14", "--method", "ccl", "--solver", "scs",
+                            "--delays", "uniform:7", "--out", str(path), "--json")
+    assert status == 1
+    rec = json.loads(out)
+    assert rec["stable"] is False and rec["rho"] > 1 and rec["rho_delay_free"] < 1
+    assert "no stabilising gain" in err and not path.exists()
+    status, out, err = _run(capsys, "paper-14", "--method", "ccl", "--solver", "scs",
+                            "--delays", "uniform:7", "--out", str(path), "--force")
+    assert status == 1 and path.exists() and "NOT stable" in out
+    s = load_scenario("paper-14")
+    g = load_gains(path, s)
+    assert ClosedLoop(s.A, s.W, resolve_delays(s, "uniform:7"), s.measure, g.G).spectral_radius() > 1
+    assert g.meta["stable"] is False
+
+
+def test_unobservable_scenario_names_the_parent_scc(capsys, tmp_path):
+    text = PAPER14_TOML.read_text().replace('measure = [["7"], ["9"], ["12"]]',
+                                            'measure = [["7"], ["9"], ["10"]]')
+    scen = tmp_path / "blind.toml"
+    scen.write_text(text)
+    path = tmp_path / "g.npz"
+    status, out, err = _run(capsys, str(scen), "--out", str(path))
+    assert status == 2
+    assert "parent SCC {12, 13, 14} has no sensor" in err
+    assert not path.exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--solver", "SCS"], "--solver applies to --method ccl only"),
+    (["--keep-iterating"], "--keep-iterating applies to --method ccl only"),
+    (["--method", "ccl", "--objective", "mse"], "--objective mse needs --method default"),
+    (["--delays", "uniform:-1"], "uniform:T needs a non-negative integer"),
+    (["--max-iter", "0"], "--max-iter: must be a positive integer"),
+])
+def test_bad_flags_exit_2(capsys, tmp_path, argv, message):
+    status, out, err = _run(capsys, "paper-14", *argv, "--out", str(tmp_path / "g.npz"))
+    assert status == 2 and message in err
+
+
+def test_missing_out_folder_exit_2(capsys, tmp_path):
+    status, out, err = _run(capsys, "paper-14", "--out", str(tmp_path / "no" / "g.npz"))
+    assert status == 2 and "does not exist" in err
+
+
+def test_mse_objective_from_the_cli(capsys, tmp_path):
+    path = tmp_path / "g.npz"
+    status, out, err = _run(capsys, "paper-14", "--delays", "none", "--objective", "mse",
+                            "--starts", "1", "--max-iter", "40", "--out", str(path), "--json")
+    assert status == 0, err
+    rec = json.loads(out)
+    s = load_scenario("paper-14")
+    g = load_gains(path, s)
+    loop = ClosedLoop(s.A, s.W, np.zeros((3, 3), int), s.measure, g.G)
+    assert rec["mse_steady"] == pytest.approx(loop.mse_steady(0.05, 0.05), rel=1e-10)
+    assert rec["objective"] == "mse" and rec["mse_steady"] < 1.0
