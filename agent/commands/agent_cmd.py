@@ -31,12 +31,13 @@ def gains_for(scenario, gains_path, delays):
 
     if gains_path:
         return load_gains_arg(gains_path, scenario).G
+    from design.errors import SocmonError
+    from design.gain_design import design_gains
+
     try:
-        from design.gain_design import design_gains
-    except ImportError:
-        raise CommandError("--gains: required (gain design is not available in this build)") \
-            from None
-    result = design_gains(scenario, delays=delays)
+        result = design_gains(scenario, delays=delays)
+    except SocmonError as exc:   # not observable / not detectable, bad delays
+        raise CommandError(f"gain design: {exc}") from None
     if not result.rho < 1:
         raise CommandError(f"gain design found no stabilising gain (rho = {result.rho:.4g})",
                            status=1)
