@@ -10,7 +10,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# The commands multiply and decompose matrices of a few hundred rows; a multi-threaded BLAS
+# on a small shared machine spends its time waiting for its own threads (an order-672
+# eigen-decomposition: 0.45 s on one thread, 21 s on two contended ones). One thread unless
+# the user says otherwise; set before numpy is first imported.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 #: subcommand -> module under agent.commands, in the order shown by --help
 COMMANDS = {

@@ -3,6 +3,11 @@
 from pathlib import Path
 
 import pytest
+from threadpoolctl import threadpool_limits
+
+# Tests run many small dense decompositions; on a loaded 2-core machine BLAS threads only
+# contend (see agent/cli.py). Limit the pool for the whole session.
+_BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
 
 ROOT = Path(__file__).resolve().parents[1]
 # the shared folder sits beside the project (../shared); from a worktree two levels
