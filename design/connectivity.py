@@ -32,6 +32,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from .graph import canonical_components
+
 __all__ = [
     "Condensation",
     "ComponentList",
@@ -146,14 +148,7 @@ def _as_csr(M) -> sp.csr_matrix:
 def condensation(M) -> Condensation:
     """Condensation of the digraph ``M`` (edge u -> v iff ``M[u, v] != 0``), linear time."""
     G = _as_csr(M)
-    n = G.shape[0]
-    k, raw = connected_components(G, directed=True, connection="strong")
-    first = np.full(k, n, dtype=np.int64)
-    np.minimum.at(first, raw, np.arange(n))
-    order = np.argsort(first, kind="stable")
-    rank = np.empty(k, dtype=np.int64)
-    rank[order] = np.arange(k)
-    labels = rank[raw]
+    k, labels, first = canonical_components(G)
     src, dst = G.nonzero()
     a, b = labels[src], labels[dst]
     cross = a != b
@@ -165,7 +160,7 @@ def condensation(M) -> Condensation:
     by = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[by], np.arange(k + 1))
     return Condensation(labels=labels, components=ComponentList(by, bounds),
-                        first=first[order], dag=dag)
+                        first=first, dag=dag)
 
 
 def is_strongly_connected(M) -> bool:

@@ -28,6 +28,7 @@ __all__ = [
     "InfluenceStructure",
     "influence_graph",
     "influence_structure",
+    "canonical_components",
     "is_structurally_observable",
     "unmeasured_parents",
     "minimal_sensor_set",
@@ -84,18 +85,26 @@ class InfluenceStructure:
         return c if self.is_parent[c] else None
 
 
-def influence_structure(A) -> InfluenceStructure:
-    """SCCs of G_A, ordered by smallest node, and which of them are parents."""
-    G = influence_graph(A)
+def canonical_components(G):
+    """Strongly connected components of the digraph ``G``, numbered by smallest node.
+
+    Returns ``(k, labels, first)``: the number of SCCs, ``labels[v]`` = SCC of node v, and
+    ``first[c]`` = smallest node of SCC c (increasing in c). Linear time.
+    """
     n = G.shape[0]
     k, raw = connected_components(G, directed=True, connection="strong")
-    # relabel components by their smallest node so the order is canonical
     first = np.full(k, n, dtype=np.int64)
     np.minimum.at(first, raw, np.arange(n))
     order = np.argsort(first, kind="stable")
     rank = np.empty(k, dtype=np.int64)
     rank[order] = np.arange(k)
-    labels = rank[raw]
+    return k, rank[raw], first[order]
+
+
+def influence_structure(A) -> InfluenceStructure:
+    """SCCs of G_A, ordered by smallest node, and which of them are parents."""
+    G = influence_graph(A)
+    k, labels, _ = canonical_components(G)
     # a component with an edge to another component is a child
     src, dst = G.nonzero()
     leaving = labels[src] != labels[dst]
