@@ -470,17 +470,9 @@ def failure_tolerance(scenario, allow_new_links: bool = False,
     (1, 3)
     """
     ctx = _Context(scenario)
-    checked = 0
-    for size in range(0, scenario.N + 1):
-        for subset in itertools.combinations(range(scenario.N), size):
-            if checked >= max_subsets:
-                return FailureTolerance(size - 1 if size else None, False, None, checked,
-                                        max_subsets)
-            checked += 1
-            if not _plan(ctx, subset, add_links=False).is_recoverable(allow_new_links):
-                return FailureTolerance(size - 1 if size else None, True, subset, checked,
-                                        max_subsets)
-    return FailureTolerance(scenario.N, True, None, checked, max_subsets)
+    return _tolerance_search(
+        scenario.N, max_subsets,
+        lambda subset: _plan(ctx, subset, add_links=False).is_recoverable(allow_new_links))
 
 
 def redundancy_tolerance(scenario, max_subsets: int = DEFAULT_MAX_SUBSETS) -> FailureTolerance:
@@ -499,19 +491,28 @@ def redundancy_tolerance(scenario, max_subsets: int = DEFAULT_MAX_SUBSETS) -> Fa
     structure = influence_structure(scenario.A)
     comp_of = structure.labels
     parents = set(structure.parents)
+
+    def survives(subset) -> bool:
+        alive = [i for i in range(scenario.N) if i not in subset]
+        covered = {int(comp_of[v]) for i in alive for v in scenario.measure[i]}
+        if not alive or not parents <= covered:
+            return False
+        return len(alive) == 1 or is_strongly_connected(
+            agent_flow_graph(scenario.W[np.ix_(alive, alive)]))
+
+    return _tolerance_search(scenario.N, max_subsets, survives)
+
+
+def _tolerance_search(N: int, max_subsets: int, survives) -> FailureTolerance:
+    """Smallest failure set (by size, then lexicographic) that ``survives`` rejects."""
     checked = 0
-    for size in range(0, scenario.N + 1):
-        for subset in itertools.combinations(range(scenario.N), size):
+    for size in range(0, N + 1):
+        for subset in itertools.combinations(range(N), size):
             if checked >= max_subsets:
                 return FailureTolerance(size - 1 if size else None, False, None, checked,
                                         max_subsets)
             checked += 1
-            alive = [i for i in range(scenario.N) if i not in subset]
-            covered = {int(comp_of[v]) for i in alive for v in scenario.measure[i]}
-            ok = bool(alive) and parents <= covered
-            if ok and len(alive) > 1:
-                ok = is_strongly_connected(agent_flow_graph(scenario.W[np.ix_(alive, alive)]))
-            if not ok:
+            if not survives(subset):
                 return FailureTolerance(size - 1 if size else None, True, subset, checked,
                                         max_subsets)
-    return FailureTolerance(scenario.N, True, None, checked, max_subsets)
+    return FailureTolerance(N, True, None, checked, max_subsets)
