@@ -119,6 +119,9 @@ def _up(args) -> int:
         raise KeyboardInterrupt
 
     old_term = signal.signal(signal.SIGTERM, on_term)
+    # Ctrl-C must stop the run even when SIGINT was inherited as ignored (a background job
+    # of a non-interactive shell starts that way, and Python keeps an inherited SIG_IGN)
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     t_begin = time.monotonic()
     try:
         with Peer(NetConfig(run=run_id, listen=(ep[0],)), "recorder", 0) as peer:
@@ -195,6 +198,7 @@ def _up(args) -> int:
     finally:
         children.stop_all()
         signal.signal(signal.SIGTERM, old_term)
+        signal.signal(signal.SIGINT, old_int)
     wall = time.monotonic() - t_begin
 
     # ---- results ------------------------------------------------------------------
