@@ -32,7 +32,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .errors import GainsError
+from .errors import GainsError, SocmonError
 
 __all__ = [
     "ClosedLoop",
@@ -45,6 +45,8 @@ __all__ = [
 
 #: Above this companion order the spectral radius is computed by ARPACK.
 DENSE_EIG_MAX_ORDER = 2000
+#: Largest order for which a stalled ARPACK run falls back to dense eigenvalues.
+DENSE_FALLBACK_MAX_ORDER = 8000
 
 
 def spectral_radius(M) -> float:
@@ -57,8 +59,19 @@ def spectral_radius(M) -> float:
     if order <= DENSE_EIG_MAX_ORDER and sp.issparse(M):
         return float(np.max(np.abs(sla.eigvals(M.toarray()))))
     k = min(6, order - 2)
-    vals = spla.eigs(M, k=k, which="LM", ncv=min(order - 1, max(4 * k + 1, 40)),
-                     tol=1e-12, maxiter=50 * order, return_eigenvectors=False)
+    try:
+        vals = spla.eigs(M, k=k, which="LM", ncv=min(order - 1, max(4 * k + 1, 40)),
+                         tol=1e-12, maxiter=1000, return_eigenvectors=False)
+    except spla.ArpackNoConvergence:
+        # many eigenvalues of (nearly) equal modulus, e.g. the (tau+1)-th roots that long
+        # uniform delays produce, can stall Arnoldi: fall back to the dense QR algorithm
+        if order > DENSE_FALLBACK_MAX_ORDER or isinstance(M, spla.LinearOperator):
+            raise SocmonError(
+                f"spectral radius: ARPACK did not converge on a matrix of order {order} "
+                f"(dense fallback is limited to order {DENSE_FALLBACK_MAX_ORDER})"
+            ) from None
+        dense = M.toarray() if sp.issparse(M) else np.asarray(M)
+        return float(np.max(np.abs(sla.eigvals(dense))))
     return float(np.max(np.abs(vals)))
 
 

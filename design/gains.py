@@ -91,7 +91,11 @@ def load_gains(path, scenario=None) -> Gains:
             expected = [f"K{i}" for i in range(1, len(ks) + 1)]
             if ks != expected:
                 raise GainsError(f"{path}: gain arrays must be K1..K{len(ks)}, found {ks}")
-            G = [np.array(data[k], dtype=float) for k in ks]
+            raw = [data[k] for k in ks]
+            for k, g in zip(ks, raw):
+                if np.iscomplexobj(g) or g.dtype.kind not in "biuf":
+                    raise GainsError(f"{path}: {k} must hold real numbers, got dtype {g.dtype}")
+            G = [np.array(g, dtype=float) for g in raw]
             meta = {}
             if "meta" in files:
                 try:

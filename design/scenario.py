@@ -52,6 +52,13 @@ _NETWORK_KEYS = {"topology", "self_weight", "weights", "delays", "max_delay", "d
 _RUNTIME_KEYS = {"step_ms"}
 _EDGE_HEADERS = (("source", "target"), ("i", "j"))
 _ROW_SUM_TOL = 1e-9
+#: Largest link delay, in steps, that a scenario or a delay flag may name. The exact closed
+#: loop has order (taubar+1) n N: beyond a thousand steps it is out of reach anyway.
+MAX_DELAY = 1000
+#: Largest number of individuals of a scenario (A is held dense).
+MAX_NODES = 20000
+#: Largest number of standby agents a scenario may declare.
+MAX_STANDBY = 1000
 
 
 class RankDeficientWarning(UserWarning):
@@ -271,8 +278,10 @@ def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Sce
     q = _positive_number(social, "process_noise", "social.process_noise", problems, 0.05)
     r = _positive_number(agents, "measurement_noise", "agents.measurement_noise", problems, 0.05)
     standby = agents.get("standby", 0)
-    if not _is_int(standby) or standby < 0:
-        problems.append(f"agents.standby: must be a non-negative integer, got {standby!r}")
+    if not _is_int(standby) or not 0 <= standby <= MAX_STANDBY:
+        problems.append(
+            f"agents.standby: must be a non-negative integer (at most {MAX_STANDBY}), "
+            f"got {standby!r}")
         standby = 0
     measure = _parse_measure(agents, labels, problems)
     N = len(measure) if measure is not None else 0
@@ -319,6 +328,8 @@ def uniform_delays(W: np.ndarray, tau: int) -> np.ndarray:
     """Delay matrix with every inter-agent link of ``W`` delayed by ``tau`` steps."""
     if not _is_int(tau) or tau < 0:
         raise ScenarioError(f"delay: must be a non-negative integer, got {tau!r}")
+    if tau > MAX_DELAY:
+        raise ScenarioError(f"delay: {tau} steps is above the largest supported, {MAX_DELAY}")
     D = np.where(np.asarray(W) > 0, int(tau), 0).astype(int)
     np.fill_diagonal(D, 0)
     return D
@@ -344,10 +355,12 @@ def resolve_delays(scenario: Scenario, spec: str = "scenario") -> np.ndarray:
             tau = int(text)
         except ValueError:
             tau = None
-        if tau is None or tau < 0:
+        if tau is None or tau < 0 or not text.strip().isascii():
             raise ScenarioError(
                 f"--delays: uniform:T needs a non-negative integer T, got {text!r}"
             )
+        if tau > MAX_DELAY:
+            raise ScenarioError(f"--delays: uniform:{tau} is above the largest delay, {MAX_DELAY}")
         return uniform_delays(scenario.W, tau)
     raise ScenarioError(f"--delays: expected scenario, none or uniform:T, got {spec!r}")
 
@@ -476,6 +489,10 @@ def _parse_social(social, base_dir, problems):
                 problems.append("social.spectral_radius: A is nilpotent (rho = 0), cannot rescale")
             else:
                 A = A * (float(target) / rho)
+    if not np.all(np.isfinite(A)) or np.abs(A).max() > 1e150:
+        problems.append("social.A: entries must be finite and below 1e150 in magnitude "
+                        "(after any spectral_radius rescaling)")
+        return np.eye(1), ["1"]
     return A, labels
 
 
@@ -492,6 +509,9 @@ def _edges_matrix(social, base_dir, labels, problems):
         lines = path.read_text().splitlines()
     except OSError as exc:
         problems.append(f"social.edges: cannot read {str(path)!r}: {exc.strerror}")
+        return None, labels
+    except UnicodeDecodeError:
+        problems.append(f"social.edges: {str(path)!r} is not UTF-8 text")
         return None, labels
     rows = [r for r in csv.reader(ln for ln in lines if ln.strip() and not ln.lstrip().startswith("#"))]
     if not rows:
@@ -515,8 +535,13 @@ def _edges_matrix(social, base_dir, labels, problems):
         return None, labels
     ids = sorted({x for p in pairs for x in p})
     if labels is None:
-        if all(x.isdigit() and int(x) >= 1 for x in ids):
-            labels = [str(i + 1) for i in range(max(int(x) for x in ids))]
+        if all(x.isascii() and x.isdigit() and int(x) >= 1 for x in ids):
+            top = max(int(x) for x in ids)
+            if top > MAX_NODES:
+                problems.append(f"social.edges: {path}: node id {top} is above the largest "
+                                f"supported, {MAX_NODES} (give social.labels for sparse ids)")
+                return None, labels
+            labels = [str(i + 1) for i in range(top)]
             canon = {x: str(int(x)) for x in ids}
         else:
             labels = ids
@@ -660,12 +685,18 @@ def _parse_delays(network, W, problems):
             bad = [x for r in raw for x in r if not _is_int(x)]
             problems.append(f"network.delays: entries must be integers (steps), got {bad[0]!r}")
             return np.zeros((N, N), dtype=int)
+        huge = [x for r in raw for x in r if abs(x) > MAX_DELAY]
+        if huge:
+            problems.append(f"network.delays: delay {huge[0]} is outside -{MAX_DELAY}..{MAX_DELAY}")
+            return np.zeros((N, N), dtype=int)
         D = np.asarray(raw, dtype=int)
     elif has_random:
         tmax = network.get("max_delay", 0)
         seed = network.get("delay_seed", 0)
-        if not _is_int(tmax) or tmax < 0:
-            problems.append(f"network.max_delay: must be a non-negative integer, got {tmax!r}")
+        if not _is_int(tmax) or not 0 <= tmax <= MAX_DELAY:
+            problems.append(
+                f"network.max_delay: must be a non-negative integer (at most {MAX_DELAY}), "
+                f"got {tmax!r}")
             return np.zeros((N, N), dtype=int)
         if not _is_int(seed) or seed < 0:
             problems.append(f"network.delay_seed: must be a non-negative integer, got {seed!r}")
@@ -685,6 +716,10 @@ def _check_delays(D, W, where):
     if np.any(D < 0):
         i, j = np.argwhere(D < 0)[0]
         problems.append(f"{where}: negative delay {D[i, j]} on link {j + 1} -> {i + 1}")
+    if np.any(D > MAX_DELAY):
+        i, j = np.argwhere(D > MAX_DELAY)[0]
+        problems.append(f"{where}: delay {D[i, j]} on link {j + 1} -> {i + 1} is above the "
+                        f"largest supported, {MAX_DELAY}")
     off = (D != 0) & ~(W > 0)
     if np.any(off):
         i, j = np.argwhere(off)[0]

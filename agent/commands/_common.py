@@ -53,6 +53,33 @@ def load_gains_arg(path, scenario):
         raise CommandError(f"bad gains file: {exc}") from None
 
 
+def parse_count(text: str, flag: str, lo: int = 0, hi: int | None = None) -> int:
+    """A decimal integer in ``lo..hi`` from a flag; CommandError naming the flag otherwise.
+
+    ``str.isdigit`` accepts characters such as '²' that ``int`` rejects: only ASCII digits
+    are taken here.
+    """
+    part = str(text).strip()
+    body = part[1:] if part.startswith("-") else part
+    if not (body.isascii() and body.isdigit()):
+        raise CommandError(f"{flag}: expected an integer, got {part!r}")
+    value = int(part)
+    if value < lo or (hi is not None and value > hi):
+        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+        raise CommandError(f"{flag}: must be {rng}, got {value}")
+    return value
+
+
+def check_run_flags(args) -> None:
+    """Flags shared by the live-run commands: ``--seed`` >= 0, ``--start-timeout`` > 0."""
+    seed = getattr(args, "seed", None)
+    if seed is not None and seed < 0:
+        raise CommandError(f"--seed: must be a non-negative integer, got {seed}")
+    timeout = getattr(args, "start_timeout", None)
+    if timeout is not None and not (math.isfinite(timeout) and timeout > 0):
+        raise CommandError(f"--start-timeout: must be a positive number of seconds, got {timeout}")
+
+
 def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:
     """``"1,2"`` -> ``[0, 1]`` (0-based), checking each id names an active agent."""
     ids = []
@@ -60,7 +87,7 @@ def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:
         part = part.strip()
         if not part:
             continue
-        if not part.isdigit():
+        if not (part.isascii() and part.isdigit()):
             raise CommandError(f"{flag}: agent ids are positive integers, got {part!r}")
         a = int(part)
         if not 1 <= a <= scenario.N:

@@ -53,8 +53,9 @@ def run(args) -> int:
         from design.scenario import resolve_delays
 
         from ..agent_process import agent_config, run_agent
-        from ._common import load_scenario_arg
+        from ._common import check_run_flags, load_scenario_arg
 
+        check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
         M = scenario.N + scenario.standby
         if not 1 <= args.id <= M:

@@ -35,14 +35,18 @@ def add_arguments(parser) -> None:
 
 def parse_taus(text: str) -> list:
     """``"0,3,7"`` -> ``[0, 3, 7]``; CommandError naming the bad entry otherwise."""
+    from design.scenario import MAX_DELAY
+
     out = []
     for part in str(text).split(","):
         part = part.strip()
         if not part:
             continue
-        if not part.isdigit():
+        if not (part.isascii() and part.isdigit()):
             raise CommandError(
                 f"--taus: expected comma-separated non-negative integers, got {part!r}")
+        if int(part) > MAX_DELAY:
+            raise CommandError(f"--taus: {part} is above the largest delay, {MAX_DELAY}")
         out.append(int(part))
     if not out:
         raise CommandError("--taus: give at least one delay")

@@ -238,8 +238,10 @@ def _run(args) -> int:
     out["scenario"] = scenario.name
     out["gains_file"] = str(args.gains)
     out["delays"] = delays.tolist()
-    out["mse_steady_exact"] = (
-        exact_steady_mse(scenario, gains.G, delays) if fail is None and drop == 0 else None)
+    exact = fail is None and drop == 0   # the loop simulated is the one certify sees
+    out["mse_steady_exact"] = exact_steady_mse(scenario, gains.G, delays) if exact else None
+    out["rho_exact"] = exact_radius(scenario, gains.G, delays) if exact else None
+    out["unstable"] = out["rho_exact"] is not None and not out["rho_exact"] < 1
     if recovery_info is not None:
         out["recovery"] = recovery_info
     if args.plot:
@@ -262,7 +264,18 @@ def _run(args) -> int:
         print_json(out)
     else:
         print(format_text(out))
-    return EXIT_NEGATIVE if result.diverged else EXIT_OK
+    return EXIT_NEGATIVE if result.diverged or out["unstable"] else EXIT_OK
+
+
+def exact_radius(scenario, G, delays):
+    """Exact spectral radius of the simulated loop (None if it cannot be computed)."""
+    from design.closed_loop import closed_loop_for
+    from design.errors import SocmonError
+
+    try:
+        return float(closed_loop_for(scenario, G, delays).spectral_radius())
+    except SocmonError:
+        return None
 
 
 def _f(x, digits=5) -> str:
@@ -295,7 +308,12 @@ def format_text(d: dict) -> str:
     lines.append(f"steady MSE (mean over the last quarter): {_f(d['mse_steady'])}")
     if d.get("mse_steady_exact") is not None:
         lines.append(f"exact steady MSE (Lyapunov):            {_f(d['mse_steady_exact'])}")
-    lines.append("DIVERGED" if d["diverged"] else "bounded (did not diverge)")
+    if d.get("rho_exact") is not None:
+        lines.append(f"exact radius of the loop:               {d['rho_exact']:.6g}")
+    if d.get("unstable"):
+        lines.append("UNSTABLE: the exact radius is >= 1, so the error grows without bound "
+                     "(a short run may not show it yet)")
+    lines.append("DIVERGED" if d["diverged"] else "bounded over this run (did not diverge)")
     if d.get("plot"):
         lines.append(f"figure: {d['plot']}")
     return "\n".join(lines)

@@ -62,12 +62,13 @@ def _up(args) -> int:
 
     from .. import wire
     from ..launcher import Children, free_port
-    from ._common import CommandError, load_scenario_arg, to_jsonable
+    from ._common import CommandError, check_run_flags, load_scenario_arg, to_jsonable
     from .agent_cmd import gains_for
 
     scenario = load_scenario_arg(args.scenario)
     if args.steps < 1:
         raise CommandError(f"--steps: must be >= 1, got {args.steps}")
+    check_run_flags(args)
     try:
         delays = resolve_delays(scenario, args.delays)
     except ScenarioError as exc:
@@ -94,7 +95,11 @@ def _up(args) -> int:
         method = "default"
     out = Path(args.out) if args.out else Path("runs") / (
         f"{scenario.name}-{time.strftime('%Y%m%d-%H%M%S')}-s{args.seed}")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CommandError(f"--out: cannot make the run folder {str(out)!r}: {exc.strerror}") \
+            from None
     gains_path = (out / "gains.npz").resolve()
     from design.closed_loop import closed_loop_for
 

@@ -31,8 +31,9 @@ def run(args) -> int:
         from broker_free_net.config import InvalidNetConfig, net_config_from_args
 
         from ..world_process import run_world
-        from ._common import load_scenario_arg
+        from ._common import check_run_flags, load_scenario_arg
 
+        check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
         if args.steps is not None and args.steps < 0:
             raise CommandError(f"--steps: must be >= 0, got {args.steps}")
@@ -60,7 +61,7 @@ def parse_ids(text, M, flag):
         part = part.strip()
         if not part:
             continue
-        if not part.isdigit() or not 1 <= int(part) <= M:
+        if not (part.isascii() and part.isdigit()) or not 1 <= int(part) <= M:
             raise CommandError(f"{flag}: {part!r} is not an agent id in 1..{M}")
         ids.append(int(part))
     return ids
