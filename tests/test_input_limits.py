@@ -102,3 +102,9 @@ def test_simulate_calls_a_certified_unstable_loop_unstable(gains_file, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["rho_exact"] > 1 and out["unstable"] is True
     assert code == 1
+
+
+def test_simulate_too_many_steps_is_a_clear_error(gains_file, capsys):
+    assert main(["simulate", "paper-14", "--gains", str(gains_file),
+                 "--steps", "99999999999999"]) == 2
+    assert "do not fit in memory" in capsys.readouterr().err

@@ -229,6 +229,9 @@ def _run(args) -> int:
                           delays=delays, drop=drop, fail=fail, recover=recover, progress=bar)
     except SocmonError as exc:
         raise CommandError(str(exc)) from None
+    except MemoryError:
+        raise CommandError(f"--steps/--trials: {trials} trials x {steps} steps do not fit in "
+                           "memory; run fewer") from None
     finally:
         bar.close()
 
