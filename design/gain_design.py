@@ -35,7 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from .ccl import SOLVERS, SolverError, ccl_design
+from .ccl import SolverError, ccl_design
 from .closed_loop import ClosedLoop
 from .errors import NotObservableError, SocmonError
 from .gradient import LoopModel, bfgs_minimise

@@ -119,21 +119,8 @@ def test_up_with_delays_stays_stable_where_certified(tmp_path, gains_files):
 
 
 def test_up_interrupted_leaves_no_process_and_no_bound_port(tmp_path, gains_files):
-    path, _, _ = gains_files["paper-14-live"]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    out = tmp_path / "r"
-    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "up", "paper-14-live",
-                             "--steps", "100000", "--gains", str(path), "--out", str(out)],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
-    marker = f"up{proc.pid}x"
+    proc, marker = _start_long_up(tmp_path, gains_files)
     try:
-        deadline = time.monotonic() + DEADLINE
-        # the clock has started once the world says so in its log
-        while "clock starts" not in _read(out / "logs" / "world.log"):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the run did not start"
-            time.sleep(0.1)
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C does in a terminal
         _, err = proc.communicate(timeout=DEADLINE)
         assert proc.returncode == 130, err
@@ -144,13 +131,40 @@ def test_up_interrupted_leaves_no_process_and_no_bound_port(tmp_path, gains_file
         for pid in _processes_with(marker):
             os.kill(pid, signal.SIGKILL)
     assert _processes_with(marker) == []
-    summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert summary["error"] == "interrupted" and summary["orphans"] == []
     for port in summary["ports"]:
         with socket.socket() as sock:  # nothing is left listening (TIME_WAIT is fine)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind(("127.0.0.1", port))
             sock.listen()
+
+
+def _start_long_up(tmp_path, gains_files, *extra):
+    """Start a long ``socmon up`` in its own session; return once its clock has started.
+
+    Returns the process and the run's marker (part of every child's command line).
+    """
+    path, _, _ = gains_files["paper-14-live"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = tmp_path / "r"
+    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "up", "paper-14-live",
+                             "--steps", "100000", "--gains", str(path), "--out", str(out),
+                             *extra],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + DEADLINE
+        # the clock has started once the world says so in its log
+        while "clock starts" not in _read(out / "logs" / "world.log"):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the run did not start"
+            time.sleep(0.1)
+    except BaseException:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return proc, f"up{proc.pid}x"
 
 
 def _read(path):
@@ -298,21 +312,8 @@ def test_sigkill_of_an_agent_does_not_hang_the_others(deployment):
 
 
 def test_up_stops_everything_when_a_child_dies(tmp_path, gains_files):
-    path, _, _ = gains_files["paper-14-live"]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    out = tmp_path / "r"
-    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "up", "paper-14-live",
-                             "--steps", "100000", "--gains", str(path), "--out", str(out),
-                             "--json"],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
-    marker = f"up{proc.pid}x"
+    proc, marker = _start_long_up(tmp_path, gains_files, "--json")
     try:
-        deadline = time.monotonic() + DEADLINE
-        while "clock starts" not in _read(out / "logs" / "world.log"):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the run did not start"
-            time.sleep(0.1)
         victim = [pid for pid in _processes_with(marker)
                   if " --id 2 " in Path(f"/proc/{pid}/cmdline").read_bytes()
                   .replace(b"\0", b" ").decode()]

@@ -24,6 +24,12 @@ def add_scenario_argument(parser) -> None:
     parser.add_argument("scenario", help="scenario TOML file or built-in name (e.g. paper-14)")
 
 
+def add_gains_argument(parser) -> None:
+    """The required ``--gains FILE`` flag of the commands that evaluate a given gain."""
+    parser.add_argument("--gains", required=True, metavar="FILE",
+                        help="gains file (.npz with K1..KN and meta)")
+
+
 def load_scenario_arg(spec):
     """Load a scenario; a ScenarioError becomes a CommandError (exit 2).
 

@@ -11,6 +11,7 @@ from ._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
     CommandError,
+    add_gains_argument,
     add_scenario_argument,
     load_gains_arg,
     load_scenario_arg,
@@ -23,8 +24,7 @@ HELP = "exact stability radius, Theorem 1 criterion, paper formula, steady MSE a
 
 def add_arguments(parser) -> None:
     add_scenario_argument(parser)
-    parser.add_argument("--gains", required=True, metavar="FILE",
-                        help="gains file (.npz with K1..KN and meta)")
+    add_gains_argument(parser)
     parser.add_argument("--taus", default="0,3,7,15", metavar="T1,T2,...",
                         help="uniform inter-agent delays to certify (default 0,3,7,15)")
     parser.add_argument("--tau-cap", type=int, default=None, metavar="T",

@@ -14,6 +14,7 @@ from ._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
     CommandError,
+    add_gains_argument,
     add_scenario_argument,
     load_gains_arg,
     load_scenario_arg,
@@ -27,8 +28,7 @@ HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops
 
 def add_arguments(parser) -> None:
     add_scenario_argument(parser)
-    parser.add_argument("--gains", required=True, metavar="FILE",
-                        help="gains file (.npz with K1..KN and meta)")
+    add_gains_argument(parser)
     parser.add_argument("--trials", default="20", metavar="T",
                         help="Monte-Carlo trials (default 20)")
     parser.add_argument("--steps", default="300", metavar="K", help="time steps (default 300)")
