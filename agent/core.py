@@ -21,7 +21,8 @@ Timeline (the same as the simulator's; every random number comes from
 - an agent that gets a role while it has no estimate (a standby agent) starts from the
   estimate of the agent named in the assignment's ``take_over`` (the freshest one held,
   propagated by A to step ``activate_at - 1``), or cold from
-  ``initial_estimate(seed, id)``.
+  ``initial_estimate(seed, id)``, and publishes that estimate stamped ``activate_at - 1``
+  (the simulator's replacement does the same).
 
 Timing invariants (one place):
 
@@ -30,10 +31,16 @@ Timing invariants (one place):
   (``tau_ij`` learned), or ``deadline_s`` after the readings arrived, whichever is first;
 - a neighbour estimate missing at the deadline (or at once when a fresher one from the
   same neighbour is held, when an injected step delay holds the neighbour's messages until
-  this agent's step moves on, or when the neighbour's liveliness token is gone) counts one
-  drop and is replaced by the
-  freshest estimate held from that neighbour (stamp <= k - 1), propagated by ``A^(k - stamp)``;
-  if none is held at all its weight goes to the agent's own prediction;
+  this agent's step moves on, when a keyed drop (``drop``) lost it, or when the
+  neighbour's liveliness token is gone) counts one drop and is replaced by the freshest
+  estimate held from that neighbour (stamp <= k - 1), propagated by ``A^(k - stamp)``;
+  what is used follows :func:`design.estimator.neighbour_input`, the policy the simulator
+  shares: an estimate older than ``max_age`` is lost and, as when nothing is held, its
+  weight goes to the agent's own prediction. Liveliness only decides whether to wait, so
+  the numbers do not depend on when a crash is noticed;
+- keyed drops (``drop`` > 0): the estimate stamped s on link j -> i is lost iff
+  ``design.noise.message_dropped(seed, j, i, s, drop)``, decided when it would be used,
+  exactly as the simulator draws it;
 - ``tau_ij`` is the smallest lateness ``max(0, k_done - stamp)`` among the last
   ``learn_window`` estimates delivered from j (``k_done`` = the receiver's last computed
   step when the estimate was delivered): a delay change is learned within ``learn_window``
@@ -61,7 +68,17 @@ import numpy as np
 
 from broker_free_net.impair import DELIVER, HOLD, LinkImpairments, apply_impairment_message
 from design import noise
-from design.estimator import AgentRole, NeighbourEstimate, PowerCache, estimator_step
+from design.estimator import (
+    FRESH,
+    HELD,
+    LOST,
+    NONE,
+    AgentRole,
+    PowerCache,
+    estimator_step,
+    hold_limit,
+    neighbour_input,
+)
 
 __all__ = [
     "AssignmentError",
@@ -168,9 +185,15 @@ class AgentConfig:
     learn_window : int
         Number of recent deliveries the delay of a link is learned from.
     history : int
-        Estimates kept per neighbour (stamps).
+        Estimates kept per neighbour (stamps); at least ``max_age + 1`` are kept.
     impair_seed : int
         Seed of the random drops of injected impairments.
+    max_age : int
+        Oldest age at which a held neighbour estimate is used (the neighbour policy,
+        :func:`design.estimator.hold_limit`); powers of A are kept up to it.
+    drop : float
+        Probability of a keyed drop (:func:`design.noise.message_dropped`) per estimate
+        and link, the simulator's drop model; 0 for none.
     """
 
     agent: int
@@ -185,6 +208,8 @@ class AgentConfig:
     learn_window: int = 8
     history: int = 64
     impair_seed: int = 0
+    max_age: int = hold_limit(0)
+    drop: float = 0.0
 
 
 class _Neighbour:
@@ -204,8 +229,8 @@ class _Neighbour:
     def tau(self):
         return min(self.lateness) if self.lateness else None
 
-    def freshest(self, at_most: int):
-        stamps = [s for s in self.est if s <= at_most]
+    def freshest(self, at_most: int, usable=None):
+        stamps = [s for s in self.est if s <= at_most and (usable is None or usable(s))]
         return max(stamps) if stamps else None
 
 
@@ -224,7 +249,10 @@ class AgentCore:
         self.A = np.asarray(config.A, dtype=float)
         self.n = self.A.shape[0]
         self.labels = tuple(config.labels)
-        self.powers = PowerCache(self.A)
+        self.powers = PowerCache(self.A, max_power=max(int(config.max_age), 1))
+        self.history = max(int(config.history), int(config.max_age) + 1)
+        self._dropped: dict = {}          # (sender, stamp) -> lost by a keyed drop
+        self.states = {FRESH: 0, HELD: 0, LOST: 0, NONE: 0}
         self.role: Role | None = config.role
         self.pending: Role | None = None
         self.epoch = config.role.epoch if config.role is not None else 0
@@ -310,9 +338,9 @@ class AgentCore:
         nb.heard = True
         nb.lateness.append(max(0, self.step - stamp))
         nb.est[stamp] = x
-        if len(nb.est) > self.config.history:
+        if len(nb.est) > self.history:
             newest = max(nb.est)
-            for s in [s for s in nb.est if s <= newest - self.config.history]:
+            for s in [s for s in nb.est if s <= newest - self.history]:
                 del nb.est[s]
 
     def on_impairment(self, msg: dict) -> bool:
@@ -400,7 +428,7 @@ class AgentCore:
                 continue
             readings, complete = got
             if self.pending is not None and self.pending.activate_at <= k:
-                self._activate(self.pending, k)
+                out += self._activate(self.pending, k)
             if self.role is None:
                 self._finish(k, None)
                 continue
@@ -428,45 +456,66 @@ class AgentCore:
         self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
         return [(k0, self.x)]
 
-    def _activate(self, role: Role, k: int) -> None:
+    def _activate(self, role: Role, k: int) -> list:
+        """Apply ``role`` before step k; a new estimate is published stamped k - 1."""
+        out = []
         if self.x is None and self.step >= 0:
             nb = self.nbrs.get(role.take_over) if role.take_over else None
             s = nb.freshest(k - 1) if nb is not None else None
             if s is not None:
-                self.x = self.powers[k - 1 - s] @ nb.est[s]
+                # one-off propagation: may be older than the hold limit, not cached
+                self.x = np.linalg.matrix_power(self.A, k - 1 - s) @ nb.est[s]
             else:
                 self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
+            out.append((k - 1, self.x))
         self.role, self.pending, self.epoch = role, None, role.epoch
+        return out
+
+    def _usable(self, sender: int, stamp: int) -> bool:
+        """False iff a keyed drop lost the estimate of ``sender`` stamped ``stamp``."""
+        p = self.config.drop
+        if p <= 0:
+            return True
+        key = (sender, stamp)
+        lost = self._dropped.get(key)
+        if lost is None:
+            lost = bool(noise.message_dropped(self.config.seed, sender, self.id, stamp, p)[0])
+            self._dropped[key] = lost
+            if len(self._dropped) > 4 * self.history * max(1, len(self.nbrs)):
+                floor = self.step - self.history
+                self._dropped = {kk: v for kk, v in self._dropped.items() if kk[1] > floor}
+        return not lost
 
     def _plan(self, k: int, now: float):
-        """Which estimate of each neighbour step k uses, or None to keep waiting."""
+        """``{neighbour: (stamp used or None, stamp needed)}`` for step k, or None to wait."""
         plan, waiting = {}, False
         for j in self.role.neighbours:
             nb = self._nb(j)
             tau = nb.tau if nb.tau is not None else 0
             need = max(k - 1 - tau, 0)
-            if need in nb.est:
-                plan[j] = need
-            elif nb.alive and not nb.step_held and not (nb.est and max(nb.est) > need):
-                # no use waiting when a fresher estimate is held (the one needed was lost)
-                # or when this link's injected step delay holds the neighbour's messages
-                # until this agent's step moves on
+            if need in nb.est and self._usable(j, need):
+                plan[j] = (need, need)
+            elif (nb.alive and not nb.step_held and need not in nb.est
+                  and not (nb.est and max(nb.est) > need)):
+                # no use waiting when a fresher estimate is held (the one needed was lost),
+                # when a keyed drop lost it, when this link's injected step delay holds the
+                # neighbour's messages until this agent's step moves on, or when the
+                # neighbour's liveliness token is gone
                 waiting = True
-                plan[j] = None
+                plan[j] = (None, need)
             else:
-                plan[j] = None
+                plan[j] = (None, need)
         if waiting and now < self.ready_at + self.config.deadline_s:
             return None
-        for j, s in plan.items():
+        for j, (s, need) in plan.items():
             if s is None:
                 nb = self.nbrs[j]
-                tau = nb.tau if nb.tau is not None else 0
                 if nb.heard:
                     self.drops += 1
-                    nb.missed.add(k - 1 - tau)
-                    if len(nb.missed) > self.config.history:
+                    nb.missed.add(need)
+                    if len(nb.missed) > self.history:
                         nb.missed.discard(min(nb.missed))
-                plan[j] = nb.freshest(k - 1)
+                plan[j] = (nb.freshest(k - 1, lambda st, j=j: self._usable(j, st)), need)
         return plan
 
     def _compute(self, k: int, readings: dict, plan: dict):
@@ -479,9 +528,11 @@ class AgentCore:
         est_role = AgentRole(measured=measured, self_weight=role.self_weight,
                              G=role.gain[:, cols])
         nbs = []
-        for j, s in plan.items():
+        for j, (s, need) in plan.items():
             x = None if s is None else self.nbrs[j].est[s]
-            nbs.append(NeighbourEstimate(role.neighbours[j], k - s if s is not None else 1, x))
+            nb, state = neighbour_input(role.neighbours[j], k, s, x, self.config.max_age, need)
+            self.states[state] += 1
+            nbs.append(nb)
         _, post = estimator_step(self.powers, est_role, self.x, nbs, y)
         self._finish(k, post)
         return post
@@ -508,6 +559,7 @@ class AgentCore:
             "delays": self.learned_delays(),
             "drops": self.drops,
             "late": self.late,
+            "inputs": dict(self.states),
             "impaired": self.impaired,
             "sensor": {"labels": list(self.wanted_labels()), "last_step": self.sensor_last,
                        "missed": self.sensor_missed},

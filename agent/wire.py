@@ -208,6 +208,7 @@ STATUS_SCHEMA = Schema({
     "delays": IntMap(agent_keys=True),
     "drops": Int(0),
     "late": Int(0),
+    "inputs": IntMap(required=False),
     "malformed": Int(0),
     "malformed_reasons": IntMap(),
     "impaired": Int(0),

@@ -31,7 +31,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["AgentRole", "NeighbourEstimate", "PowerCache", "estimator_step", "role_from"]
+__all__ = [
+    "AgentRole",
+    "NeighbourEstimate",
+    "PowerCache",
+    "estimator_step",
+    "role_from",
+    "HOLD_GRACE",
+    "hold_limit",
+    "neighbour_input",
+    "FRESH",
+    "HELD",
+    "LOST",
+    "NONE",
+]
+
+#: Steps beyond the slowest link (``1 + taubar``) that a held estimate may still be used.
+HOLD_GRACE = 16
+
+# what :func:`neighbour_input` made of a neighbour at one step
+FRESH = "fresh"   # the estimate stamped k - 1 - tau is held: used, age 1 + tau
+HELD = "held"     # an older one is held (the needed one is late, lost or never sent,
+                  # e.g. the neighbour failed): used, propagated by A^age
+LOST = "lost"     # what is held is older than the hold limit: weight to self
+NONE = "none"     # nothing is held (before the first estimate): weight to self
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,15 +92,23 @@ class NeighbourEstimate:
 
 
 class PowerCache:
-    """Lazily computed and cached powers ``A^m``.
+    """Lazily computed and cached powers ``A^m``, ``m <= max_power`` (None: unbounded).
+
+    The neighbour policy never uses an estimate older than :func:`hold_limit`, so a
+    process keeps at most that many matrices, however long a neighbour stays silent.
 
     >>> import numpy as np
     >>> PowerCache(np.array([[2.0]]))[3]
     array([[8.]])
+    >>> PowerCache(np.array([[2.0]]), max_power=2)[3]
+    Traceback (most recent call last):
+    ...
+    ValueError: age: power 3 is beyond the hold limit 2
     """
 
-    def __init__(self, A):
+    def __init__(self, A, max_power: int | None = None):
         self.A = np.asarray(A, dtype=float)
+        self.max_power = None if max_power is None else int(max_power)
         self._pow = {0: np.eye(self.A.shape[0]), 1: self.A}
         self._powT = {}
 
@@ -85,6 +116,8 @@ class PowerCache:
         m = int(m)
         if m < 0:
             raise ValueError(f"age: an estimate cannot be from the future (power {m})")
+        if self.max_power is not None and m > self.max_power:
+            raise ValueError(f"age: power {m} is beyond the hold limit {self.max_power}")
         if m not in self._pow:
             k = max(p for p in self._pow if p <= m)
             P = self._pow[k]
@@ -137,6 +170,55 @@ def estimator_step(powers: PowerCache, role: AgentRole, x_prev, neighbours, y):
     innovation = np.asarray(y) - prior[..., list(role.measured)]
     post = prior + innovation @ role.G.T
     return prior, post
+
+
+def hold_limit(taubar: int) -> int:
+    """Oldest age (steps) at which a held neighbour estimate is still used.
+
+    ``1 + taubar`` is the age of an on-time estimate over the slowest link; an estimate
+    may be propagated :data:`HOLD_GRACE` steps beyond that (a late, lost or failed
+    neighbour), then its weight goes to the agent's own prediction. This bounds the
+    powers of A an agent ever forms, and the error a stale estimate of an unstable
+    system can inject.
+
+    >>> hold_limit(0), hold_limit(7)
+    (17, 24)
+    """
+    return int(taubar) + 1 + HOLD_GRACE
+
+
+def neighbour_input(weight: float, k: int, stamp, x, max_age: int, need=None):
+    """The one neighbour policy: what an estimate stamped ``stamp`` gives at step ``k``.
+
+    Used by the simulator (per group of trials holding the same stamp) and by
+    :class:`agent.core.AgentCore` alike. ``stamp`` is the stamp of the estimate the agent
+    uses from this neighbour (the needed one ``k - 1 - tau`` if held, else the freshest
+    held, at most ``k - 1``), None or negative when it holds nothing; ``need`` is the
+    needed stamp, only to tell fresh from held.
+
+    Returns ``(NeighbourEstimate, state)``, state one of :data:`FRESH`, :data:`HELD`,
+    :data:`LOST`, :data:`NONE`. A neighbour that failed or whose messages are lost is
+    held and propagated until its estimate is older than ``max_age``
+    (:func:`hold_limit`), then lost; a neighbour removed by a role change is simply not
+    a neighbour of the new role.
+
+    >>> import numpy as np
+    >>> neighbour_input(0.5, 10, 9, np.ones(2), max_age=4, need=9)[1]
+    'fresh'
+    >>> neighbour_input(0.5, 10, 7, np.ones(2), max_age=4, need=9)[1]
+    'held'
+    >>> nb, state = neighbour_input(0.5, 10, 5, np.ones(2), max_age=4, need=9)
+    >>> state, nb.x is None, nb.weight
+    ('lost', True, 0.5)
+    """
+    if stamp is None or stamp < 0:
+        return NeighbourEstimate(weight, 1, None), NONE
+    age = int(k) - int(stamp)
+    if age < 1:
+        raise ValueError(f"stamp: an estimate stamped {stamp} cannot be used at step {k}")
+    if age > max_age:
+        return NeighbourEstimate(weight, 1, None), LOST
+    return NeighbourEstimate(weight, age, x), FRESH if stamp == need else HELD
 
 
 def role_from(scenario, gains, agent: int) -> AgentRole:

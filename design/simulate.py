@@ -21,15 +21,22 @@ Timeline (k = 0, 1, ..., steps)
   held (its weight goes to self), and ``y^i_k = H_i x_k + zeta^i_k`` with
   ``zeta^i_k = noise.measurement_noise(seed, i, k)``. The result ``xhat^i_k`` is
   published with stamp k.
-- Failure at step f of agents F: they do not compute step f or later; from step f their
-  estimates are no longer received (held ones are discarded, messages in flight lost),
-  so their neighbours' weights go to self; their error leaves the MSE from step f on.
-- Recovery at step f: the configuration of :class:`Recovery` (its W, delays, sensors and
-  gains) is used from step f on. Surviving agents keep their estimates and what they
-  hold. A replacement agent takes over, as its own estimate stamped f - 1 (published
-  with that stamp), the last estimate ``xhat_{f-1}`` of the failed agent it replaces; a
-  new agent that replaces nobody starts from ``noise.initial_estimate(seed, id)``.
-  Agents hold nothing from a new agent until its messages arrive.
+- The neighbour policy is :func:`design.estimator.neighbour_input`, the same as a live
+  agent's: a held estimate is used while its age is at most ``max_age`` (default
+  :func:`design.estimator.hold_limit` of the largest delay), then its weight goes to self.
+- Failure at step f of agents F: they do not compute step f or later. What they
+  published (stamps <= f - 1) still arrives on its links' delays, and their neighbours
+  hold and propagate it like any late or lost estimate until it is older than
+  ``max_age``; their error leaves the MSE from step f on. This is exactly what a live
+  agent does when a neighbour crashes after publishing step f - 1.
+- Recovery at step a = ``recover.activate_at`` (default f): the configuration of
+  :class:`Recovery` (its W, delays, sensors and gains) is used from step a on. Surviving
+  agents keep their estimates and what they hold. A replacement agent takes over, as its
+  own estimate stamped a - 1 (published with that stamp), the last estimate
+  ``xhat_{f-1}`` of the failed agent it replaces propagated to step a - 1
+  (``A^(a-f) xhat_{f-1}``, as a live standby does with ``take_over``); a new agent that
+  replaces nobody starts from ``noise.initial_estimate(seed, id)``. Agents hold nothing
+  from a new agent until its messages arrive.
 
 Accuracy with unstable A
 ------------------------
@@ -63,7 +70,14 @@ import numpy as np
 
 from . import noise
 from .errors import GainsError, SocmonError
-from .estimator import AgentRole, NeighbourEstimate, PowerCache, estimator_step
+from .estimator import (
+    AgentRole,
+    NeighbourEstimate,
+    PowerCache,
+    estimator_step,
+    hold_limit,
+    neighbour_input,
+)
 from .gains import Gains, check_gains_fit
 
 __all__ = [
@@ -105,6 +119,10 @@ class Recovery:
         ``noise.initial_estimate(seed, id)``.
     delays : array or None
         Delay matrix used after the switch; default ``scenario.delays``.
+    activate_at : int or None
+        Step from which the new configuration is used (>= the failure step); None: the
+        failure step (an instant recovery). A live run's monitor activates a few steps
+        after it detected the failure.
     """
 
     scenario: object
@@ -112,6 +130,7 @@ class Recovery:
     ids: tuple
     replaces: dict = field(default_factory=dict)
     delays: object = None
+    activate_at: int | None = None
 
     @classmethod
     def from_plan(cls, plan, G, delays=None) -> "Recovery":
@@ -122,6 +141,10 @@ class Recovery:
         replaces = {r.by: r.failed for r in plan.replacements if r.by_standby}
         return cls(scenario=plan.scenario_after, G=list(G), ids=tuple(plan.agent_ids),
                    replaces=replaces, delays=delays)
+
+    def at(self, step: int) -> "Recovery":
+        """The same recovery, activated at ``step``."""
+        return Recovery(self.scenario, self.G, self.ids, self.replaces, self.delays, step)
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,8 +166,11 @@ class SimulationResult:
         growing: ``mse_steady > DIVERGENCE_FACTOR * mse[0]`` and ``mse_steady >
         GROWTH_FACTOR *`` the mean of the quarter before. A stable loop with a large
         steady MSE is not "diverged".
-    estimates : ndarray (trials, steps+1, N, n) or None
-        With ``record_estimates``: ``xhat^i_k`` of agents 1..N (NaN once failed).
+    estimates : ndarray (trials, steps+1, len(estimate_ids), n) or None
+        With ``record_estimates``: ``xhat^a_k`` of every agent id in ``estimate_ids``
+        (NaN while the agent does not run: failed, or a replacement before it starts).
+    estimate_ids : tuple of int
+        1-based agent ids of the columns of ``estimates`` (agents 1..N, then new ids).
     """
 
     mse: np.ndarray
@@ -160,6 +186,7 @@ class SimulationResult:
     recovered: bool = False
     coordinates: str = "error"
     estimates: np.ndarray | None = None
+    estimate_ids: tuple = ()
 
     def band(self, lo: float = 10.0, hi: float = 90.0):
         """Percentiles ``lo`` and ``hi`` across trials, per step."""
@@ -258,7 +285,8 @@ def _check_delays(D, scenario, name):
 
 def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop: float = 0.0,
              fail=None, recover: Recovery | None = None, progress=None,
-             coordinates: str = "error", record_estimates: bool = False) -> SimulationResult:
+             coordinates: str = "error", record_estimates: bool = False,
+             max_age: int | None = None) -> SimulationResult:
     """Run ``trials`` Monte-Carlo trials of the distributed estimator for ``steps`` steps.
 
     Parameters
@@ -283,8 +311,12 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         Compute relative to the truth (default; accurate for unstable A over any
         length) or in absolute coordinates as a live run does.
     record_estimates : bool
-        Keep every estimate of agents 1..N in :attr:`SimulationResult.estimates`
+        Keep every estimate in :attr:`SimulationResult.estimates`
         (needs ``coordinates="absolute"``: the numbers a live run computes).
+    max_age : int, optional
+        Oldest age at which a held neighbour estimate is used (the neighbour policy,
+        :func:`design.estimator.neighbour_input`); default
+        ``hold_limit(largest delay)``, the same default as a live agent's.
 
     Returns
     -------
@@ -339,9 +371,19 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     q = float(scenario.process_noise)
     ids0 = list(range(1, N + 1))
     configs = [_config(scenario, G, D, ids0)]
+    activate_step = None
     if recover is not None:
         configs.append(_recovery_config(recover, scenario, failed, ids0))
+        activate_step = fail_step if recover.activate_at is None else _check_int(
+            recover.activate_at, "recover.activate_at", fail_step)
+        if activate_step > steps:
+            raise SimulationError(
+                f"recover.activate_at: {activate_step} is after the last step {steps}")
     max_delay = max(int(c.delays.max()) if c.delays.size else 0 for c in configs)
+    if max_age is None:
+        max_age = hold_limit(max_delay)
+    max_age = _check_int(max_age, "max_age", max_delay + 1)
+    gap = 0 if activate_step is None else activate_step - fail_step
     error_coords = coordinates == "error"
     cold = recover is not None and any(
         a not in ids0 and a not in recover.replaces for a in recover.ids)
@@ -358,28 +400,34 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     held = {}       # (receiver id, sender id) -> (stamp, value)
     # S[a] = S_a(k) = x_k - A^a x_{k-a} for the current step (S[0] unused; at k = 0 the
     # entries are placeholders: an age never exceeds k)
-    S = [None] + [np.zeros((trials, n))] * (max_delay + 1)
+    S = [None] + [np.zeros((trials, n))] * (max(max_delay + 1, gap))
     config = configs[0]
     mse_trials = np.empty((trials, steps + 1))
     mse_trials[:, 0] = _mse(est, [a for _, a in config.live], x, error_coords)
-    recorded = np.full((trials, steps + 1, N, n), np.nan) if record_estimates else None
+    record_ids = ids0 + [a for a in (recover.ids if recover is not None else ()) if a not in ids0]
+    recorded = np.full((trials, steps + 1, len(record_ids), n), np.nan) \
+        if record_estimates else None
     if recorded is not None:
-        _record(recorded, 0, est, config, ids0)
+        _record(recorded, 0, est, config, record_ids)
 
     with np.errstate(over="ignore", invalid="ignore"):
         for k in range(1, steps + 1):
             if k == fail_step:
-                config = _apply_failure(config, configs, failed, recover, est, published,
-                                        held, x, seed, n, trials, error_coords, k)
+                config = _Config(config.W, config.delays, config.ids, config.roles, config.r,
+                                 frozenset(config.ids[r] for r in failed))
+            if k == activate_step:
+                config = _apply_recovery(config, configs[1], recover, est, published, x, S,
+                                         P, seed, n, trials, error_coords, k, k - fail_step)
             nu = noise.process_noise(seed, k - 1, n, q, trials)
             if track_x:
                 x = x @ P.transposed(1) + nu
             _receive(config, published, held, seed, k, drop, trials)
             if error_coords:
-                S = _advance_window(S, nu, P, max(_oldest_age(held, k), max_delay + 1))
+                S = _advance_window(S, nu, P, max(min(_oldest_age(held, k), max_age),
+                                                  max_delay + 1, gap))
             new = {}
             for i, a in config.live:
-                nbs, noise_parts = _neighbours(config, i, held, est[a], k)
+                nbs, noise_parts = _neighbours(config, i, held, est[a], k, max_age)
                 role = config.roles[i]
                 zeta = noise.measurement_noise(seed, a, k, len(role.measured), config.r, trials)
                 if error_coords:
@@ -400,7 +448,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 published[a].pop(k - 2 - max_delay, None)
             mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)
             if recorded is not None:
-                _record(recorded, k, est, config, ids0)
+                _record(recorded, k, est, config, record_ids)
             if progress is not None:
                 progress(k, steps)
             if not np.isfinite(mse_trials[:, k]).any():
@@ -421,13 +469,14 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         trials=trials, steps=steps, seed=seed, drop=drop, fail_step=fail_step,
         failed=tuple(a + 1 for a in failed), recovered=recover is not None,
         coordinates=coordinates, estimates=recorded,
+        estimate_ids=tuple(record_ids) if recorded is not None else (),
     )
 
 
-def _record(recorded, k, est, config, ids0):
-    """Store step k's estimates of agents 1..N that are running (NaN otherwise)."""
+def _record(recorded, k, est, config, ids):
+    """Store step k's estimates of the agents ``ids`` that are running (NaN otherwise)."""
     live = {a for _, a in config.live}
-    for i, a in enumerate(ids0):
+    for i, a in enumerate(ids):
         if a in live:
             recorded[:, k, i] = est[a]
 
@@ -462,23 +511,24 @@ def _recovery_config(recover, scenario, failed, ids0) -> _Config:
     return _config(new, G, D, ids)
 
 
-def _apply_failure(config, configs, failed, recover, est, published, held, x, seed, n,
-                   trials, error_coords, k):
-    """Stop the failed agents at step k and switch to the recovery configuration."""
-    dead = frozenset(config.ids[r] for r in failed)
-    for key in [key for key in held if key[0] in dead or key[1] in dead]:
-        del held[key]
-    for a in dead:
-        published.pop(a, None)
-    if recover is None:
-        return _Config(config.W, config.delays, config.ids, config.roles, config.r, dead)
-    new = configs[1]
+def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, trials,
+                    error_coords, k, gap):
+    """Switch to the recovery configuration at step k (``gap`` steps after the failure).
+
+    A replacement takes over the failed agent's last estimate (stamp f - 1) propagated
+    to step k - 1: ``A^gap xhat_{f-1}``; in error coordinates that is
+    ``A^gap z_{f-1} - S_gap(k-1)``, with ``S`` still the window of step k - 1.
+    """
     replaces = dict(recover.replaces)
     for a in new.ids:
-        if a in est and a not in dead:
+        if a in est and a not in config.dead:
             continue
         if a in replaces:
             value = est[config.ids[replaces[a]]]
+            if gap:
+                value = value @ P.transposed(gap)
+                if error_coords:
+                    value = value - S[gap]
         else:
             v = noise.initial_estimate(seed, a, n, trials)
             value = v - x if error_coords else v
@@ -495,12 +545,14 @@ def _mse(est, ids, x, error_coords):
     return total / len(ids)
 
 
-def _neighbours(config, i, held, x_prev, k):
+def _neighbours(config, i, held, x_prev, k, max_age):
     """Neighbour inputs of row i at step k, and the weights/ages of the noise window.
 
-    Where trials hold different stamps from one neighbour, one input per stamp is given,
-    with the other trials' rows zeroed; trials holding nothing from it give its weight to
-    self (an input of age 1 on the agent's own estimate, rows masked likewise).
+    Each held estimate goes through :func:`design.estimator.neighbour_input` (the policy
+    shared with the live agent). Where trials hold different stamps from one neighbour,
+    one input per stamp is given, with the other trials' rows zeroed; trials holding
+    nothing usable from it give its weight to self (an input of age 1 on the agent's own
+    estimate, rows masked likewise).
     """
     a = config.ids[i]
     role = config.roles[i]
@@ -512,27 +564,28 @@ def _neighbours(config, i, held, x_prev, k):
         if j == i or w <= 0:
             continue
         h = held.get((a, b))
-        if h is not None and (h[0] == h[0][0]).all():
-            if h[0][0] < 0:
-                h = None
-            else:
-                age = k - int(h[0][0])
-                nbs.append(NeighbourEstimate(w, age, h[1]))
-                parts.append((w, age, None))
-                continue
         if h is None:
-            nbs.append(NeighbourEstimate(w, 0, None))
+            nbs.append(NeighbourEstimate(w, 1, None))
             w_self += w
             continue
         stamps, values = h
+        if (stamps == stamps[0]).all():
+            nb, _ = neighbour_input(w, k, int(stamps[0]), values, max_age)
+            nbs.append(nb)
+            if nb.x is None:
+                w_self += w
+            else:
+                parts.append((w, nb.age, None))
+            continue
         for s in np.unique(stamps):
             mask = stamps == s
-            if s < 0:
+            nb, _ = neighbour_input(w, k, int(s), values, max_age)
+            if nb.x is None:
                 nbs.append(NeighbourEstimate(w, 1, x_prev * mask[:, None]))
                 parts.append((w, 1, mask))
             else:
-                nbs.append(NeighbourEstimate(w, k - int(s), values * mask[:, None]))
-                parts.append((w, k - int(s), mask))
+                nbs.append(NeighbourEstimate(w, nb.age, values * mask[:, None]))
+                parts.append((w, nb.age, mask))
     parts.append((w_self, 1, None))
     return nbs, parts
 

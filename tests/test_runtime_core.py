@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from agent import wire
+from design import noise
 from agent.core import AssignmentError
 from tests.runtime_harness import Mesh, reference
 
@@ -121,7 +122,9 @@ def test_assignment_activates_a_standby_agent(paper14, gains14):
     sb.on_assignment(_assignment(s, 4, 1, 8, ["8"], {2: 0.5}, 0.5, np.full((s.n, 1), 0.1)))
     for _ in range(5):
         mesh.tick()
-    assert sb.active and (4, 8) in mesh.estimates and (4, 7) not in mesh.estimates
+    # a cold start: the initial estimate of agent 4, published stamped activate_at - 1
+    assert sb.active and (4, 8) in mesh.estimates and (4, 6) not in mesh.estimates
+    np.testing.assert_array_equal(mesh.estimates[(4, 7)], noise.initial_estimate(0, 4, s.n)[0])
 
 
 @pytest.mark.parametrize("change, match", [

@@ -30,12 +30,13 @@ def small_scenario(q=0.0, r=0.0):
     })
 
 
-def hand_run(seed, steps, drop=0.0, fail=None):
+def hand_run(seed, steps, drop=0.0, fail=None, max_age=20):
     """Noise-free estimator written out with explicit matrices (one trial).
 
     Conventions of docs/simulation.md: xhat_0 from noise.initial_estimate, stamps < 0
-    never held, freshest held estimate propagated by A^age, weight of a neighbour with
-    nothing held goes to self, failed agents stop and are forgotten at the failure step.
+    never held, freshest held estimate propagated by A^age while age <= max_age, weight
+    of a neighbour with nothing usable held goes to self; failed agents stop computing
+    at the failure step, what they published before still arrives and is held.
     """
     A, W, D = np.array(A3), np.array(W3), np.array(D3)
     n, N = 3, 3
@@ -49,11 +50,10 @@ def hand_run(seed, steps, drop=0.0, fail=None):
     for k in range(1, steps + 1):
         if fail is not None and k == fail[0]:
             dead = set(fail[1])
-            held = {key: v for key, v in held.items() if key[1] not in dead}
         x = A @ x
         for i in range(N):
             for j in range(N):
-                if i == j or W[i, j] == 0 or i in dead or j in dead:
+                if i == j or W[i, j] == 0 or i in dead:
                     continue
                 s = k - 1 - D[i, j]
                 if s < 0 or (j, s) not in published:
@@ -72,7 +72,7 @@ def hand_run(seed, steps, drop=0.0, fail=None):
             for j in range(N):
                 if j == i or W[i, j] == 0:
                     continue
-                if (i, j) in held:
+                if (i, j) in held and k - held[(i, j)][0] <= max_age:
                     s, v = held[(i, j)]
                     prior = prior + W[i, j] * (np.linalg.matrix_power(A, k - s) @ v)
                 else:
@@ -88,12 +88,15 @@ def hand_run(seed, steps, drop=0.0, fail=None):
 
 
 @pytest.mark.parametrize("coordinates", ["error", "absolute"])
-@pytest.mark.parametrize("drop, fail", [(0.0, None), (0.5, None), (0.3, (9, [1]))])
-def test_zero_noise_matches_hand_recursion(coordinates, drop, fail):
+@pytest.mark.parametrize("drop, fail, max_age", [(0.0, None, None), (0.5, None, None),
+                                                 (0.3, (9, [1]), None), (0.7, None, 5),
+                                                 (0.3, (9, [1]), 6)])
+def test_zero_noise_matches_hand_recursion(coordinates, drop, fail, max_age):
     s = small_scenario()
-    expected = hand_run(seed=5, steps=40, drop=drop, fail=fail)
+    expected = hand_run(seed=5, steps=40, drop=drop, fail=fail,
+                        max_age=20 if max_age is None else max_age)
     res = simulate(s, G3, steps=40, trials=1, seed=5, drop=drop, fail=fail,
-                   coordinates=coordinates)
+                   coordinates=coordinates, max_age=max_age)
     np.testing.assert_allclose(res.mse, expected, rtol=1e-11, atol=1e-300)
     assert res.mse_trials.shape == (1, 41)
 
