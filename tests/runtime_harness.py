@@ -11,12 +11,13 @@ from design.estimator import NeighbourEstimate, PowerCache, estimator_step, role
 class Mesh:
     """World + agents wired in memory; ``lost(src, dst, stamp)`` drops estimates in transit."""
 
-    def __init__(self, scenario, G, seed=0, delays=None, deadline_s=1.0, lost=None):
+    def __init__(self, scenario, G, seed=0, delays=None, deadline_s=1.0, lost=None, drop=0.0):
         self.s = scenario
         delays = np.zeros((scenario.N, scenario.N), int) if delays is None else delays
         M = scenario.N + scenario.standby
         self.world = WorldCore(scenario.A, seed, scenario.process_noise)
-        self.agents = {a: AgentCore(agent_config(scenario, a, G, seed, delays, deadline_s))
+        self.agents = {a: AgentCore(agent_config(scenario, a, G, seed, delays, deadline_s,
+                                                 drop=drop))
                        for a in range(1, M + 1)}
         self.lost = lost or (lambda src, dst, stamp: False)
         self.now = 0.0
@@ -45,6 +46,12 @@ class Mesh:
                     for b, other in self.agents.items():
                         if b != a and not self.lost(a, b, step):
                             other.on_estimate(a, step, x, self.now)
+
+    def crash(self, agent):
+        """Agent ``agent`` stops (after what it published); the others see its token go."""
+        del self.agents[agent]
+        for core in self.agents.values():
+            core.set_alive(agent, False)
 
     def pass_time(self, dt):
         self.now += dt

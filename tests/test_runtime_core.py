@@ -191,3 +191,112 @@ def test_mesh_equals_the_simulator(paper14, gains14, D):
     mse = [np.mean([np.mean((mesh.estimates[(a, k)] - mesh.truth[k]) ** 2) for a in (1, 2, 3)])
            for k in range(STEPS + 1)]
     np.testing.assert_allclose(mse, res.mse, rtol=1e-9)
+
+
+# -- one neighbour policy: the live protocol equals the simulator with failures ---------
+
+
+def _mesh_estimates(mesh, ids, steps):
+    out = np.full((steps + 1, len(ids), mesh.s.n), np.nan)
+    for k in range(steps + 1):
+        for c, a in enumerate(ids):
+            if (a, k) in mesh.estimates:
+                out[k, c] = mesh.estimates[(a, k)]
+    return out
+
+
+def _sim_estimates(res, ids):
+    cols = [res.estimate_ids.index(a) for a in ids]
+    return res.estimates[0][:, cols]
+
+
+D3 = np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])
+
+
+@pytest.mark.parametrize("D", [None, D3])
+def test_crashed_neighbour_is_held_then_lost_as_in_the_simulator(paper14, gains14, D):
+    """Agent 2 crashes after publishing step 9: its neighbours hold its last estimates,
+    propagated, until they are older than the hold limit, exactly as the simulator."""
+    from design.estimator import hold_limit
+    from design.simulate import simulate
+
+    f, steps = 10, 45
+    mesh = Mesh(paper14, gains14, seed=4, delays=D, deadline_s=1.0)
+    for k in range(steps + 1):
+        if k == f:
+            mesh.crash(2)
+        mesh.tick()
+        mesh.pass_time(1.1)
+    res = simulate(paper14, gains14, steps=steps, trials=1, seed=4, delays=D, fail=(f, [1]),
+                   coordinates="absolute", record_estimates=True)
+    live = _mesh_estimates(mesh, (1, 3), steps)
+    np.testing.assert_allclose(live, _sim_estimates(res, (1, 3)), rtol=1e-12, atol=1e-12)
+    # the hold limit was crossed: agent 1 (which listens to 2) used 'lost' inputs
+    top = 0 if D is None else int(D.max())
+    assert steps - f > hold_limit(top)
+    assert mesh.agents[1].states["lost"] > 0 and mesh.agents[1].states["held"] > 0
+
+
+def test_keyed_drops_equal_the_simulators(paper14, gains14):
+    from design.simulate import simulate
+
+    steps = 40
+    mesh = Mesh(paper14, gains14, seed=6, delays=D3, deadline_s=1.0, drop=0.4)
+    for _ in range(steps + 1):
+        mesh.tick()
+        mesh.pass_time(1.1)
+    res = simulate(paper14, gains14, steps=steps, trials=1, seed=6, delays=D3, drop=0.4,
+                   coordinates="absolute", record_estimates=True)
+    np.testing.assert_allclose(_mesh_estimates(mesh, (1, 2, 3), steps),
+                               _sim_estimates(res, (1, 2, 3)), rtol=1e-12, atol=1e-12)
+    assert sum(c.states["held"] for c in mesh.agents.values()) > 0
+
+
+@pytest.mark.parametrize("D", [None, D3])
+def test_role_change_after_a_crash_equals_the_simulator(paper14, gains14, D):
+    """Agent 1 crashes at step 10; from step 16 standby 4 takes its place (taking over
+    its last estimate), every row gets new gains: the live protocol and the simulator
+    agree estimate by estimate, the replacement included."""
+    from design.roster import Roster, replan, role_specs
+    from design.simulate import Recovery, simulate
+
+    f, a, steps = 10, 16, 40
+    roster = Roster.initial(paper14, D)
+    plan, after = replan(roster, [1])
+    rng = np.random.default_rng(9)
+    G_after = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in after.scenario.measure]
+    specs = role_specs(after, G_after, take_over={4: 1})
+    mesh = Mesh(paper14, gains14, seed=2, delays=D, deadline_s=1.0)
+    for k in range(steps + 1):
+        if k == f:
+            mesh.crash(1)
+        if k == f + 2:      # the assignments arrive a few steps ahead of activate_at
+            for agent, spec in specs.items():
+                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a))
+        mesh.tick()
+        mesh.pass_time(1.1)
+    rec = Recovery(after.scenario, G_after, after.ids, replaces={4: 0}, delays=after.delays,
+                   activate_at=a)
+    res = simulate(paper14, gains14, steps=steps, trials=1, seed=2, delays=D, fail=(f, [0]),
+                   recover=rec, coordinates="absolute", record_estimates=True)
+    ids = (2, 3, 4)
+    live = _mesh_estimates(mesh, ids, steps)
+    # the replacement published the estimate it took over, stamped a - 1:
+    # agent 1's last estimate (stamp f - 1) propagated to step a - 1
+    np.testing.assert_allclose(
+        live[a - 1, 2], np.linalg.matrix_power(paper14.A, a - f) @ mesh.estimates[(1, f - 1)],
+        rtol=1e-12)
+    assert (4, a - 2) not in mesh.estimates
+    live[a - 1, 2] = np.nan      # the simulator records agents from the step they compute
+    np.testing.assert_allclose(live, _sim_estimates(res, ids), rtol=1e-12, atol=1e-12)
+    # and the error coordinates of the simulator (another code path) agree on the MSE
+    res_e = simulate(paper14, gains14, steps=steps, trials=1, seed=2, delays=D,
+                     fail=(f, [0]), recover=rec)
+    np.testing.assert_allclose(res_e.mse, res.mse, rtol=1e-9)
+
+
+def _spec_message(spec, epoch, at):
+    return {"agent": spec.agent, "epoch": epoch, "activate_at": at,
+            "measure": list(spec.measure), "neighbours": dict(spec.neighbours),
+            "self_weight": spec.self_weight, "gain": spec.gain,
+            **({"take_over": spec.take_over} if spec.take_over else {})}
