@@ -7,12 +7,20 @@ the sensor keys of the nodes it measures (or of the first node, as a clock, whil
 no role), then every agent's status. Publications: its estimate every step, its status
 every ``status_s`` (and at once after a control message). It never reads the truth key.
 
-The process ends on SIGTERM/SIGINT, or once the world has left and every reading
-received has been used.
+It also subscribes to the roster key (``ctl/0``, the monitor's fence). The process ends
+on SIGTERM/SIGINT, or once the world has been gone for ``WORLD_GRACE_S`` and every
+reading received has been used: an agent paused for a few seconds (SIGSTOP) that finds
+the world's token gone when it resumes waits for the mesh to come back instead of
+leaving a live run.
+
+``crash_at`` (the scripted crash of ``socmon up --kill``): the agent publishes its
+estimate of step ``crash_at - 1``, lets the transport send it, and SIGKILLs itself
+before computing step ``crash_at``, so the failure happens at a known step.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import statistics
 import sys
@@ -35,6 +43,10 @@ STATUS_S = 0.2
 PRESTART_STATUS_S = 0.1
 #: stamps farther than this from the agent's step are rejected as malformed ("stale"/"future")
 STAMP_WINDOW = 100_000
+#: the world must stay gone this long before the agent leaves
+WORLD_GRACE_S = 5.0
+#: a scripted crash waits this long after its last put so that the transport sends it
+CRASH_FLUSH_S = 0.3
 
 
 def initial_role(scenario, gains, agent: int):
@@ -85,7 +97,7 @@ class _Stop:
         self.flag = True
 
 
-def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
+def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None) -> int:
     """Run one agent until stopped or the world leaves. Returns the exit status."""
     stop = stop or _Stop()
     if stop is not None and isinstance(stop, _Stop):
@@ -96,6 +108,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
     stats = MessageStats()
     est_schema = wire.est_schema(core.n)
     ctl_schema = wire.ctl_schema(core.n)
+    roster_schema = wire.roster_schema()
     sensor_schema = wire.sensor_schema()
     senders = set(config.agents)
     hops = deque(maxlen=4000)
@@ -105,6 +118,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
 
     with Peer(net, "agent", me) as peer:
         ctl_in = peer.subscribe(keys.ctl_key(run, me))
+        roster_in = peer.subscribe(keys.ctl_key(run, 0))
         imp_in = peer.subscribe(keys.impair_key(run))
         est_in = peer.subscribe(keys.any_agent_pattern(run, "est"))
         sensor_in: dict = {}
@@ -123,14 +137,15 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
         peer.publisher(est_key)
         peer.publisher(status_key)
         world_seen = world_alive = False
+        world_gone_at = None
         next_status = 0.0
 
         def publish_status():
             st = core.status()
             st["malformed"] = stats.total_dropped
             st["malformed_reasons"] = dict(stats.dropped)
-            st["overflows"] = sum(i.overflows for i in [ctl_in, imp_in, est_in, status_in,
-                                                         *sensor_in.values()])
+            st["overflows"] = sum(i.overflows for i in [ctl_in, roster_in, imp_in, est_in,
+                                                         status_in, *sensor_in.values()])
             if hops:
                 ordered = sorted(hops)
                 st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
@@ -170,6 +185,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                 if ev.role == "world":
                     world_alive = ev.alive
                     world_seen = world_seen or ev.alive
+                    world_gone_at = None if ev.alive else now
                 elif ev.role == "agent" and ev.id.isdigit():
                     core.set_alive(int(ev.id), ev.alive)
             for item in ctl_in.drain():
@@ -183,6 +199,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                 except AssignmentError as exc:
                     print(f"agent {me}: rejected assignment: {exc}", file=log)
                 urgent_status = True
+            for item in roster_in.drain():
+                msg = try_decode(item.payload, roster_schema, stats)
+                if msg is not None and core.on_roster(msg):
+                    print(f"agent {me}: roster epoch {msg['epoch']} from step "
+                          f"{msg['activate_at']}: {msg['ids']}", file=log)
+                    urgent_status = True
             for item in imp_in.drain():
                 try:
                     msg = decode_impairment(item.payload)
@@ -205,12 +227,18 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                 handle_est(item, now)
             for step, x in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
+                if crash_at is not None and step >= crash_at - 1 and core.active:
+                    publish_status()
+                    print(f"agent {me}: scripted crash after step {step}", file=log, flush=True)
+                    time.sleep(CRASH_FLUSH_S)
+                    os.kill(os.getpid(), signal.SIGKILL)
             sync_sensors()
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()
                 next_status = now + (STATUS_S if core.step >= 0 else PRESTART_STATUS_S)
-            if world_seen and not world_alive and not core.sensor and not len(est_in):
+            if (world_seen and not world_alive and not core.sensor and not len(est_in)
+                    and world_gone_at is not None and now - world_gone_at >= WORLD_GRACE_S):
                 publish_status()
                 print(f"agent {me}: world left after step {core.step}; exiting", file=log)
                 return 0

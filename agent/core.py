@@ -47,7 +47,11 @@ Timing invariants (one place):
   messages, a single late message does not change it;
 - a receiver-side step delay of d on link j -> i (``LinkImpairments``) releases the estimate
   stamped s once ``k_done >= s + d``, so it is learned as ``tau_ij = d``;
-- a role assignment is applied atomically before computing step ``activate_at``.
+- a role assignment is applied atomically before computing step ``activate_at``;
+- a roster (the monitor's fence: the ids in force from ``activate_at`` under an epoch)
+  is applied before computing step ``activate_at``: from then on estimates of ids
+  outside it are ignored (counted ``fenced``), and an agent outside it whose role is
+  older than the roster's epoch drops its role and becomes a standby.
 
 Examples
 --------
@@ -274,6 +278,10 @@ class AgentCore:
         self.ctl_rejected = 0
         self.ctl_last_error = ""
         self.heard: set = set()
+        self.roster_epoch = 0
+        self.roster_pending = None        # (epoch, activate_at, frozenset ids)
+        self.fence = None                 # ids in force, or None before any roster
+        self.fenced = 0
 
     # -- helpers ------------------------------------------------------------------
     @property
@@ -317,6 +325,9 @@ class AgentCore:
         """An estimate of agent ``sender`` stamped ``stamp``; returns the link's decision."""
         if sender == self.id:
             return "self"
+        if self.fence is not None and sender not in self.fence:
+            self.fenced += 1
+            return "fenced"
         x = np.array(x, dtype=float)
         step_held = self.impair.get((sender, self.id)).delay_steps > 0
         decision = self.impair.offer(sender, self.id, (stamp, x, step_held),
@@ -374,6 +385,27 @@ class AgentCore:
         self.ctl_accepted += 1
         return role
 
+    def on_roster(self, msg: dict) -> bool:
+        """A decoded roster; True if it is newer than the one known (applied later)."""
+        epoch = int(msg["epoch"])
+        newest = max(self.roster_epoch,
+                     self.roster_pending[0] if self.roster_pending else 0)
+        if epoch <= newest:
+            return False
+        self.roster_pending = (epoch, int(msg["activate_at"]), frozenset(msg["ids"]))
+        return True
+
+    def _apply_roster(self, k: int) -> None:
+        epoch, at, ids = self.roster_pending
+        if at > k:
+            return
+        self.roster_pending, self.roster_epoch, self.fence = None, epoch, ids
+        if self.id not in ids and self.role is not None and self.epoch < epoch:
+            # replaced while away (paused, cut off): fenced, back to standby
+            self.role, self.x, self.epoch = None, None, epoch
+            if self.pending is not None and self.pending.epoch <= epoch:
+                self.pending = None
+
     def set_alive(self, agent: int, alive: bool) -> None:
         self._nb(agent).alive = bool(alive)
 
@@ -427,6 +459,8 @@ class AgentCore:
                 out += self._start(got)
                 continue
             readings, complete = got
+            if self.roster_pending is not None:
+                self._apply_roster(k)
             if self.pending is not None and self.pending.activate_at <= k:
                 out += self._activate(self.pending, k)
             if self.role is None:
@@ -560,6 +594,8 @@ class AgentCore:
             "drops": self.drops,
             "late": self.late,
             "inputs": dict(self.states),
+            "fenced": self.fenced,
+            "roster_epoch": self.roster_epoch,
             "impaired": self.impaired,
             "sensor": {"labels": list(self.wanted_labels()), "last_step": self.sensor_last,
                        "missed": self.sensor_missed},

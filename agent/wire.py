@@ -45,11 +45,13 @@ __all__ = [
     "truth_schema",
     "est_schema",
     "ctl_schema",
+    "roster_schema",
     "STATUS_SCHEMA",
     "encode_sensor",
     "encode_truth",
     "encode_est",
     "encode_ctl",
+    "encode_roster",
     "encode_status",
     "decode",
     "MalformedMessage",
@@ -197,6 +199,16 @@ def ctl_schema(n: int) -> Schema:
     })
 
 
+def roster_schema() -> Schema:
+    """``socmon/<run>/ctl/0``: the ids in force from ``activate_at`` (the monitor's fence)."""
+    return Schema({
+        "kind": Str(choices=frozenset({"roster"})),
+        "epoch": Int(1, 2**62),
+        "activate_at": _STEP,
+        "ids": AgentIds(),
+    })
+
+
 STATUS_SCHEMA = Schema({
     "kind": Str(choices=frozenset({"status"})),
     "agent": _AGENT,
@@ -209,6 +221,8 @@ STATUS_SCHEMA = Schema({
     "drops": Int(0),
     "late": Int(0),
     "inputs": IntMap(required=False),
+    "fenced": Int(0, required=False),
+    "roster_epoch": Int(0, 2**62, required=False),
     "malformed": Int(0),
     "malformed_reasons": IntMap(),
     "impaired": Int(0),
@@ -248,6 +262,11 @@ def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: di
         "neighbours": {str(int(a)): _f(w) for a, w in neighbours.items()},
         "self_weight": _f(self_weight), "gain": np.asarray(gain, dtype=float),
     })
+
+
+def encode_roster(epoch: int, activate_at: int, ids) -> bytes:
+    return encode({"kind": "roster", "epoch": int(epoch), "activate_at": int(activate_at),
+                   "ids": [int(a) for a in ids]})
 
 
 def encode_status(status: dict) -> bytes:

@@ -22,6 +22,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--deadline-ms", type=float, default=None,
                         help="wait this long after a step's readings for late neighbour "
                              "estimates (default: the step period)")
+    parser.add_argument("--drop", type=float, default=0.0,
+                        help="probability that an estimate is lost on a link, drawn from the run "
+                             "seed as the simulator draws it (default 0)")
+    parser.add_argument("--crash-at", type=int, default=None, metavar="STEP",
+                        help="scripted crash: publish step STEP-1, then SIGKILL itself "
+                             "(reproducible failures; socmon up --kill uses it)")
     add_net_arguments(parser)
 
 
@@ -74,8 +80,12 @@ def run(args) -> int:
             net = net_config_from_args(args)
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        if not 0 <= args.drop < 1:
+            raise CommandError(f"--drop: must be a probability in [0, 1), got {args.drop}")
+        if args.crash_at is not None and args.crash_at < 1:
+            raise CommandError(f"--crash-at: must be a step >= 1, got {args.crash_at}")
         config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
-                              impair_seed=args.seed * 1000 + args.id)
-        return run_agent(config, net)
+                              impair_seed=args.seed * 1000 + args.id, drop=args.drop)
+        return run_agent(config, net, crash_at=args.crash_at)
 
     return run_command(body)

@@ -1,0 +1,70 @@
+"""``socmon monitor SCENARIO --run RUN``: detect failed agents and hand their roles over."""
+
+from __future__ import annotations
+
+HELP = "run the monitor: detect failed agents and reassign their roles to equivalent agents"
+
+
+def add_arguments(parser) -> None:
+    from broker_free_net.config import add_net_arguments
+
+    from ._common import add_scenario_argument
+
+    add_scenario_argument(parser)
+    parser.add_argument("--gains", required=True, metavar="FILE",
+                        help="the gains file the agents run (.npz)")
+    parser.add_argument("--delays", default="scenario",
+                        help="link delays of the run: scenario, none or uniform:T (default "
+                             "scenario); new gains are certified for them")
+    parser.add_argument("--id", type=int, default=1,
+                        help="monitor id; with several monitors the smallest live id acts "
+                             "(default 1)")
+    parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
+                        help="no progress of an agent for S seconds while the others advance "
+                             "is a hang (default 1.0; lower is faster and risks convicting a "
+                             "slow agent)")
+    parser.add_argument("--lead-steps", type=int, default=10,
+                        help="activate a reassignment this many steps after the newest step "
+                             "reported (default 10)")
+    parser.add_argument("--events", metavar="FILE",
+                        help="append every verdict and reassignment to FILE as JSON lines")
+    parser.add_argument("--no-precompute", action="store_true",
+                        help="do not precompute the single failures at start-up")
+    add_net_arguments(parser)
+
+
+def run(args) -> int:
+    from ._common import CommandError, run_command
+
+    def body():
+        import math
+
+        from broker_free_net.config import InvalidNetConfig, net_config_from_args
+        from design.errors import ScenarioError
+        from design.scenario import resolve_delays
+
+        from ..monitor_core import MonitorConfig
+        from ..monitor_process import run_monitor
+        from ._common import load_gains_arg, load_scenario_arg
+
+        scenario = load_scenario_arg(args.scenario)
+        try:
+            delays = resolve_delays(scenario, args.delays)
+        except ScenarioError as exc:
+            raise CommandError(f"--delays: {exc}") from None
+        G = load_gains_arg(args.gains, scenario).G
+        if args.id < 1:
+            raise CommandError(f"--id: must be >= 1, got {args.id}")
+        if not (math.isfinite(args.hang_timeout) and args.hang_timeout > 0):
+            raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
+        if args.lead_steps < 1:
+            raise CommandError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
+        try:
+            net = net_config_from_args(args)
+        except InvalidNetConfig as exc:
+            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        config = MonitorConfig(hang_timeout_s=args.hang_timeout, lead_steps=args.lead_steps)
+        return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
+                           events_out=args.events, precompute=not args.no_precompute)
+
+    return run_command(body)

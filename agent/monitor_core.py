@@ -1,0 +1,426 @@
+"""The monitor's protocol as a state machine that never touches a socket.
+
+:class:`MonitorCore` takes in the agents' liveliness events and statuses with the time
+they arrived, and gives out verdicts and the control messages that hand a failed
+agent's role to an observationally equivalent replacement. The process shell
+(:mod:`agent.monitor_process`) only feeds it from a :class:`broker_free_net.Peer`; unit
+tests step it by hand, so tests control time.
+
+Detection (one verdict per cause, each with its evidence):
+
+- ``crash``: the liveliness token of an agent in the configuration was deleted;
+- ``hang``: its token is alive but its loop does not advance: its reported step has not
+  moved for ``hang_timeout_s`` while the other agents' steps moved on by more than
+  ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody);
+- ``sensor``: its status says the readings of its nodes have not arrived for
+  ``sensor_lag_steps`` steps while the others advance.
+
+The monitor guards against its own pauses: when two calls of :meth:`tick` are more than
+``pause_guard_s`` apart, it suspends verdicts and restarts every progress clock (it has
+no fresh evidence), as Cassandra's failure detector does.
+
+Reassignment (see docs/monitor.md): on a verdict the monitor plans the failure on the
+configuration in force (:func:`design.roster.replan`), takes the gains precomputed for
+that failure (or designs a first stabilising gain), and publishes, under one new epoch
+and one ``activate_at`` a few steps ahead, an assignment to every agent whose role
+changes and a roster (the ids in force from ``activate_at``) to everyone. Every
+receiver fences: from ``activate_at`` it ignores estimates of ids outside the roster,
+and an agent that finds itself outside it drops its role and becomes a standby. The
+monitor re-sends until each assigned agent's status shows the epoch, and treats a
+replacement that does not confirm within ``confirm_timeout_s`` as failed.
+
+Examples
+--------
+>>> from design.scenario import load_scenario
+>>> import numpy as np
+>>> s = load_scenario("paper-14")
+>>> core = MonitorCore(MonitorConfig(), s, [np.zeros((14, 1))] * 3, s.delays)
+>>> core.on_liveliness("agent", 1, True, now=0.0); core.roster.ids
+(1, 2, 3)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["MonitorConfig", "MonitorCore", "Verdict", "Assignment", "RosterUpdate",
+           "GainSource"]
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """Thresholds of the monitor (defaults and the trade-off: docs/monitor.md).
+
+    Parameters
+    ----------
+    hang_timeout_s : float
+        No progress of an agent's step for this long (while the others advance) is a hang.
+        Lower detects faster; under ``hang_timeout_s`` a slow agent risks conviction.
+    hang_lag_steps : int
+        ... and the others must have advanced by more than this many steps meanwhile.
+    sensor_lag_steps : int
+        An agent whose last reading is this many steps behind the others' steps.
+    lead_steps : int
+        ``activate_at`` = the newest step reported + this (the assignment's head start).
+    resend_s : float
+        Re-send unconfirmed assignments this often.
+    confirm_timeout_s : float
+        A replacement that has not confirmed by then is treated as failed.
+    pause_guard_s : float
+        A gap between two ticks longer than this suspends verdicts (the monitor itself
+        was paused) until ``hang_timeout_s`` of fresh evidence has passed.
+    """
+
+    hang_timeout_s: float = 1.0
+    hang_lag_steps: int = 10
+    sensor_lag_steps: int = 25
+    lead_steps: int = 10
+    resend_s: float = 0.25
+    confirm_timeout_s: float = 3.0
+    pause_guard_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class Verdict:
+    agent: int
+    cause: str           # crash, hang, sensor, unconfirmed
+    evidence: str
+    at: float            # monitor time of the verdict
+    step: int            # newest step reported by any agent then
+
+
+@dataclass(frozen=True, eq=False)
+class Assignment:
+    """One role for one agent, under ``epoch`` from step ``activate_at``."""
+
+    agent: int
+    epoch: int
+    activate_at: int
+    spec: object         # design.roster.RoleSpec
+
+
+@dataclass(frozen=True)
+class RosterUpdate:
+    """The ids in force from ``activate_at`` under ``epoch`` (the fencing token)."""
+
+    epoch: int
+    activate_at: int
+    ids: tuple
+
+
+@dataclass
+class _Agent:
+    alive: bool = False
+    step: int = -1
+    epoch: int = 0
+    pending: int = 0
+    active: bool = False
+    progress_at: float | None = None     # when its step last moved
+    others_at_progress: int = -1         # the others' newest step then
+    sensor_last: int = -1
+    status: dict = field(default_factory=dict)
+
+
+class GainSource:
+    """Gains for a configuration: precomputed ones first, else a fast design.
+
+    ``design(roster)`` -> list of G_i (by row) or None when no stabilising gain is
+    found. The default designs with :func:`design.gain_design.design_gains` against the
+    roster's delays (a first stabilising gain: target radius, a bounded iteration count).
+    """
+
+    def __init__(self, design=None):
+        self._cache: dict = {}
+        self._design = design or _fast_design
+
+    @staticmethod
+    def key(roster) -> tuple:
+        s = roster.scenario
+        return (tuple(roster.ids), s.W.tobytes(), tuple(tuple(m) for m in s.measure),
+                np.asarray(roster.delays).tobytes())
+
+    def put(self, roster, G) -> None:
+        self._cache[self.key(roster)] = G
+
+    def has(self, roster) -> bool:
+        return self.key(roster) in self._cache
+
+    def get(self, roster):
+        """(G, precomputed?)"""
+        k = self.key(roster)
+        if k in self._cache:
+            return self._cache[k], True
+        G = self._design(roster)
+        if G is not None:
+            self._cache[k] = G
+        return G, False
+
+
+def _fast_design(roster):
+    from design.errors import SocmonError
+    from design.gain_design import design_gains
+
+    try:
+        res = design_gains(roster.scenario, delays=roster.delays, objective="rho",
+                           target=0.9, starts=2, max_iter=150, time_limit=30.0)
+    except SocmonError:
+        return None
+    return list(res.G) if res.stable else None
+
+
+class MonitorCore:
+    """The monitor's protocol, stepped by the caller with explicit times (seconds).
+
+    Feed it with :meth:`on_liveliness` and :meth:`on_status`; call :meth:`tick` to get
+    the verdicts found and the control messages to publish now.
+    """
+
+    def __init__(self, config: MonitorConfig, scenario, G, delays, gains: GainSource = None,
+                 epoch: int = 0):
+        from design.roster import Roster, role_specs
+
+        self.config = config
+        self.scenario = scenario
+        self.roster = Roster.initial(scenario, delays)
+        self.G = [np.asarray(g, dtype=float) for g in G]
+        self.specs = role_specs(self.roster, self.G)
+        self.gains = gains or GainSource()
+        self.gains.put(self.roster, self.G)
+        self.epoch = int(epoch)
+        self.agents: dict = {a: _Agent() for a in
+                             range(1, scenario.N + scenario.standby + 1)}
+        self.verdicts: list = []
+        self.events: list = []            # human-readable log lines, drained by the shell
+        self.failed: set = set()          # ids convicted (never given a role again)
+        self.unrecoverable = False
+        self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
+        self._unconfirmed: dict = {}      # agent -> Assignment awaiting its status
+        self._sent_at: float | None = None
+        self._assigned_at: float | None = None
+        self._roster_msg: RosterUpdate | None = None
+        self._last_tick: float | None = None
+        self._suspended_until = -math.inf
+        self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
+
+    # -- inputs --------------------------------------------------------------------
+    def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
+        if role != "agent":
+            return
+        a = self._agent(agent)
+        if a is None:
+            return
+        a.alive = bool(alive)
+        if alive and a.progress_at is None:
+            a.progress_at = now
+
+    def on_status(self, msg: dict, now: float) -> None:
+        a = self._agent(msg.get("agent"))
+        if a is None:
+            return
+        step = int(msg.get("step", -1))
+        if step != a.step or a.progress_at is None:
+            a.progress_at = now
+            a.others_at_progress = self.newest_step(exclude=msg["agent"])
+        a.step = step
+        a.epoch = int(msg.get("epoch", 0))
+        a.active = bool(msg.get("active", False))
+        ctl = msg.get("ctl") if isinstance(msg.get("ctl"), dict) else {}
+        a.pending = int(ctl.get("pending", 0) or 0)
+        sensor = msg.get("sensor") if isinstance(msg.get("sensor"), dict) else {}
+        last = sensor.get("last_step", -1)
+        a.sensor_last = int(last) if isinstance(last, int) else -1
+        a.status = msg
+        if self.epoch < a.epoch:          # a restarted monitor continues above every epoch
+            self.epoch = a.epoch
+
+    def _agent(self, agent):
+        try:
+            agent = int(agent)
+        except (TypeError, ValueError):
+            return None
+        return self.agents.get(agent)
+
+    def newest_step(self, exclude=None) -> int:
+        steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
+        return max(steps, default=-1)
+
+    # -- the clock -----------------------------------------------------------------
+    def tick(self, now: float) -> list:
+        """Verdicts and reassignment at time ``now``; returns messages to publish now."""
+        cfg = self.config
+        if self._last_tick is not None and now - self._last_tick > cfg.pause_guard_s:
+            self._suspended_until = now + cfg.hang_timeout_s
+            for a in self.agents.values():
+                a.progress_at = now
+                a.others_at_progress = self.newest_step()
+            self.events.append(f"monitor paused {now - self._last_tick:.2f} s: verdicts "
+                               f"suspended for {cfg.hang_timeout_s:g} s")
+        self._last_tick = now
+        out = []
+        self._check_confirmations(now)
+        if now >= self._suspended_until and self.newest_step() >= 0:
+            found = self._detect(now)
+            if found:
+                out += self._reassign(found, now)
+        if self._unconfirmed and self._sent_at is not None and now - self._sent_at >= cfg.resend_s:
+            out += list(self._unconfirmed.values())
+            if self._roster_msg is not None:
+                out.append(self._roster_msg)
+            self._sent_at = now
+        return out
+
+    def _detect(self, now: float) -> list:
+        cfg = self.config
+        found = []
+        newest = self.newest_step()
+        for i in self.roster.ids:
+            if i in self.failed:
+                continue
+            a = self.agents[i]
+            if not a.alive and a.progress_at is not None:
+                found.append(Verdict(i, "crash", "liveliness token deleted", now, newest))
+            elif (a.progress_at is not None and now - a.progress_at > cfg.hang_timeout_s
+                  and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
+                found.append(Verdict(
+                    i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
+                    f"others reached step {newest}", now, newest))
+            elif (a.step >= 0 and a.sensor_last >= 0
+                  and newest - a.sensor_last > cfg.sensor_lag_steps
+                  and now - a.progress_at > cfg.hang_timeout_s):
+                found.append(Verdict(
+                    i, "sensor", f"last reading at step {a.sensor_last}, others at {newest}",
+                    now, newest))
+        return found
+
+    def _check_confirmations(self, now: float) -> None:
+        for agent, asg in list(self._unconfirmed.items()):
+            a = self.agents[agent]
+            if a.epoch >= asg.epoch or a.pending >= asg.epoch:
+                del self._unconfirmed[agent]
+                self.events.append(f"agent {agent} confirmed epoch {asg.epoch}")
+        if (self._unconfirmed and self._assigned_at is not None
+                and now - self._assigned_at > self.config.confirm_timeout_s):
+            late = sorted(self._unconfirmed)
+            for agent in late:
+                if agent in self.roster.ids and agent not in self.failed:
+                    self.agents[agent].alive = False     # convicted below as 'crash'
+                    self.events.append(f"agent {agent} did not confirm epoch "
+                                       f"{self._unconfirmed[agent].epoch}: treated as failed")
+            self._unconfirmed.clear()
+
+    # -- reassignment ----------------------------------------------------------------
+    def _reassign(self, verdicts: list, now: float) -> list:
+        from design.errors import SocmonError
+        from design.roster import replan, role_specs
+
+        self.verdicts += verdicts
+        failed = sorted({v.agent for v in verdicts})
+        self.failed |= set(failed)
+        for v in verdicts:
+            self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
+        roster = self.roster
+        try:
+            plan, nxt = replan(roster, failed)
+        except SocmonError as exc:
+            nxt, plan = None, None
+            self.events.append(f"no recovery plan: {exc}")
+        if nxt is None or not plan.structurally_observable_after:
+            self.unrecoverable = True
+            self.events.append(
+                f"RECOVERY IMPOSSIBLE after the failure of {failed}: no equivalent agent or "
+                "connected network left; keeping the configuration in force and monitoring")
+            return []
+        # standbys that were convicted cannot be used: plan again without them
+        if any(a in self.failed for a in nxt.ids):
+            bad = [a for a in nxt.ids if a in self.failed]
+            self.events.append(f"replacements {bad} have failed before: skipped")
+            nxt = None
+        if nxt is None:
+            self.unrecoverable = True
+            return []
+        G, precomputed = self.gains.get(nxt)
+        if G is None:
+            self.unrecoverable = True
+            self.events.append("no stabilising gain for the new configuration; keeping the "
+                               "configuration in force")
+            return []
+        take_over = {r.by: roster.ids[r.failed] for r in plan.replacements if r.by_standby}
+        specs = role_specs(nxt, G, take_over=take_over)
+        self.epoch += 1
+        activate_at = max(self.newest_step(), 0) + self.config.lead_steps
+        out = []
+        for agent, spec in specs.items():
+            if not spec.same_as(self.specs.get(agent)) or spec.take_over:
+                asg = Assignment(agent, self.epoch, activate_at, spec)
+                out.append(asg)
+                self._unconfirmed[agent] = asg
+        roster_msg = RosterUpdate(self.epoch, activate_at, tuple(nxt.ids))
+        out.append(roster_msg)
+        self._roster_msg = roster_msg
+        self._sent_at = self._assigned_at = now
+        self.history.append({
+            "epoch": self.epoch, "activate_at": activate_at, "failed": failed,
+            "causes": {v.agent: v.cause for v in verdicts}, "ids": list(nxt.ids),
+            "replacements": [{"failed": roster.ids[r.failed], "by": r.by,
+                              "from": self.scenario.labels[r.node_from],
+                              "to": self.scenario.labels[r.node_to]} for r in plan.replacements],
+            "added_links": [list(x) for x in plan.added_links],
+            "precomputed": precomputed, "decided_at": now,
+        })
+        self.events.append(
+            f"epoch {self.epoch}: {', '.join(f'{r.by} measures {self.scenario.labels[r.node_to]}' for r in plan.replacements) or 'no replacement needed'}"
+            f"; ids {list(nxt.ids)} from step {activate_at}"
+            + (" (precomputed gains)" if precomputed else " (gains designed now)"))
+        self.roster, self.G, self.specs = nxt, G, specs
+        return out
+
+    def confirmed(self) -> bool:
+        return not self._unconfirmed
+
+    # -- state from the network ------------------------------------------------------
+    def adopt(self, ids=None, epoch: int = 0) -> bool:
+        """Rebuild the configuration in force from the agents' statuses.
+
+        A monitor that was (re)started, or that takes over from another one, knows
+        nothing of past reassignments: the roster it heard (``ids``, ``epoch``) or, if
+        none, the agents whose status says they are active, and each one's measured
+        nodes and neighbour weights from its status, are the configuration in force.
+        Agents of the scenario outside it count as failed; live agents without a role
+        are the standbys. Epochs continue above every epoch seen. Returns False while a
+        status is missing.
+        """
+        from design.roster import Roster
+
+        s = self.scenario
+        if ids is None:
+            ids = sorted(a for a, st in self.agents.items()
+                         if st.alive and st.status.get("active"))
+        rows = [int(a) for a in ids]
+        if not rows or any(not self.agents[a].status.get("active") for a in rows):
+            return False
+        W = np.zeros((len(rows), len(rows)))
+        measure = []
+        for i, a in enumerate(rows):
+            st = self.agents[a].status
+            for b, w in st["neighbours"].items():
+                if b in rows and b != a:
+                    W[i, rows.index(b)] = w
+            W[i, i] = 1.0 - W[i].sum()
+            measure.append(tuple(s.index_of(label) for label in st["measure"]))
+        standby = tuple(a for a, st in sorted(self.agents.items())
+                        if a not in rows and st.alive and not st.status.get("active")
+                        and a not in self.failed)
+        table = self.roster.table
+        D = table[np.ix_([a - 1 for a in rows], [a - 1 for a in rows])]
+        D = np.where((W > 0) & ~np.eye(len(rows), dtype=bool), D, 0)
+        scen = s.replace(W=W, measure=tuple(measure), delays=D, standby=len(standby))
+        self.roster = Roster(scen, tuple(rows), standby, table, D)
+        self.failed |= {a for a in range(1, s.N + 1) if a not in rows}
+        self.G, self.specs = None, {}
+        self.epoch = max([self.epoch, int(epoch)] + [st.epoch for st in self.agents.values()])
+        self.events.append(f"adopted the configuration in force: ids {rows}, standby "
+                           f"{list(standby)}, epoch {self.epoch}")
+        return True

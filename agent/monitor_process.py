@@ -1,0 +1,175 @@
+"""The monitor process: feeds an :class:`agent.monitor_core.MonitorCore` from a zenoh peer.
+
+It joins the run as the peer ``monitor/<id>``, reads every agent's liveliness and status,
+ticks the core every ``TICK_S``, and publishes what the core decides: assignments on
+``ctl/<agent>`` and the roster (the fence) on ``ctl/0``, the roster again every
+``ROSTER_S`` so that an agent coming back learns it was replaced. At start-up a
+background thread precomputes the plan and the gains of every single failure of the
+configuration in force (again after every reassignment), so that a foreseen failure is
+answered without designing anything.
+
+Several monitors may run on one run: the one with the smallest id whose token is alive
+acts, the others stay passive and watch; when the active one's token goes, the next one
+adopts the configuration in force from the roster it heard and the agents' statuses
+(:meth:`MonitorCore.adopt`) and goes on with epochs above every epoch it saw.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+import time
+
+from broker_free_net import keys
+from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.peer import Peer
+
+from . import wire
+from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
+
+__all__ = ["run_monitor", "precompute_single_failures", "TICK_S", "ROSTER_S"]
+
+TICK_S = 0.01
+ROSTER_S = 1.0
+
+
+class _Stop:
+    def __init__(self):
+        self.flag = False
+
+    def __call__(self, *_):
+        self.flag = True
+
+
+def precompute_single_failures(roster, gains: GainSource, stop=lambda: False, log=None) -> int:
+    """Plan and design gains for the failure of each single agent of ``roster``."""
+    from design.errors import SocmonError
+    from design.roster import replan
+
+    done = 0
+    for a in roster.ids:
+        if stop():
+            break
+        try:
+            plan, nxt = replan(roster, [a])
+        except SocmonError:
+            continue
+        if nxt is None or gains.has(nxt):
+            continue
+        G, _ = gains.get(nxt)
+        done += G is not None
+        if log is not None:
+            print(f"monitor: precomputed the failure of agent {a}: "
+                  f"{'gains ready' if G is not None else 'no stabilising gain'}", file=log,
+                  flush=True)
+    return done
+
+
+def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorConfig = None,
+                log=sys.stderr, stop=None, events_out=None, precompute: bool = True) -> int:
+    """Run the monitor until stopped (SIGTERM/SIGINT). Returns the exit status.
+
+    ``events_out``: a path; every verdict and reassignment is appended as one JSON line.
+    """
+    stop = stop or _Stop()
+    if isinstance(stop, _Stop):
+        signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGINT, stop)
+    gains = GainSource()
+    core = MonitorCore(config or MonitorConfig(), scenario, G, delays, gains=gains)
+    stats = MessageStats()
+    run = net.run
+    ctl_schema = wire.roster_schema()
+    out_file = open(events_out, "a") if events_out else None
+
+    def record(kind, **fields):
+        if out_file is not None:
+            out_file.write(json.dumps({"kind": kind, "t": time.time(), **fields}) + "\n")
+            out_file.flush()
+
+    worker = {"thread": None, "roster": None}
+
+    def precompute_for(roster):
+        if not precompute or worker["roster"] is roster:
+            return
+        worker["roster"] = roster
+        t = threading.Thread(target=precompute_single_failures,
+                             args=(roster, gains, lambda: stop.flag or core.roster is not roster,
+                                   log), daemon=True)
+        worker["thread"] = t
+        t.start()
+
+    with Peer(net, "monitor", monitor_id) as peer:
+        status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+        roster_in = peer.subscribe(keys.ctl_key(run, 0))
+        watch = peer.watch_liveliness()
+        heard_roster = None
+        active = False
+        next_roster = 0.0
+        print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
+        while not stop.flag:
+            now = time.monotonic()
+            for ev in watch.drain():
+                if ev.role == "agent" and ev.id.isdigit():
+                    core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
+                    if not ev.alive:
+                        record("liveliness", agent=int(ev.id), alive=False)
+            for item in status_in.drain():
+                msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
+                if msg is not None:
+                    core.on_status(msg, now)
+            for item in roster_in.drain():
+                msg = try_decode(item.payload, ctl_schema, stats)
+                if msg is not None and (heard_roster is None or msg["epoch"] > heard_roster["epoch"]):
+                    heard_roster = msg
+            others = sorted(int(i) for role, i in watch.alive() if role == "monitor"
+                            and i.isdigit() and int(i) != monitor_id)
+            should = not others or monitor_id < others[0]
+            if should and not active:
+                if heard_roster is not None and heard_roster["epoch"] > core.epoch:
+                    if not core.adopt(heard_roster["ids"], heard_roster["epoch"]):
+                        peer.wait(timeout=0.05)
+                        continue
+                print(f"monitor {monitor_id}: active", file=log, flush=True)
+                record("active", monitor=monitor_id, epoch=core.epoch)
+                active = True
+                precompute_for(core.roster)
+            elif not should and active:
+                print(f"monitor {monitor_id}: another monitor ({others[0]}) is active; passive",
+                      file=log, flush=True)
+                active = False
+            if active:
+                for m in core.tick(now):
+                    if isinstance(m, Assignment):
+                        sp = m.spec
+                        peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
+                            m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
+                            sp.self_weight, sp.gain, take_over=sp.take_over))
+                    elif isinstance(m, RosterUpdate):
+                        peer.put(keys.ctl_key(run, 0),
+                                 wire.encode_roster(m.epoch, m.activate_at, m.ids))
+                        next_roster = now + ROSTER_S
+                for line in core.events:
+                    print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                core.events.clear()
+                while len(core.verdicts) > worker.get("verdicts", 0):
+                    v = core.verdicts[worker.get("verdicts", 0)]
+                    worker["verdicts"] = worker.get("verdicts", 0) + 1
+                    record("verdict", agent=v.agent, cause=v.cause, evidence=v.evidence,
+                           step=v.step, mono=v.at)
+                while len(core.history) > worker.get("history", 0):
+                    h = core.history[worker.get("history", 0)]
+                    worker["history"] = worker.get("history", 0) + 1
+                    record("reassign", **{k: v for k, v in h.items() if k != "decided_at"},
+                           mono=h["decided_at"])
+                    precompute_for(core.roster)
+                if core._roster_msg is not None and now >= next_roster:
+                    m = core._roster_msg
+                    peer.put(keys.ctl_key(run, 0), wire.encode_roster(m.epoch, m.activate_at, m.ids))
+                    next_roster = now + ROSTER_S
+            peer.wait(timeout=TICK_S)
+    if out_file is not None:
+        out_file.close()
+    return 0
