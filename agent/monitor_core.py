@@ -72,6 +72,9 @@ class MonitorConfig:
     pause_guard_s : float
         A gap between two ticks longer than this suspends verdicts (the monitor itself
         was paused) until ``hang_timeout_s`` of fresh evidence has passed.
+    step_s : float
+        The run's step period: the current step is extrapolated from the newest status
+        (statuses come every 0.2 s, ten steps at 20 ms).
     """
 
     hang_timeout_s: float = 1.0
@@ -81,6 +84,7 @@ class MonitorConfig:
     resend_s: float = 0.25
     confirm_timeout_s: float = 3.0
     pause_guard_s: float = 0.5
+    step_s: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -204,6 +208,7 @@ class MonitorCore:
         self._last_tick: float | None = None
         self._suspended_until = -math.inf
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
+        self._clock = (-1, 0.0)           # (newest step reported, when)
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
@@ -225,6 +230,8 @@ class MonitorCore:
             a.progress_at = now
             a.others_at_progress = self.newest_step(exclude=msg["agent"])
         a.step = step
+        if step >= self._clock[0]:
+            self._clock = (step, now)
         a.epoch = int(msg.get("epoch", 0))
         a.active = bool(msg.get("active", False))
         ctl = msg.get("ctl") if isinstance(msg.get("ctl"), dict) else {}
@@ -242,6 +249,13 @@ class MonitorCore:
         except (TypeError, ValueError):
             return None
         return self.agents.get(agent)
+
+    def current_step(self, now: float) -> int:
+        """The newest step reported, extrapolated to ``now`` at the run's step period."""
+        step, t = self._clock
+        if step < 0:
+            return step
+        return step + max(0, int((now - t) / self.config.step_s))
 
     def newest_step(self, exclude=None) -> int:
         steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
@@ -265,11 +279,35 @@ class MonitorCore:
             found = self._detect(now)
             if found:
                 out += self._reassign(found, now)
-        if self._unconfirmed and self._sent_at is not None and now - self._sent_at >= cfg.resend_s:
+        if self._unconfirmed and self._roster_msg is not None \
+                and self.current_step(now) >= self._roster_msg.activate_at - 1:
+            out += self._reissue(now)
+        elif self._unconfirmed and self._sent_at is not None and now - self._sent_at >= cfg.resend_s:
             out += list(self._unconfirmed.values())
             if self._roster_msg is not None:
                 out.append(self._roster_msg)
             self._sent_at = now
+        return out
+
+    def _reissue(self, now: float) -> list:
+        """``activate_at`` passed before every agent confirmed: the same roles again under
+        a new epoch, every agent of the configuration, a later ``activate_at``."""
+        self.epoch += 1
+        at = self.current_step(now) + self.config.lead_steps
+        out = []
+        self._unconfirmed = {}
+        for agent, spec in self.specs.items():
+            asg = Assignment(agent, self.epoch, at, spec)
+            out.append(asg)
+            self._unconfirmed[agent] = asg
+        self._roster_msg = RosterUpdate(self.epoch, at, tuple(self.roster.ids))
+        out.append(self._roster_msg)
+        self._sent_at = now
+        if self.history:
+            self.history[-1] = {**self.history[-1], "epoch": self.epoch, "activate_at": at,
+                                "reissued": self.history[-1].get("reissued", 0) + 1}
+        self.events.append(f"epoch {self.epoch}: activate_at passed before confirmation; "
+                           f"re-issued from step {at}")
         return out
 
     def _detect(self, now: float) -> list:
@@ -303,13 +341,15 @@ class MonitorCore:
                 self.events.append(f"agent {agent} confirmed epoch {asg.epoch}")
         if (self._unconfirmed and self._assigned_at is not None
                 and now - self._assigned_at > self.config.confirm_timeout_s):
-            late = sorted(self._unconfirmed)
-            for agent in late:
-                if agent in self.roster.ids and agent not in self.failed:
-                    self.agents[agent].alive = False     # convicted below as 'crash'
+            for agent in sorted(self._unconfirmed):
+                a = self.agents[agent]
+                stale = a.progress_at is None or now - a.progress_at > self.config.confirm_timeout_s
+                if stale and agent in self.roster.ids and agent not in self.failed:
+                    a.alive = False      # convicted at the next detection as 'crash'
                     self.events.append(f"agent {agent} did not confirm epoch "
-                                       f"{self._unconfirmed[agent].epoch}: treated as failed")
-            self._unconfirmed.clear()
+                                       f"{self._unconfirmed[agent].epoch} and reports no "
+                                       "progress: treated as failed")
+                    del self._unconfirmed[agent]
 
     # -- reassignment ----------------------------------------------------------------
     def _reassign(self, verdicts: list, now: float) -> list:
@@ -350,7 +390,7 @@ class MonitorCore:
         take_over = {r.by: roster.ids[r.failed] for r in plan.replacements if r.by_standby}
         specs = role_specs(nxt, G, take_over=take_over)
         self.epoch += 1
-        activate_at = max(self.newest_step(), 0) + self.config.lead_steps
+        activate_at = max(self.current_step(now), 0) + self.config.lead_steps
         out = []
         for agent, spec in specs.items():
             if not spec.same_as(self.specs.get(agent)) or spec.take_over:

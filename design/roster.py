@@ -44,6 +44,7 @@ __all__ = [
     "link_delay_table",
     "replan",
     "role_specs",
+    "roster_from_specs",
 ]
 
 
@@ -205,3 +206,30 @@ def role_specs(roster: Roster, G, take_over=None) -> dict:
             self_weight=float(s.W[i, i]), gain=np.asarray(G[i], dtype=float),
             take_over=take_over.get(a))
     return out
+
+
+def roster_from_specs(scenario, table, ids, specs: dict):
+    """The configuration held by ``ids`` whose roles are ``specs`` ({id: RoleSpec}).
+
+    Returns ``(Scenario, G, delays)`` by row (row i = ``ids[i]``), delays from the run's
+    link delay ``table``: what a recorder rebuilds from the assignments it saw, to predict
+    the new configuration's error exactly and to replay it in the simulator.
+    """
+    ids = [int(a) for a in ids]
+    n = len(ids)
+    W = np.zeros((n, n))
+    measure, G = [], []
+    for i, a in enumerate(ids):
+        sp = specs[a]
+        for b, w in sp.neighbours.items():
+            if b not in ids:
+                raise RosterError(f"agent {a} listens to {b}, which holds no role")
+            W[i, ids.index(b)] = w
+        W[i, i] = sp.self_weight
+        measure.append(tuple(scenario.index_of(label) for label in sp.measure))
+        G.append(np.asarray(sp.gain, dtype=float))
+    idx = [a - 1 for a in ids]
+    D = np.asarray(table)[np.ix_(idx, idx)]
+    D = np.where((W > 0) & ~np.eye(n, dtype=bool), D, 0)
+    new = scenario.replace(W=W, measure=tuple(measure), delays=D, standby=0)
+    return new, G, D

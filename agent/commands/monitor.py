@@ -26,6 +26,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lead-steps", type=int, default=10,
                         help="activate a reassignment this many steps after the newest step "
                              "reported (default 10)")
+    parser.add_argument("--step-ms", type=float, default=None,
+                        help="the run's step period (default: the scenario's step_ms)")
     parser.add_argument("--events", metavar="FILE",
                         help="append every verdict and reassignment to FILE as JSON lines")
     parser.add_argument("--no-precompute", action="store_true",
@@ -63,7 +65,11 @@ def run(args) -> int:
             net = net_config_from_args(args)
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
-        config = MonitorConfig(hang_timeout_s=args.hang_timeout, lead_steps=args.lead_steps)
+        step_ms = args.step_ms if args.step_ms is not None else scenario.step_ms
+        if not (math.isfinite(step_ms) and step_ms > 0):
+            raise CommandError(f"--step-ms: must be > 0, got {step_ms}")
+        config = MonitorConfig(hang_timeout_s=args.hang_timeout, lead_steps=args.lead_steps,
+                               step_s=step_ms / 1000.0)
         return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
                            events_out=args.events, precompute=not args.no_precompute)
 
