@@ -72,6 +72,9 @@ class MonitorConfig:
     pause_guard_s : float
         A gap between two ticks longer than this suspends verdicts (the monitor itself
         was paused) until ``hang_timeout_s`` of fresh evidence has passed.
+    settle_s : float
+        After a first verdict, wait this long for others (agents killed together) so that
+        one reassignment answers them all.
     step_s : float
         The run's step period: the current step is extrapolated from the newest status
         (statuses come every 0.2 s, ten steps at 20 ms).
@@ -85,6 +88,7 @@ class MonitorConfig:
     confirm_timeout_s: float = 3.0
     pause_guard_s: float = 0.5
     step_s: float = 0.02
+    settle_s: float = 0.03
 
 
 @dataclass(frozen=True)
@@ -209,6 +213,7 @@ class MonitorCore:
         self._suspended_until = -math.inf
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
         self._clock = (-1, 0.0)           # (newest step reported, when)
+        self._first_verdict_at = None     # the settle window of simultaneous failures
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
@@ -277,7 +282,10 @@ class MonitorCore:
         self._check_confirmations(now)
         if now >= self._suspended_until and self.newest_step() >= 0:
             found = self._detect(now)
-            if found:
+            if found and self._first_verdict_at is None:
+                self._first_verdict_at = now
+            if found and now - self._first_verdict_at >= cfg.settle_s:
+                self._first_verdict_at = None
                 out += self._reassign(found, now)
         if self._unconfirmed and self._roster_msg is not None \
                 and self.current_step(now) >= self._roster_msg.activate_at - 1:
@@ -391,6 +399,7 @@ class MonitorCore:
         specs = role_specs(nxt, G, take_over=take_over)
         self.epoch += 1
         activate_at = max(self.current_step(now), 0) + self.config.lead_steps
+        self._unconfirmed = {a: asg for a, asg in self._unconfirmed.items() if a in nxt.ids}
         out = []
         for agent, spec in specs.items():
             if not spec.same_as(self.specs.get(agent)) or spec.take_over:

@@ -43,17 +43,27 @@ class _Stop:
         self.flag = True
 
 
+#: pairs of failures are precomputed too when the configuration has at most this many agents
+PAIRS_UP_TO = 4
+
+
 def precompute_single_failures(roster, gains: GainSource, stop=lambda: False, log=None) -> int:
-    """Plan and design gains for the failure of each single agent of ``roster``."""
+    """Plan and design gains for the failure of each single agent of ``roster`` (and of
+    each pair when it has at most :data:`PAIRS_UP_TO` agents)."""
+    import itertools
+
     from design.errors import SocmonError
     from design.roster import replan
 
     done = 0
-    for a in roster.ids:
+    sets = [[a] for a in roster.ids]
+    if len(roster.ids) <= PAIRS_UP_TO:
+        sets += [list(p) for p in itertools.combinations(roster.ids, 2)]
+    for a in sets:
         if stop():
             break
         try:
-            plan, nxt = replan(roster, [a])
+            plan, nxt = replan(roster, a)
         except SocmonError:
             continue
         if nxt is None or gains.has(nxt):
@@ -61,7 +71,7 @@ def precompute_single_failures(roster, gains: GainSource, stop=lambda: False, lo
         G, _ = gains.get(nxt)
         done += G is not None
         if log is not None:
-            print(f"monitor: precomputed the failure of agent {a}: "
+            print(f"monitor: precomputed the failure of agents {a}: "
                   f"{'gains ready' if G is not None else 'no stabilising gain'}", file=log,
                   flush=True)
     return done

@@ -332,6 +332,9 @@ def _up(args) -> int:
         "orphans": [c.name for c in children.children.values() if c.returncode is None],
         "monitor": not args.no_monitor,
         "events": events,
+        "final_roles": {str(a): {"active": st.get("active"), "epoch": st.get("epoch"),
+                                 "measure": st.get("measure")}
+                        for a, st in last.items() if st},
     }
     summary.update(_failures(out / "events.jsonl", events, rosters, assigns, scenario,
                              delays, steps_done, mse, K, G))
@@ -542,7 +545,8 @@ def _compare_simulator(scenario, G, K, seed, delays, truth, est, active, mse, st
             return float("inf"), "the simulator replays one scripted crash step only"
         f = next(iter(kills.values()))
         fail = (f, sorted(a - 1 for a in kills))
-        rosters = recovery["rosters"]
+        rosters = [r for i, r in enumerate(recovery["rosters"])
+                   if i == 0 or r[1] != recovery["rosters"][i - 1][1]]   # re-issues
         if len(rosters) > 2:
             return float("inf"), "the simulator replays one reassignment only"
         if len(rosters) == 2:

@@ -1,0 +1,77 @@
+"""The monitor on live runs: failures detected, roles handed over, the run goes on.
+
+Each test is one ``socmon up`` (world, agents, standby and monitor as OS processes on
+loopback, each in its own process group, stopped by ``up`` itself) with scripted faults.
+Waits are bounded by the run's own timeouts; nothing sleeps a fixed time.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from design.closed_loop import closed_loop_for
+from design.gains import save_gains
+from design.scenario import load_scenario, resolve_delays
+from tests.test_runtime_multiprocess import _socmon
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def live_gains(tmp_path_factory):
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    rho = closed_loop_for(s, G, resolve_delays(s, "none")).spectral_radius()
+    assert rho < 1
+    path = tmp_path_factory.mktemp("gains") / "live.npz"
+    save_gains(path, G, {"method": "fixed", "rho": rho})
+    return path
+
+
+def _up(tmp_path, gains, *flags, steps=300):
+    code, out, err = _socmon("up", "paper-14-live", "--steps", str(steps), "--gains",
+                             str(gains), "--out", str(tmp_path / "run"), "--json",
+                             "--step-ms", "20", *flags)
+    assert code == 0, err
+    return json.loads(out)
+
+
+def test_crashed_agent_is_replaced_and_the_run_equals_the_simulator(tmp_path, live_gains):
+    """SIGKILL of the agent measuring 7: the standby measures a node of {6, 7, 8}, the run
+    goes on, and its estimates equal the simulator's replay of the crash and of the
+    monitor's reassignment."""
+    s = _up(tmp_path, live_gains, "--kill", "100:1", "--check-simulator")
+    (f,) = s["failures"]
+    assert f["agent"] == 1 and f["cause"] == "crash"
+    assert f["replacement"]["agent"] == 4 and f["replacement"]["node"] in {"6", "8"}
+    assert f["activate_at"] > f["detected_step"] >= 99 and f["precomputed"]
+    assert s["recovered"] and s["rosters"][-1]["ids"] == [4, 2, 3]
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9
+    assert s["exit_status"]["agent-1"] == -9 and s["orphans"] == []
+    predicted = s["mse_steady_predicted_after_recovery"]
+    assert 0.2 * predicted < s["mse_steady_after_recovery"] < 5 * predicted, s
+
+
+def test_two_failures_at_once_are_replaced_as_in_the_paper(tmp_path, live_gains):
+    """Agents 1 and 2 (nodes 7 and 9) fail together: nodes 8 and 10 are measured again
+    (the paper's Fig. 3), by the standby and by a survivor."""
+    s = _up(tmp_path, live_gains, "--kill", "100:1,2", "--check-simulator")
+    assert sorted(f["agent"] for f in s["failures"]) == [1, 2]
+    assert {f["replacement"]["node"] for f in s["failures"]} == {"8", "10"}
+    assert s["recovered"] and s["max_rel_diff_vs_simulator"] <= 1e-9
+
+
+def test_a_stopped_agent_is_replaced_and_fenced_when_it_resumes(tmp_path, live_gains):
+    """SIGSTOP of agent 2 for 4 s: the monitor convicts it (its loop stops advancing),
+    the standby takes its role; resumed, agent 2 learns it was replaced, drops its role
+    and stays (it does not exit while the world is alive)."""
+    s = _up(tmp_path, live_gains, "--stop", "100:2:4", steps=500)
+    (f,) = s["failures"]
+    assert f["agent"] == 2 and f["cause"] in {"hang", "crash"}
+    assert 0 < f["detection_ms"] < 4000
+    assert f["replacement"]["agent"] == 4 and s["recovered"]
+    final = s["final_roles"]
+    assert final["2"]["active"] is False and final["2"]["epoch"] >= f["epoch"]
+    assert final["4"]["active"] is True
+    assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
