@@ -41,6 +41,7 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -280,7 +281,7 @@ class MonitorCore:
         self._last_tick = now
         out = []
         self._check_confirmations(now)
-        if now >= self._suspended_until and self.newest_step() >= 0:
+        if now >= self._suspended_until and self._clock[0] >= 0:
             found = self._detect(now)
             if found and self._first_verdict_at is None:
                 self._first_verdict_at = now
@@ -321,7 +322,7 @@ class MonitorCore:
     def _detect(self, now: float) -> list:
         cfg = self.config
         found = []
-        newest = self.newest_step()
+        newest = self._clock[0]
         for i in self.roster.ids:
             if i in self.failed:
                 continue
@@ -369,7 +370,10 @@ class MonitorCore:
         self.failed |= set(failed)
         for v in verdicts:
             self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
-        roster = self.roster
+        # only live standbys that never failed can take a role
+        roster = dataclasses.replace(self.roster, standby_ids=tuple(
+            a for a in self.roster.standby_ids
+            if self.agents[a].alive and a not in self.failed))
         try:
             plan, nxt = replan(roster, failed)
         except SocmonError as exc:

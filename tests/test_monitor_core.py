@@ -1,0 +1,119 @@
+"""MonitorCore stepped by hand: verdicts, their guards, and the reassignment it publishes."""
+
+import numpy as np
+import pytest
+
+from agent.monitor_core import Assignment, MonitorConfig, MonitorCore, RosterUpdate
+
+
+def _status(agent, step, epoch=0, active=True, pending=0, sensor_last=None):
+    return {"agent": agent, "step": step, "epoch": epoch, "active": active,
+            "ctl": {"pending": pending}, "sensor": {"last_step": step if sensor_last is None
+                                                    else sensor_last}}
+
+
+@pytest.fixture
+def core(paper14):
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    c = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), paper14,
+                    G, paper14.delays)
+    for a in (1, 2, 3, 4):
+        c.on_liveliness("agent", a, True, 0.0)
+    return c
+
+
+def _advance(core, t0, t1, steps_at, skip=(), dt=0.1):
+    """Statuses of every agent every dt from t0 to t1; steps follow the clock."""
+    t = t0
+    out = []
+    while t <= t1 + 1e-9:
+        for a in (1, 2, 3, 4):
+            if a not in skip:
+                core.on_status(_status(a, int(steps_at(t)), active=a <= 3), t)
+        out += core.tick(t)
+        t += dt
+    return out
+
+
+def test_a_healthy_run_convicts_nobody_even_when_everyone_is_slow(core):
+    out = _advance(core, 0.0, 5.0, lambda t: 50 * t)
+    out += _advance(core, 5.1, 10.0, lambda t: 250)          # the whole run stalls
+    assert out == [] and core.verdicts == []
+
+
+def test_crash_is_convicted_and_the_standby_takes_node_8(core, paper14):
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    out = core.tick(2.05)
+    (v,) = core.verdicts
+    assert (v.agent, v.cause) == (1, "crash")
+    asg = {m.agent: m for m in out if isinstance(m, Assignment)}
+    (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert roster.ids == (4, 2, 3) and roster.epoch == 1
+    assert asg[4].spec.measure == ("8",) and asg[4].spec.take_over == 1
+    # one epoch and one activate_at for everyone, ahead of the extrapolated step (102)
+    assert {m.epoch for m in asg.values()} == {1}
+    assert {m.activate_at for m in asg.values()} == {roster.activate_at}
+    assert roster.activate_at >= 102 + core.config.lead_steps
+    # W row of agent 3 now listens to 4 with agent 1's weight (renormalised rows)
+    assert asg[3].spec.neighbours == {4: paper14.W[2, 0]}
+
+
+def test_hang_needs_both_no_progress_and_the_others_moving_on(core):
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    out = _advance(core, 1.1, 1.9, lambda t: 50 * t, skip=(2,))
+    assert core.verdicts == []                                # 0.9 s: below the timeout
+    out = _advance(core, 2.0, 2.6, lambda t: 50 * t, skip=(2,))
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "hang")]
+    assert any(isinstance(m, RosterUpdate) for m in out)
+
+
+def test_a_paused_monitor_suspends_its_verdicts(core):
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    # the monitor itself sleeps 3 s: agent 2's status looks 3 s old, but that is no evidence
+    core.on_status(_status(1, 200), 4.0)
+    core.on_status(_status(3, 200), 4.0)
+    assert core.tick(4.0) == [] and core.verdicts == []
+    assert any("paused" in e for e in core.events)
+
+
+def test_unconfirmed_assignments_are_resent_then_reissued(core):
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    first = core.tick(2.05)
+    at = next(m for m in first if isinstance(m, RosterUpdate)).activate_at
+    assert at == 102 + core.config.lead_steps
+    # before the resend period nothing; after it the same assignments again
+    assert core.tick(2.10) == []
+    # nobody confirmed and activate_at is reached: same roles, new epoch, later step
+    t = 2.0 + (at - 100) * 0.02
+    later = core.tick(t)
+    (roster,) = [m for m in later if isinstance(m, RosterUpdate)]
+    assert roster.epoch == 2 and roster.activate_at > at and roster.ids == (4, 2, 3)
+    # confirmations clear them
+    for a in (2, 3, 4):
+        core.on_status(_status(a, at, epoch=0, pending=2), t + 0.01)
+    core.tick(t + 0.01)
+    assert core.confirmed()
+
+
+def test_no_candidate_left_is_said_loudly_and_monitoring_goes_on(core):
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    for a in (1, 2, 3):
+        core.on_liveliness("agent", a, False, 1.05)
+    core.on_liveliness("agent", 4, False, 1.05)
+    assert core.tick(1.05) == []
+    assert core.unrecoverable and any("IMPOSSIBLE" in e for e in core.events)
+
+
+def test_a_restarted_monitor_adopts_the_configuration_from_statuses(core, paper14):
+    fresh = MonitorCore(MonitorConfig(), paper14, core.G, paper14.delays)
+    W3 = paper14.W
+    for a, nbrs, measure in ((4, {2: W3[0, 1]}, ["8"]), (2, {3: W3[1, 2]}, ["9"]),
+                             (3, {4: W3[2, 0]}, ["12"])):
+        fresh.on_liveliness("agent", a, True, 0.0)
+        fresh.on_status({**_status(a, 300, epoch=5), "neighbours": nbrs, "measure": measure},
+                        0.0)
+    assert fresh.adopt([4, 2, 3], epoch=5)
+    assert fresh.roster.ids == (4, 2, 3) and fresh.epoch == 5 and 1 in fresh.failed
+    np.testing.assert_allclose(fresh.roster.scenario.W, W3)
