@@ -231,6 +231,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     publish_status()
                     print(f"agent {me}: scripted crash after step {step}", file=log, flush=True)
                     time.sleep(CRASH_FLUSH_S)
+                    print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
                     os.kill(os.getpid(), signal.SIGKILL)
             sync_sensors()
             now = time.monotonic()

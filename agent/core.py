@@ -219,7 +219,7 @@ class AgentConfig:
 class _Neighbour:
     """What an agent holds from one other agent."""
 
-    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held")
+    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held", "since")
 
     def __init__(self, window: int):
         self.est: dict = {}              # stamp -> x
@@ -228,6 +228,7 @@ class _Neighbour:
         self.missed: set = set()         # stamps needed but missing at a deadline
         self.alive = True
         self.step_held = 0               # messages held by an injected step delay
+        self.since = -1                  # oldest stamp usable on the link of the current role
 
     @property
     def tau(self):
@@ -311,6 +312,18 @@ class AgentCore:
             nb = self.nbrs.get(j)
             if nb is not None and nb.tau is not None:
                 out[j] = nb.tau
+        return out
+
+    def neighbour_ages(self) -> dict:
+        """``{neighbour: step - stamp of the freshest estimate held}`` for the current role
+        (-1 when nothing is held): the evidence of a neighbour gone silent."""
+        if self.role is None or self.step < 0:
+            return {}
+        out = {}
+        for j in self.role.neighbours:
+            nb = self.nbrs.get(j)
+            s = nb.freshest(self.step) if nb is not None else None
+            out[j] = -1 if s is None else self.step - s
         return out
 
     # -- inputs ------------------------------------------------------------------
@@ -502,6 +515,14 @@ class AgentCore:
             else:
                 self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
             out.append((k - 1, self.x))
+        # a link new in this role carries, like the simulator's, only what is delivered on
+        # it from step k on: the estimate stamped k - 1 - tau and later ones (what the
+        # agent heard from that neighbour before is not held on this link)
+        old = self.role.neighbours if self.role is not None else {}
+        for j in role.neighbours:
+            if j not in old:
+                nb = self._nb(j)
+                nb.since = k - 1 - (nb.tau if nb.tau is not None else 0)
         self.role, self.pending, self.epoch = role, None, role.epoch
         return out
 
@@ -527,7 +548,7 @@ class AgentCore:
             nb = self._nb(j)
             tau = nb.tau if nb.tau is not None else 0
             need = max(k - 1 - tau, 0)
-            if need in nb.est and self._usable(j, need):
+            if need in nb.est and need >= nb.since and self._usable(j, need):
                 plan[j] = (need, need)
             elif (nb.alive and not nb.step_held and need not in nb.est
                   and not (nb.est and max(nb.est) > need)):
@@ -549,7 +570,8 @@ class AgentCore:
                     nb.missed.add(need)
                     if len(nb.missed) > self.history:
                         nb.missed.discard(min(nb.missed))
-                plan[j] = (nb.freshest(k - 1, lambda st, j=j: self._usable(j, st)), need)
+                plan[j] = (nb.freshest(k - 1, lambda st, j=j, nb=nb: st >= nb.since
+                                       and self._usable(j, st)), need)
         return plan
 
     def _compute(self, k: int, readings: dict, plan: dict):
@@ -594,6 +616,7 @@ class AgentCore:
             "drops": self.drops,
             "late": self.late,
             "inputs": dict(self.states),
+            "ages": self.neighbour_ages(),
             "fenced": self.fenced,
             "roster_epoch": self.roster_epoch,
             "impaired": self.impaired,

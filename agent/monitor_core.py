@@ -13,7 +13,15 @@ Detection (one verdict per cause, each with its evidence):
   moved for ``hang_timeout_s`` while the other agents' steps moved on by more than
   ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody);
 - ``sensor``: its status says the readings of its nodes have not arrived for
-  ``sensor_lag_steps`` steps while the others advance.
+  ``sensor_lag_steps`` steps while the others advance;
+- ``silent``: it looks alive and advances, but every agent that listens to it reports
+  that the freshest estimate it holds from it is more than ``silent_steps`` old, for
+  ``hang_timeout_s`` (its estimates no longer reach the network: a partition, a broken
+  publisher);
+- ``delay``: the delays the agents learned on their links exceed the ones the gains were
+  designed for and the exact closed loop with the learned delays is no longer stable
+  (radius >= 1). Nobody is removed: the monitor designs gains for the learned delays and
+  assigns them under a new epoch (same roles).
 
 The monitor guards against its own pauses: when two calls of :meth:`tick` are more than
 ``pause_guard_s`` apart, it suspends verdicts and restarts every progress clock (it has
@@ -64,6 +72,9 @@ class MonitorConfig:
         ... and the others must have advanced by more than this many steps meanwhile.
     sensor_lag_steps : int
         An agent whose last reading is this many steps behind the others' steps.
+    silent_steps : int
+        Age (steps) of the freshest estimate its listeners hold from an agent beyond which
+        it counts as silent.
     lead_steps : int
         ``activate_at`` = the newest step reported + this (the assignment's head start).
     resend_s : float
@@ -74,8 +85,8 @@ class MonitorConfig:
         A gap between two ticks longer than this suspends verdicts (the monitor itself
         was paused) until ``hang_timeout_s`` of fresh evidence has passed.
     settle_s : float
-        After a first verdict, wait this long for others (agents killed together) so that
-        one reassignment answers them all.
+        After a first verdict, wait this long for others (agents killed together: their
+        tokens go within a few ms) so that one reassignment answers them all.
     step_s : float
         The run's step period: the current step is extrapolated from the newest status
         (statuses come every 0.2 s, ten steps at 20 ms).
@@ -84,12 +95,13 @@ class MonitorConfig:
     hang_timeout_s: float = 1.0
     hang_lag_steps: int = 10
     sensor_lag_steps: int = 25
+    silent_steps: int = 25
     lead_steps: int = 10
     resend_s: float = 0.25
     confirm_timeout_s: float = 3.0
     pause_guard_s: float = 0.5
     step_s: float = 0.02
-    settle_s: float = 0.03
+    settle_s: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -214,7 +226,12 @@ class MonitorCore:
         self._suspended_until = -math.inf
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
         self._clock = (-1, 0.0)           # (newest step reported, when)
+        self._started = None              # the first tick
         self._first_verdict_at = None     # the settle window of simultaneous failures
+        self._first_seen: dict = {}       # agent -> when its verdict was first found
+        self._silent_since: dict = {}     # agent -> when all its listeners first lost it
+        self._delays_checked = None       # learned delays last certified
+        self.rho_learned = None
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
@@ -279,10 +296,17 @@ class MonitorCore:
             self.events.append(f"monitor paused {now - self._last_tick:.2f} s: verdicts "
                                f"suspended for {cfg.hang_timeout_s:g} s")
         self._last_tick = now
+        if self._started is None:
+            self._started = now
         out = []
         self._check_confirmations(now)
+        if now >= self._suspended_until and self._clock[0] >= 0 and not self._unconfirmed:
+            out += self.check_delays(now)
         if now >= self._suspended_until and self._clock[0] >= 0:
             found = self._detect(now)
+            for v in found:
+                self._first_seen.setdefault(v.agent, now)
+            found = [dataclasses.replace(v, at=self._first_seen[v.agent]) for v in found]
             if found and self._first_verdict_at is None:
                 self._first_verdict_at = now
             if found and now - self._first_verdict_at >= cfg.settle_s:
@@ -329,6 +353,10 @@ class MonitorCore:
             a = self.agents[i]
             if not a.alive and a.progress_at is not None:
                 found.append(Verdict(i, "crash", "liveliness token deleted", now, newest))
+            elif a.progress_at is None and now - self._started > cfg.hang_timeout_s:
+                # a (re)started monitor never saw it: no token, no status, others advance
+                found.append(Verdict(i, "crash", "no liveliness token and no status since "
+                                     "the monitor started", now, newest))
             elif (a.progress_at is not None and now - a.progress_at > cfg.hang_timeout_s
                   and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
                 found.append(Verdict(
@@ -340,7 +368,89 @@ class MonitorCore:
                 found.append(Verdict(
                     i, "sensor", f"last reading at step {a.sensor_last}, others at {newest}",
                     now, newest))
+            else:
+                ages = self._listener_ages(i)
+                if ages and min(ages.values()) > cfg.silent_steps:
+                    since = self._silent_since.setdefault(i, now)
+                    if now - since > cfg.hang_timeout_s:
+                        found.append(Verdict(
+                            i, "silent", "its listeners hold nothing fresher than "
+                            + ", ".join(f"{age} steps (agent {r})" for r, age in sorted(ages.items())),
+                            now, newest))
+                else:
+                    self._silent_since.pop(i, None)
         return found
+
+    def _listener_ages(self, agent: int) -> dict:
+        """``{listener: age of the freshest estimate of agent it holds}`` (-1: none yet
+        counts as not silent; listeners without a status are left out)."""
+        out = {}
+        for j in self.roster.ids:
+            st = self.agents[j].status
+            if j == agent or not st or agent not in st.get("neighbours", {}):
+                continue
+            age = st.get("ages", {}).get(agent)
+            if age is None or age < 0:
+                return {}
+            out[j] = age
+        return out
+
+    def learned_delays(self) -> dict:
+        """``{(receiver, sender): tau}`` from the statuses of the agents in force."""
+        out = {}
+        for a in self.roster.ids:
+            for b, tau in self.agents[a].status.get("delays", {}).items():
+                out[(a, int(b))] = int(tau)
+        return out
+
+    def check_delays(self, now: float) -> list:
+        """The ``delay`` verdict: learned delays above the design and the exact loop with
+        them unstable -> gains designed for the learned delays, same roles, new epoch."""
+        from design.closed_loop import closed_loop_for
+        from design.roster import role_specs
+
+        learned = self.learned_delays()
+        above = {k: v for k, v in learned.items()
+                 if k[1] in self.roster.ids and v > self.roster.delays[
+                     self.roster.row_of(k[0]), self.roster.row_of(k[1])]}
+        key = tuple(sorted(above.items()))
+        if not above or key == self._delays_checked or self.G is None:
+            return []
+        self._delays_checked = key
+        new = self.roster.with_delays(above)
+        rho = closed_loop_for(new.scenario, self.G, new.delays).spectral_radius()
+        self.rho_learned = rho
+        evidence = ", ".join(f"link {b}->{a}: {t} steps (designed {self.roster.delays[self.roster.row_of(a), self.roster.row_of(b)]})"
+                             for (a, b), t in sorted(above.items()))
+        if rho < 1:
+            self.events.append(f"learned delays above the design ({evidence}) but the exact "
+                               f"loop is still stable (radius {rho:.4f})")
+            return []
+        v = Verdict(0, "delay", f"{evidence}; exact radius {rho:.4f} >= 1", now,
+                    self._clock[0])
+        self.verdicts.append(v)
+        self.events.append(f"verdict: delay ({v.evidence})")
+        G, _ = self.gains.get(new)
+        if G is None:
+            self.events.append("no stabilising gain for the learned delays: keeping the "
+                               "gains in force")
+            return []
+        self.roster, self.G = new, G
+        self.specs = role_specs(new, G)
+        self.epoch += 1
+        at = max(self.current_step(now), 0) + self.config.lead_steps
+        out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
+        self._unconfirmed = {m.agent: m for m in out}
+        self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
+        out.append(self._roster_msg)
+        self._sent_at = self._assigned_at = now
+        self.history.append({"epoch": self.epoch, "activate_at": at, "failed": [],
+                             "causes": {"0": "delay"}, "ids": list(new.ids),
+                             "replacements": [], "added_links": [], "precomputed": False,
+                             "decided_at": now, "delays": {f"{b}->{a}": t for (a, b), t
+                                                           in sorted(above.items())}})
+        self.events.append(f"epoch {self.epoch}: gains for the learned delays from step {at}")
+        return out
 
     def _check_confirmations(self, now: float) -> None:
         for agent, asg in list(self._unconfirmed.items()):

@@ -8,8 +8,8 @@ background thread precomputes the plan and the gains of every single failure of 
 configuration in force (again after every reassignment), so that a foreseen failure is
 answered without designing anything.
 
-Several monitors may run on one run: the one with the smallest id whose token is alive
-acts, the others stay passive and watch; when the active one's token goes, the next one
+A monitor listens for ``LISTEN_S`` before it acts. Several monitors may run on one run:
+the one with the smallest id whose token is alive acts, the others stay passive and watch; when the active one's token goes, the next one
 adopts the configuration in force from the roster it heard and the agents' statuses
 (:meth:`MonitorCore.adopt`) and goes on with epochs above every epoch it saw.
 """
@@ -33,6 +33,9 @@ __all__ = ["run_monitor", "precompute_single_failures", "TICK_S", "ROSTER_S"]
 
 TICK_S = 0.01
 ROSTER_S = 1.0
+#: a (re)started monitor listens this long (the roster is re-published every ROSTER_S)
+#: before it acts, so that it acts on the configuration in force, not on its scenario
+LISTEN_S = 1.5
 
 
 class _Stop:
@@ -117,6 +120,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         watch = peer.watch_liveliness()
         heard_roster = None
         active = False
+        listen_until = time.monotonic() + LISTEN_S
         next_roster = 0.0
         print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
         while not stop.flag:
@@ -136,12 +140,21 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     heard_roster = msg
             others = sorted(int(i) for role, i in watch.alive() if role == "monitor"
                             and i.isdigit() and int(i) != monitor_id)
-            should = not others or monitor_id < others[0]
+            should = (not others or monitor_id < others[0]) and now >= listen_until
             if should and not active:
-                if heard_roster is not None and heard_roster["epoch"] > core.epoch:
+                seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
+                           + [st.epoch for st in core.agents.values()])
+                if core.history:
+                    pass                     # it acted before: its own view is current
+                elif heard_roster is not None:
                     if not core.adopt(heard_roster["ids"], heard_roster["epoch"]):
                         peer.wait(timeout=0.05)
                         continue
+                elif seen > 0 and not core.adopt(None, seen):
+                    # roles were reassigned before this monitor started: the agents'
+                    # statuses say which; wait until every active one has reported
+                    peer.wait(timeout=0.05)
+                    continue
                 print(f"monitor {monitor_id}: active", file=log, flush=True)
                 record("active", monitor=monitor_id, epoch=core.epoch)
                 active = True
@@ -168,13 +181,18 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     v = core.verdicts[worker.get("verdicts", 0)]
                     worker["verdicts"] = worker.get("verdicts", 0) + 1
                     record("verdict", agent=v.agent, cause=v.cause, evidence=v.evidence,
-                           step=v.step, mono=v.at)
+                           step=v.step, mono=v.at,
+                           detected_t=time.time() - (time.monotonic() - v.at))
                 while len(core.history) > worker.get("history", 0):
                     h = core.history[worker.get("history", 0)]
                     worker["history"] = worker.get("history", 0) + 1
                     record("reassign", **{k: v for k, v in h.items() if k != "decided_at"},
                            mono=h["decided_at"])
                     precompute_for(core.roster)
+                if core.history and not core.confirmed():
+                    worker["waiting"] = core.epoch
+                elif worker.get("waiting") is not None and core.confirmed():
+                    record("confirmed", epoch=core.epoch, waited_for=worker.pop("waiting"))
                 if core._roster_msg is not None and now >= next_roster:
                     m = core._roster_msg
                     peer.put(keys.ctl_key(run, 0), wire.encode_roster(m.epoch, m.activate_at, m.ids))

@@ -221,6 +221,7 @@ STATUS_SCHEMA = Schema({
     "drops": Int(0),
     "late": Int(0),
     "inputs": IntMap(required=False),
+    "ages": IntMap(agent_keys=True, required=False),
     "fenced": Int(0, required=False),
     "roster_epoch": Int(0, 2**62, required=False),
     "malformed": Int(0),
@@ -274,4 +275,6 @@ def encode_status(status: dict) -> bytes:
     msg["kind"] = "status"
     msg["neighbours"] = {str(a): _f(w) for a, w in status["neighbours"].items()}
     msg["delays"] = {str(a): int(d) for a, d in status["delays"].items()}
+    if "ages" in status:
+        msg["ages"] = {str(a): int(d) for a, d in status["ages"].items()}
     return encode(msg)

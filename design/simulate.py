@@ -303,8 +303,12 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         Probability that one message (one estimate on one link) is lost.
     fail : (int, sequence of int), optional
         ``(f, rows)``: the agents in 0-based ``rows`` fail at step f (1 <= f <= steps).
-    recover : Recovery, optional
-        Configuration that takes over at the failure step (needs ``fail``).
+    recover : Recovery or sequence of Recovery, optional
+        Configuration that takes over at the failure step or at its ``activate_at``
+        (needs ``fail``). A sequence is a chain of reassignments (a live monitor that
+        answered two failures one after the other): increasing ``activate_at``; failed
+        agents may appear in an intermediate configuration (they compute nothing), not
+        in the last one; ``replaces`` always names rows of the initial scenario.
     progress : callable, optional
         Called as ``progress(k, steps)`` after each step.
     coordinates : {"error", "absolute"}
@@ -372,21 +376,29 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     ids0 = list(range(1, N + 1))
     configs = [_config(scenario, G, D, ids0)]
     activate_step = None
-    if recover is not None:
-        configs.append(_recovery_config(recover, scenario, failed, ids0))
-        activate_step = fail_step if recover.activate_at is None else _check_int(
-            recover.activate_at, "recover.activate_at", fail_step)
-        if activate_step > steps:
-            raise SimulationError(
-                f"recover.activate_at: {activate_step} is after the last step {steps}")
+    chain = [] if recover is None else (
+        list(recover) if isinstance(recover, (list, tuple)) else [recover])
+    if recover is not None and not chain:
+        raise SimulationError("recover: an empty sequence of recoveries")
+    activations = []
+    for i, rec in enumerate(chain):
+        configs.append(_recovery_config(rec, scenario, failed, ids0,
+                                        last=i == len(chain) - 1))
+        at = fail_step if rec.activate_at is None else _check_int(
+            rec.activate_at, "recover.activate_at", fail_step)
+        if at > steps:
+            raise SimulationError(f"recover.activate_at: {at} is after the last step {steps}")
+        if activations and at <= activations[-1]:
+            raise SimulationError("recover: activate_at must increase along the sequence")
+        activations.append(at)
+    activate_step = activations[0] if activations else None
     max_delay = max(int(c.delays.max()) if c.delays.size else 0 for c in configs)
     if max_age is None:
         max_age = hold_limit(max_delay)
     max_age = _check_int(max_age, "max_age", max_delay + 1)
-    gap = 0 if activate_step is None else activate_step - fail_step
+    gap = 0 if not activations else activations[-1] - fail_step
     error_coords = coordinates == "error"
-    cold = recover is not None and any(
-        a not in ids0 and a not in recover.replaces for a in recover.ids)
+    cold = any(a not in ids0 and a not in rec.replaces for rec in chain for a in rec.ids)
     track_x = not error_coords or cold
 
     # -- state at step 0 ----------------------------------------------------------
@@ -404,7 +416,9 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     config = configs[0]
     mse_trials = np.empty((trials, steps + 1))
     mse_trials[:, 0] = _mse(est, [a for _, a in config.live], x, error_coords)
-    record_ids = ids0 + [a for a in (recover.ids if recover is not None else ()) if a not in ids0]
+    record_ids = list(ids0)
+    for rec in chain:
+        record_ids += [a for a in rec.ids if a not in record_ids]
     recorded = np.full((trials, steps + 1, len(record_ids), n), np.nan) \
         if record_estimates else None
     if recorded is not None:
@@ -415,9 +429,11 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
             if k == fail_step:
                 config = _Config(config.W, config.delays, config.ids, config.roles, config.r,
                                  frozenset(config.ids[r] for r in failed))
-            if k == activate_step:
-                config = _apply_recovery(config, configs[1], recover, est, published, x, S,
-                                         P, seed, n, trials, error_coords, k, k - fail_step)
+            if k in activations:
+                i = activations.index(k)
+                config = _apply_recovery(config, configs[i + 1], chain[i], est, published, x,
+                                         S, P, seed, n, trials, error_coords, k,
+                                         k - fail_step, ids0)
             nu = noise.process_noise(seed, k - 1, n, q, trials)
             if track_x:
                 x = x @ P.transposed(1) + nu
@@ -481,7 +497,7 @@ def _record(recorded, k, est, config, ids):
             recorded[:, k, i] = est[a]
 
 
-def _recovery_config(recover, scenario, failed, ids0) -> _Config:
+def _recovery_config(recover, scenario, failed, ids0, last=True) -> _Config:
     if not isinstance(recover, Recovery):
         raise SimulationError(f"recover: expected a Recovery, got {type(recover).__name__}")
     new = recover.scenario
@@ -498,7 +514,7 @@ def _recovery_config(recover, scenario, failed, ids0) -> _Config:
         _check_int(a, "recover.ids entry", 1)
     failed_ids = {r + 1 for r in failed}
     back = sorted(failed_ids & set(ids))
-    if back:
+    if back and last:
         raise SimulationError(f"recover.ids: failed agents {back} cannot be in the new configuration")
     for a, row in dict(recover.replaces).items():
         if a not in ids or a in ids0:
@@ -508,11 +524,13 @@ def _recovery_config(recover, scenario, failed, ids0) -> _Config:
                 f"recover.replaces: agent {a} takes over row {row!r}, which did not fail")
     D = new.delays if recover.delays is None else recover.delays
     D = _check_delays(D, new, "recover.delays")
-    return _config(new, G, D, ids)
+    out = _config(new, G, D, ids)
+    out.dead = frozenset(a for a in ids if a in failed_ids)
+    return out
 
 
 def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, trials,
-                    error_coords, k, gap):
+                    error_coords, k, gap, ids0):
     """Switch to the recovery configuration at step k (``gap`` steps after the failure).
 
     A replacement takes over the failed agent's last estimate (stamp f - 1) propagated
@@ -521,10 +539,10 @@ def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, tria
     """
     replaces = dict(recover.replaces)
     for a in new.ids:
-        if a in est and a not in config.dead:
+        if a in new.dead or (a in est and a not in config.dead):
             continue
         if a in replaces:
-            value = est[config.ids[replaces[a]]]
+            value = est[ids0[replaces[a]]]
             if gap:
                 value = value @ P.transposed(gap)
                 if error_coords:

@@ -117,3 +117,56 @@ def test_a_restarted_monitor_adopts_the_configuration_from_statuses(core, paper1
     assert fresh.adopt([4, 2, 3], epoch=5)
     assert fresh.roster.ids == (4, 2, 3) and fresh.epoch == 5 and 1 in fresh.failed
     np.testing.assert_allclose(fresh.roster.scenario.W, W3)
+
+
+def test_silent_agent_is_convicted_from_its_listeners_ages(core, paper14):
+    """Agent 2 advances, but agent 1 (its only listener in paper-14) holds nothing of it
+    fresher than 40 steps: after the hang timeout, a 'silent' verdict."""
+    def feed(t, age_of_2):
+        step = int(50 * t)
+        for a in (1, 2, 3):
+            nbrs = {b + 1: float(paper14.W[a - 1, b]) for b in paper14.neighbours[a - 1]}
+            ages = {b: (age_of_2 if b == 2 else 1) for b in nbrs}
+            core.on_status({**_status(a, step), "neighbours": nbrs, "ages": ages}, t)
+        core.on_status(_status(4, step, active=False), t)
+        return core.tick(t)
+
+    t = 0.0
+    while t < 1.0:
+        feed(t, 1)
+        t += 0.1
+    while t < 1.9:
+        feed(t, 40)
+        t += 0.1
+    assert core.verdicts == []                   # not yet for the hang timeout
+    while t < 2.6:
+        feed(t, 40)
+        t += 0.1
+    (v,) = core.verdicts
+    assert (v.agent, v.cause) == (2, "silent") and "40 steps (agent 1)" in v.evidence
+
+
+def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
+    """The agents learn 9-step delays on every link: the delay-free gains are not
+    stable with them (exact radius), so the monitor assigns gains designed for them,
+    certified by the exact closed loop, to the same agents under a new epoch."""
+    from design.closed_loop import closed_loop_for
+    from design.scenario import uniform_delays
+
+    D9 = uniform_delays(paper14.W, 9)
+    assert closed_loop_for(paper14, core.G, D9).spectral_radius() >= 1
+    out = []
+    for k in range(5):
+        t = 0.1 * k
+        for a in (1, 2, 3):
+            core.on_status({**_status(a, 10 * k),
+                            "delays": {b + 1: 9 for b in paper14.neighbours[a - 1]}}, t)
+        out = core.tick(t)
+        if core.verdicts:
+            break
+    (v,) = core.verdicts
+    assert v.cause == "delay" and "radius" in v.evidence
+    asg = [m for m in out if isinstance(m, Assignment)]
+    assert {m.agent for m in asg} == {1, 2, 3} and {m.epoch for m in asg} == {1}
+    G_new = [asg_by.spec.gain for asg_by in sorted(asg, key=lambda m: m.agent)]
+    assert closed_loop_for(paper14, G_new, D9).spectral_radius() < 1

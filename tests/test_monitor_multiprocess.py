@@ -75,3 +75,36 @@ def test_a_stopped_agent_is_replaced_and_fenced_when_it_resumes(tmp_path, live_g
     assert final["2"]["active"] is False and final["2"]["epoch"] >= f["epoch"]
     assert final["4"]["active"] is True
     assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
+
+
+def test_a_replacement_that_fails_in_turn_is_replaced_by_a_survivor(tmp_path, live_gains):
+    """Agent 1 fails, the standby 4 replaces it, then 4 fails: no standby is left, so a
+    survivor takes a node of {6, 7, 8} and the run goes on with two agents."""
+    s = _up(tmp_path, live_gains, "--kill", "100:1", "--kill", "250:4", steps=450)
+    assert [f["agent"] for f in s["failures"]] == [1, 4]
+    second = s["failures"][1]
+    assert second["replacement"]["agent"] in {2, 3}
+    assert second["replacement"]["node"] in {"6", "7", "8"}
+    assert s["recovered"] and s["rosters"][-1]["ids"] in ([2, 3], [3, 2])
+    measured = {n for a in ("2", "3") for n in s["final_roles"][a]["measure"]}
+    assert measured & {"6", "7", "8"} and measured & {"9", "10", "11"}
+
+
+@pytest.mark.parametrize("kill_monitor_at, adopts", [(101, False), (160, True)])
+def test_a_killed_monitor_is_started_again_and_carries_on(tmp_path, live_gains,
+                                                          kill_monitor_at, adopts):
+    """The monitor dies just before agent 1 crashes (step 101; the agent dies at step
+    100 plus its flush time), or after it reassigned agent 1's role (step 160). Started
+    again, it rebuilds its view from the network: it convicts agent 1 from its missing
+    token, or adopts the configuration in force from the roster and the statuses; the
+    run recovers either way and epochs only grow."""
+    s = _up(tmp_path, live_gains, "--kill", "100:1", "--kill-monitor", str(kill_monitor_at),
+            steps=450)
+    log = (tmp_path / "run" / "logs" / "monitor-2.log").read_text()
+    assert any(f"adopted the configuration in force: ids {ids}" in log
+               for ids in ("[2, 3, 4]", "[4, 2, 3]")) == adopts, log
+    assert s["recovered"] and s["rosters"][-1]["ids"] == [4, 2, 3]
+    assert [f["agent"] for f in s["failures"]] == [1]
+    epochs = [r["epoch"] for r in s["rosters"]]
+    assert epochs == sorted(set(epochs))
+    assert s["final_roles"]["4"]["active"] and s["final_roles"]["4"]["measure"] in (["8"], ["6"])

@@ -300,3 +300,47 @@ def _spec_message(spec, epoch, at):
             "measure": list(spec.measure), "neighbours": dict(spec.neighbours),
             "self_weight": spec.self_weight, "gain": spec.gain,
             **({"take_over": spec.take_over} if spec.take_over else {})}
+
+
+def test_a_chain_of_reassignments_equals_the_simulator(paper14, gains14):
+    """Agents 1 and 2 crash together, but the reassignments come one after the other
+    (first 1 -> standby 4 with 2 still a row, then 2 removed): the live protocol and the
+    simulator's chain of recoveries agree estimate by estimate. The standby had heard
+    agent 2 before; on its new link to 2 it uses only what arrives from its activation
+    on, as the simulator does."""
+    from design.roster import Roster, replan, role_specs
+    from design.simulate import Recovery, simulate
+
+    f, a1, a2, steps = 10, 14, 17, 40
+    r0 = Roster.initial(paper14, D3)
+    _, r1 = replan(r0, [1])
+    _, r2 = replan(r1, [2])
+    rng = np.random.default_rng(3)
+    G1 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r1.scenario.measure]
+    G2 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r2.scenario.measure]
+    specs1 = role_specs(r1, G1, take_over={4: 1})
+    specs2 = role_specs(r2, G2)
+    mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1.0)
+    for k in range(steps + 1):
+        if k == f:
+            mesh.crash(1)
+            mesh.crash(2)
+        if k == f + 1:
+            for agent, spec in specs1.items():
+                if agent in mesh.agents:
+                    mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a1))
+        if k == a1 + 1:
+            for agent, spec in specs2.items():
+                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=2, at=a2))
+        mesh.tick()
+        mesh.pass_time(1.1)
+    chain = [Recovery(r1.scenario, G1, r1.ids, replaces={4: 0}, delays=r1.delays,
+                      activate_at=a1),
+             Recovery(r2.scenario, G2, r2.ids, delays=r2.delays, activate_at=a2)]
+    res = simulate(paper14, gains14, steps=steps, trials=1, seed=5, delays=D3,
+                   fail=(f, [0, 1]), recover=chain, coordinates="absolute",
+                   record_estimates=True)
+    ids = (3, 4)
+    live = _mesh_estimates(mesh, ids, steps)
+    live[a1 - 1, 1] = np.nan
+    np.testing.assert_allclose(live, _sim_estimates(res, ids), rtol=1e-12, atol=1e-12)

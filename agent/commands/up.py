@@ -435,18 +435,23 @@ def _wait_exit(children, name, timeout):
     return False
 
 
-def _specs_in_force(rosters, assigns, scenario, G0):
-    """``(ids, {id: RoleSpec})`` of the last roster, from the assignments recorded."""
+def _specs_in_force(rosters, assigns, scenario, G0, epoch=None):
+    """``(ids, {id: RoleSpec})`` of the last roster (or of the one of ``epoch``), from the
+    assignments recorded up to that epoch."""
     import numpy as np
 
     from design.roster import Roster, role_specs
     from design.roster import RoleSpec
 
     specs = role_specs(Roster.initial(scenario), G0)
-    for (agent, epoch), m in sorted(assigns.items(), key=lambda kv: kv[0][1]):
+    for (agent, e), m in sorted(assigns.items(), key=lambda kv: kv[0][1]):
+        if epoch is not None and e > epoch:
+            continue
         specs[agent] = RoleSpec(agent, tuple(m["measure"]), dict(m["neighbours"]),
                                 float(m["self_weight"]), np.asarray(m["gain"]),
                                 m.get("take_over"))
+    if epoch is not None:
+        return next(ids for _, ids, ep in rosters if ep == epoch), specs
     return rosters[-1][1], specs
 
 
@@ -485,7 +490,7 @@ def _failures(events_path, events, rosters, assigns, scenario, delays, steps_don
                  "detected_step": v["step"]}
         death = deaths.get(v["agent"])
         if death is not None and death.get("signal") == "SIGSTOP":
-            entry["detection_ms"] = 1e3 * (v["t"] - death["t"])
+            entry["detection_ms"] = 1e3 * (v.get("detected_t", v["t"]) - death["t"])
         r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
         if r is not None:
             entry.update(epoch=r["epoch"], activate_at=r["activate_at"],
@@ -547,16 +552,18 @@ def _compare_simulator(scenario, G, K, seed, delays, truth, est, active, mse, st
         fail = (f, sorted(a - 1 for a in kills))
         rosters = [r for i, r in enumerate(recovery["rosters"])
                    if i == 0 or r[1] != recovery["rosters"][i - 1][1]]   # re-issues
-        if len(rosters) > 2:
-            return float("inf"), "the simulator replays one reassignment only"
-        if len(rosters) == 2:
-            ids, specs = _specs_in_force(rosters, recovery["assigns"], scenario, G)
-            table = link_delay_table(scenario, delays)
+        table = link_delay_table(scenario, delays)
+        chain = []
+        for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
+            _, specs = _specs_in_force(recovery["rosters"], recovery["assigns"], scenario, G,
+                                       epoch=epoch)
             new, G_new, D_new = roster_from_specs(scenario, table, ids, specs)
+            before = set(rosters[i - 1][1])
             replaces = {a: specs[a].take_over - 1 for a in ids
-                        if specs[a].take_over is not None}
-            recover = Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
-                               activate_at=rosters[1][0])
+                        if a not in before and specs[a].take_over is not None}
+            chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
+                                  activate_at=at))
+        recover = chain or None
     res = simulate(scenario, G, steps=K, trials=1, seed=seed, delays=delays, drop=drop,
                    fail=fail, recover=recover, coordinates="absolute", record_estimates=True)
     if len(steps_done) != K + 1:

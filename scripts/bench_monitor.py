@@ -1,0 +1,106 @@
+"""Failure handling measured on live runs: detection, reassignment, recovery, false positives.
+
+Runs ``socmon up`` repeatedly on this machine (world, agents, standby and monitor as
+separate processes on loopback) and reads each run folder:
+
+- crash: ``--kill STEP:1`` (agent 1 SIGKILLs itself at a logged wall time); detection =
+  the monitor's verdict time minus that time;
+- hang: ``--stop STEP:2:SECONDS`` (SIGSTOP by ``up`` at a logged time); detection = verdict
+  minus SIGSTOP time;
+- verdict -> every assignment confirmed (from the monitor's events file);
+- steps from the failure until the MSE (mean of a 20-step window) is back within 2x of
+  the exact prediction for the new configuration;
+- false positives: verdicts in healthy runs, per 10,000 steps.
+
+Usage: python scripts/bench_monitor.py [--repeats 3] [--healthy-steps 3000]
+"""
+
+import argparse
+import json
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def up(out, *flags, steps=400, scenario="paper-14-live"):
+    cmd = [sys.executable, "-m", "agent.cli", "up", scenario, "--steps", str(steps), "--out",
+           str(out), "--json", "--quiet", *flags]
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900)
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} exited {p.returncode}: {p.stderr[-2000:]}")
+    return json.loads(p.stdout)
+
+
+def events(out):
+    return [json.loads(line) for line in (Path(out) / "events.jsonl").read_text().splitlines()]
+
+
+def recovery_steps(out, summary):
+    import csv
+
+    rows = list(csv.reader(open(Path(out) / "mse.csv")))[1:]
+    mse = {int(k): float(m) for k, m in rows}
+    pred = summary.get("mse_steady_predicted_after_recovery")
+    f = summary["failures"][0]
+    start = f["detected_step"]
+    for k in range(f["activate_at"], max(mse) - 20):
+        window = [mse[j] for j in range(k, k + 20)]
+        if statistics.mean(window) <= 2 * pred:
+            return k - start
+    return None
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--healthy-steps", type=int, default=3000)
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="bench-monitor-"))
+    rows = {"crash": [], "hang": []}
+    for r in range(args.repeats):
+        out = tmp / f"crash{r}"
+        s = up(out, "--kill", "150:1", "--seed", str(r))
+        log = (out / "logs" / "agent-1.log").read_text()
+        t_kill = float(re.search(r"SIGKILL at t=([0-9.]+)", log).group(1))
+        ev = events(out)
+        v = next(e for e in ev if e["kind"] == "verdict")
+        c = next((e for e in ev if e["kind"] == "confirmed"), None)
+        rows["crash"].append({"detect_ms": 1e3 * (v["detected_t"] - t_kill),
+                              "confirm_ms": 1e3 * (c["t"] - v["detected_t"]) if c else None,
+                              "precomputed": s["failures"][0].get("precomputed"),
+                              "recovery_steps": recovery_steps(out, s)})
+        out = tmp / f"hang{r}"
+        s = up(out, "--stop", "150:2:3", "--seed", str(r), steps=500)
+        ev = events(out)
+        v = next(e for e in ev if e["kind"] == "verdict")
+        c = next((e for e in ev if e["kind"] == "confirmed"), None)
+        t_stop = next(e["t"] for e in s["events"] if e.get("signal") == "SIGSTOP")
+        rows["hang"].append({"detect_ms": 1e3 * (v["detected_t"] - t_stop),
+                             "confirm_ms": 1e3 * (c["t"] - v["detected_t"]) if c else None,
+                             "cause": v["cause"], "recovery_steps": recovery_steps(out, s)})
+    out = tmp / "healthy"
+    s = up(out, steps=args.healthy_steps)
+    fp = len(s["failures"])
+    print(f"paper-14-live, 20 ms steps, {args.repeats} runs per fault, on this machine")
+    print(f"{'fault':6} {'detect ms median/worst':>24} {'verdict->confirmed ms':>24} "
+          f"{'steps to 2x predicted':>22}")
+    for name, rs in rows.items():
+        d = [x["detect_ms"] for x in rs if x["detect_ms"] is not None]
+        c = [x["confirm_ms"] for x in rs if x["confirm_ms"] is not None]
+        k = [x["recovery_steps"] for x in rs if x["recovery_steps"] is not None]
+        print(f"{name:6} {statistics.median(d):11.1f} / {max(d):9.1f} "
+              f"{(statistics.median(c) if c else float('nan')):11.1f} / "
+              f"{(max(c) if c else float('nan')):9.1f} "
+              f"{(statistics.median(k) if k else float('nan')):10} / {max(k) if k else '-'}")
+    print(f"false positives: {fp} verdicts in {args.healthy_steps} healthy steps "
+          f"({1e4 * fp / args.healthy_steps:.2f} per 10,000 steps)")
+    print(f"run folders: {tmp}")
+
+
+if __name__ == "__main__":
+    main()
