@@ -28,6 +28,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--crash-at", type=int, default=None, metavar="STEP",
                         help="scripted crash: publish step STEP-1, then SIGKILL itself "
                              "(reproducible failures; socmon up --kill uses it)")
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="the run's manifest.json (socmon up writes one): refuse to start "
+                             "when the scenario, gains, seed or delays differ from the run's")
     add_net_arguments(parser)
 
 
@@ -63,6 +66,13 @@ def run(args) -> int:
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
+        if args.manifest:
+            from ..manifest import ManifestMismatch, check_manifest
+
+            try:
+                check_manifest(args.manifest, scenario, args.gains, args.seed, args.delays)
+            except ManifestMismatch as exc:
+                raise CommandError(str(exc)) from None
         M = scenario.N + scenario.standby
         if not 1 <= args.id <= M:
             raise CommandError(f"--id: no agent {args.id} (agents 1..{scenario.N}"

@@ -16,6 +16,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--delays", default="scenario",
                         help="link delays of the run: scenario, none or uniform:T (default "
                              "scenario); new gains are certified for them")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="the run's seed (only checked against --manifest)")
     parser.add_argument("--id", type=int, default=1,
                         help="monitor id; with several monitors the smallest live id acts "
                              "(default 1)")
@@ -32,6 +34,9 @@ def add_arguments(parser) -> None:
                         help="append every verdict and reassignment to FILE as JSON lines")
     parser.add_argument("--no-precompute", action="store_true",
                         help="do not precompute the single failures at start-up")
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="the run's manifest.json (socmon up writes one): refuse to start "
+                             "when the scenario, gains, seed or delays differ from the run's")
     add_net_arguments(parser)
 
 
@@ -50,6 +55,13 @@ def run(args) -> int:
         from ._common import load_gains_arg, load_scenario_arg
 
         scenario = load_scenario_arg(args.scenario)
+        if args.manifest:
+            from ..manifest import ManifestMismatch, check_manifest
+
+            try:
+                check_manifest(args.manifest, scenario, args.gains, args.seed, args.delays)
+            except ManifestMismatch as exc:
+                raise CommandError(str(exc)) from None
         try:
             delays = resolve_delays(scenario, args.delays)
         except ScenarioError as exc:

@@ -21,6 +21,9 @@ def add_arguments(parser) -> None:
                              "(default: every active and standby agent of the scenario)")
     parser.add_argument("--start-timeout", type=float, default=60.0,
                         help="seconds to wait for the agents (default 60)")
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="the run's manifest.json (socmon up writes one): refuse to start "
+                             "when the scenario, gains, seed or delays differ from the run's")
     add_net_arguments(parser)
 
 
@@ -35,6 +38,13 @@ def run(args) -> int:
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
+        if args.manifest:
+            from ..manifest import ManifestMismatch, check_manifest
+
+            try:
+                check_manifest(args.manifest, scenario, None, args.seed, None)
+            except ManifestMismatch as exc:
+                raise CommandError(str(exc)) from None
         if args.steps is not None and args.steps < 0:
             raise CommandError(f"--steps: must be >= 0, got {args.steps}")
         if args.step_ms is not None and not args.step_ms > 0:

@@ -1,0 +1,298 @@
+"""The summary of a local run: pure functions of its :class:`agent.local_run.Recording`.
+
+MSE per step over the agents in force at that step (the roster), failures and
+recoveries from the monitor's record (``events.jsonl``) and the assignments heard, the
+exact prediction for every configuration, the comparison with the simulator's replay,
+and the run folder's files.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["summarize", "mse_by_step", "specs_in_force", "compare_simulator",
+           "write_run_folder", "save_estimates", "CHECK_TOL"]
+
+#: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
+CHECK_TOL = 1e-9
+
+
+def mse_by_step(rec, K):
+    """``(steps, mse)``: mean over the agents in force at each step (the roster)."""
+    steps = sorted(k for k in rec.truth if k <= K)
+
+    def in_force(k):
+        return [ids for at, ids, _ in rec.rosters if at <= k][-1]
+
+    mse = []
+    for k in steps:
+        errs = [np.mean((rec.est[a][k] - rec.truth[k]) ** 2) for a in in_force(k)
+                if k in rec.est[a]]
+        mse.append(float(np.mean(errs)) if errs else float("nan"))
+    return steps, np.array(mse)
+
+
+def summarize(config, rec, loop_rho, predicted) -> tuple:
+    """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md)."""
+    c = config
+    K, N, M = c.steps, c.scenario.N, c.M
+    steps, mse = mse_by_step(rec, K)
+    tail = max(1, K // 4)
+    mse_steady = float(np.mean(mse[-tail:])) if len(mse) else float("nan")
+    last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
+    children = rec.children.children.values()
+    summary = {
+        "scenario": c.scenario.name,
+        "run": rec.run_id,
+        "ports": rec.ports,
+        "seed": c.seed,
+        "steps": int(steps[-1]) if steps else -1,
+        "steps_requested": K,
+        "step_ms": c.step_ms,
+        "deadline_ms": c.deadline_ms,
+        "agents": N,
+        "standby": c.scenario.standby,
+        "delays": c.delays_spec,
+        "drop": c.drop,
+        "rho_closed_loop": loop_rho,
+        "mse_steady": mse_steady,
+        "mse_steady_predicted": predicted,
+        "drops": sum(s.get("drops", 0) for s in last.values()),
+        "late": sum(s.get("late", 0) for s in last.values()),
+        "malformed": sum(s.get("malformed", 0) for s in last.values()),
+        "fenced": sum(s.get("fenced", 0) for s in last.values()),
+        "recorder_malformed": rec.recorder_malformed,
+        "sensor_missed": sum(s.get("sensor", {}).get("missed", 0) for s in last.values()),
+        "learned_delays": {str(a): {str(j): d for j, d in s.get("delays", {}).items()}
+                           for a, s in last.items() if s},
+        "hop_ms": {str(a): s.get("hop_ms") for a, s in last.items() if s.get("hop_ms")},
+        "cpu_s": {ch.name: ch.cpu_s for ch in children},
+        "wall_s": rec.wall,
+        "exit_status": {ch.name: ch.returncode for ch in children},
+        "orphans": [ch.name for ch in children if ch.returncode is None],
+        "monitor": c.monitor,
+        "faults": [f.to_dict() for f in c.faults],
+        "events": rec.events,
+        "final_roles": {str(a): {"active": st.get("active"), "epoch": st.get("epoch"),
+                                 "measure": st.get("measure")}
+                        for a, st in last.items() if st},
+    }
+    summary.update(_failures(c.out / "events.jsonl", rec, c.scenario, c.delays, steps, mse,
+                             c.G))
+    return summary, steps, mse
+    return summary, steps, mse
+
+
+def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
+    """``(ids, {id: RoleSpec})`` of the last roster (or of the one of ``epoch``), from the
+    assignments recorded up to that epoch."""
+    import numpy as np
+
+    from design.roster import Roster, role_specs
+    from design.roster import RoleSpec
+
+    specs = role_specs(Roster.initial(scenario), G0)
+    for (agent, e), m in sorted(assigns.items(), key=lambda kv: kv[0][1]):
+        if epoch is not None and e > epoch:
+            continue
+        specs[agent] = RoleSpec(agent, tuple(m["measure"]), dict(m["neighbours"]),
+                                float(m["self_weight"]), np.asarray(m["gain"]),
+                                m.get("take_over"))
+    if epoch is not None:
+        return next(ids for _, ids, ep in rosters if ep == epoch), specs
+    return rosters[-1][1], specs
+
+
+def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
+    """``failures``, ``recovered``, MSE after recovery (live and exact) for the summary."""
+    import json
+
+    events, rosters, assigns = rec.events, rec.rosters, rec.assigns
+    records = []
+    try:
+        with open(events_path) as f:
+            for line in f:
+                try:
+                    records.append(json.loads(line))
+                except ValueError:
+                    continue
+    except OSError:
+        pass
+    deaths = {}
+    for e in events:
+        name = e.get("process", "")
+        if name.startswith("agent-") and (e.get("exit_status") is not None or
+                                          e.get("signal") == "SIGSTOP"):
+            deaths.setdefault(int(name.split("-")[1]), e)
+    failures = []
+    reassigns = [r for r in records if r.get("kind") == "reassign"]
+    for v in [r for r in records if r.get("kind") == "verdict"]:
+        entry = {"agent": v["agent"], "cause": v["cause"], "evidence": v["evidence"],
+                 "detected_step": v["step"]}
+        death = deaths.get(v["agent"])
+        if death is not None and death.get("signal") == "SIGSTOP":
+            entry["detection_ms"] = 1e3 * (v.get("detected_t", v["t"]) - death["t"])
+        r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
+        if r is not None:
+            entry.update(epoch=r["epoch"], activate_at=r["activate_at"],
+                         precomputed=r.get("precomputed"))
+            rep = [x for x in r["replacements"] if x["failed"] == v["agent"]]
+            entry["replacement"] = ({"agent": rep[0]["by"], "node": rep[0]["to"]} if rep
+                                    else None)
+        failures.append(entry)
+    out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
+                                               "epoch": ep} for at, ids, ep in rosters]}
+    if len(rosters) > 1:
+        at = rosters[-1][0]
+        ids, specs = specs_in_force(rosters, assigns, scenario, G0)
+        recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
+        out["recovered"] = bool(recovered)
+        after = [m for k, m in zip(steps_done, mse) if k >= at]
+        tail = after[-max(1, len(after) // 4):] if after else []
+        out["mse_steady_after_recovery"] = float(np.mean(tail)) if tail else float("nan")
+        try:
+            from design.closed_loop import closed_loop_for
+            from design.roster import link_delay_table, roster_from_specs
+
+            table = link_delay_table(scenario, delays)
+            new, G, D = roster_from_specs(scenario, table, ids, specs)
+            loop = closed_loop_for(new, G, D)
+            rho = loop.spectral_radius()
+            out["rho_closed_loop_after_recovery"] = rho
+            out["mse_steady_predicted_after_recovery"] = (
+                loop.mse_steady(new.process_noise, new.measurement_noise)
+                if rho < 1 else math.inf)
+        except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
+            out["mse_steady_predicted_after_recovery"] = None
+            out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")
+    elif failures:
+        out["recovered"] = False
+    return out
+
+
+def compare_simulator(config, rec, steps_done):
+    """Largest difference to ``design.simulate`` (trial 0, same seed, delays and drops).
+
+    ``max_k max_a |xhat_live - xhat_sim| / max(1, |x_k|)`` (infinity norms) over every
+    estimate both computed. With scripted crashes at one step (``--kill``) and the
+    monitor's reassignments, the simulator replays the crash at that step and the chain
+    of recorded reassignments (their ``activate_at``, roles and gains).
+    Returns ``(difference, what was compared)``.
+    """
+    from design.roster import link_delay_table, roster_from_specs
+    from design.simulate import Recovery, simulate
+
+    c = config
+    G, K = c.G, c.steps
+    fail = recover = None
+    kills = {f.agent: f.step for f in c.faults if f.kind == "crash"}
+    if any(f.kind != "crash" for f in c.faults):
+        return float("inf"), "the simulator replays scripted crashes (--kill) only"
+    if kills:
+        if len(set(kills.values())) != 1:
+            return float("inf"), "the simulator replays one scripted crash step only"
+        f = next(iter(kills.values()))
+        fail = (f, sorted(a - 1 for a in kills))
+        rosters = [r for i, r in enumerate(rec.rosters)
+                   if i == 0 or r[1] != rec.rosters[i - 1][1]]   # re-issues
+        table = link_delay_table(c.scenario, c.delays)
+        chain = []
+        for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
+            _, specs = specs_in_force(rec.rosters, rec.assigns, c.scenario, G, epoch=epoch)
+            new, G_new, D_new = roster_from_specs(c.scenario, table, ids, specs)
+            before = set(rosters[i - 1][1])
+            replaces = {a: specs[a].take_over - 1 for a in ids
+                        if a not in before and specs[a].take_over is not None}
+            chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
+                                  activate_at=at))
+        recover = chain or None
+    elif len(rec.rosters) > 1:
+        return float("inf"), "a reassignment without a scripted crash cannot be replayed"
+    res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
+                   drop=c.drop, fail=fail, recover=recover, coordinates="absolute",
+                   record_estimates=True)
+    if len(steps_done) != K + 1:
+        return float("inf"), "incomplete run"
+    sim_est = np.asarray(res.estimates)[0]
+    worst, compared = 0.0, 0
+    for k in steps_done:
+        scale = max(1.0, float(np.abs(rec.truth[k]).max()))
+        for col, a in enumerate(res.estimate_ids):
+            if k in rec.est.get(a, {}) and np.isfinite(sim_est[k, col]).all():
+                d = float(np.abs(rec.est[a][k] - sim_est[k, col]).max())
+                worst = max(worst, d / scale)
+                compared += 1
+    return worst, f"estimates ({compared} compared)"
+
+
+def save_estimates(path, steps_done, truth, est, agents, n):
+    """truth (K+1, n) and estimates (K+1, agents, n), NaN where nothing was received."""
+    import numpy as np
+
+    X = np.full((len(steps_done), n), np.nan)
+    E = np.full((len(steps_done), len(agents), n), np.nan)
+    for r, k in enumerate(steps_done):
+        X[r] = truth[k]
+        for c, a in enumerate(agents):
+            if k in est[a]:
+                E[r, c] = est[a][k]
+    np.savez(path, step=np.array(steps_done, dtype=int), truth=X, estimates=E,
+             agents=np.array(agents, dtype=int))
+
+
+def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
+    import csv
+    import json
+    import sys
+
+    from .commands._common import to_jsonable
+
+    (out / "summary.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
+    with open(out / "mse.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["step", "mse"])
+        for k, m in zip(steps_done, mse):
+            w.writerow([k, repr(float(m))])
+    (out / "mse.json").write_text(json.dumps(to_jsonable(
+        {"step": steps_done, "mse": list(mse)})) + "\n")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    import numpy as np
+
+    mse = np.asarray(mse, dtype=float)
+    ok = np.isfinite(mse) & (mse > 0) & (mse < 1e250)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
+    if predicted and predicted != float("inf"):
+        ax.axhline(predicted, color="k", ls="--", lw=0.8, label="predicted steady MSE")
+    after = summary.get("mse_steady_predicted_after_recovery")
+    if after and after != float("inf"):
+        ax.axhline(after, color="tab:green", ls=":", lw=0.9,
+                   label="predicted after recovery")
+    for i, f in enumerate(summary.get("failures", [])):
+        ax.axvline(f["detected_step"], color="tab:red", lw=0.8, ls="--",
+                   label="detected" if i == 0 else None)
+        if f.get("activate_at") is not None:
+            ax.axvline(f["activate_at"], color="tab:green", lw=0.8,
+                       label="reassigned" if i == 0 else None)
+    for i, f in enumerate(summary.get("faults", [])):
+        ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
+                   label="fault injected" if i == 0 else None)
+    ax.set_xlabel("step")
+    ax.set_ylabel("MSE (mean over agents and states)")
+    ax.set_title(f"{summary['scenario']}: {summary['agents']} agents, seed {summary['seed']}")
+    ax.legend()
+    try:
+        fig.tight_layout()
+        fig.savefig(out / "mse.png", dpi=110)
+    except (OverflowError, ValueError) as exc:  # e.g. a diverged run's huge values
+        print(f"up: warning: no mse.png ({type(exc).__name__}: {exc})", file=sys.stderr)
+    finally:
+        plt.close(fig)
