@@ -84,6 +84,9 @@ class MonitorConfig:
     pause_guard_s : float
         A gap between two ticks longer than this suspends verdicts (the monitor itself
         was paused) until ``hang_timeout_s`` of fresh evidence has passed.
+    rejoin_s : float
+        A convicted agent that came back (fenced into a standby) may take a role again
+        once this long has passed since its conviction and it advances as a standby.
     settle_s : float
         After a first verdict, wait this long for others (agents killed together: their
         tokens go within a few ms) so that one reassignment answers them all.
@@ -102,6 +105,7 @@ class MonitorConfig:
     pause_guard_s: float = 0.5
     step_s: float = 0.02
     settle_s: float = 0.01
+    rejoin_s: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -215,7 +219,8 @@ class MonitorCore:
                              range(1, scenario.N + scenario.standby + 1)}
         self.verdicts: list = []
         self.events: list = []            # human-readable log lines, drained by the shell
-        self.failed: set = set()          # ids convicted (never given a role again)
+        self.failed: set = set()          # ids convicted and not healthy again since
+        self.convicted_at: dict = {}      # id -> when it was last convicted
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
         self._unconfirmed: dict = {}      # agent -> Assignment awaiting its status
@@ -395,6 +400,12 @@ class MonitorCore:
             out[j] = age
         return out
 
+    def scenario_link(self, link) -> bool:
+        """True iff ``(receiver, sender)`` is a link of the configuration in force."""
+        a, b = link
+        i, j = self.roster.row_of(a), self.roster.row_of(b)
+        return i != j and self.roster.scenario.W[i, j] > 0
+
     def learned_delays(self) -> dict:
         """``{(receiver, sender): tau}`` from the statuses of the agents in force."""
         out = {}
@@ -410,8 +421,10 @@ class MonitorCore:
         from design.roster import role_specs
 
         learned = self.learned_delays()
+        # links whose learned delay differs from the one the gains were designed for
+        # (stability is not monotone in the delays: shorter ones are checked too)
         above = {k: v for k, v in learned.items()
-                 if k[1] in self.roster.ids and v > self.roster.delays[
+                 if k[1] in self.roster.ids and self.scenario_link(k) and v != self.roster.delays[
                      self.roster.row_of(k[0]), self.roster.row_of(k[1])]}
         key = tuple(sorted(above.items()))
         if not above or key == self._delays_checked or self.G is None:
@@ -423,8 +436,8 @@ class MonitorCore:
         evidence = ", ".join(f"link {b}->{a}: {t} steps (designed {self.roster.delays[self.roster.row_of(a), self.roster.row_of(b)]})"
                              for (a, b), t in sorted(above.items()))
         if rho < 1:
-            self.events.append(f"learned delays above the design ({evidence}) but the exact "
-                               f"loop is still stable (radius {rho:.4f})")
+            self.events.append(f"learned delays differ from the design ({evidence}) but the "
+                               f"exact loop is still stable (radius {rho:.4f})")
             return []
         v = Verdict(0, "delay", f"{evidence}; exact radius {rho:.4f} >= 1", now,
                     self._clock[0])
@@ -478,12 +491,11 @@ class MonitorCore:
         self.verdicts += verdicts
         failed = sorted({v.agent for v in verdicts})
         self.failed |= set(failed)
+        for a in failed:
+            self.convicted_at[a] = now
         for v in verdicts:
             self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
-        # only live standbys that never failed can take a role
-        roster = dataclasses.replace(self.roster, standby_ids=tuple(
-            a for a in self.roster.standby_ids
-            if self.agents[a].alive and a not in self.failed))
+        roster = dataclasses.replace(self.roster, standby_ids=self.standby_pool(now, failed))
         try:
             plan, nxt = replan(roster, failed)
         except SocmonError as exc:
@@ -495,14 +507,7 @@ class MonitorCore:
                 f"RECOVERY IMPOSSIBLE after the failure of {failed}: no equivalent agent or "
                 "connected network left; keeping the configuration in force and monitoring")
             return []
-        # standbys that were convicted cannot be used: plan again without them
-        if any(a in self.failed for a in nxt.ids):
-            bad = [a for a in nxt.ids if a in self.failed]
-            self.events.append(f"replacements {bad} have failed before: skipped")
-            nxt = None
-        if nxt is None:
-            self.unrecoverable = True
-            return []
+        self.failed -= set(nxt.ids)       # a returned agent taken again is healthy
         G, precomputed = self.gains.get(nxt)
         if G is None:
             self.unrecoverable = True
@@ -539,6 +544,24 @@ class MonitorCore:
             + (" (precomputed gains)" if precomputed else " (gains designed now)"))
         self.roster, self.G, self.specs = nxt, G, specs
         return out
+
+    def standby_pool(self, now: float, exclude=()) -> tuple:
+        """Ids that can take a role now: alive, advancing as standbys (no role), and not
+        convicted in the last ``rejoin_s``. A replaced agent that came back (SIGCONT, a
+        healed partition) and was fenced into a standby rejoins the pool that way."""
+        cfg = self.config
+        out = []
+        for a in sorted(self.agents):
+            st = self.agents[a]
+            if a in self.roster.ids or a in exclude or not st.alive or st.progress_at is None:
+                continue
+            if st.status.get("active") or now - st.progress_at > cfg.hang_timeout_s:
+                continue
+            if now - self.convicted_at.get(a, -math.inf) < cfg.rejoin_s:
+                continue
+            out.append(a)
+        first = [a for a in self.roster.standby_ids if a in out]
+        return tuple(first + [a for a in out if a not in first])
 
     def confirmed(self) -> bool:
         return not self._unconfirmed
