@@ -104,7 +104,7 @@ def test_encode_rejects():
         (b"", "bad_msgpack", None),
         (raw(good_raw()) + b"\x00", "bad_msgpack", None),
         (raw(good_raw())[:-3], "bad_msgpack", None),
-        (b"\x91" * 5000, "bad_msgpack", None),  # too nested
+        (b"\x91" * 5000, "too_deep", None),
         (msgpack.packb(msgpack.ExtType(5, b"abc")), "bad_msgpack", None),
         (raw([1, 2]), "not_map", None),
         (raw(3), "not_map", None),
