@@ -7,8 +7,9 @@ the sensor keys of the nodes it measures (or of the first node, as a clock, whil
 no role), then every agent's status. Publications: its estimate every step, its status
 every ``status_s`` (and at once after a control message). It never reads the truth key.
 
-The process ends on SIGTERM/SIGINT, or once the world has left and every reading
-received has been used.
+The process ends on SIGTERM/SIGINT (a second signal exits at once), or once the world has
+left and every reading received has been used (or ``WORLD_GONE_S`` after the world left,
+whatever keeps arriving).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from broker_free_net.impair import InvalidImpairment, decode_impairment
 from broker_free_net.peer import Peer
 
 from . import wire
-from .core import AgentConfig, AgentCore, AssignmentError, Role
+from .core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role
+from .ratelimit import LogLimiter
 
 __all__ = ["agent_config", "run_agent", "initial_role"]
 
@@ -35,6 +37,8 @@ STATUS_S = 0.2
 PRESTART_STATUS_S = 0.1
 #: stamps farther than this from the agent's step are rejected as malformed ("stale"/"future")
 STAMP_WINDOW = 100_000
+#: once the world has left, the agent exits after this long even if messages keep arriving
+WORLD_GONE_S = 10.0
 
 
 def initial_role(scenario, gains, agent: int):
@@ -71,10 +75,14 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
 
 
 class _Stop:
+    """SIGTERM/SIGINT handler: the first signal asks the loop to stop, a second one exits."""
+
     def __init__(self):
         self.flag = False
 
     def __call__(self, *_):
+        if self.flag:
+            raise SystemExit(1)
         self.flag = True
 
 
@@ -91,7 +99,9 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
     ctl_schema = wire.ctl_schema(core.n)
     sensor_schema = wire.sensor_schema()
     senders = set(config.agents)
+    agent_ids = {str(a) for a in senders}
     hops = deque(maxlen=4000)
+    say = LogLimiter(log).say
 
     def bad(reason):
         stats.count_dropped(reason)
@@ -116,14 +126,20 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
         peer.publisher(est_key)
         peer.publisher(status_key)
         world_seen = world_alive = False
+        world_gone_at = None
         next_status = 0.0
 
         def publish_status():
             st = core.status()
             st["malformed"] = stats.total_dropped
             st["malformed_reasons"] = dict(stats.dropped)
-            st["overflows"] = sum(i.overflows for i in [ctl_in, imp_in, est_in, status_in,
-                                                         *sensor_in.values()])
+            inboxes = [ctl_in, imp_in, est_in, status_in, *sensor_in.values()]
+            st["overflows"] = sum(i.overflows for i in inboxes)
+            too_large = sum(i.oversized for i in inboxes)  # refused by the inboxes
+            if too_large:
+                st["malformed"] += too_large
+                st["malformed_reasons"]["too_large"] = (st["malformed_reasons"].get("too_large", 0)
+                                                        + too_large)
             if hops:
                 ordered = sorted(hops)
                 st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
@@ -132,7 +148,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
             peer.put(status_key, wire.encode_status(st))
 
         def handle_sensor(label, item):
-            msg = try_decode(item.payload, sensor_schema, stats)
+            msg = try_decode(item.payload, sensor_schema, stats,
+                             now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
                 return
             if msg["label"] != label:
@@ -163,7 +180,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                 if ev.role == "world":
                     world_alive = ev.alive
                     world_seen = world_seen or ev.alive
-                elif ev.role == "agent" and ev.id.isdigit():
+                    world_gone_at = None if ev.alive else now
+                elif ev.role == "agent" and ev.id in agent_ids:
                     core.set_alive(int(ev.id), ev.alive)
             for item in ctl_in.drain():
                 msg = try_decode(item.payload, ctl_schema, stats)
@@ -171,10 +189,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                     continue
                 try:
                     role = core.on_assignment(msg)
-                    print(f"agent {me}: accepted epoch {role.epoch} "
-                          f"(activate at step {role.activate_at})", file=log)
+                    say(f"agent {me}: accepted epoch {role.epoch} "
+                        f"(activate at step {role.activate_at})")
                 except AssignmentError as exc:
-                    print(f"agent {me}: rejected assignment: {exc}", file=log)
+                    say(f"agent {me}: rejected assignment: {exc}")
                 urgent_status = True
             for item in imp_in.drain():
                 try:
@@ -196,20 +214,23 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
                     handle_sensor(label, item)
             for item in est_in.drain():
                 handle_est(item, now)
+            before = core.step
             for step, x in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
+            busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
             sync_sensors()
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()
                 next_status = now + (STATUS_S if core.step >= 0 else PRESTART_STATUS_S)
-            if world_seen and not world_alive and not core.sensor and not len(est_in):
+            if world_seen and not world_alive and (
+                    (not core.sensor and not len(est_in)) or now - world_gone_at > WORLD_GONE_S):
                 publish_status()
                 print(f"agent {me}: world left after step {core.step}; exiting", file=log)
                 return 0
             # wait for any message, a step deadline or the next status
             wake = core.next_wakeup(now)
             until = next_status if wake is None else min(wake, next_status)
-            peer.wait(timeout=min(0.25, max(0.0, until - time.monotonic())))
+            peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0
