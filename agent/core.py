@@ -85,7 +85,7 @@ SENSOR_WINDOW = 100_000
 #: sends one every step; one stray stamp is never believed and cannot make the agent skip
 #: the readings in between).
 SENSOR_GAP = 64
-#: Steps of readings held at most (believed or aside); beyond it the farthest go first.
+#: Steps of readings held at most (``SENSOR_GAP`` aside); beyond it the farthest go first.
 SENSOR_HELD = 4096
 #: Steps one :meth:`AgentCore.poll` computes at most; the caller polls again at once.
 MAX_POLL_STEPS = 256
@@ -297,29 +297,31 @@ class AgentCore:
 
         Returns False if it is ignored: a step already computed, or more than
         ``SENSOR_WINDOW`` ahead. A reading more than ``SENSOR_GAP`` ahead is held aside
-        until the reading of an adjacent step arrives or the agent comes within
-        ``SENSOR_GAP`` of it; at most ``SENSOR_HELD`` steps are held (farthest dropped).
+        (unused) until a reading of an adjacent step arrives, which a world that resumes
+        after a silence sends at once; a lone stray stamp is never believed. At most
+        ``SENSOR_HELD`` steps are held, ``SENSOR_GAP`` of them aside (farthest dropped).
         """
         step = int(step)
         base = max(self.step, 0)
         if step <= self.step or step > base + SENSOR_WINDOW:
             return False
         aside = self.sensor_aside
-        for s in [s for s in aside if s <= base + SENSOR_GAP]:
-            self._hold_reading(s, aside.pop(s))
+        for s in [s for s in aside if s <= self.step]:
+            del aside[s]
         reading = {label: float(value)}
-        if step > base + SENSOR_GAP and not any(s in self.sensor or s in aside
-                                                for s in (step - 1, step + 1)):
-            aside.setdefault(step, {}).update(reading)
-            while len(aside) > SENSOR_HELD:
-                del aside[max(aside)]
-            return True
+        if step > base + SENSOR_GAP:
+            if not any(s in self.sensor or s in aside for s in (step - 1, step + 1)) \
+                    and step not in self.sensor:
+                aside.setdefault(step, {}).update(reading)
+                while len(aside) > SENSOR_GAP:
+                    del aside[max(aside)]
+                return True
+            for direction in (-1, 1):  # the readings aside next to this one are believed too
+                s = step + direction
+                while s in aside:
+                    self._hold_reading(s, aside.pop(s))
+                    s += direction
         self._hold_reading(step, reading)
-        for direction in (-1, 1):  # the readings aside next to this one are believed too
-            s = step + direction
-            while s in aside:
-                self._hold_reading(s, aside.pop(s))
-                s += direction
         return True
 
     def _hold_reading(self, step: int, readings: dict) -> None:
