@@ -14,6 +14,8 @@ whatever keeps arriving).
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import signal
 import statistics
 import sys
@@ -39,6 +41,8 @@ PRESTART_STATUS_S = 0.1
 STAMP_WINDOW = 100_000
 #: once the world has left, the agent exits after this long even if messages keep arriving
 WORLD_GONE_S = 10.0
+#: after a burst of messages, freed heap memory is returned to the OS at most this often
+TRIM_S = 2.0
 
 
 def initial_role(scenario, gains, agent: int):
@@ -74,6 +78,21 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed)
 
 
+def _heap_trimmer():
+    """Return a function that gives freed heap pages back to the OS (glibc ``malloc_trim``).
+
+    A burst of large or many messages leaves the C heap arenas of zenoh's threads at their
+    high-water mark; trimming after such a burst keeps the agent's RSS flat. A no-op where
+    glibc is not available.
+    """
+    try:
+        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return lambda: None
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return lambda: trim(0)
+
+
 class _Stop:
     """SIGTERM/SIGINT handler: the first signal asks the loop to stop, a second one exits."""
 
@@ -102,6 +121,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
     agent_ids = {str(a) for a in senders}
     hops = deque(maxlen=4000)
     say = LogLimiter(log).say
+    trim_heap, trimmed_at = _heap_trimmer(), [0.0, 0]  # time, messages seen at the last trim
 
     def bad(reason):
         stats.count_dropped(reason)
@@ -130,6 +150,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None) -> int:
         next_status = 0.0
 
         def publish_status():
+            seen = sum(i.received + i.oversized for i in [ctl_in, imp_in, est_in, status_in,
+                                                          *sensor_in.values()])
+            if stats.total_dropped and seen - trimmed_at[1] > 1000 \
+                    and time.monotonic() - trimmed_at[0] > TRIM_S:
+                trim_heap()  # after a burst of input: give its memory back
+                trimmed_at[:] = [time.monotonic(), seen]
             st = core.status()
             st["malformed"] = stats.total_dropped
             st["malformed_reasons"] = dict(stats.dropped)
