@@ -8,9 +8,10 @@ no role), then every agent's status. Publications: its estimate every step, its 
 every ``status_s`` (and at once after a control message). It never reads the truth key.
 
 It also subscribes to the roster key (``ctl/0``, the monitor's fence). The process ends
-on SIGTERM/SIGINT, or once the world has been gone for ``WORLD_GRACE_S`` and every
-reading received has been used: an agent paused for a few seconds (SIGSTOP) that finds
-the world's token gone when it resumes waits for the mesh to come back instead of
+on SIGTERM/SIGINT (a second signal exits at once), or once the world has been gone for
+``WORLD_GRACE_S`` and every reading received has been used (or ``WORLD_GONE_S`` after the
+world left, whatever keeps arriving): an agent paused for a few seconds (SIGSTOP) that
+finds the world's token gone when it resumes waits for the mesh to come back instead of
 leaving a live run.
 
 ``crash_at`` (the scripted crash of ``socmon up --kill``): the agent publishes its
@@ -20,6 +21,8 @@ before computing step ``crash_at``, so the failure happens at a known step.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 import signal
 import statistics
@@ -35,7 +38,8 @@ from broker_free_net.impair import InvalidImpairment, decode_impairment
 from broker_free_net.peer import Peer
 
 from . import wire
-from .core import AgentConfig, AgentCore, AssignmentError, Role
+from .core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role
+from .ratelimit import LogLimiter
 
 __all__ = ["agent_config", "run_agent", "initial_role"]
 
@@ -45,8 +49,12 @@ PRESTART_STATUS_S = 0.1
 STAMP_WINDOW = 100_000
 #: the world must stay gone this long before the agent leaves
 WORLD_GRACE_S = 5.0
+#: once the world has left, the agent exits after this long even if messages keep arriving
+WORLD_GONE_S = 10.0
 #: a scripted crash waits this long after its last put so that the transport sends it
 CRASH_FLUSH_S = 0.3
+#: after a burst of messages, freed heap memory is returned to the OS at most this often
+TRIM_S = 2.0
 
 
 def initial_role(scenario, gains, agent: int):
@@ -89,11 +97,30 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age))
 
 
+def _heap_trimmer():
+    """Return a function that gives freed heap pages back to the OS (glibc ``malloc_trim``).
+
+    A burst of large or many messages leaves the C heap arenas of zenoh's threads at their
+    high-water mark; trimming after such a burst keeps the agent's RSS flat. A no-op where
+    glibc is not available.
+    """
+    try:
+        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return lambda: None
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return lambda: trim(0)
+
+
 class _Stop:
+    """SIGTERM/SIGINT handler: the first signal asks the loop to stop, a second one exits."""
+
     def __init__(self):
         self.flag = False
 
     def __call__(self, *_):
+        if self.flag:
+            raise SystemExit(1)
         self.flag = True
 
 
@@ -111,7 +138,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
     roster_schema = wire.roster_schema()
     sensor_schema = wire.sensor_schema()
     senders = set(config.agents)
+    agent_ids = {str(a) for a in senders}
     hops = deque(maxlen=4000)
+    say = LogLimiter(log).say
+    trim_heap, trimmed_at = _heap_trimmer(), [0.0, 0]  # time, messages seen at the last trim
 
     def bad(reason):
         stats.count_dropped(reason)
@@ -141,11 +171,22 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         next_status = 0.0
 
         def publish_status():
+            seen = sum(i.received + i.oversized for i in [ctl_in, imp_in, est_in, status_in,
+                                                          *sensor_in.values()])
+            if stats.total_dropped and seen - trimmed_at[1] > 1000 \
+                    and time.monotonic() - trimmed_at[0] > TRIM_S:
+                trim_heap()  # after a burst of input: give its memory back
+                trimmed_at[:] = [time.monotonic(), seen]
             st = core.status()
             st["malformed"] = stats.total_dropped
             st["malformed_reasons"] = dict(stats.dropped)
-            st["overflows"] = sum(i.overflows for i in [ctl_in, roster_in, imp_in, est_in,
-                                                         status_in, *sensor_in.values()])
+            inboxes = [ctl_in, roster_in, imp_in, est_in, status_in, *sensor_in.values()]
+            st["overflows"] = sum(i.overflows for i in inboxes)
+            too_large = sum(i.oversized for i in inboxes)  # refused by the inboxes
+            if too_large:
+                st["malformed"] += too_large
+                st["malformed_reasons"]["too_large"] = (st["malformed_reasons"].get("too_large", 0)
+                                                        + too_large)
             if hops:
                 ordered = sorted(hops)
                 st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
@@ -154,7 +195,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             peer.put(status_key, wire.encode_status(st))
 
         def handle_sensor(label, item):
-            msg = try_decode(item.payload, sensor_schema, stats)
+            msg = try_decode(item.payload, sensor_schema, stats,
+                             now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
                 return
             if msg["label"] != label:
@@ -186,7 +228,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     world_alive = ev.alive
                     world_seen = world_seen or ev.alive
                     world_gone_at = None if ev.alive else now
-                elif ev.role == "agent" and ev.id.isdigit():
+                elif ev.role == "agent" and ev.id in agent_ids:
                     core.set_alive(int(ev.id), ev.alive)
             for item in ctl_in.drain():
                 msg = try_decode(item.payload, ctl_schema, stats)
@@ -194,16 +236,16 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     continue
                 try:
                     role = core.on_assignment(msg)
-                    print(f"agent {me}: accepted epoch {role.epoch} "
-                          f"(activate at step {role.activate_at})", file=log)
+                    say(f"agent {me}: accepted epoch {role.epoch} "
+                        f"(activate at step {role.activate_at})")
                 except AssignmentError as exc:
-                    print(f"agent {me}: rejected assignment: {exc}", file=log)
+                    say(f"agent {me}: rejected assignment: {exc}")
                 urgent_status = True
             for item in roster_in.drain():
                 msg = try_decode(item.payload, roster_schema, stats)
                 if msg is not None and core.on_roster(msg):
-                    print(f"agent {me}: roster epoch {msg['epoch']} from step "
-                          f"{msg['activate_at']}: {msg['ids']}", file=log)
+                    say(f"agent {me}: roster epoch {msg['epoch']} from step "
+                        f"{msg['activate_at']}: {msg['ids']}")
                     urgent_status = True
             for item in imp_in.drain():
                 try:
@@ -225,6 +267,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     handle_sensor(label, item)
             for item in est_in.drain():
                 handle_est(item, now)
+            before = core.step
             for step, x in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
                 if crash_at is not None and step >= crash_at - 1 and core.active:
@@ -233,19 +276,21 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     time.sleep(CRASH_FLUSH_S)
                     print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
                     os.kill(os.getpid(), signal.SIGKILL)
+            busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
             sync_sensors()
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()
                 next_status = now + (STATUS_S if core.step >= 0 else PRESTART_STATUS_S)
-            if (world_seen and not world_alive and not core.sensor and not len(est_in)
-                    and world_gone_at is not None and now - world_gone_at >= WORLD_GRACE_S):
+            if world_seen and not world_alive and world_gone_at is not None and (
+                    (not core.sensor and not len(est_in) and now - world_gone_at >= WORLD_GRACE_S)
+                    or now - world_gone_at > WORLD_GONE_S):
                 publish_status()
                 print(f"agent {me}: world left after step {core.step}; exiting", file=log)
                 return 0
             # wait for any message, a step deadline or the next status
             wake = core.next_wakeup(now)
             until = next_status if wake is None else min(wake, next_status)
-            peer.wait(timeout=min(0.25, max(0.0, until - time.monotonic())))
+            peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0

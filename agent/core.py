@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from broker_free_net.codec import shorten
 from broker_free_net.impair import DELIVER, HOLD, LinkImpairments, apply_impairment_message
 from design import noise
 from design.estimator import (
@@ -97,6 +98,18 @@ __all__ = [
 
 #: |self_weight + sum of neighbour weights - 1| allowed in a role.
 WEIGHT_SUM_TOL = 1e-9
+#: Sensor stamps more than this ahead of the agent's step (0 before the clock starts) are
+#: ignored: the stamp window of every key (docs/runtime.md).
+SENSOR_WINDOW = 100_000
+#: A reading more than this many steps ahead of the agent's step is held aside until the
+#: reading of the step just before or after it arrives (a world that was silent for a while
+#: sends one every step; one stray stamp is never believed and cannot make the agent skip
+#: the readings in between).
+SENSOR_GAP = 64
+#: Steps of readings held at most (``SENSOR_GAP`` aside); beyond it the farthest go first.
+SENSOR_HELD = 4096
+#: Steps one :meth:`AgentCore.poll` computes at most; the caller polls again at once.
+MAX_POLL_STEPS = 256
 
 
 class AssignmentError(ValueError):
@@ -264,6 +277,7 @@ class AgentCore:
         self.x = None                     # xhat_{k|k} at k = self.step (None: no role yet)
         self.step = -1                    # last completed step
         self.sensor: dict = {}            # step -> {label: value}
+        self.sensor_aside: dict = {}      # step -> {label: value}: far ahead, not yet believed
         self.ready_at: float | None = None  # when the readings of step + 1 were in hand
         self.nbrs: dict = {}
         self.impair = LinkImpairments(seed=config.impair_seed)
@@ -327,12 +341,45 @@ class AgentCore:
         return out
 
     # -- inputs ------------------------------------------------------------------
-    def on_sensor(self, label: str, step: int, value: float) -> None:
-        """A sensor reading of node ``label`` at ``step`` (the true state, without noise)."""
+    def on_sensor(self, label: str, step: int, value: float) -> bool:
+        """A sensor reading of node ``label`` at ``step`` (the true state, without noise).
+
+        Returns False if it is ignored: a step already computed, or more than
+        ``SENSOR_WINDOW`` ahead. A reading more than ``SENSOR_GAP`` ahead is held aside
+        (unused) until a reading of an adjacent step arrives, which a world that resumes
+        after a silence sends at once; a lone stray stamp is never believed. At most
+        ``SENSOR_HELD`` steps are held, ``SENSOR_GAP`` of them aside (farthest dropped).
+        """
+        step = int(step)
+        base = max(self.step, 0)
+        if step <= self.step or step > base + SENSOR_WINDOW:
+            return False
+        aside = self.sensor_aside
+        for s in [s for s in aside if s <= self.step]:
+            del aside[s]
+        reading = {label: float(value)}
+        if step > base + SENSOR_GAP:
+            if not any(s in self.sensor or s in aside for s in (step - 1, step + 1)) \
+                    and step not in self.sensor:
+                aside.setdefault(step, {}).update(reading)
+                while len(aside) > SENSOR_GAP:
+                    del aside[max(aside)]
+                return True
+            for direction in (-1, 1):  # the readings aside next to this one are believed too
+                s = step + direction
+                while s in aside:
+                    self._hold_reading(s, aside.pop(s))
+                    s += direction
+        self._hold_reading(step, reading)
+        return True
+
+    def _hold_reading(self, step: int, readings: dict) -> None:
         if step <= self.step:
             return
-        self.sensor.setdefault(int(step), {})[label] = float(value)
-        self.sensor_last = max(self.sensor_last, int(step))
+        self.sensor.setdefault(step, {}).update(readings)
+        self.sensor_last = max(self.sensor_last, step)
+        while len(self.sensor) > SENSOR_HELD:
+            del self.sensor[max(self.sensor)]
 
     def on_estimate(self, sender: int, stamp: int, x, now: float) -> str:
         """An estimate of agent ``sender`` stamped ``stamp``; returns the link's decision."""
@@ -392,7 +439,7 @@ class AgentCore:
                     f"activate_at: step {role.activate_at} already done (at step {self.step})")
         except AssignmentError as exc:
             self.ctl_rejected += 1
-            self.ctl_last_error = str(exc)
+            self.ctl_last_error = shorten(str(exc))
             raise
         self.pending = role
         self.ctl_accepted += 1
@@ -460,9 +507,10 @@ class AgentCore:
         return None
 
     def poll(self, now: float) -> list:
-        """Run every step that can run at time ``now``; return ``[(step, x)]`` to publish."""
+        """Run the steps that can run at time ``now`` (at most ``MAX_POLL_STEPS``: call again
+        while it keeps moving); return ``[(step, x)]`` to publish."""
         out = []
-        while True:
+        for _ in range(MAX_POLL_STEPS):
             self._release(now)
             k = self.step + 1
             got = self._readings(k) if self.step >= 0 else self._first_readings()
@@ -487,6 +535,7 @@ class AgentCore:
             if not complete:
                 self.sensor_missed += 1
             out.append((k, self._compute(k, readings, plan)))
+        return out
 
     def _first_readings(self):
         wanted = self.wanted_labels()

@@ -6,9 +6,13 @@ float64 arrays are encoded as a nested map::
     {"dtype": "<f8", "shape": [n, ...], "data": <bin: little-endian raw bytes>}
 
 and decoded with a zero-copy, read-only ``np.frombuffer`` view. No pickle,
-no msgpack ext types. Decoding never allocates more than the payload size
-(msgpack length limits, hard size cap) and every failure raises
-:class:`MalformedMessage` with a short reason code.
+no msgpack ext types. Before any object is built, the payload's size is
+checked against :data:`MAX_PAYLOAD_BYTES` and its msgpack headers are walked
+(no object built) to refuse nesting deeper than :data:`MAX_DEPTH` or more
+than :data:`MAX_OBJECTS` values, so a hostile payload costs at most a bounded
+amount of memory and time. Every failure raises :class:`MalformedMessage`
+with a short reason code and a message of at most :data:`MAX_ERROR_CHARS`
+characters.
 
 Example
 -------
@@ -29,6 +33,9 @@ import msgpack
 import numpy as np
 
 __all__ = [
+    "MAX_DEPTH",
+    "MAX_ERROR_CHARS",
+    "MAX_OBJECTS",
     "MAX_PAYLOAD_BYTES",
     "REASONS",
     "VERSION",
@@ -43,19 +50,32 @@ __all__ = [
     "Str",
     "decode",
     "encode",
+    "scan",
+    "shorten",
     "try_decode",
 ]
 
 VERSION = 1
 #: Payloads larger than this are rejected before unpacking (reason "too_large").
 MAX_PAYLOAD_BYTES = 1 << 20
+#: Containers (maps, arrays) nested deeper than this are rejected before unpacking ("too_deep").
+#: The deepest socmon message (a status: top map -> links -> link parameters) has depth 3.
+MAX_DEPTH = 16
+#: Payloads holding more msgpack values than this (every key, value and container counts)
+#: are rejected before unpacking ("too_many"): it bounds the Python objects one message can
+#: build (~1 MB) whatever its bytes. A 14-node estimate holds 19 values.
+MAX_OBJECTS = 1 << 14
+#: Error messages (and so logs and statuses that quote them) are cut to this many characters.
+MAX_ERROR_CHARS = 200
 _MAX_CONTAINER = 4096
 _ARRAY_KEYS = frozenset({"dtype", "shape", "data"})
 
 #: Every reason code :class:`MalformedMessage` can carry.
 REASONS = (
     "too_large",    # payload over MAX_PAYLOAD_BYTES
-    "bad_msgpack",  # not decodable msgpack (truncated, trailing bytes, too nested, ext type)
+    "bad_msgpack",  # not decodable msgpack (truncated, trailing bytes, ext type, bad header)
+    "too_deep",     # containers nested deeper than MAX_DEPTH
+    "too_many",     # more than MAX_OBJECTS msgpack values
     "not_map",      # top level is not a map
     "version",      # "v" missing or not VERSION
     "missing",      # a required field is absent
@@ -84,9 +104,25 @@ class MalformedMessage(ValueError):
 
     def __init__(self, reason: str, message: str, field: str | None = None):
         self.reason = reason
-        self.field = field
-        where = f"field {field!r}: " if field is not None else ""
-        super().__init__(f"[{reason}] {where}{message}")
+        self.field = shorten(field, 64) if isinstance(field, str) else field
+        where = f"field {self.field!r}: " if self.field is not None else ""
+        super().__init__(shorten(f"[{reason}] {where}{message}"))
+
+
+def shorten(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    """Return `text` cut to at most `limit` characters (an ellipsis marks the cut).
+
+    Used for every message that can quote received data (errors, logs, statuses).
+
+    >>> shorten("x" * 10, 6)
+    'xxx...'
+    >>> shorten("short")
+    'short'
+    """
+    text = str(text)
+    if len(text) <= limit:
+        return text
+    return text[:max(0, limit - 3)] + "..."
 
 
 # --------------------------------------------------------------------------
@@ -303,6 +339,102 @@ def encode(message: Mapping) -> bytes:
     return msgpack.packb(out, default=_pack_default, use_bin_type=True)
 
 
+# --------------------------------------------------------------------------
+# header walk: depth and value count, before any object is built
+
+_FIXED = {0xc0: 0, 0xc2: 0, 0xc3: 0, 0xca: 4, 0xcb: 8, 0xcc: 1, 0xcd: 2, 0xce: 4, 0xcf: 8,
+          0xd0: 1, 0xd1: 2, 0xd2: 4, 0xd3: 8}
+
+
+def _scalar_skip(b: int) -> int:
+    if b <= 0x7f or b >= 0xe0:   # positive / negative fixint
+        return 0
+    if 0xa0 <= b <= 0xbf:        # fixstr
+        return b & 0x1f
+    return _FIXED.get(b, 255)    # nil, bool, float, int; 255: not a fixed-size scalar
+
+
+# _STEP[b]: for a scalar first byte b, the bytes that follow it; 255 for anything else
+_STEP = bytes(_scalar_skip(b) for b in range(256))
+# length-prefixed str/bin: first byte -> bytes of the big-endian length
+_SIZED = {0xc4: 1, 0xc5: 2, 0xc6: 4, 0xd9: 1, 0xda: 2, 0xdb: 4}
+# containers with a length prefix: first byte -> (bytes of the count, values per item)
+_COUNTED = {0xdc: (2, 1), 0xdd: (4, 1), 0xde: (2, 2), 0xdf: (4, 2)}
+
+
+def scan(payload, max_depth: int = MAX_DEPTH, max_objects: int = MAX_OBJECTS) -> tuple:
+    """Walk the msgpack headers of `payload` without building anything.
+
+    Returns ``(values, depth)``: the number of msgpack values (map keys, map values, array
+    items and containers all count; the top level is one) and the deepest container
+    nesting (0 for a scalar). Stops as soon as a limit is passed, so the cost is at most
+    ``max_objects`` header reads whatever the payload's size.
+
+    Raises
+    ------
+    MalformedMessage
+        ``"too_deep"`` beyond `max_depth`, ``"too_many"`` beyond `max_objects`,
+        ``"bad_msgpack"`` for a truncated payload, trailing bytes, an ext type or the
+        reserved byte 0xc1.
+
+    >>> import msgpack
+    >>> scan(msgpack.packb({"a": [1, 2, {"b": None}]}))
+    (8, 3)
+    """
+    buf = payload if isinstance(payload, (bytes, bytearray)) else memoryview(payload).cast("B")
+    n = len(buf)
+    pos = values = depth = 0
+    remaining = 1         # values still to read in the innermost open container
+    stack = []            # remaining counts of the enclosing containers
+    step, sized, counted = _STEP, _SIZED, _COUNTED
+    while True:
+        if not remaining:
+            if not stack:
+                break
+            remaining = stack.pop()
+            continue
+        if pos >= n:
+            raise MalformedMessage("bad_msgpack", f"truncated at byte {pos}")
+        b = buf[pos]
+        pos += 1
+        remaining -= 1
+        values += 1
+        if values > max_objects:
+            raise MalformedMessage("too_many", f"more than {max_objects} msgpack values")
+        skip = step[b]
+        if skip != 255:
+            pos += skip
+            continue
+        if 0x80 <= b <= 0x9f:
+            count = (b & 0x0f) * 2 if b <= 0x8f else b & 0x0f
+        elif b in counted:
+            width, per = counted[b]
+            if pos + width > n:
+                raise MalformedMessage("bad_msgpack", f"truncated at byte {pos}")
+            count = int.from_bytes(buf[pos:pos + width], "big") * per
+            pos += width
+        elif b in sized:
+            width = sized[b]
+            if pos + width > n:
+                raise MalformedMessage("bad_msgpack", f"truncated at byte {pos}")
+            pos += width + int.from_bytes(buf[pos:pos + width], "big")
+            continue
+        else:  # 0xc1 (never used), ext and fixext types
+            raise MalformedMessage("bad_msgpack", f"byte 0x{b:02x} at {pos - 1}: not allowed")
+        level = len(stack) + 1
+        if level > max_depth:
+            raise MalformedMessage("too_deep", f"containers nested deeper than {max_depth}")
+        depth = max(depth, level)
+        if count:
+            stack.append(remaining)
+            remaining = count
+    if pos > n:
+        raise MalformedMessage("bad_msgpack", f"truncated: {pos - n} bytes missing")
+    if pos < n:
+        raise MalformedMessage("bad_msgpack", f"{n - pos} trailing bytes")
+    return values, depth
+
+
 def _no_ext(code, data):
     raise ValueError(f"msgpack ext type {code} not allowed")
 
@@ -313,6 +445,7 @@ def _unpack(payload) -> object:
     n = len(payload)
     if n > MAX_PAYLOAD_BYTES:
         raise MalformedMessage("too_large", f"{n} bytes > {MAX_PAYLOAD_BYTES}")
+    scan(payload)
     try:
         return msgpack.unpackb(
             payload, raw=False, strict_map_key=True, use_list=True, timestamp=0, ext_hook=_no_ext,

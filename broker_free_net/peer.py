@@ -26,11 +26,14 @@ from typing import Callable, NamedTuple
 import zenoh
 
 from . import keys
+from .codec import MAX_PAYLOAD_BYTES
 from .config import NetConfig, build_zenoh_config
 
 __all__ = ["Inbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received"]
 
 DEFAULT_INBOX_SIZE = 4096
+#: Payload bytes an inbox holds at most (the oldest items are dropped beyond it).
+DEFAULT_INBOX_BYTES = 4 << 20
 _log = logging.getLogger(__name__)
 
 
@@ -52,68 +55,107 @@ class LivelinessEvent(NamedTuple):
     arrival: float
 
 
+def _check_bound(name, value, lo):
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+        raise ValueError(f"{name}: expected int >= {lo}, got {value!r}")
+
+
+def _size_of(item) -> int:
+    payload = getattr(item, "payload", None)
+    return len(payload) if isinstance(payload, (bytes, bytearray)) else 0
+
+
 class Inbox:
     """Bounded, thread-safe FIFO filled by a zenoh callback.
 
-    When full, the oldest item is dropped and counted in :attr:`overflows`.
+    Bounded by count (`maxlen` items) and by size (`max_bytes` payload bytes, counting
+    :attr:`Received.payload`): beyond either bound the oldest items are dropped and
+    counted in :attr:`overflows`. A payload larger than `max_payload` is refused by the
+    subscriber callback before it is copied out of zenoh, and counted in
+    :attr:`oversized`.
 
     Attributes
     ----------
     received : int
         Items enqueued so far (including those later dropped by overflow).
     overflows : int
-        Items dropped because the inbox was full.
+        Items dropped because the inbox was full (by count or by bytes).
+    oversized : int
+        Samples refused because their payload exceeded `max_payload` bytes.
     ignored : int
         Samples the callback discarded (DELETE samples on data keys, bad
         liveliness keys, internal errors).
+    nbytes : int
+        Payload bytes currently held.
     """
 
-    def __init__(self, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None):
-        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
-            raise ValueError(f"maxlen: expected int >= 1, got {maxlen!r}")
+    def __init__(self, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None,
+                 max_bytes: int = DEFAULT_INBOX_BYTES, max_payload: int = MAX_PAYLOAD_BYTES):
+        _check_bound("maxlen", maxlen, 1)
+        _check_bound("max_payload", max_payload, 0)
+        _check_bound("max_bytes", max_bytes, max(1, max_payload))
         self.maxlen = maxlen
+        self.max_bytes = max_bytes
+        self.max_payload = max_payload
         self._items: deque = deque()
         self._cond = threading.Condition(threading.Lock())
         self.received = 0
         self.overflows = 0
+        self.oversized = 0
         self.ignored = 0
+        self.nbytes = 0
         self._subscriber = None
         self._wakeup = wakeup
 
     # called from zenoh threads -------------------------------------------------
     def _push(self, item) -> None:
+        size = _size_of(item)
         with self._cond:
-            if len(self._items) >= self.maxlen:
-                self._items.popleft()
+            if size > self.max_payload:
+                self.oversized += 1
+                return
+            while self._items and (len(self._items) >= self.maxlen
+                                   or self.nbytes + size > self.max_bytes):
+                self.nbytes -= _size_of(self._items.popleft())
                 self.overflows += 1
             self._items.append(item)
+            self.nbytes += size
             self.received += 1
             self._cond.notify()
         if self._wakeup is not None:
             self._wakeup.set()
+
+    def _refuse_oversized(self) -> None:
+        with self._cond:
+            self.oversized += 1
 
     def _ignore(self) -> None:
         with self._cond:
             self.ignored += 1
 
     # called from the owning thread ----------------------------------------------
+    def _pop(self):
+        item = self._items.popleft()
+        self.nbytes -= _size_of(item)
+        return item
+
     def poll(self):
         """Return the oldest item, or ``None`` if empty (never blocks)."""
         with self._cond:
-            return self._items.popleft() if self._items else None
+            return self._pop() if self._items else None
 
     def get(self, timeout: float | None = None):
         """Return the oldest item, waiting up to `timeout` s (None: forever); ``None`` on timeout."""
         with self._cond:
             if not self._cond.wait_for(lambda: self._items, timeout):
                 return None
-            return self._items.popleft()
+            return self._pop()
 
     def drain(self, max_items: int | None = None) -> list:
         """Return (and remove) up to `max_items` queued items, oldest first."""
         with self._cond:
             n = len(self._items) if max_items is None else min(max_items, len(self._items))
-            return [self._items.popleft() for _ in range(n)]
+            return [self._pop() for _ in range(n)]
 
     def __len__(self) -> int:
         return len(self._items)
@@ -332,7 +374,8 @@ class Peer:
     # -- subscribe ---------------------------------------------------------------
 
     def subscribe(self, keyexpr: str, maxlen: int = DEFAULT_INBOX_SIZE, *,
-                  include_local: bool = True) -> Inbox:
+                  include_local: bool = True, max_bytes: int = DEFAULT_INBOX_BYTES,
+                  max_payload: int = MAX_PAYLOAD_BYTES) -> Inbox:
         """Subscribe to `keyexpr`; return an :class:`Inbox` of :class:`Received`.
 
         Parameters
@@ -340,21 +383,30 @@ class Peer:
         keyexpr : str
             Key or pattern (``*`` one chunk, ``**`` any number).
         maxlen : int
-            Inbox capacity; on overflow the oldest item is dropped and counted.
+            Inbox capacity in items; on overflow the oldest item is dropped and counted.
         include_local : bool
             If False, publications of this same session are not delivered
             (by default zenoh delivers them, e.g. an agent subscribed to
             ``est/*`` receives its own estimates).
+        max_bytes : int
+            Inbox capacity in payload bytes (at least `max_payload`); on overflow the
+            oldest items are dropped and counted.
+        max_payload : int
+            Larger payloads are refused before being copied out of zenoh (counted in
+            ``inbox.oversized``); default the codec's 1 MiB limit.
 
         DELETE samples are ignored (counted in ``inbox.ignored``).
         """
         self._check_usable()
-        inbox = Inbox(maxlen, self._activity)
+        inbox = Inbox(maxlen, self._activity, max_bytes=max_bytes, max_payload=max_payload)
 
         def on_sample(sample, inbox=inbox):
             try:
                 if sample.kind != zenoh.SampleKind.PUT:
                     inbox._ignore()
+                    return
+                if len(sample.payload) > inbox.max_payload:
+                    inbox._refuse_oversized()
                     return
                 inbox._push(Received(sample.payload.to_bytes(), str(sample.key_expr), time.monotonic()))
             except Exception:  # never raise into zenoh

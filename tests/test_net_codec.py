@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from broker_free_net.codec import (
+    MAX_ERROR_CHARS,
     MAX_PAYLOAD_BYTES,
     REASONS,
     Bool,
@@ -20,6 +21,8 @@ from broker_free_net.codec import (
     Str,
     decode,
     encode,
+    scan,
+    shorten,
     try_decode,
 )
 
@@ -104,7 +107,7 @@ def test_encode_rejects():
         (b"", "bad_msgpack", None),
         (raw(good_raw()) + b"\x00", "bad_msgpack", None),
         (raw(good_raw())[:-3], "bad_msgpack", None),
-        (b"\x91" * 5000, "bad_msgpack", None),  # too nested
+        (b"\x91" * 5000, "too_deep", None),
         (msgpack.packb(msgpack.ExtType(5, b"abc")), "bad_msgpack", None),
         (raw([1, 2]), "not_map", None),
         (raw(3), "not_map", None),
@@ -249,3 +252,47 @@ def test_corrupted_good_payload_only_raises_malformed(noise, pos):
         decode(bytes(payload), SCHEMA)
     except MalformedMessage:
         pass
+
+
+def _walk(obj, level=0):
+    """(values, depth) of an unpacked msgpack object: the reference for scan()."""
+    if isinstance(obj, dict):
+        parts = [_walk(v, level + 1) for kv in obj.items() for v in kv]
+    elif isinstance(obj, list):
+        parts = [_walk(v, level + 1) for v in obj]
+    else:
+        return 1, level
+    return 1 + sum(p[0] for p in parts), max([level + 1] + [p[1] for p in parts])
+
+
+@given(msgpack_values)
+@settings(max_examples=300, deadline=None)
+def test_scan_counts_like_a_walk_of_the_unpacked_object(obj):
+    payload = raw(obj)
+    assert scan(payload) == _walk(msgpack.unpackb(payload, strict_map_key=False))
+
+
+def test_scan_limits_and_hand_counted_examples():
+    assert scan(raw(5)) == (1, 0)
+    assert scan(raw([])) == (1, 1)
+    assert scan(raw({"a": [1, {"b": None}]})) == (7, 3)
+    assert scan(raw([[]] * 3)) == (4, 2)
+    assert scan(b"\x91" * 16 + b"\xc0") == (17, 16)
+    with pytest.raises(MalformedMessage, match="too_deep"):
+        scan(b"\x91" * 17 + b"\xc0")
+    assert scan(raw(list(range(10))), max_objects=11) == (11, 1)
+    with pytest.raises(MalformedMessage, match="too_many"):
+        scan(raw(list(range(11))), max_objects=11)
+    for bad in (b"\xc1", b"\xd4\x01\x00", b"\x92\x01", b"\xc4\x05ab", b"\x01\x02", b""):
+        with pytest.raises(MalformedMessage, match="bad_msgpack"):
+            scan(bad)
+
+
+def test_error_messages_are_short():
+    long_value = "y" * 60_000
+    schema = Schema({"s": Str(max_len=10**6, choices=frozenset({"a"}))})
+    with pytest.raises(MalformedMessage) as info:
+        decode(raw({"v": 1, "s": long_value}), schema)
+    assert info.value.reason == "range" and len(str(info.value)) <= MAX_ERROR_CHARS
+    assert str(info.value).endswith("...")
+    assert shorten("abcdef", 5) == "ab..." and shorten("abcde", 5) == "abcde"

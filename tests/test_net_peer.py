@@ -114,3 +114,60 @@ def test_start_order_does_not_matter():
     with Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as early:
         with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0):
             assert early.wait_for_peers(lambda alive: ("agent", "0") in alive, 30)
+
+
+def test_inbox_is_bounded_by_bytes_and_refuses_oversized_payloads():
+    inbox = Inbox(maxlen=100, max_bytes=1000, max_payload=400)
+    for i in range(5):
+        inbox._push(Received(bytes([i]) * 300, "k", float(i)))
+    # 5 x 300 bytes into 1000: the two oldest go
+    assert [r.payload[0] for r in inbox.drain()] == [2, 3, 4]
+    assert inbox.overflows == 2 and inbox.nbytes == 0
+    inbox._push(Received(b"x" * 401, "k", 0.0))
+    inbox._push(Received(b"y" * 400, "k", 0.0))
+    assert inbox.oversized == 1 and len(inbox) == 1 and inbox.nbytes == 400
+    assert inbox.poll().payload == b"y" * 400 and inbox.nbytes == 0
+    # count bound still applies to tiny items
+    small = Inbox(maxlen=3, max_bytes=1 << 20)
+    for i in range(10):
+        small._push(Received(b"z", "k", 0.0))
+    assert len(small) == 3 and small.overflows == 7 and small.nbytes == 3
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"max_bytes": 0}, "max_bytes"), ({"max_payload": -1}, "max_payload"),
+    ({"max_bytes": 10, "max_payload": 11}, "max_bytes"), ({"max_bytes": True}, "max_bytes")])
+def test_inbox_rejects_bad_bounds(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        Inbox(**kwargs)
+
+
+def test_payloads_over_the_limit_are_not_delivered():
+    """Messages over MAX_PAYLOAD_BYTES never reach an inbox (refused before the copy)."""
+    from broker_free_net.codec import MAX_PAYLOAD_BYTES
+
+    run = f"big{free_port()}"
+    port = free_port()
+    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        inbox = b.subscribe(keys.est_key(run, 0), include_local=False)
+        assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
+        key = keys.est_key(run, 0)
+        a.publisher(key, block=True)
+        got = []
+        deadline = time.monotonic() + 20
+        while not any(r.payload == b"ready" for r in got) and time.monotonic() < deadline:
+            a.put(key, b"ready")  # the route exists once one small message went through
+            b.wait(timeout=0.2)
+            got += inbox.drain()
+        assert got, "no route from a to b"
+        sizes = [MAX_PAYLOAD_BYTES + 1, MAX_PAYLOAD_BYTES + 4096, 3 * MAX_PAYLOAD_BYTES // 2]
+        for size in sizes * 4:
+            a.put(key, b"\x00" * size)
+        a.put(key, b"end")  # same publisher, same key: arrives after the big ones
+        after = []
+        while not any(r.payload == b"end" for r in after) and time.monotonic() < deadline + 20:
+            b.wait(timeout=0.2)
+            after += inbox.drain()
+        assert [r.payload for r in after if r.payload != b"ready"] == [b"end"]
+        assert 1 <= inbox.oversized <= 4 * len(sizes)  # zenoh passed them on; the inbox refused
