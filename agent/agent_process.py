@@ -2,9 +2,10 @@
 
 Subscriptions (in this order; the status subscription is declared last, so that a peer
 which receives this agent's status also knows all its other subscriptions: the start
-handshake relies on it): its control key, the impairment key, every agent's estimates,
-the sensor keys of the nodes it measures (or of the first node, as a clock, while it has
-no role), then every agent's status. Publications: its estimate every step, its status
+handshake relies on it): its control key, the roster key, the impairment key, every
+agent's estimates, every sensor key (it uses the readings of the nodes it measures, or of
+the first node as a clock while it has no role: a new role never waits for a
+subscription), then every agent's status. Publications: its estimate every step, its status
 every ``status_s`` (and at once after a control message). It never reads the truth key.
 
 It also subscribes to the roster key (``ctl/0``, the monitor's fence). The process ends
@@ -151,16 +152,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
         imp_in = peer.subscribe(keys.impair_key(run))
         est_in = peer.subscribe(keys.any_agent_pattern(run, "est"))
-        sensor_in: dict = {}
-
-        def sync_sensors():
-            wanted = set(core.wanted_labels())
-            for label in wanted - set(sensor_in):
-                sensor_in[label] = peer.subscribe(keys.sensor_key(run, label))
-            for label in set(sensor_in) - wanted:
-                sensor_in.pop(label).close()
-
-        sync_sensors()
+        # every sensor key, from the start: a role change never waits for a new
+        # subscription to reach the world (under load that took longer than the
+        # assignment's head start); readings of nodes not wanted are dropped by key
+        sensor_all = peer.subscribe(keys.any_agent_pattern(run, "sensor"), maxlen=1 << 14)
+        sensor_in = {"*": sensor_all}
+        sensor_prefix = keys.sensor_key(run, core.labels[0]).rsplit("/", 1)[0] + "/"
         watch = peer.watch_liveliness()
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
@@ -262,8 +259,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats, senders=senders)
                 if msg is not None:
                     core.note_heard(msg["agent"])
-            for label, inbox in list(sensor_in.items()):
-                for item in inbox.drain():
+            wanted = set(core.wanted_labels())
+            for item in sensor_all.drain():
+                label = item.key[len(sensor_prefix):] if item.key.startswith(sensor_prefix) \
+                    else None
+                if label in wanted:
                     handle_sensor(label, item)
             for item in est_in.drain():
                 handle_est(item, now)
@@ -277,7 +277,6 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
                     os.kill(os.getpid(), signal.SIGKILL)
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
-            sync_sensors()
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()

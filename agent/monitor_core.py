@@ -518,6 +518,13 @@ class MonitorCore:
         specs = role_specs(nxt, G, take_over=take_over)
         self.epoch += 1
         activate_at = max(self.current_step(now), 0) + self.config.lead_steps
+        # a reassignment still waiting for its activate_at is superseded at the same step
+        # (agents replace a pending assignment by a newer one): no agent runs the older
+        # configuration for a step while another runs the newer one
+        prev = self._roster_msg
+        if prev is not None and prev.activate_at >= max(self.current_step(now), 0) \
+                + self.config.lead_steps // 2:
+            activate_at = min(activate_at, prev.activate_at)
         self._unconfirmed = {a: asg for a, asg in self._unconfirmed.items() if a in nxt.ids}
         out = []
         for agent, spec in specs.items():

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-__all__ = ["summarize", "mse_by_step", "specs_in_force", "compare_simulator",
+__all__ = ["summarize", "mse_by_step", "specs_in_force", "effective_rosters", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
@@ -36,6 +36,13 @@ def mse_by_step(rec, K):
 
 def summarize(config, rec, loop_rho, predicted) -> tuple:
     """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md)."""
+    import json
+
+    from .commands._common import to_jsonable
+
+    (config.out / "assignments.json").write_text(json.dumps(to_jsonable(
+        [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(rec.assigns.items())]))
+        + "\n")
     c = config
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
@@ -83,6 +90,21 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
                              c.G))
     return summary, steps, mse
     return summary, steps, mse
+
+
+def effective_rosters(rosters):
+    """The configurations that were actually in force: a roster superseded at the same
+    ``activate_at`` by a newer epoch never ran, and a re-issue of the same ids under a
+    new epoch changes nothing."""
+    by_step = {}
+    for at, ids, epoch in rosters:
+        if at not in by_step or epoch > by_step[at][2]:
+            by_step[at] = (at, ids, epoch)
+    out = []
+    for r in sorted(by_step.values()):
+        if not out or r[1] != out[-1][1]:
+            out.append(r)
+    return out
 
 
 def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
@@ -195,8 +217,7 @@ def compare_simulator(config, rec, steps_done):
             return float("inf"), "the simulator replays one scripted crash step only"
         f = next(iter(kills.values()))
         fail = (f, sorted(a - 1 for a in kills))
-        rosters = [r for i, r in enumerate(rec.rosters)
-                   if i == 0 or r[1] != rec.rosters[i - 1][1]]   # re-issues
+        rosters = effective_rosters(rec.rosters)
         table = link_delay_table(c.scenario, c.delays)
         chain = []
         for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
