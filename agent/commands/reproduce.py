@@ -124,8 +124,9 @@ def _exact(scenario, G, D):
 def _steady_se(res):
     import numpy as np
 
-    q = max(1, res.steps // 4)
-    per_trial = res.mse_trials[:, -q:].mean(axis=1)
+    from design.metrics import steady_mse
+
+    per_trial = steady_mse(res.mse_trials)
     if res.trials < 2 or not np.all(np.isfinite(per_trial)):
         return None
     return float(per_trial.std(ddof=1) / math.sqrt(res.trials))
