@@ -312,7 +312,7 @@ def test_cli_plan_text_and_written_scenario(tmp_path, capsys):
     ("0", "--fail: no agent 0"),
     ("1,x", "--fail: agent ids are positive integers, got 'x'"),
     ("2,2", "--fail: agent 2 listed twice"),
-    ("", "--fail: give at least one agent id"),
+    ("", "--fail: give at least one agent"),
 ])
 def test_cli_plan_bad_fail_list_exits_2(capsys, fail, message):
     assert main(["plan", "paper-14", "--fail", fail]) == 2

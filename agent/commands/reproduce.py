@@ -529,11 +529,11 @@ def differences(results) -> list:
 def _run(args) -> int:
     from design.scenario import load_scenario
 
-    from .simulate import parse_positive_int
+    from ._common import parse_int
 
-    steps = parse_positive_int(args.steps, "--steps")
-    seed = parse_positive_int(args.seed, "--seed", minimum=0)
-    trials = parse_positive_int(args.trials, "--trials") if args.trials is not None else None
+    steps = parse_int(args.steps, "--steps", lo=1)
+    seed = parse_int(args.seed, "--seed", lo=0)
+    trials = parse_int(args.trials, "--trials", lo=1) if args.trials is not None else None
     time_limit = None
     if args.time_limit is not None:
         try:
