@@ -39,18 +39,14 @@ import scipy.sparse as sp
 
 from .connectivity import condensation
 from .graph import InfluenceStructure, influence_graph
-from .observability import default_tolerance, observability_rank, unobservable_modes
+from .observability import distributed_detectability, pair_observability
 
 __all__ = [
     "StructuralAnalysis",
     "structural_analysis",
     "Analysis",
     "analyze",
-    "distributed_pair",
 ]
-
-#: Above this order nN the Kronecker product W (x) A is kept sparse.
-DENSE_KRON_MAX_ORDER = 600
 
 
 @dataclass(frozen=True, eq=False)
@@ -159,14 +155,6 @@ def structural_analysis(A, measured=()) -> StructuralAnalysis:
         minimal_sensor_set=np.sort(pick[par]).tolist(),
         missing_self_loops=np.flatnonzero(np.asarray(diag) == 0),
     )
-
-
-def distributed_pair(A, W, D_H):
-    """``(W (x) A, D_H)``; sparse when the order nN exceeds :data:`DENSE_KRON_MAX_ORDER`."""
-    order = np.shape(A)[0] * np.shape(W)[0]
-    if order > DENSE_KRON_MAX_ORDER:
-        return sp.kron(sp.csr_matrix(W), sp.csr_matrix(A), format="csr"), D_H
-    return np.kron(W, A), D_H
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,8 +370,8 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
     A, H = s.A, s.H_all
     structural = structural_analysis(A, [v for m in s.measure for v in m])
     rank_A = int(np.linalg.matrix_rank(A))
-    WA, D = distributed_pair(A, s.W, s.D_H)
-    tol_d = tol if tol is not None else default_tolerance(WA, D)
+    central = pair_observability(A, H, tol)
+    distributed = distributed_detectability(A, s.W, s.measure, tol)
     kw = {} if max_subsets is None else {"max_subsets": max_subsets}
     limit = DEFAULT_MAX_SUBSETS if max_subsets is None else max_subsets
     return Analysis(
@@ -391,10 +379,10 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
         structural=structural,
         rank_A=rank_A,
         rho_A=s.rho_A,
-        observability_rank=observability_rank(A, H, tol),
-        unobservable_modes=unobservable_modes(A, H, tol),
-        distributed_rank=observability_rank(WA, D, tol_d),
-        distributed_unobservable_modes=unobservable_modes(WA, D, tol_d),
+        observability_rank=central.rank,
+        unobservable_modes=central.unobservable_modes,
+        distributed_rank=distributed.rank,
+        distributed_unobservable_modes=distributed.unobservable_modes,
         network_components=strongly_connected_agent_sets(s.W),
         failure_tolerance=failure_tolerance(s, allow_new_links=False, **kw),
         failure_tolerance_with_links=failure_tolerance(s, allow_new_links=True, **kw),

@@ -66,6 +66,7 @@ from .connectivity import (
 )
 from .errors import SocmonError
 from .graph import influence_graph, influence_structure
+from .observability import distributed_detectability, pair_observability
 
 __all__ = [
     "RecoveryError",
@@ -394,26 +395,19 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
             measure=plan.measure_after,
             standby=scenario.standby - sum(1 for a in plan.agent_ids if a > scenario.N),
         )
-        from .analysis import distributed_pair
-        from .observability import observability_rank, unobservable_modes
-
-        n, Nn = new.n, new.n * new.N
-        r = observability_rank(new.A, new.H_all)
-        modes = unobservable_modes(new.A, new.H_all)
-        WA, D = distributed_pair(new.A, new.W, new.D_H)
-        rd = observability_rank(WA, D)
-        dmodes = unobservable_modes(WA, D)
+        central = pair_observability(new.A, new.H_all)
+        distributed = distributed_detectability(new.A, new.W, new.measure)
         num = {
-            "observability_rank_after": r,
-            "observable_after": r == n,
-            "detectable_after": bool(np.all(np.abs(modes) < 1)),
-            "distributed_rank_after": rd,
-            "distributed_order_after": Nn,
-            "distributed_observable_after": rd == Nn,
-            "distributed_detectable_after": bool(np.all(np.abs(dmodes) < 1)),
+            "observability_rank_after": central.rank,
+            "observable_after": central.observable,
+            "detectable_after": central.detectable,
+            "distributed_rank_after": distributed.rank,
+            "distributed_order_after": distributed.order,
+            "distributed_observable_after": distributed.observable,
+            "distributed_detectable_after": distributed.detectable,
             "distributed_unobservable_modes_after": [
                 {"re": float(np.real(v)), "im": float(np.imag(v)), "abs": float(abs(v))}
-                for v in dmodes
+                for v in distributed.unobservable_modes
             ],
         }
     else:
