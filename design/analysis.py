@@ -37,9 +37,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .connectivity import condensation
-from .graph import InfluenceStructure, influence_graph
+from .connectivity import agent_components
+from .graph import InfluenceStructure, influence_structure
 from .observability import distributed_detectability, pair_observability
+from .recovery import DEFAULT_MAX_SUBSETS, failure_tolerance, redundancy_tolerance
 
 __all__ = [
     "StructuralAnalysis",
@@ -129,10 +130,9 @@ def structural_analysis(A, measured=()) -> StructuralAnalysis:
     bad = [v for v in measured if not 0 <= v < n]
     if bad:
         raise ValueError(f"measured: node indices {bad[:5]} out of range 0..{n - 1}")
-    G = influence_graph(A)  # G[j, i] = 1 iff j -> i: the orientation condensation() wants
-    C = condensation(G)
-    parents = C.sinks
-    structure = InfluenceStructure(labels=C.labels, components=C.components, parents=parents)
+    structure = influence_structure(A)
+    C = structure.condensation
+    parents = structure.parents
     # vectorised (no Python loop over SCCs): a sensor per parent, the smallest measured
     # node of it if any, else its smallest node (the rule of graph.minimal_sensor_set)
     pick = C.first.copy()
@@ -148,7 +148,7 @@ def structural_analysis(A, measured=()) -> StructuralAnalysis:
     diag = A.diagonal() if sp.issparse(A) else np.diagonal(np.asarray(A))
     return StructuralAnalysis(
         structure=structure,
-        n_edges=int(G.nnz),
+        n_edges=int(C.n_edges),
         condensation_edges=int(C.dag.nnz),
         measured=measured,
         unmeasured_parents=unmeasured,
@@ -364,8 +364,6 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
         Bound on the failure sets :func:`design.recovery.failure_tolerance` examines.
     """
     from .recovery import DEFAULT_MAX_SUBSETS, failure_tolerance, redundancy_tolerance
-    from .scenario import strongly_connected_agent_sets
-
     s = scenario
     A, H = s.A, s.H_all
     structural = structural_analysis(A, [v for m in s.measure for v in m])
@@ -383,7 +381,7 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
         unobservable_modes=central.unobservable_modes,
         distributed_rank=distributed.rank,
         distributed_unobservable_modes=distributed.unobservable_modes,
-        network_components=strongly_connected_agent_sets(s.W),
+        network_components=agent_components(s.W),
         failure_tolerance=failure_tolerance(s, allow_new_links=False, **kw),
         failure_tolerance_with_links=failure_tolerance(s, allow_new_links=True, **kw),
         redundancy_tolerance=redundancy_tolerance(s, **kw),

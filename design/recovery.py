@@ -60,12 +60,11 @@ import numpy as np
 
 from .connectivity import (
     agent_flow_graph,
-    condensation,
     is_strongly_connected,
     strong_connectivity_augmentation,
 )
 from .errors import SocmonError
-from .graph import influence_graph, influence_structure
+from .graph import condensation, influence_graph, influence_structure
 from .observability import distributed_detectability, pair_observability
 
 __all__ = [
@@ -254,9 +253,7 @@ class _Context:
 
     def __init__(self, scenario):
         self.scenario = scenario
-        from .analysis import structural_analysis
-
-        self.structure = structural_analysis(scenario.A).structure
+        self.structure = influence_structure(scenario.A)
         self.G = influence_graph(scenario.A)  # G[j, i] = 1 iff j -> i
         self.is_parent = self.structure.is_parent
         self._cand: dict = {}

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .connectivity import agent_components
 from .errors import ScenarioError
 
 __all__ = [
@@ -38,7 +39,6 @@ __all__ = [
     "builtin_scenarios",
     "resolve_delays",
     "uniform_delays",
-    "strongly_connected_agent_sets",
     "RankDeficientWarning",
 ]
 
@@ -366,19 +366,6 @@ def resolve_delays(scenario: Scenario, spec: str = "scenario") -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------
-# graph helper used by validation (kept here so validation has no import cycle)
-
-
-def strongly_connected_agent_sets(W: np.ndarray) -> list:
-    """Strongly connected components of the agent graph of ``W`` (0-based sets)."""
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    k, lab = connected_components(csr_matrix(np.asarray(W) != 0), connection="strong")
-    return [sorted(np.flatnonzero(lab == c).tolist()) for c in range(k)]
-
-
-# ---------------------------------------------------------------------------------
 # parsing helpers
 
 
@@ -655,7 +642,7 @@ def _check_weights(W, where):
         problems.append(
             f"{where}.weights: zero self weight w_ii for agents {[int(i) + 1 for i in zero_self]}"
         )
-    comps = strongly_connected_agent_sets(W)
+    comps = agent_components(W)
     if len(comps) > 1:
         problems.append(
             f"{where}: agent graph G_W is not strongly connected; its components are "
