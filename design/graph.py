@@ -40,7 +40,6 @@ __all__ = [
     "influence_graph",
     "influence_structure",
     "canonical_components",
-    "is_structurally_observable",
     "unmeasured_parents",
     "minimal_sensor_set",
 ]
@@ -242,11 +241,6 @@ def unmeasured_parents(structure: InfluenceStructure, measured) -> list:
     """Parent SCC indices that hold none of the ``measured`` nodes."""
     covered = {int(structure.labels[v]) for v in measured}
     return [c for c in structure.parents if c not in covered]
-
-
-def is_structurally_observable(structure: InfluenceStructure, measured) -> bool:
-    """True iff every parent SCC holds a measured node (canonical sensors, Assumption 1)."""
-    return not unmeasured_parents(structure, measured)
 
 
 def minimal_sensor_set(structure: InfluenceStructure, prefer=()) -> list:

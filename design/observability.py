@@ -26,7 +26,6 @@ import scipy.sparse as sp
 __all__ = [
     "observable_basis",
     "observability_rank",
-    "is_observable",
     "unobservable_modes",
     "default_tolerance",
     "PairObservability",
@@ -82,11 +81,6 @@ def observable_basis(A, C, tol=None) -> np.ndarray:
 def observability_rank(A, C, tol=None) -> int:
     """Dimension of the observable subspace of (A, C)."""
     return int(observable_basis(A, C, tol).shape[1])
-
-
-def is_observable(A, C, tol=None) -> bool:
-    """True iff (A, C) is observable (numerically, with tolerance ``tol``)."""
-    return observability_rank(A, C, tol) == A.shape[0]
 
 
 def unobservable_modes(A, C, tol=None) -> np.ndarray:

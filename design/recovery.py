@@ -89,8 +89,12 @@ class RecoveryError(SocmonError):
 
 @dataclass(frozen=True)
 class Replacement:
-    """Node ``node_from`` lost by failed agent ``failed`` (0-based) is replaced by
-    ``node_to``, measured by agent ``by`` (1-based id; standby ids are N+1..)."""
+    """Node ``node_from`` lost by failed agent ``failed`` is replaced by ``node_to``,
+    measured by agent ``by``.
+
+    ``failed`` is a 0-based row of the scenario's W; ``by`` is a 1-based agent id
+    (standby ids are N+1..); nodes are 0-based indices. See :class:`RecoveryPlan`.
+    """
 
     failed: int
     node_from: int
@@ -101,11 +105,21 @@ class Replacement:
 
 @dataclass(frozen=True, eq=False)
 class RecoveryPlan:
-    """Outcome of :func:`plan_recovery` (agents 0-based unless named ``*_id``).
+    """Outcome of :func:`plan_recovery`.
+
+    Agent numbering, once for all fields: an agent of the *scenario* is named by its
+    0-based row of the scenario's W (``failed``, the keys of the per-failed-agent dicts,
+    ``Replacement.failed``); an agent of the *new configuration* is named by its 1-based
+    id (``agent_ids``, ``Replacement.by``, ``added_links``, ``components_removed``),
+    because the new rows mix survivors (id = old row + 1) and standbys (ids N+1..); the
+    rows of ``W_removed``, ``W_after``, ``delays_after`` and ``measure_after`` are in the
+    order of ``agent_ids``. Nodes are 0-based indices everywhere. :meth:`to_dict` gives
+    the JSON form with every agent as a 1-based id and every node as its label.
 
     Attributes
     ----------
     failed : tuple of int
+        Failed agents, 0-based rows of the scenario's W, sorted.
     candidates : dict
         failed agent -> equivalent nodes (union over the parent-SCC nodes it measured).
     candidates_by_node : dict
