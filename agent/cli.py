@@ -1,9 +1,11 @@
 """The ``socmon`` command line: one subcommand per module of :mod:`agent.commands`.
 
 Each command module defines ``HELP`` (one line), ``add_arguments(parser)`` and
-``run(args) -> int``; heavy imports happen inside ``run`` so that ``socmon --help`` stays
-fast. Exit status: 0 success, 1 the command ran but the result is negative (e.g. no
-stabilising gain), 2 bad input (named in the message), 130 interrupted.
+``run(args) -> int``; the heavy imports (cvxpy, matplotlib, and zenoh where a command
+does not need it to build its flags) happen inside the functions that use them. Exit
+status: 0 success, 1 the command ran but the result is negative (e.g. no stabilising
+gain), 2 bad input (named in the message, argparse's rejections included), 130
+interrupted.
 """
 
 from __future__ import annotations

@@ -9,6 +9,10 @@ import warnings
 
 import numpy as np
 
+from design.errors import GainsError, ScenarioError
+from design.gains import load_gains
+from design.scenario import load_scenario
+
 EXIT_OK, EXIT_NEGATIVE, EXIT_BAD_INPUT = 0, 1, 2
 
 
@@ -35,9 +39,6 @@ def load_scenario_arg(spec):
 
     Warnings (e.g. rank-deficient A) are printed to stderr, not raised.
     """
-    from design.errors import ScenarioError
-    from design.scenario import load_scenario
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -50,9 +51,6 @@ def load_scenario_arg(spec):
 
 
 def load_gains_arg(path, scenario):
-    from design.errors import GainsError
-    from design.gains import load_gains
-
     try:
         return load_gains(path, scenario)
     except GainsError as exc:

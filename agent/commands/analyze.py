@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from design.analysis import analyze
+
 from ._common import (
     EXIT_OK,
     CommandError,
@@ -30,8 +32,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.analysis import analyze
-
     scenario = load_scenario_arg(args.scenario)
     result = analyze(scenario, max_subsets=args.max_subsets)
     data = result.to_dict()

@@ -7,6 +7,9 @@ the gain is stable with the scenario's own delays (exact radius < 1), 1 when it 
 
 from __future__ import annotations
 
+from design.certificates import DEFAULT_TAU_CAP, certify
+from design.scenario import MAX_DELAY
+
 from ._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
@@ -39,9 +42,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.certificates import DEFAULT_TAU_CAP, certify
-
-    from design.scenario import MAX_DELAY
 
     taus = parse_int_list(args.taus, "--taus", lo=0, hi=MAX_DELAY, item="delay",
                           what="expected comma-separated non-negative integers",

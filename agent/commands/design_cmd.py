@@ -10,6 +10,13 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from design.ccl import SolverError
+from design.closed_loop import ClosedLoop
+from design.errors import NotObservableError, ScenarioError
+from design.gain_design import DesignError, design_gains
+from design.gains import gains_meta, load_gains, save_gains
+from design.scenario import resolve_delays
+
 from ._common import (
     EXIT_BAD_INPUT,
     EXIT_NEGATIVE,
@@ -91,13 +98,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.ccl import SolverError
-    from design.closed_loop import ClosedLoop
-    from design.errors import NotObservableError, ScenarioError
-    from design.gain_design import DesignError, design_gains
-    from design.gains import gains_meta, load_gains, save_gains
-    from design.scenario import resolve_delays
-
     scenario = load_scenario_arg(args.scenario)
     try:
         D = resolve_delays(scenario, args.delays)

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from design.recovery import plan_recovery
+from design.scenario import scenario_to_toml
+
 from ._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
@@ -42,9 +45,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.recovery import plan_recovery
-    from design.scenario import scenario_to_toml
-
     scenario = load_scenario_arg(args.scenario)
     failed = parse_agent_list(args.fail, scenario, flag="--fail")
     plan = plan_recovery(scenario, failed, add_links=not args.no_new_links)
