@@ -1,9 +1,11 @@
 """The ``socmon`` command line: one subcommand per module of :mod:`agent.commands`.
 
 Each command module defines ``HELP`` (one line), ``add_arguments(parser)`` and
-``run(args) -> int``; heavy imports happen inside ``run`` so that ``socmon --help`` stays
-fast. Exit status: 0 success, 1 the command ran but the result is negative (e.g. no
-stabilising gain), 2 bad input (named in the message), 130 interrupted.
+``run(args) -> int``; the heavy imports (cvxpy, matplotlib, and zenoh where a command
+does not need it to build its flags) happen inside the functions that use them. Exit
+status: 0 success, 1 the command ran but the result is negative (e.g. no stabilising
+gain), 2 bad input (named in the message, argparse's rejections included), 130
+interrupted.
 """
 
 from __future__ import annotations
@@ -59,7 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a flag argparse rejects (2, message printed)
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:

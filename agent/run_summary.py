@@ -38,7 +38,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md)."""
     import json
 
-    from .commands._common import to_jsonable
+    from .jsonable import to_jsonable
 
     (config.out / "assignments.json").write_text(json.dumps(to_jsonable(
         [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(rec.assigns.items())]))
@@ -268,7 +268,7 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     import json
     import sys
 
-    from .commands._common import to_jsonable
+    from .jsonable import to_jsonable
 
     (out / "summary.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
     with open(out / "mse.csv", "w", newline="") as f:

@@ -1,6 +1,7 @@
 """Broker-free transport of socmon: zenoh peer sessions, keys, codec, impairments.
 
-Knows nothing of estimation. Submodules:
+Knows nothing of estimation: never imports :mod:`design` nor :mod:`agent`
+(``tests/test_layers.py`` checks it). Submodules:
 
 - :mod:`broker_free_net.config` -- NetConfig and the zenoh.Config builder
 - :mod:`broker_free_net.keys` -- key expressions of a run

@@ -6,7 +6,7 @@ Every key lives under ``socmon/<run>/``::
     socmon/<run>/sensor/<label>       sensor reading published by the world
     socmon/<run>/ctl/<agent>          control message to an agent
     socmon/<run>/status/<agent>       status of an agent
-    socmon/<run>/truth                ground truth (world -> monitor)
+    socmon/<run>/truth                ground truth (world -> recorder; the monitor never reads it)
     socmon/<run>/impair               impairment changes (socmon inject)
     socmon/<run>/alive/<role>/<id>    liveliness token of a process
 

@@ -1,1 +1,33 @@
-"""socmon design package."""
+"""socmon's numerics: the model, its structure, the closed loop, estimation, experiments.
+
+Pure functions of numpy/scipy/cvxpy data: no I/O, no zenoh, no logging side effects.
+Never imports :mod:`agent` or :mod:`broker_free_net`.
+
+Layers, lowest first. A module imports only from its own layer or the layers below it
+(``tests/test_layers.py`` checks every import, lazy ones included):
+
+1. **model** -- the objects of the paper and the graph algorithms they are checked with:
+   :mod:`~design.errors`, :mod:`~design.metrics`, :mod:`~design.noise`,
+   :mod:`~design.graph` (SCCs, condensation, parent SCCs), :mod:`~design.connectivity`
+   (agent network), :mod:`~design.scenario`, :mod:`~design.gains`.
+2. **structure** -- what the structure implies: :mod:`~design.observability`
+   (staircase, distributed detectability), :mod:`~design.recovery`,
+   :mod:`~design.analysis`.
+3. **loop** -- the estimator and its exact closed loop: :mod:`~design.estimator`,
+   :mod:`~design.closed_loop`, :mod:`~design.certificates`.
+4. **estimation** -- gains and Monte-Carlo runs: :mod:`~design.ccl`,
+   :mod:`~design.gradient`, :mod:`~design.gain_design`, :mod:`~design.simulate`.
+5. **experiments** -- pipelines over all of the above: :mod:`~design.experiments`.
+
+Heavy imports (cvxpy) happen inside the functions that need them.
+"""
+
+#: Layer of every module of the package (checked by tests/test_layers.py).
+LAYERS = {
+    "errors": 1, "metrics": 1, "noise": 1, "graph": 1, "connectivity": 1, "scenario": 1,
+    "gains": 1,
+    "observability": 2, "recovery": 2, "analysis": 2, "roster": 2,
+    "estimator": 3, "closed_loop": 3, "certificates": 3,
+    "ccl": 4, "gradient": 4, "gain_design": 4, "simulate": 4,
+    "experiments": 5,
+}

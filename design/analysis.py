@@ -37,20 +37,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .connectivity import condensation
-from .graph import InfluenceStructure, influence_graph
-from .observability import default_tolerance, observability_rank, unobservable_modes
+from .connectivity import agent_components
+from .graph import InfluenceStructure, influence_structure
+from .observability import distributed_detectability, pair_observability
+from .recovery import DEFAULT_MAX_SUBSETS, failure_tolerance, redundancy_tolerance
 
 __all__ = [
     "StructuralAnalysis",
     "structural_analysis",
     "Analysis",
     "analyze",
-    "distributed_pair",
 ]
-
-#: Above this order nN the Kronecker product W (x) A is kept sparse.
-DENSE_KRON_MAX_ORDER = 600
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,10 +130,9 @@ def structural_analysis(A, measured=()) -> StructuralAnalysis:
     bad = [v for v in measured if not 0 <= v < n]
     if bad:
         raise ValueError(f"measured: node indices {bad[:5]} out of range 0..{n - 1}")
-    G = influence_graph(A)  # G[j, i] = 1 iff j -> i: the orientation condensation() wants
-    C = condensation(G)
-    parents = C.sinks
-    structure = InfluenceStructure(labels=C.labels, components=C.components, parents=parents)
+    structure = influence_structure(A)
+    C = structure.condensation
+    parents = structure.parents
     # vectorised (no Python loop over SCCs): a sensor per parent, the smallest measured
     # node of it if any, else its smallest node (the rule of graph.minimal_sensor_set)
     pick = C.first.copy()
@@ -152,21 +148,13 @@ def structural_analysis(A, measured=()) -> StructuralAnalysis:
     diag = A.diagonal() if sp.issparse(A) else np.diagonal(np.asarray(A))
     return StructuralAnalysis(
         structure=structure,
-        n_edges=int(G.nnz),
+        n_edges=int(C.n_edges),
         condensation_edges=int(C.dag.nnz),
         measured=measured,
         unmeasured_parents=unmeasured,
         minimal_sensor_set=np.sort(pick[par]).tolist(),
         missing_self_loops=np.flatnonzero(np.asarray(diag) == 0),
     )
-
-
-def distributed_pair(A, W, D_H):
-    """``(W (x) A, D_H)``; sparse when the order nN exceeds :data:`DENSE_KRON_MAX_ORDER`."""
-    order = np.shape(A)[0] * np.shape(W)[0]
-    if order > DENSE_KRON_MAX_ORDER:
-        return sp.kron(sp.csr_matrix(W), sp.csr_matrix(A), format="csr"), D_H
-    return np.kron(W, A), D_H
 
 
 @dataclass(frozen=True, eq=False)
@@ -376,14 +364,12 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
         Bound on the failure sets :func:`design.recovery.failure_tolerance` examines.
     """
     from .recovery import DEFAULT_MAX_SUBSETS, failure_tolerance, redundancy_tolerance
-    from .scenario import strongly_connected_agent_sets
-
     s = scenario
     A, H = s.A, s.H_all
     structural = structural_analysis(A, [v for m in s.measure for v in m])
     rank_A = int(np.linalg.matrix_rank(A))
-    WA, D = distributed_pair(A, s.W, s.D_H)
-    tol_d = tol if tol is not None else default_tolerance(WA, D)
+    central = pair_observability(A, H, tol)
+    distributed = distributed_detectability(A, s.W, s.measure, tol)
     kw = {} if max_subsets is None else {"max_subsets": max_subsets}
     limit = DEFAULT_MAX_SUBSETS if max_subsets is None else max_subsets
     return Analysis(
@@ -391,11 +377,11 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
         structural=structural,
         rank_A=rank_A,
         rho_A=s.rho_A,
-        observability_rank=observability_rank(A, H, tol),
-        unobservable_modes=unobservable_modes(A, H, tol),
-        distributed_rank=observability_rank(WA, D, tol_d),
-        distributed_unobservable_modes=unobservable_modes(WA, D, tol_d),
-        network_components=strongly_connected_agent_sets(s.W),
+        observability_rank=central.rank,
+        unobservable_modes=central.unobservable_modes,
+        distributed_rank=distributed.rank,
+        distributed_unobservable_modes=distributed.unobservable_modes,
+        network_components=agent_components(s.W),
         failure_tolerance=failure_tolerance(s, allow_new_links=False, **kw),
         failure_tolerance_with_links=failure_tolerance(s, allow_new_links=True, **kw),
         redundancy_tolerance=redundancy_tolerance(s, **kw),

@@ -25,19 +25,14 @@ Examples
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
-from .graph import canonical_components
+from .graph import as_csr_digraph, canonical_components, condensation
 
 __all__ = [
-    "Condensation",
-    "ComponentList",
-    "condensation",
+    "agent_components",
     "is_strongly_connected",
     "strong_connectivity_augmentation",
     "agent_flow_graph",
@@ -52,124 +47,21 @@ def agent_flow_graph(W) -> np.ndarray:
     return M
 
 
-class ComponentList(Sequence):
-    """The vertex lists of the SCCs, stored as two arrays and built on access.
-
-    Behaves like a list of sorted lists of ints (indexing, iteration, ``len``, ``==``
-    with a list) without creating one Python list per SCC up front: on a sparse graph
-    with millions of singleton SCCs that would dominate the linear-time computation.
-
-    >>> ComponentList(np.array([0, 2, 1]), np.array([0, 2, 3]))
-    [[0, 2], [1]]
-    """
-
-    def __init__(self, order: np.ndarray, bounds: np.ndarray):
-        self.order, self.bounds = order, bounds
-
-    def __len__(self) -> int:
-        return int(self.bounds.size - 1)
-
-    def __getitem__(self, c):
-        if isinstance(c, slice):
-            return [self[i] for i in range(*c.indices(len(self)))]
-        c = range(len(self))[c]
-        return self.order[self.bounds[c]: self.bounds[c + 1]].tolist()
-
-    def sizes(self) -> np.ndarray:
-        return np.diff(self.bounds)
-
-    def __eq__(self, other):
-        if isinstance(other, (ComponentList, list, tuple)):
-            return len(self) == len(other) and all(a == list(b) for a, b in zip(self, other))
-        return NotImplemented
-
-    def __repr__(self) -> str:
-        return repr(list(self))
-
-
-@dataclass(frozen=True)
-class Condensation:
-    """SCCs of a digraph and the DAG between them.
-
-    Attributes
-    ----------
-    labels : ndarray of int
-        ``labels[v]`` = SCC of vertex v (SCCs numbered by their smallest vertex).
-    components : ComponentList
-        Vertices of each SCC, sorted (a list of lists, built on access).
-    first : ndarray of int
-        Smallest vertex of each SCC.
-    dag : scipy.sparse.csr_matrix (k x k)
-        ``dag[a, b] != 0`` iff some edge goes from SCC a to SCC b (a != b).
-    """
-
-    labels: np.ndarray
-    components: ComponentList
-    first: np.ndarray
-    dag: sp.csr_matrix
-
-    @property
-    def k(self) -> int:
-        return len(self.components)
-
-    @property
-    def out_degree(self) -> np.ndarray:
-        return np.diff(self.dag.indptr)
-
-    @property
-    def in_degree(self) -> np.ndarray:
-        return np.bincount(self.dag.indices, minlength=self.k)
-
-    @property
-    def sources(self) -> list:
-        """SCCs with no entering edge (isolated ones included)."""
-        return np.flatnonzero(self.in_degree == 0).tolist()
-
-    @property
-    def sinks(self) -> list:
-        """SCCs with no leaving edge (isolated ones included)."""
-        return np.flatnonzero(self.out_degree == 0).tolist()
-
-
-def _as_csr(M) -> sp.csr_matrix:
-    if sp.issparse(M):
-        C = sp.coo_matrix(M)
-    else:
-        C = sp.coo_matrix(np.asarray(M))
-    if C.shape[0] != C.shape[1]:
-        raise ValueError(f"adjacency: must be square, got shape {C.shape}")
-    keep = (C.data != 0) & (C.row != C.col)
-    n = C.shape[0]
-    return sp.csr_matrix(
-        (np.ones(int(keep.sum()), dtype=np.int8), (C.row[keep], C.col[keep])), shape=(n, n)
-    )
-
-
-def condensation(M) -> Condensation:
-    """Condensation of the digraph ``M`` (edge u -> v iff ``M[u, v] != 0``), linear time."""
-    G = _as_csr(M)
-    k, labels, first = canonical_components(G)
-    src, dst = G.nonzero()
-    a, b = labels[src], labels[dst]
-    cross = a != b
-    dag = sp.csr_matrix(
-        (np.ones(int(cross.sum()), dtype=np.int8), (a[cross], b[cross])), shape=(k, k)
-    )
-    dag.sum_duplicates()
-    dag.data[:] = 1
-    by = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[by], np.arange(k + 1))
-    return Condensation(labels=labels, components=ComponentList(by, bounds),
-                        first=first, dag=dag)
-
-
 def is_strongly_connected(M) -> bool:
     """True iff the digraph ``M`` has a single SCC (an empty graph is not)."""
-    G = _as_csr(M)
+    G = as_csr_digraph(M)
     if G.shape[0] == 0:
         return False
-    k, _ = connected_components(G, directed=True, connection="strong")
-    return k == 1
+    return canonical_components(G)[0] == 1
+
+
+def agent_components(W) -> list:
+    """Strongly connected sets of agents of ``W`` (0-based, each sorted, by smallest agent).
+
+    >>> agent_components(np.array([[0.5, 0.5, 0], [0.5, 0.5, 0], [0, 0.5, 0.5]]))
+    [[0, 1], [2]]
+    """
+    return list(condensation(agent_flow_graph(W)).components)
 
 
 def _reachable_sink(dag: sp.csr_matrix, start: int, is_free_sink: np.ndarray):

@@ -191,25 +191,17 @@ def check_detectable(scenario) -> Detectability:
             f"not observable: parent SCC{'s' if len(sccs) > 1 else ''} {names} "
             f"{'have' if len(sccs) > 1 else 'has'} no sensor; let an agent measure a node "
             "of each", sccs)
-    n, N = scenario.n, scenario.N
-    WA = sp.kron(sp.csr_matrix(scenario.W), sp.csr_matrix(scenario.A), format="csr")
-    rows = [i * n + v for i, m in enumerate(scenario.measure) for v in m]
-    C = np.zeros((len(rows), n * N))
-    C[np.arange(len(rows)), rows] = 1.0
-    V = observable_basis(WA, C)
-    r = V.shape[1]
-    modes = ()
-    if r < n * N:
-        # the unobservable subspace (orthogonal complement of V) is WA-invariant
-        U = sla.null_space(V.T) if r else np.eye(n * N)
-        modes = tuple(complex(z) for z in sla.eigvals(U.T @ (WA @ U)))
-    worst = max((abs(z) for z in modes), default=0.0)
-    d = Detectability(rank=r, order=n * N, unobservable_modes=modes, detectable=worst < 1)
+    from .observability import distributed_detectability
+
+    p = distributed_detectability(scenario.A, scenario.W, scenario.measure)
+    d = Detectability(rank=p.rank, order=p.order,
+                      unobservable_modes=tuple(complex(z) for z in p.unobservable_modes),
+                      detectable=p.detectable)
     if not d.detectable:
         raise NotObservableError(
-            f"not detectable: the distributed pair (W (x) A, D_H) has rank {r} of {n * N} "
-            f"and an unobservable mode of modulus {worst:.6g} >= 1; no gain can "
-            "stabilise the estimator")
+            f"not detectable: the distributed pair (W (x) A, D_H) has rank {p.rank} of "
+            f"{p.order} and an unobservable mode of modulus "
+            f"{p.max_unobservable_modulus:.6g} >= 1; no gain can stabilise the estimator")
     return d
 
 

@@ -18,16 +18,25 @@ Examples
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
 __all__ = [
     "observable_basis",
     "observability_rank",
-    "is_observable",
     "unobservable_modes",
     "default_tolerance",
+    "PairObservability",
+    "pair_observability",
+    "distributed_pair",
+    "distributed_detectability",
+    "DENSE_KRON_MAX_ORDER",
 ]
+
+#: Above this order nN the Kronecker product W (x) A is kept sparse.
+DENSE_KRON_MAX_ORDER = 600
 
 
 def default_tolerance(A, C) -> float:
@@ -74,11 +83,6 @@ def observability_rank(A, C, tol=None) -> int:
     return int(observable_basis(A, C, tol).shape[1])
 
 
-def is_observable(A, C, tol=None) -> bool:
-    """True iff (A, C) is observable (numerically, with tolerance ``tol``)."""
-    return observability_rank(A, C, tol) == A.shape[0]
-
-
 def unobservable_modes(A, C, tol=None) -> np.ndarray:
     """Eigenvalues of A restricted to the unobservable subspace of (A, C).
 
@@ -98,7 +102,11 @@ def unobservable_modes(A, C, tol=None) -> np.ndarray:
     >>> unobservable_modes(A, np.array([[0., 1]])).size
     0
     """
-    V = observable_basis(A, C, tol)
+    return _modes_outside(A, observable_basis(A, C, tol))
+
+
+def _modes_outside(A, V) -> np.ndarray:
+    """Eigenvalues of A on the orthogonal complement of the A^T-invariant span of ``V``."""
     n, r = A.shape[0], V.shape[1]
     if r >= n:
         return np.zeros(0)
@@ -115,6 +123,85 @@ def unobservable_modes(A, C, tol=None) -> np.ndarray:
         vals = vals.real
     order = np.lexsort((vals.imag if np.iscomplexobj(vals) else np.zeros(vals.size), -np.abs(vals)))
     return vals[order]
+
+
+@dataclass(frozen=True, eq=False)
+class PairObservability:
+    """Observability of a pair (A, C): rank of ``order`` and the unobservable modes.
+
+    ``detectable`` iff every unobservable mode lies strictly inside the unit circle.
+    """
+
+    rank: int
+    order: int
+    unobservable_modes: np.ndarray
+
+    @property
+    def observable(self) -> bool:
+        return self.rank == self.order
+
+    @property
+    def detectable(self) -> bool:
+        return bool(np.all(np.abs(self.unobservable_modes) < 1.0))
+
+    @property
+    def max_unobservable_modulus(self) -> float:
+        m = self.unobservable_modes
+        return float(np.max(np.abs(m))) if m.size else 0.0
+
+
+def pair_observability(A, C, tol=None) -> PairObservability:
+    """Rank and unobservable modes of (A, C) from one staircase.
+
+    >>> A = np.array([[0.5, 0], [1, 2.0]])
+    >>> p = pair_observability(A, np.array([[1., 0]]))
+    >>> p.rank, p.order, p.observable, p.detectable
+    (1, 2, False, False)
+    """
+    V = observable_basis(A, C, tol)
+    return PairObservability(rank=int(V.shape[1]), order=int(A.shape[0]),
+                             unobservable_modes=_modes_outside(A, V))
+
+
+def distributed_pair(A, W, measure):
+    """The distributed pair ``(W (x) A, C)`` of the paper's Lemma 3.
+
+    ``C`` holds one row ``e_{i n + v}`` per node v measured by agent i (0-based): its row
+    space is that of ``D_H = blockdiag(H_i^T H_i)``, so (W (x) A, C) and (W (x) A, D_H)
+    have the same observable subspace. ``W (x) A`` is sparse when the order nN exceeds
+    :data:`DENSE_KRON_MAX_ORDER`.
+
+    >>> WA, C = distributed_pair(np.eye(2), np.eye(2), [[1], [0]])
+    >>> WA.shape, np.flatnonzero(C).tolist()
+    ((4, 4), [1, 6])
+    """
+    A = A if sp.issparse(A) else np.asarray(A, dtype=float)
+    W = np.asarray(W, dtype=float)
+    n, N = A.shape[0], W.shape[0]
+    rows = [i * n + int(v) for i, m in enumerate(measure) for v in m]
+    C = np.zeros((len(rows), n * N))
+    C[np.arange(len(rows)), rows] = 1.0
+    if n * N > DENSE_KRON_MAX_ORDER or sp.issparse(A):
+        return sp.kron(sp.csr_matrix(W), sp.csr_matrix(A), format="csr"), C
+    return np.kron(W, A), C
+
+
+def distributed_detectability(A, W, measure, tol=None) -> PairObservability:
+    """Observability and detectability of the distributed pair (W (x) A, D_H).
+
+    The one definition used by the analysis, the recovery plan and the gain design: a
+    stabilising structured gain can exist only if this pair is detectable.
+
+    Examples
+    --------
+    >>> from design.scenario import load_scenario
+    >>> s = load_scenario("paper-14")
+    >>> d = distributed_detectability(s.A, s.W, s.measure)
+    >>> d.rank, d.order, d.detectable
+    (33, 42, True)
+    """
+    WA, C = distributed_pair(A, W, measure)
+    return pair_observability(WA, C, tol)
 
 
 def _orth(Z, tol) -> np.ndarray:

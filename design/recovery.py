@@ -60,12 +60,12 @@ import numpy as np
 
 from .connectivity import (
     agent_flow_graph,
-    condensation,
     is_strongly_connected,
     strong_connectivity_augmentation,
 )
 from .errors import SocmonError
-from .graph import influence_graph, influence_structure
+from .graph import condensation, influence_graph, influence_structure
+from .observability import distributed_detectability, pair_observability
 
 __all__ = [
     "RecoveryError",
@@ -89,8 +89,12 @@ class RecoveryError(SocmonError):
 
 @dataclass(frozen=True)
 class Replacement:
-    """Node ``node_from`` lost by failed agent ``failed`` (0-based) is replaced by
-    ``node_to``, measured by agent ``by`` (1-based id; standby ids are N+1..)."""
+    """Node ``node_from`` lost by failed agent ``failed`` is replaced by ``node_to``,
+    measured by agent ``by``.
+
+    ``failed`` is a 0-based row of the scenario's W; ``by`` is a 1-based agent id
+    (standby ids are N+1..); nodes are 0-based indices. See :class:`RecoveryPlan`.
+    """
 
     failed: int
     node_from: int
@@ -101,11 +105,21 @@ class Replacement:
 
 @dataclass(frozen=True, eq=False)
 class RecoveryPlan:
-    """Outcome of :func:`plan_recovery` (agents 0-based unless named ``*_id``).
+    """Outcome of :func:`plan_recovery`.
+
+    Agent numbering, once for all fields: an agent of the *scenario* is named by its
+    0-based row of the scenario's W (``failed``, the keys of the per-failed-agent dicts,
+    ``Replacement.failed``); an agent of the *new configuration* is named by its 1-based
+    id (``agent_ids``, ``Replacement.by``, ``added_links``, ``components_removed``),
+    because the new rows mix survivors (id = old row + 1) and standbys (ids N+1..); the
+    rows of ``W_removed``, ``W_after``, ``delays_after`` and ``measure_after`` are in the
+    order of ``agent_ids``. Nodes are 0-based indices everywhere. :meth:`to_dict` gives
+    the JSON form with every agent as a 1-based id and every node as its label.
 
     Attributes
     ----------
     failed : tuple of int
+        Failed agents, 0-based rows of the scenario's W, sorted.
     candidates : dict
         failed agent -> equivalent nodes (union over the parent-SCC nodes it measured).
     candidates_by_node : dict
@@ -253,9 +267,7 @@ class _Context:
 
     def __init__(self, scenario):
         self.scenario = scenario
-        from .analysis import structural_analysis
-
-        self.structure = structural_analysis(scenario.A).structure
+        self.structure = influence_structure(scenario.A)
         self.G = influence_graph(scenario.A)  # G[j, i] = 1 iff j -> i
         self.is_parent = self.structure.is_parent
         self._cand: dict = {}
@@ -394,26 +406,19 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
             measure=plan.measure_after,
             standby=scenario.standby - sum(1 for a in plan.agent_ids if a > scenario.N),
         )
-        from .analysis import distributed_pair
-        from .observability import observability_rank, unobservable_modes
-
-        n, Nn = new.n, new.n * new.N
-        r = observability_rank(new.A, new.H_all)
-        modes = unobservable_modes(new.A, new.H_all)
-        WA, D = distributed_pair(new.A, new.W, new.D_H)
-        rd = observability_rank(WA, D)
-        dmodes = unobservable_modes(WA, D)
+        central = pair_observability(new.A, new.H_all)
+        distributed = distributed_detectability(new.A, new.W, new.measure)
         num = {
-            "observability_rank_after": r,
-            "observable_after": r == n,
-            "detectable_after": bool(np.all(np.abs(modes) < 1)),
-            "distributed_rank_after": rd,
-            "distributed_order_after": Nn,
-            "distributed_observable_after": rd == Nn,
-            "distributed_detectable_after": bool(np.all(np.abs(dmodes) < 1)),
+            "observability_rank_after": central.rank,
+            "observable_after": central.observable,
+            "detectable_after": central.detectable,
+            "distributed_rank_after": distributed.rank,
+            "distributed_order_after": distributed.order,
+            "distributed_observable_after": distributed.observable,
+            "distributed_detectable_after": distributed.detectable,
             "distributed_unobservable_modes_after": [
                 {"re": float(np.real(v)), "im": float(np.imag(v)), "abs": float(abs(v))}
-                for v in dmodes
+                for v in distributed.unobservable_modes
             ],
         }
     else:

@@ -29,16 +29,17 @@ from pathlib import Path
 
 import numpy as np
 
+from .connectivity import agent_components
 from .errors import ScenarioError
 
 __all__ = [
     "Scenario",
     "load_scenario",
     "scenario_from_dict",
+    "scenario_to_toml",
     "builtin_scenarios",
     "resolve_delays",
     "uniform_delays",
-    "strongly_connected_agent_sets",
     "RankDeficientWarning",
 ]
 
@@ -251,6 +252,62 @@ def load_scenario(spec) -> Scenario:
     )
 
 
+def scenario_to_toml(scenario: Scenario) -> str:
+    """The scenario as TOML that :func:`load_scenario` reads back to an equal scenario.
+
+    Everything is written explicitly (A, labels, weights, delays), floats by their
+    shortest round-trip repr, so nothing is regenerated from a seed or a topology.
+
+    Examples
+    --------
+    >>> s = load_scenario("paper-14")
+    >>> t = scenario_to_toml(s)
+    >>> back = scenario_from_dict(tomllib.loads(t))
+    >>> back.digest() == s.digest(), back.labels == s.labels, back.standby == s.standby
+    (True, True, True)
+    """
+    s = scenario
+
+    def num(x) -> str:
+        return repr(float(x))
+
+    def string(x) -> str:
+        # a JSON string (non-ASCII kept as is) is a TOML basic string, but for DEL
+        return json.dumps(str(x), ensure_ascii=False).replace("\x7f", "\\u007f")
+
+    def matrix(M, fmt) -> str:
+        return "[\n" + "".join(
+            "  [" + ", ".join(fmt(x) for x in row) + "],\n" for row in M) + "]"
+
+    def strings(xs) -> str:
+        return "[" + ", ".join(string(x) for x in xs) + "]"
+
+    measure = "[" + ", ".join(strings(s.agent_labels(i)) for i in range(s.N)) + "]"
+    source = str(s.source).replace("\n", " ")
+    return "\n".join([
+        f"# written by socmon from {source}",
+        f"name = {string(s.name)}",
+        "",
+        "[social]",
+        f"A = {matrix(s.A, num)}",
+        f"labels = {strings(s.labels)}",
+        f"process_noise = {num(s.process_noise)}",
+        "",
+        "[agents]",
+        f"measure = {measure}",
+        f"measurement_noise = {num(s.measurement_noise)}",
+        f"standby = {int(s.standby)}",
+        "",
+        "[network]",
+        f"weights = {matrix(s.W, num)}",
+        f"delays = {matrix(s.delays, lambda x: str(int(x)))}",
+        "",
+        "[runtime]",
+        f"step_ms = {int(s.step_ms)}",
+        "",
+    ])
+
+
 def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Scenario:
     """Build and validate a :class:`Scenario` from the parsed TOML mapping.
 
@@ -363,19 +420,6 @@ def resolve_delays(scenario: Scenario, spec: str = "scenario") -> np.ndarray:
             raise ScenarioError(f"--delays: uniform:{tau} is above the largest delay, {MAX_DELAY}")
         return uniform_delays(scenario.W, tau)
     raise ScenarioError(f"--delays: expected scenario, none or uniform:T, got {spec!r}")
-
-
-# ---------------------------------------------------------------------------------
-# graph helper used by validation (kept here so validation has no import cycle)
-
-
-def strongly_connected_agent_sets(W: np.ndarray) -> list:
-    """Strongly connected components of the agent graph of ``W`` (0-based sets)."""
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    k, lab = connected_components(csr_matrix(np.asarray(W) != 0), connection="strong")
-    return [sorted(np.flatnonzero(lab == c).tolist()) for c in range(k)]
 
 
 # ---------------------------------------------------------------------------------
@@ -655,7 +699,7 @@ def _check_weights(W, where):
         problems.append(
             f"{where}.weights: zero self weight w_ii for agents {[int(i) + 1 for i in zero_self]}"
         )
-    comps = strongly_connected_agent_sets(W)
+    comps = agent_components(W)
     if len(comps) > 1:
         problems.append(
             f"{where}: agent graph G_W is not strongly connected; its components are "

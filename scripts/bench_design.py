@@ -73,23 +73,13 @@ def random_scenario(n: int, N: int, p: int = 2, rho: float = 1.1, degree: float 
     }, source=f"random:{n}x{N}")
 
 
-def sampson_scenario():
-    from design.scenario import scenario_from_dict
-
-    return scenario_from_dict({
-        "name": "sampson-like",
-        "social": {"edges": str(SAMPSON), "self_weight": True, "seed": 0,
-                   "spectral_radius": 1.1, "process_noise": 0.1},
-        "agents": {"measure": [["1"], ["5"], ["12"], ["18"]], "measurement_noise": 0.1},
-        "network": {"topology": "cycle", "self_weight": 0.5},
-    }, source=str(SAMPSON))
-
-
 def load(spec):
     from design.scenario import load_scenario
 
     if spec == "sampson":
-        return sampson_scenario()
+        from design.experiments import sampson_scenario
+
+        return sampson_scenario(SAMPSON)
     if spec.startswith("random:"):
         n, N = (int(x) for x in spec.split(":", 1)[1].split("x"))
         return random_scenario(n, N)

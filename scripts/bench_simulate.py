@@ -93,7 +93,7 @@ def bench(scenario, G, trials, steps, loop_trials):
 
 
 def sampson(path, steps):
-    from agent.commands.reproduce import design_for_bound, sampson_scenario
+    from design.experiments import design_for_bound, sampson_scenario
 
     s = sampson_scenario(path)
     out = []

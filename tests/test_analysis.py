@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from agent.cli import main
 from design.analysis import analyze, structural_analysis
 from design.graph import influence_structure
-from design.observability import observability_rank, unobservable_modes
+from design.observability import distributed_detectability, observability_rank, unobservable_modes
 from design.scenario import scenario_from_dict
 
 # ---------------------------------------------------------------------------------
@@ -320,3 +320,28 @@ def test_sampson_even_cycle_with_half_self_weight_has_singular_W(tmp_path, samps
         assert "W has rank 3 < N = 4" in r.reasons()[0]
     else:
         assert r.reasons() == []
+
+
+def test_distributed_detectability_against_the_textbook_tests():
+    """Rank by the observability matrix, unobservable modes by the PBH test (small n N)."""
+    rng = np.random.default_rng(5)
+    seen = set()
+    for trial in range(20):
+        n, N = 4, 2
+        A = (rng.random((n, n)) < 0.35) * rng.uniform(0.5, 2.0, size=(n, n))
+        W = np.array([[0.6, 0.4], [0.5, 0.5]])
+        measure = [[int(rng.integers(n))], [int(rng.integers(n))]]
+        d = distributed_detectability(A, W, measure)
+        WA = np.kron(W, A)
+        C = np.zeros((2, n * N))
+        C[0, measure[0][0]], C[1, n + measure[1][0]] = 1, 1
+        O = np.vstack([C @ np.linalg.matrix_power(WA, k) for k in range(n * N)])
+        assert d.rank == np.linalg.matrix_rank(O), trial
+        hidden = [lam for lam in np.linalg.eigvals(WA)
+                  if np.linalg.matrix_rank(np.vstack([WA - lam * np.eye(n * N), C]),
+                                           tol=1e-8) < n * N]
+        worst_pbh = max((abs(lam) for lam in hidden), default=0.0)
+        assert d.max_unobservable_modulus == pytest.approx(worst_pbh, abs=1e-6), trial
+        assert d.detectable == (worst_pbh < 1)
+        seen.add((d.rank < n * N, d.detectable))
+    assert seen == {(False, True), (True, True), (True, False)}  # every case is met

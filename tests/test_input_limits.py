@@ -82,6 +82,13 @@ def test_complex_gains_are_rejected(tmp_path, paper14):
     (["certify", "paper-14", "--gains", "GAINS", "--taus", "²"], "--taus"),
     (["simulate", "paper-14", "--gains", "GAINS", "--fail", "3:²"], "--fail"),
     (["world", "paper-14", "--seed", "-1", "--steps", "1"], "--seed"),
+    (["world", "paper-14", "--steps", "\u0661"], "--steps"),           # Arabic-Indic one
+    (["world", "paper-14", "--wait-agents", "1,9"], "--wait-agents: no agent 9"),
+    (["analyze", "paper-14", "--max-subsets", "1_000"], "--max-subsets"),
+    (["design", "paper-14", "--starts", "0", "--out", "FILE"], "--starts"),
+    (["certify", "paper-14", "--gains", "GAINS", "--tau-cap", "-2"], "--tau-cap"),
+    (["inject", "drop", "x", "1", "0.5"], "argument src: expected an integer"),
+    (["simulate", "paper-14", "--gains", "GAINS", "--fail", "\u00b2:1"], "--fail STEP"),
     (["world", "paper-14", "--start-timeout", "nan", "--steps", "1"], "--start-timeout"),
     (["up", "paper-14", "--gains", "GAINS", "--out", "FILE", "--steps", "2"], "--out"),
 ])

@@ -3,6 +3,7 @@
 import itertools
 import json
 
+import networkx as nx
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -10,11 +11,12 @@ from hypothesis import strategies as st
 
 from agent.cli import main
 from design.connectivity import (
+    agent_components,
     agent_flow_graph,
-    condensation,
     is_strongly_connected,
     strong_connectivity_augmentation,
 )
+from design.graph import condensation
 from design.recovery import (
     RecoveryError,
     failure_tolerance,
@@ -312,7 +314,7 @@ def test_cli_plan_text_and_written_scenario(tmp_path, capsys):
     ("0", "--fail: no agent 0"),
     ("1,x", "--fail: agent ids are positive integers, got 'x'"),
     ("2,2", "--fail: agent 2 listed twice"),
-    ("", "--fail: give at least one agent id"),
+    ("", "--fail: give at least one agent"),
 ])
 def test_cli_plan_bad_fail_list_exits_2(capsys, fail, message):
     assert main(["plan", "paper-14", "--fail", fail]) == 2
@@ -326,3 +328,22 @@ def test_cli_plan_negative_result_exits_1(tmp_path, capsys):
     assert main(["plan", str(path), "--fail", "1,2", "--json"]) == 1
     d = json.loads(capsys.readouterr().out)
     assert d["recoverable"] is False and d["unmeasured_parent_sccs_after"] == [["6"]]
+
+
+def test_sccs_condensation_and_strong_connectivity_against_networkx():
+    """One SCC path (graph.canonical_components) checked against networkx's own."""
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        n = int(rng.integers(1, 25))
+        W = (rng.random((n, n)) < rng.uniform(0.02, 0.3)) * rng.uniform(0.1, 1, (n, n))
+        np.fill_diagonal(W, 1.0)
+        G = nx.DiGraph()
+        G.add_nodes_from(range(n))
+        G.add_edges_from((j, i) for i, j in zip(*np.nonzero(W)) if i != j)  # j -> i
+        theirs = sorted(sorted(c) for c in nx.strongly_connected_components(G))
+        assert agent_components(W) == theirs          # sorted by smallest agent already
+        assert is_strongly_connected(agent_flow_graph(W)) == nx.is_strongly_connected(G)
+        C = condensation(agent_flow_graph(W))
+        dag = nx.condensation(G)
+        assert C.dag.nnz == dag.number_of_edges()
+        assert len(C.sinks) == sum(1 for v in dag if dag.out_degree(v) == 0)

@@ -11,18 +11,16 @@ import types
 import numpy as np
 import pytest
 
-import agent.commands.reproduce as rep
-import agent.commands.simulate as sim
+import design.experiments as rep
 from agent.cli import main
 from design.closed_loop import closed_loop_for
-from design.scenario import uniform_delays
-
 from design.gain_design import design_gains
+from design.scenario import load_scenario, uniform_delays
 
 _CACHE = {}
 
 
-def _fast_design(scenario, delays, seed, objective="rho", time_limit=None):
+def _fast_design(scenario, delays, seed=0, objective="rho", **options):
     key = scenario.digest()
     if key not in _CACHE:
         _CACHE[key] = design_gains(scenario, delays="none", starts=1, max_iter=40).G
@@ -33,7 +31,7 @@ def _fast_design(scenario, delays, seed, objective="rho", time_limit=None):
 
 @pytest.fixture
 def fast(monkeypatch):
-    monkeypatch.setattr(sim, "design_for", _fast_design)
+    monkeypatch.setattr(rep, "design_gains", _fast_design)
     paper = {k: dict(v, taus=[0, 1]) for k, v in rep.PAPER.items()}
     monkeypatch.setattr(rep, "PAPER", paper)
 
@@ -52,8 +50,6 @@ def test_reproduce_writes_report_tables_and_figures(fast, tmp_path, sampson_edge
     assert row["tau"] == 1 and row["paper"] == 0.970
     rho0 = p14["rho_table"][0]["exact_designed_gain"]
     assert row["paper_formula_ours"] == pytest.approx(rho0 ** 0.5)
-    from design.scenario import load_scenario
-
     s = load_scenario("paper-14")
     G = _CACHE[s.digest()]
     assert row["exact_delay_free_gain"] == pytest.approx(

@@ -2,12 +2,18 @@
 
 import re
 import textwrap
+import warnings
 
 import numpy as np
 import pytest
 
 from design.errors import ScenarioError
-from design.scenario import RankDeficientWarning, load_scenario, scenario_from_dict
+from design.scenario import (
+    RankDeficientWarning,
+    load_scenario,
+    scenario_from_dict,
+    scenario_to_toml,
+)
 
 GOOD = {
     "name": "t",
@@ -179,12 +185,55 @@ def test_sampson_edges_with_absolute_path(tmp_path, sampson_edges):
     assert 0 <= s.delays.max() <= 5 and np.all(s.delays[s.W == 0] == 0)
 
 
-def test_written_scenario_loads_back(tmp_path, paper14):
-    from agent.commands.plan import scenario_to_toml
+FIELDS = ("name", "labels", "process_noise", "measure", "measurement_noise", "standby",
+          "step_ms")
 
-    s = paper14.replace(name='quote "me"', delays=np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]]))
-    path = tmp_path / "back.toml"
-    path.write_text(scenario_to_toml(s))
-    back = load_scenario(path)
+
+def assert_same_scenario(back, s):
+    """Every field that defines a scenario, arrays bit for bit (not through digest())."""
+    for f in FIELDS:
+        assert getattr(back, f) == getattr(s, f), f
+    for f in ("A", "W", "delays"):
+        a, b = getattr(back, f), getattr(s, f)
+        assert a.shape == b.shape and a.dtype.kind == b.dtype.kind and np.array_equal(a, b), f
+
+
+def random_scenario(seed):
+    rng = np.random.default_rng(seed)
+    n, N = int(rng.integers(2, 9)), int(rng.integers(1, 5))
+    A = np.where(rng.random((n, n)) < 0.5, rng.normal(size=(n, n)), 0.0)
+    A[np.diag_indices(n)] = rng.uniform(0.1, 2.0, n) * rng.choice([-1, 1], n)
+    A[0, 1] = 1e-300 if n > 1 else A[0, 1]              # extreme floats survive too
+    W = rng.uniform(0.01, 1, (N, N))
+    W /= W.sum(axis=1, keepdims=True)
+    delays = rng.integers(0, 6, (N, N))
+    np.fill_diagonal(delays, 0)
+    labels = [f'n{i} "é\\ \t\x7f' for i in range(n)]   # quotes, accents, escapes
+    return scenario_from_dict({
+        "name": "random \U0001F600 #" + str(seed),
+        "social": {"A": A.tolist(), "labels": labels, "process_noise": 0.1 * seed + 0.01},
+        "agents": {"measure": [[labels[int(rng.integers(n))]] for _ in range(N)],
+                   "measurement_noise": 0.3, "standby": int(rng.integers(0, 3))},
+        "network": {"weights": W.tolist(), "delays": delays.tolist()},
+        "runtime": {"step_ms": int(rng.integers(1, 100))},
+    })
+
+
+@pytest.mark.parametrize("make", [
+    lambda: load_scenario("paper-14"),
+    lambda: load_scenario("paper-14-live"),
+    lambda: random_scenario(1),
+    lambda: random_scenario(2),
+    lambda: load_scenario("paper-14").replace(
+        name='quote "me"', delays=np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])),
+], ids=["paper-14", "paper-14-live", "random-1", "random-2", "replaced"])
+def test_scenario_to_toml_loads_back_equal(tmp_path, make):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RankDeficientWarning)
+        s = make()
+        path = tmp_path / "back.toml"
+        path.write_text(scenario_to_toml(s), encoding="utf-8")
+        back = load_scenario(path)
+    assert_same_scenario(back, s)
     assert back.digest() == s.digest()
-    assert back.name == s.name and back.labels == s.labels and back.standby == s.standby
+

@@ -6,6 +6,7 @@ import pytest
 from design import noise
 from design.closed_loop import ClosedLoop, closed_loop_for
 from design.errors import GainsError
+from design.metrics import steady_mse
 from design.scenario import scenario_from_dict, uniform_delays
 from design.simulate import Recovery, SimulationError, simulate
 
@@ -119,8 +120,8 @@ def gain0(paper14):
 
 
 def _agrees_with_exact(res, exact):
-    q = max(1, res.steps // 4)
-    per_trial = res.mse_trials[:, -q:].mean(axis=1)
+    assert res.mse_steady == pytest.approx(steady_mse(res.mse), rel=1e-12)
+    per_trial = steady_mse(res.mse_trials)
     se = per_trial.std(ddof=1) / np.sqrt(res.trials)
     assert abs(res.mse_steady - exact) < 4 * se, (res.mse_steady, exact, se)
     assert se < 0.1 * exact  # the test has power

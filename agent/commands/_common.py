@@ -9,6 +9,12 @@ import warnings
 
 import numpy as np
 
+from ..jsonable import to_jsonable  # noqa: F401 - re-exported for the commands
+
+from design.errors import GainsError, ScenarioError
+from design.gains import load_gains
+from design.scenario import load_scenario
+
 EXIT_OK, EXIT_NEGATIVE, EXIT_BAD_INPUT = 0, 1, 2
 
 
@@ -35,9 +41,6 @@ def load_scenario_arg(spec):
 
     Warnings (e.g. rank-deficient A) are printed to stderr, not raised.
     """
-    from design.errors import ScenarioError
-    from design.scenario import load_scenario
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -50,30 +53,109 @@ def load_scenario_arg(spec):
 
 
 def load_gains_arg(path, scenario):
-    from design.errors import GainsError
-    from design.gains import load_gains
-
     try:
         return load_gains(path, scenario)
     except GainsError as exc:
         raise CommandError(f"bad gains file: {exc}") from None
 
 
-def parse_count(text: str, flag: str, lo: int = 0, hi: int | None = None) -> int:
-    """A decimal integer in ``lo..hi`` from a flag; CommandError naming the flag otherwise.
+def _int_or_reason(text, lo: int, hi: int | None):
+    """``(value, None)`` for an ASCII decimal integer in ``lo..hi``, else ``(None, reason)``.
 
-    ``str.isdigit`` accepts characters such as '²' that ``int`` rejects: only ASCII digits
-    are taken here.
+    ``int`` alone also takes '1_000' and non-ASCII digits such as '١'; ``str.isdigit``
+    takes '²', which ``int`` rejects: only an optional sign and ASCII digits pass here.
     """
     part = str(text).strip()
-    body = part[1:] if part.startswith("-") else part
+    body = part[1:] if part[:1] in ("-", "+") else part
     if not (body.isascii() and body.isdigit()):
-        raise CommandError(f"{flag}: expected an integer, got {part!r}")
+        return None, f"expected an integer, got {part!r}"
     value = int(part)
     if value < lo or (hi is not None and value > hi):
         rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-        raise CommandError(f"{flag}: must be {rng}, got {value}")
+        return None, f"must be an integer {rng}, got {value}"
+    return value, None
+
+
+def parse_int(text, flag: str, lo: int = 0, hi: int | None = None) -> int:
+    """A decimal integer in ``lo..hi`` from a flag; CommandError naming the flag otherwise.
+
+    The one integer parser of the command line (``int_flag`` and ``parse_int_list`` are
+    built on it).
+
+    >>> parse_int(" 12 ", "--steps", lo=1)
+    12
+    >>> parse_int("²", "--steps")
+    Traceback (most recent call last):
+    ...
+    agent.commands._common.CommandError: --steps: expected an integer, got '²'
+    >>> parse_int("0", "--trials", lo=1)
+    Traceback (most recent call last):
+    ...
+    agent.commands._common.CommandError: --trials: must be an integer >= 1, got 0
+    """
+    value, reason = _int_or_reason(text, lo, hi)
+    if reason is not None:
+        raise CommandError(f"{flag}: {reason}")
     return value
+
+
+def int_flag(lo: int = 0, hi: int | None = None):
+    """An argparse ``type=`` for an integer flag in ``lo..hi`` (argparse names the flag).
+
+    A bad value ends the command with exit status 2 and ``argument --flag: <reason>``.
+
+    >>> int_flag(lo=1)("7")
+    7
+    """
+    import argparse
+
+    def convert(text):
+        value, reason = _int_or_reason(text, lo, hi)
+        if reason is not None:
+            raise argparse.ArgumentTypeError(reason)
+        return value
+
+    convert.__name__ = "integer"
+    return convert
+
+
+def parse_int_list(text, flag: str, lo: int = 0, hi: int | None = None, *,
+                   what: str = "expected comma-separated integers", item: str = "value",
+                   out_of_range: str | None = None, unique: bool = False,
+                   allow_empty: bool = False) -> list:
+    """``"1, 2,3"`` -> ``[1, 2, 3]``: comma-separated ASCII integers in ``lo..hi``.
+
+    Messages name the flag: a token that is not a non-negative integer gives
+    ``"{flag}: {what}, got 'x'"``; a value out of range ``out_of_range`` (formatted with
+    ``value``, ``lo``, ``hi``); a repeated one (``unique``) ``"{item} V listed twice"``;
+    an empty list (unless ``allow_empty``) ``"give at least one {item}"``.
+
+    >>> parse_int_list("3, 1", "--taus", hi=10)
+    [3, 1]
+    >>> parse_int_list("1,1", "--fail", lo=1, item="agent", unique=True)
+    Traceback (most recent call last):
+    ...
+    agent.commands._common.CommandError: --fail: agent 1 listed twice
+    """
+    out = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if not (part.isascii() and part.isdigit()):
+            raise CommandError(f"{flag}: {what}, got {part!r}")
+        value = int(part)
+        if value < lo or (hi is not None and value > hi):
+            rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+            msg = (out_of_range or "{value} is not in {rng}").format(
+                value=value, lo=lo, hi=hi, rng=rng)
+            raise CommandError(f"{flag}: {msg}")
+        if unique and value in out:
+            raise CommandError(f"{flag}: {item} {value} listed twice")
+        out.append(value)
+    if not out and not allow_empty:
+        raise CommandError(f"{flag}: give at least one {item}")
+    return out
 
 
 def check_run_flags(args) -> None:
@@ -87,41 +169,11 @@ def check_run_flags(args) -> None:
 
 
 def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:
-    """``"1,2"`` -> ``[0, 1]`` (0-based), checking each id names an active agent."""
-    ids = []
-    for part in str(text).split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if not (part.isascii() and part.isdigit()):
-            raise CommandError(f"{flag}: agent ids are positive integers, got {part!r}")
-        a = int(part)
-        if not 1 <= a <= scenario.N:
-            raise CommandError(f"{flag}: no agent {a} (agents are 1..{scenario.N})")
-        if a - 1 in ids:
-            raise CommandError(f"{flag}: agent {a} listed twice")
-        ids.append(a - 1)
-    if not ids:
-        raise CommandError(f"{flag}: give at least one agent id")
-    return ids
-
-
-def to_jsonable(obj):
-    """numpy-aware conversion; non-finite floats become strings "inf"/"nan"."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating, float)):
-        x = float(obj)
-        return x if math.isfinite(x) else ("inf" if x > 0 else "-inf" if x < 0 else "nan")
-    return obj
+    """``"1,2"`` -> ``[0, 1]`` (0-based rows), checking each id names an active agent."""
+    ids = parse_int_list(text, flag, lo=1, hi=scenario.N, unique=True, item="agent",
+                         what="agent ids are positive integers",
+                         out_of_range="no agent {value} (agents are 1..{hi})")
+    return [a - 1 for a in ids]
 
 
 def print_json(obj) -> None:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from design.analysis import analyze
+
 from ._common import (
     EXIT_OK,
     CommandError,
     add_scenario_argument,
+    int_flag,
     load_scenario_arg,
     print_json,
     run_command,
@@ -18,7 +21,7 @@ def add_arguments(parser) -> None:
     add_scenario_argument(parser)
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
     parser.add_argument(
-        "--max-subsets", type=int, default=None, metavar="K",
+        "--max-subsets", type=int_flag(lo=1), default=None, metavar="K",
         help="bound on the failure sets examined for the failure tolerance "
              "(default 20000; past it the tolerance is a lower bound)",
     )
@@ -29,10 +32,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.analysis import analyze
-
-    if args.max_subsets is not None and args.max_subsets < 1:
-        raise CommandError(f"--max-subsets: must be a positive integer, got {args.max_subsets}")
     scenario = load_scenario_arg(args.scenario)
     result = analyze(scenario, max_subsets=args.max_subsets)
     data = result.to_dict()

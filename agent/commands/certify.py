@@ -7,14 +7,18 @@ the gain is stable with the scenario's own delays (exact radius < 1), 1 when it 
 
 from __future__ import annotations
 
+from design.certificates import DEFAULT_TAU_CAP, certify
+from design.scenario import MAX_DELAY
+
 from ._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
-    CommandError,
     add_gains_argument,
     add_scenario_argument,
     load_gains_arg,
+    int_flag,
     load_scenario_arg,
+    parse_int_list,
     print_json,
     run_command,
 )
@@ -27,30 +31,10 @@ def add_arguments(parser) -> None:
     add_gains_argument(parser)
     parser.add_argument("--taus", default="0,3,7,15", metavar="T1,T2,...",
                         help="uniform inter-agent delays to certify (default 0,3,7,15)")
-    parser.add_argument("--tau-cap", type=int, default=None, metavar="T",
+    parser.add_argument("--tau-cap", type=int_flag(lo=0), default=None, metavar="T",
                         help="largest tau examined in the Theorem 1 tau_star search "
                              "(default 100)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
-
-
-def parse_taus(text: str) -> list:
-    """``"0,3,7"`` -> ``[0, 3, 7]``; CommandError naming the bad entry otherwise."""
-    from design.scenario import MAX_DELAY
-
-    out = []
-    for part in str(text).split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if not (part.isascii() and part.isdigit()):
-            raise CommandError(
-                f"--taus: expected comma-separated non-negative integers, got {part!r}")
-        if int(part) > MAX_DELAY:
-            raise CommandError(f"--taus: {part} is above the largest delay, {MAX_DELAY}")
-        out.append(int(part))
-    if not out:
-        raise CommandError("--taus: give at least one delay")
-    return out
 
 
 def run(args) -> int:
@@ -58,12 +42,11 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.certificates import DEFAULT_TAU_CAP, certify
 
-    taus = parse_taus(args.taus)
+    taus = parse_int_list(args.taus, "--taus", lo=0, hi=MAX_DELAY, item="delay",
+                          what="expected comma-separated non-negative integers",
+                          out_of_range="{value} is above the largest delay, {hi}")
     cap = DEFAULT_TAU_CAP if args.tau_cap is None else args.tau_cap
-    if cap < 0:
-        raise CommandError(f"--tau-cap: must be a non-negative integer, got {cap}")
     scenario = load_scenario_arg(args.scenario)
     gains = load_gains_arg(args.gains, scenario)
     result = certify(scenario, gains.G, taus=taus, tau_cap=cap)

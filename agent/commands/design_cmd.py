@@ -10,12 +10,20 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from design.ccl import SolverError
+from design.closed_loop import ClosedLoop
+from design.errors import NotObservableError, ScenarioError
+from design.gain_design import DesignError, design_gains
+from design.gains import gains_meta, load_gains, save_gains
+from design.scenario import resolve_delays
+
 from ._common import (
     EXIT_BAD_INPUT,
     EXIT_NEGATIVE,
     EXIT_OK,
     CommandError,
     add_scenario_argument,
+    int_flag,
     load_scenario_arg,
     print_json,
     run_command,
@@ -33,13 +41,13 @@ def add_arguments(parser) -> None:
                         help="delay matrix to design for and certify against (default: scenario)")
     parser.add_argument("--objective", choices=("rho", "mse"), default="rho",
                         help="minimise the exact spectral radius or the steady MSE (default: rho)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the extra starts (default 0)")
+    parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="seed of the extra starts (default 0)")
     parser.add_argument("--solver", type=str.upper, choices=("CLARABEL", "SCS"), default=None,
                         help="conic solver for --method ccl (default CLARABEL)")
-    parser.add_argument("--max-iter", type=int, default=None, metavar="N",
+    parser.add_argument("--max-iter", type=int_flag(lo=0), default=None, metavar="N",
                         help="iterations: BFGS per start and stage (default 200) or "
                              "cone-complementarity iterations (default 50)")
-    parser.add_argument("--starts", type=int, default=None, metavar="K",
+    parser.add_argument("--starts", type=int_flag(lo=1), default=None, metavar="K",
                         help="--method default: number of starts (default 3)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                         help="stop and keep the best gain found after this long")
@@ -69,23 +77,19 @@ def _options(args) -> dict:
         if args.keep_iterating:
             raise CommandError("--keep-iterating applies to --method ccl only")
         if args.starts is not None:
-            if args.starts < 1:
-                raise CommandError(f"--starts: must be at least 1, got {args.starts}")
             opts["starts"] = args.starts
         if args.target is not None:
             if args.objective != "rho" or not 0 < args.target:
                 raise CommandError("--target: a positive radius, with --objective rho only")
             opts["target"] = args.target
     if args.max_iter is not None:
-        if args.max_iter < 0 or (args.method == "default" and args.max_iter < 1):
+        if args.method == "default" and args.max_iter < 1:
             raise CommandError(f"--max-iter: must be a positive integer, got {args.max_iter}")
         opts["max_iter"] = args.max_iter
     if args.time_limit is not None:
         if not args.time_limit > 0:
             raise CommandError(f"--time-limit: must be positive, got {args.time_limit}")
         opts["time_limit"] = args.time_limit
-    if args.seed < 0:
-        raise CommandError(f"--seed: must be a non-negative integer, got {args.seed}")
     return opts
 
 
@@ -94,13 +98,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.ccl import SolverError
-    from design.closed_loop import ClosedLoop
-    from design.errors import NotObservableError, ScenarioError
-    from design.gain_design import DesignError, design_gains
-    from design.gains import gains_meta, load_gains, save_gains
-    from design.scenario import resolve_delays
-
     scenario = load_scenario_arg(args.scenario)
     try:
         D = resolve_delays(scenario, args.delays)

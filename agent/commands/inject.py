@@ -16,6 +16,8 @@ Examples::
 
 from __future__ import annotations
 
+from ._common import CommandError, int_flag, run_command
+
 HELP = "inject a link delay, drop rate or partition into a running deployment"
 
 
@@ -25,7 +27,7 @@ def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="what", metavar="WHAT", required=True)
     p = sub.add_parser("delay", help="delay on link SRC -> DST, in steps or in ms")
     _link(p)
-    p.add_argument("--steps", type=int, default=None, help="delay in steps")
+    p.add_argument("--steps", type=int_flag(lo=0), default=None, help="delay in steps")
     p.add_argument("--ms", type=float, default=None, help="delay in milliseconds")
     p.add_argument("--jitter", type=float, default=None, help="extra uniform jitter in ms")
     p = sub.add_parser("drop", help="drop probability on link SRC -> DST")
@@ -52,15 +54,13 @@ def _common(p):
 
 
 def _link(p):
-    p.add_argument("src", type=int, help="sending agent id")
-    p.add_argument("dst", type=int, help="receiving agent id")
+    p.add_argument("src", type=int_flag(lo=1), help="sending agent id")
+    p.add_argument("dst", type=int_flag(lo=1), help="receiving agent id")
     _common(p)
 
 
 def change_from_args(args) -> tuple:
     """``(op, src, dst, params)`` of the change named by the arguments; CommandError if bad."""
-    from ._common import CommandError
-
     params = {}
     src = getattr(args, "src", None)
     dst = getattr(args, "dst", None)
@@ -105,7 +105,6 @@ def _confirmed(op, src, dst, params, statuses, alive) -> bool:
 
 
 def run(args) -> int:
-    from ._common import CommandError, run_command
 
     def body():
         import os

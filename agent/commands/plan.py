@@ -12,6 +12,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from design.recovery import plan_recovery
+from design.scenario import scenario_to_toml
+
 from ._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
@@ -42,8 +45,6 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from design.recovery import plan_recovery
-
     scenario = load_scenario_arg(args.scenario)
     failed = parse_agent_list(args.fail, scenario, flag="--fail")
     plan = plan_recovery(scenario, failed, add_links=not args.no_new_links)
@@ -115,42 +116,3 @@ def format_text(d: dict) -> str:
     if "scenario_written" in d:
         lines.append(f"recovered scenario written to {d['scenario_written']}")
     return "\n".join(lines)
-
-
-def scenario_to_toml(s) -> str:
-    """A scenario TOML (explicit A, weights and delays) that loads back to ``s``."""
-
-    def num(x) -> str:
-        return repr(float(x))
-
-    def matrix(M, fmt) -> str:
-        return "[\n" + "".join(
-            "  [" + ", ".join(fmt(x) for x in row) + "],\n" for row in M) + "]"
-
-    def strings(xs) -> str:
-        return "[" + ", ".join('"' + str(x).replace("\\", "\\\\").replace('"', '\\"') + '"'
-                               for x in xs) + "]"
-
-    measure = "[" + ", ".join(strings(s.agent_labels(i)) for i in range(s.N)) + "]"
-    return "\n".join([
-        f"# written by socmon plan from {s.source}",
-        f"name = {strings([s.name])[1:-1]}",
-        "",
-        "[social]",
-        f"A = {matrix(s.A, num)}",
-        f"labels = {strings(s.labels)}",
-        f"process_noise = {num(s.process_noise)}",
-        "",
-        "[agents]",
-        f"measure = {measure}",
-        f"measurement_noise = {num(s.measurement_noise)}",
-        f"standby = {int(s.standby)}",
-        "",
-        "[network]",
-        f"weights = {matrix(s.W, num)}",
-        f"delays = {matrix(s.delays, lambda x: str(int(x)))}",
-        "",
-        "[runtime]",
-        f"step_ms = {int(s.step_ms)}",
-        "",
-    ])

@@ -24,22 +24,14 @@ from __future__ import annotations
 import json
 import math
 import sys
-import time
 from pathlib import Path
 
-from ._common import EXIT_NEGATIVE, EXIT_OK, CommandError, run_command, to_jsonable
+from design.errors import ScenarioError
+from design.experiments import PAPER, reproduce_section5, steady_z
+
+from ._common import EXIT_NEGATIVE, EXIT_OK, CommandError, parse_int, run_command, to_jsonable
 
 HELP = "regenerate the paper's Section 5 (rho tables, MSE figures, steady MSE) with a report"
-
-#: The paper's printed numbers (Section 5, Tables 2-4 and Remark 2's Phi).
-PAPER = {
-    "paper-14": {"taus": [0, 3, 7, 15], "rho": [0.871, 0.970, 0.982, 0.990], "phi": 0.113,
-                 "trials": 20},
-    "paper-14-recovered": {"taus": [0, 3, 7, 15], "rho": [0.851, 0.960, 0.980, 0.989],
-                           "phi": 0.144, "trials": 20},
-    "sampson": {"taus": [0, 5, 10, 20], "rho": [0.461, 0.879, 0.932, 0.964], "phi": 0.213,
-                "trials": 50},
-}
 
 
 def add_arguments(parser) -> None:
@@ -63,246 +55,6 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     return run_command(lambda: _run(args))
-
-
-# ---------------------------------------------------------------------------------
-# building blocks (also used by scripts/bench_simulate.py)
-
-
-def sampson_scenario(path, seed: int = 0):
-    """Sampson's network with the paper's settings (../shared/data/sampson/README.md).
-
-    ``s,t`` in the CSV: t influences s (``A[s, t] != 0``); self weights added; weights
-    uniform in [0.1, 1] from ``seed``, rescaled to rho(A) = 1.1; agents measure 1, 5,
-    12, 18 on a directed 4-cycle; Q = R = 0.1 I.
-    """
-    from design.errors import ScenarioError
-    from design.scenario import scenario_from_dict
-
-    p = Path(path)
-    if not p.is_file():
-        raise CommandError(f"--sampson: no such file {str(path)!r}")
-    data = {
-        "name": "sampson",
-        "social": {"edges": str(p.resolve()), "self_weight": True, "seed": int(seed),
-                   "spectral_radius": 1.1, "process_noise": 0.1},
-        "agents": {"measure": [["1"], ["5"], ["12"], ["18"]], "measurement_noise": 0.1},
-        "network": {"topology": "cycle", "self_weight": 0.5},
-    }
-    try:
-        return scenario_from_dict(data, source=str(p))
-    except ScenarioError as exc:
-        raise CommandError(f"--sampson: {exc}") from None
-
-
-def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho",
-                     time_limit=None):
-    """Gain designed for every inter-agent link delayed ``tau``: ``(G, delays, rho)``."""
-    from design.scenario import uniform_delays
-
-    from . import simulate as sim_cmd
-
-    D = uniform_delays(scenario.W, tau)
-    result = sim_cmd.design_for(scenario, D, seed, objective, time_limit)
-    return list(result.G), D, float(result.rho)
-
-
-def _rows_measuring(scenario, labels):
-    idx = [scenario.index_of(lab) for lab in labels]
-    return [i for i in range(scenario.N) if any(v in scenario.measure[i] for v in idx)]
-
-
-def _exact(scenario, G, D):
-    from design.closed_loop import closed_loop_for
-
-    loop = closed_loop_for(scenario, G, D)
-    rho = loop.spectral_radius()
-    mse = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) if rho < 1 else None
-    return rho, mse
-
-
-def _steady_se(res):
-    import numpy as np
-
-    q = max(1, res.steps // 4)
-    per_trial = res.mse_trials[:, -q:].mean(axis=1)
-    if res.trials < 2 or not np.all(np.isfinite(per_trial)):
-        return None
-    return float(per_trial.std(ddof=1) / math.sqrt(res.trials))
-
-
-def rho_table(scenario, taus, paper_rho, designs, log):
-    """Rows of the rho-against-delay table; ``designs[tau] = (G, D, rho)``."""
-    from design.certificates import paper_formula, theorem1_radius
-    from design.closed_loop import closed_loop_for
-
-    G0 = designs[0][0] if 0 in designs else design_for_bound(scenario, 0)[0]
-    rho0 = closed_loop_for(scenario, G0, designs[0][1]).spectral_radius()
-    rows = []
-    for tau, paper in zip(taus, paper_rho):
-        G, D, _ = designs[tau]
-        rows.append({
-            "tau": tau,
-            "paper": paper,
-            "paper_formula_ours": paper_formula(rho0, tau),
-            "exact_delay_free_gain": closed_loop_for(scenario, G0, D).spectral_radius(),
-            "theorem1_delay_free_gain": theorem1_radius(scenario.A, scenario.W,
-                                                        scenario.measure, G0, tau),
-            "exact_designed_gain": closed_loop_for(scenario, G, D).spectral_radius(),
-        })
-    log(f"  rho table done ({scenario.name})")
-    return rows
-
-
-def _phi(scenario, G):
-    from design.certificates import paper_phi
-    from design.closed_loop import ClosedLoop
-
-    import numpy as np
-
-    loop = ClosedLoop(scenario.A, scenario.W, np.zeros_like(scenario.W, dtype=int),
-                      scenario.measure, G)
-    return paper_phi(loop, scenario.process_noise, scenario.measurement_noise)
-
-
-def experiment(name, scenario, taus, trials, steps, seed, out, log, fail_labels=None,
-               replace_labels=None, objective="rho", time_limit=None):
-    """Designs, simulations, tables and figures for one network (and its recovery)."""
-    from design.simulate import simulate
-
-    from ._plot import plot_mse
-
-    paper = PAPER[name]
-    record = {"scenario": scenario.name, "n": scenario.n, "N": scenario.N,
-              "rho_A": scenario.rho_A, "trials": trials, "steps": steps, "seed": seed,
-              "taus": list(taus), "problems": []}
-    designs = {}
-    for tau in taus:
-        t0 = time.perf_counter()
-        designs[tau] = design_for_bound(scenario, tau, seed, objective, time_limit)
-        log(f"  designed {scenario.name} tau={tau}: exact radius {designs[tau][2]:.4f} "
-            f"({time.perf_counter() - t0:.1f} s)")
-    record["rho_table"] = rho_table(scenario, taus, paper["rho"], designs, log)
-    record["phi_delay_free_gain"] = _phi(scenario, designs[taus[0]][0])
-    record["paper_phi"] = paper["phi"]
-
-    sims, curves = [], []
-    for tau in taus:
-        G, D, _ = designs[tau]
-        rho, exact = _exact(scenario, G, D)
-        res = simulate(scenario, G, steps=steps, trials=trials, seed=seed, delays=D)
-        curves.append((f"tau = {tau}", res))
-        sims.append(_sim_row(tau, res, rho, exact))
-        if rho >= 1:
-            record["problems"].append(f"{scenario.name}: no stabilising gain for tau = {tau}")
-    record["simulations"] = sims
-    fig = f"{scenario.name}-mse.png"
-    plot_mse(Path(out) / fig, curves, title=f"{scenario.name}: MSE, {trials} trials, "
-             f"delay bound tau (every link)")
-    record["figure"] = fig
-    log(f"  simulated {scenario.name}: {fig}")
-
-    if fail_labels:
-        record["failure"] = failure_experiment(
-            scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-            replace_labels, objective, time_limit)
-        record["problems"] += record["failure"].pop("problems")
-    return record
-
-
-def _unmeasured_parent_radius(scenario, failed):
-    """Spectral radius of A on the parent SCCs no surviving agent measures (None: none)."""
-    import numpy as np
-
-    from design.graph import influence_structure
-
-    st = influence_structure(scenario.A)
-    kept = {v for i in range(scenario.N) if i not in failed for v in scenario.measure[i]}
-    nodes = [v for c in st.parents for v in st.components[c]
-             if not kept & set(st.components[c])]
-    if not nodes:
-        return None
-    sub = scenario.A[np.ix_(nodes, nodes)]
-    return float(np.max(np.abs(np.linalg.eigvals(sub))))
-
-
-def _sim_row(tau, res, rho, exact):
-    return {"tau": tau, "rho_exact": rho, "mse_steady_sim": res.mse_steady,
-            "mse_steady_se": _steady_se(res), "mse_steady_exact": exact,
-            "diverged": res.diverged, "mse": res.mse.tolist()}
-
-
-def failure_experiment(scenario, taus, designs, trials, steps, seed, out, log, fail_labels,
-                       replace_labels, objective="rho", time_limit=None):
-    """Failure of the agents measuring ``fail_labels`` at step ``steps // 2``, recovered
-    by the planner with gains designed for the new network, for each delay bound."""
-    from design.certificates import paper_formula
-    from design.closed_loop import closed_loop_for
-    from design.recovery import plan_recovery
-    from design.scenario import uniform_delays
-    from design.simulate import Recovery, simulate
-
-    from ._plot import plot_mse
-
-    failed = _rows_measuring(scenario, fail_labels)
-    f_step = steps // 2
-    rec = {"failed_agents": [a + 1 for a in failed], "failed_nodes": list(fail_labels),
-           "fail_step": f_step, "problems": []}
-    big = scenario.replace(standby=max(scenario.standby, len(failed)))
-    sims, curves, table = [], [], []
-    for tau in taus:
-        G, D, _ = designs[tau]
-        s_tau = big.replace(delays=D)
-        plan = plan_recovery(s_tau, failed)
-        new = plan.scenario_after
-        if new is None:
-            rec["problems"].append(f"no recovery for the failure of {fail_labels}")
-            return rec
-        got = [scenario.labels[r.node_to] for r in plan.replacements]
-        rec["replacement_nodes"] = got
-        if replace_labels and sorted(got) != sorted(replace_labels):
-            rec["problems"].append(
-                f"recovery planner replaced {fail_labels} by {got}, the paper by {replace_labels}")
-        t0 = time.perf_counter()
-        G2, D2, _ = design_for_bound(new, tau, seed, objective, time_limit)
-        log(f"  designed recovered network tau={tau} ({time.perf_counter() - t0:.1f} s)")
-        rho2, exact2 = _exact(new, G2, D2)
-        if rho2 >= 1:
-            rec["problems"].append(f"recovered network: no stabilising gain for tau = {tau}")
-        res = simulate(s_tau, G, steps=steps, trials=trials, seed=seed, fail=(f_step, failed),
-                       recover=Recovery.from_plan(plan, G2, delays=D2))
-        curves.append((f"tau = {tau}", res))
-        sims.append(_sim_row(tau, res, rho2, exact2))
-        table.append({"tau": tau, "exact_designed_gain": rho2, "new_scenario": new})
-        if tau == taus[0]:
-            rec["measure_after"] = [new.agent_labels(i) for i in range(new.N)]
-            rec["agents_after"] = list(plan.agent_ids)
-            rec["phi_delay_free_gain"] = _phi(new, G2)
-            G2_0 = G2
-            new_0 = new
-            no_rec = simulate(s_tau, G, steps=steps, trials=trials, seed=seed,
-                              fail=(f_step, failed))
-            rec["unmeasured_parent_radius"] = _unmeasured_parent_radius(scenario, failed)
-    rho0 = table[0]["exact_designed_gain"]
-    rows = []
-    for t, paper in zip(table, PAPER["paper-14-recovered"]["rho"]):
-        D = uniform_delays(t["new_scenario"].W, t["tau"])
-        rows.append({"tau": t["tau"], "paper": paper,
-                     "paper_formula_ours": paper_formula(rho0, t["tau"]),
-                     "exact_delay_free_gain": closed_loop_for(new_0, G2_0, D).spectral_radius(),
-                     "exact_designed_gain": t["exact_designed_gain"]})
-    rec["rho_table"] = rows
-    rec["simulations"] = sims
-    rec["no_recovery"] = {"tau": taus[0], "mse_steady_sim": no_rec.mse_steady,
-                          "diverged": no_rec.diverged, "mse": no_rec.mse.tolist()}
-    fig = f"{scenario.name}-failure-mse.png"
-    curves.append((f"tau = {taus[0]}, no recovery", no_rec))
-    plot_mse(Path(out) / fig, curves,
-             title=f"{scenario.name}: agents measuring {', '.join(fail_labels)} fail at "
-                   f"step {f_step}", events=[(f_step, "failure / recovery")])
-    rec["figure"] = fig
-    log(f"  simulated failure and recovery: {fig}")
-    return rec
 
 
 # ---------------------------------------------------------------------------------
@@ -332,13 +84,6 @@ def _rho_section(title, rows, with_theorem=True):
     return lines
 
 
-def _z(sim):
-    exact, got, se = sim["mse_steady_exact"], sim["mse_steady_sim"], sim["mse_steady_se"]
-    if exact is None or se is None or not se > 0 or not math.isfinite(got):
-        return None
-    return abs(got - exact) / se
-
-
 def _mse_section(title, sims, paper_phi, our_phi):
     lines = [f"### {title}", "",
              "| tau | exact radius | simulated steady MSE (± s.e.) | exact steady MSE (Lyapunov) |"
@@ -349,7 +94,7 @@ def _mse_section(title, sims, paper_phi, our_phi):
         sim = _f(s["mse_steady_sim"]) + (f" ± {_f(se)}" if se is not None else "")
         if s["diverged"]:
             sim += " (diverged)"
-        z = _z(s)
+        z = steady_z(s)
         lines.append(
             f"| {s['tau']} | {_f(s['rho_exact'])} | {sim} | {_f(s['mse_steady_exact'])} | "
             f"{'-' if z is None else f'{z:.1f}'} | "
@@ -492,7 +237,7 @@ def differences(results) -> list:
         for label, sims in ((key, r["simulations"]),
                             (key + " recovered", r.get("failure", {}).get("simulations", []))):
             for sim in sims:
-                z = _z(sim)
+                z = steady_z(sim)
                 if z is not None and z > 3:
                     slow.append(f"{label} tau = {sim['tau']} (radius {sim['rho_exact']:.4f})")
     if slow:
@@ -526,13 +271,9 @@ def differences(results) -> list:
 
 
 def _run(args) -> int:
-    from design.scenario import load_scenario
-
-    from .simulate import parse_positive_int
-
-    steps = parse_positive_int(args.steps, "--steps")
-    seed = parse_positive_int(args.seed, "--seed", minimum=0)
-    trials = parse_positive_int(args.trials, "--trials") if args.trials is not None else None
+    steps = parse_int(args.steps, "--steps", lo=1)
+    seed = parse_int(args.seed, "--seed", lo=0)
+    trials = parse_int(args.trials, "--trials", lo=1) if args.trials is not None else None
     time_limit = None
     if args.time_limit is not None:
         try:
@@ -542,7 +283,8 @@ def _run(args) -> int:
         if not time_limit > 0:
             raise CommandError(f"--time-limit: expected a positive number of seconds, got "
                                f"{args.time_limit!r}")
-    sampson = sampson_scenario(args.sampson) if args.sampson else None
+    if args.sampson and not Path(args.sampson).is_file():
+        raise CommandError(f"--sampson: no such file {str(args.sampson)!r}")
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -552,43 +294,51 @@ def _run(args) -> int:
     def log(msg):
         print(msg, file=sys.stderr, flush=True)
 
-    t0 = time.perf_counter()
-    cmd = "socmon reproduce" + (f" --sampson {args.sampson}" if args.sampson else "") \
+    try:
+        results = reproduce_section5(steps=steps, seed=seed, trials=trials,
+                                     objective=args.objective, time_limit=time_limit,
+                                     sampson_path=args.sampson or None, log=log)
+    except ScenarioError as exc:
+        raise CommandError(f"--sampson: {exc}") from None
+    results["command"] = "socmon reproduce" \
+        + (f" --sampson {args.sampson}" if args.sampson else "") \
         + f" --out {args.out} --steps {steps} --seed {seed}" \
         + (f" --trials {trials}" if trials else "") + f" --objective {args.objective}" \
         + (f" --time-limit {args.time_limit}" if args.time_limit is not None else "")
-    results = {"command": cmd, "objective": args.objective}
-    log("paper-14 (Section 5.1)")
-    p14 = load_scenario("paper-14")
-    results["paper-14"] = experiment(
-        "paper-14", p14, PAPER["paper-14"]["taus"], trials or PAPER["paper-14"]["trials"],
-        steps, seed, out, log, fail_labels=["7", "9"], replace_labels=["8", "10"],
-        objective=args.objective, time_limit=time_limit)
-    if sampson is not None:
-        log("Sampson (Section 5.2)")
-        results["sampson"] = experiment(
-            "sampson", sampson, PAPER["sampson"]["taus"], trials or PAPER["sampson"]["trials"],
-            steps, seed, out, log, objective=args.objective, time_limit=time_limit)
-        results["sampson"]["weights_seed"] = 0
-    results["seconds"] = time.perf_counter() - t0
+    write_figures(out, results)
     report = write_report(out, results)
     clean = _strip(results)
     (out / "results.json").write_text(json.dumps(to_jsonable(clean), indent=1) + "\n")
     print(f"report: {report}")
-    problems = [p for k in ("paper-14", "sampson") if k in results
-                for p in results[k]["problems"]]
-    diverged = any(s["diverged"] for k in ("paper-14", "sampson") if k in results
-                   for s in results[k]["simulations"]
-                   + results[k].get("failure", {}).get("simulations", []))
-    for p in problems:
+    for p in results["problems"]:
         print(f"problem: {p}")
-    return EXIT_NEGATIVE if problems or diverged else EXIT_OK
+    return EXIT_NEGATIVE if results["problems"] or results["diverged"] else EXIT_OK
+
+
+def write_figures(out: Path, results: dict) -> None:
+    """The MSE figures of every record (names stored in the records as ``figure``)."""
+    from ._plot import plot_mse
+
+    for key in ("paper-14", "sampson"):
+        r = results.get(key)
+        if r is None:
+            continue
+        r["figure"] = f"{r['scenario']}-mse.png"
+        plot_mse(out / r["figure"], r["curves"], title=f"{r['scenario']}: MSE, "
+                 f"{r['trials']} trials, delay bound tau (every link)")
+        f = r.get("failure")
+        if f and "curves" in f:
+            f["figure"] = f"{r['scenario']}-failure-mse.png"
+            plot_mse(out / f["figure"], f["curves"],
+                     title=f"{r['scenario']}: agents measuring {', '.join(f['failed_nodes'])} "
+                           f"fail at step {f['fail_step']}",
+                     events=[(f["fail_step"], "failure / recovery")])
 
 
 def _strip(obj):
-    """Drop Scenario objects from the record before writing JSON."""
+    """Drop Scenario and SimulationResult objects from the record before writing JSON."""
     if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k != "new_scenario"}
+        return {k: _strip(v) for k, v in obj.items() if k not in ("new_scenario", "curves")}
     if isinstance(obj, list):
         return [_strip(v) for v in obj]
     return obj

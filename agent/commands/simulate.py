@@ -19,6 +19,7 @@ from ._common import (
     load_gains_arg,
     load_scenario_arg,
     parse_agent_list,
+    parse_int,
     print_json,
     run_command,
 )
@@ -56,16 +57,6 @@ def run(args) -> int:
 # argument parsing (each raises CommandError naming the flag)
 
 
-def parse_positive_int(text, flag, minimum=1) -> int:
-    try:
-        value = int(str(text).strip())
-    except ValueError:
-        raise CommandError(f"{flag}: expected an integer >= {minimum}, got {text!r}") from None
-    if value < minimum:
-        raise CommandError(f"{flag}: expected an integer >= {minimum}, got {value}")
-    return value
-
-
 def parse_drop(text) -> float:
     try:
         p = float(str(text).strip())
@@ -81,7 +72,7 @@ def parse_fail(text, scenario, steps) -> tuple:
     step_text, sep, agents_text = str(text).partition(":")
     if not sep:
         raise CommandError(f"--fail: expected STEP:AGENTS (e.g. 150:1,2), got {text!r}")
-    step = parse_positive_int(step_text, "--fail STEP")
+    step = parse_int(step_text, "--fail STEP", lo=1)
     if step > steps:
         raise CommandError(f"--fail: step {step} is after the last step ({steps})")
     rows = parse_agent_list(agents_text, scenario, flag="--fail")
@@ -203,9 +194,9 @@ def _run(args) -> int:
     from design.errors import SocmonError
     from design.simulate import simulate
 
-    trials = parse_positive_int(args.trials, "--trials")
-    steps = parse_positive_int(args.steps, "--steps")
-    seed = parse_positive_int(args.seed, "--seed", minimum=0)
+    trials = parse_int(args.trials, "--trials", lo=1)
+    steps = parse_int(args.steps, "--steps", lo=1)
+    seed = parse_int(args.seed, "--seed", lo=0)
     drop = parse_drop(args.drop)
     scenario = load_scenario_arg(args.scenario)
     gains = load_gains_arg(args.gains, scenario)

@@ -8,11 +8,11 @@ HELP = "run the world: simulate the social system and publish sensor readings (t
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_scenario_argument
+    from ._common import add_scenario_argument, int_flag
 
     add_scenario_argument(parser)
-    parser.add_argument("--seed", type=int, default=0, help="run seed (default 0)")
-    parser.add_argument("--steps", type=int, default=None,
+    parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="run seed (default 0)")
+    parser.add_argument("--steps", type=int_flag(lo=0), default=None,
                         help="last step to publish (default: run until stopped)")
     parser.add_argument("--step-ms", type=float, default=None,
                         help="period of one step in ms (default: the scenario's step_ms)")
@@ -34,7 +34,7 @@ def run(args) -> int:
         from broker_free_net.config import InvalidNetConfig, net_config_from_args
 
         from ..world_process import run_world
-        from ._common import check_run_flags, load_scenario_arg
+        from ._common import check_run_flags, load_scenario_arg, parse_int_list
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
@@ -45,14 +45,15 @@ def run(args) -> int:
                 check_manifest(args.manifest, scenario, None, args.seed, None)
             except ManifestMismatch as exc:
                 raise CommandError(str(exc)) from None
-        if args.steps is not None and args.steps < 0:
-            raise CommandError(f"--steps: must be >= 0, got {args.steps}")
         if args.step_ms is not None and not args.step_ms > 0:
             raise CommandError(f"--step-ms: must be > 0, got {args.step_ms}")
         M = scenario.N + scenario.standby
         wait = None
         if args.wait_agents is not None:
-            wait = parse_ids(args.wait_agents, M, "--wait-agents")
+            wait = parse_int_list(args.wait_agents, "--wait-agents", lo=1, hi=M,
+                                  item="agent", allow_empty=True,
+                                  what="expected comma-separated agent ids",
+                                  out_of_range="no agent {value} (agents are 1..{hi})")
         try:
             net = net_config_from_args(args)
         except InvalidNetConfig as exc:
@@ -61,17 +62,3 @@ def run(args) -> int:
                          wait_agents=wait, start_timeout=args.start_timeout)
 
     return run_command(body)
-
-
-def parse_ids(text, M, flag):
-    from ._common import CommandError
-
-    ids = []
-    for part in str(text).split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if not (part.isascii() and part.isdigit()) or not 1 <= int(part) <= M:
-            raise CommandError(f"{flag}: {part!r} is not an agent id in 1..{M}")
-        ids.append(int(part))
-    return ids

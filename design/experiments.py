@@ -1,0 +1,332 @@
+"""The paper's Section 5, recomputed: designs, exact radii, simulations (no files, no plots).
+
+What ``socmon reproduce`` reports, as plain records: for the pedagogical example
+(paper-14) and Sampson's monastery,
+
+* the table of rho against the delay bound: the paper's printed value, the paper's
+  formula ``rho(Ahat)^(1/(tau+1))`` for our delay-free gain, the exact radius of that
+  gain under the delay, the paper's Theorem 1 radius, and the exact radius of the gain
+  designed for that delay;
+* Monte-Carlo MSE runs (their :class:`~design.simulate.SimulationResult` objects are kept
+  under ``"curves"`` for the figures) with the steady MSE beside the exact (Lyapunov)
+  prediction and the paper's Phi;
+* for paper-14, the failure of the agents measuring 7 and 9 replaced by the recovery
+  planner, with gains designed for the new network.
+
+Delays: for a delay bound tau every inter-agent link carries tau steps (self links 0),
+the worst case of the bound. :func:`reproduce_section5` runs everything; the command line
+(:mod:`agent.commands.reproduce`) parses flags, calls it, and writes the figures, the
+report and ``results.json``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .certificates import paper_formula, paper_phi, theorem1_radius
+from .closed_loop import ClosedLoop, closed_loop_for
+from .errors import ScenarioError
+from .gain_design import design_gains
+from .graph import influence_structure
+from .metrics import steady_mse
+from .recovery import plan_recovery
+from .scenario import load_scenario, scenario_from_dict, uniform_delays
+from .simulate import Recovery, simulate
+
+__all__ = [
+    "PAPER",
+    "sampson_scenario",
+    "design_for_bound",
+    "rho_table",
+    "experiment",
+    "failure_experiment",
+    "steady_z",
+    "reproduce_section5",
+]
+
+def _quiet(msg) -> None:
+    pass
+
+
+#: The paper's printed numbers (Section 5, Tables 2-4 and Remark 2's Phi).
+PAPER = {
+    "paper-14": {"taus": [0, 3, 7, 15], "rho": [0.871, 0.970, 0.982, 0.990], "phi": 0.113,
+                 "trials": 20},
+    "paper-14-recovered": {"taus": [0, 3, 7, 15], "rho": [0.851, 0.960, 0.980, 0.989],
+                           "phi": 0.144, "trials": 20},
+    "sampson": {"taus": [0, 5, 10, 20], "rho": [0.461, 0.879, 0.932, 0.964], "phi": 0.213,
+                "trials": 50},
+}
+
+
+
+def sampson_scenario(path, seed: int = 0):
+    """Sampson's network with the paper's settings (../shared/data/sampson/README.md).
+
+    ``s,t`` in the CSV: t influences s (``A[s, t] != 0``); self weights added; weights
+    uniform in [0.1, 1] from ``seed``, rescaled to rho(A) = 1.1; agents measure 1, 5,
+    12, 18 on a directed 4-cycle; Q = R = 0.1 I.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ScenarioError(f"no such file {str(path)!r}", source="sampson")
+    data = {
+        "name": "sampson",
+        "social": {"edges": str(p.resolve()), "self_weight": True, "seed": int(seed),
+                   "spectral_radius": 1.1, "process_noise": 0.1},
+        "agents": {"measure": [["1"], ["5"], ["12"], ["18"]], "measurement_noise": 0.1},
+        "network": {"topology": "cycle", "self_weight": 0.5},
+    }
+    return scenario_from_dict(data, source=str(p))
+
+
+def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho",
+                     time_limit=None):
+    """Gain designed for every inter-agent link delayed ``tau``: ``(G, delays, rho)``."""
+    D = uniform_delays(scenario.W, tau)
+    options = {} if time_limit is None else {"time_limit": float(time_limit)}
+    result = design_gains(scenario, delays=D, seed=seed, objective=objective, **options)
+    return list(result.G), D, float(result.rho)
+
+
+def _rows_measuring(scenario, labels):
+    idx = [scenario.index_of(lab) for lab in labels]
+    return [i for i in range(scenario.N) if any(v in scenario.measure[i] for v in idx)]
+
+
+def _exact(scenario, G, D):
+
+    loop = closed_loop_for(scenario, G, D)
+    rho = loop.spectral_radius()
+    mse = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) if rho < 1 else None
+    return rho, mse
+
+
+def _steady_se(res):
+    per_trial = steady_mse(res.mse_trials)
+    if res.trials < 2 or not np.all(np.isfinite(per_trial)):
+        return None
+    return float(per_trial.std(ddof=1) / math.sqrt(res.trials))
+
+
+def rho_table(scenario, taus, paper_rho, designs, log=None):
+    """Rows of the rho-against-delay table; ``designs[tau] = (G, D, rho)``."""
+    log = log or _quiet
+
+    G0 = designs[0][0] if 0 in designs else design_for_bound(scenario, 0)[0]
+    rho0 = closed_loop_for(scenario, G0, designs[0][1]).spectral_radius()
+    rows = []
+    for tau, paper in zip(taus, paper_rho):
+        G, D, _ = designs[tau]
+        rows.append({
+            "tau": tau,
+            "paper": paper,
+            "paper_formula_ours": paper_formula(rho0, tau),
+            "exact_delay_free_gain": closed_loop_for(scenario, G0, D).spectral_radius(),
+            "theorem1_delay_free_gain": theorem1_radius(scenario.A, scenario.W,
+                                                        scenario.measure, G0, tau),
+            "exact_designed_gain": closed_loop_for(scenario, G, D).spectral_radius(),
+        })
+    log(f"  rho table done ({scenario.name})")
+    return rows
+
+
+def _phi(scenario, G):
+
+
+    loop = ClosedLoop(scenario.A, scenario.W, np.zeros_like(scenario.W, dtype=int),
+                      scenario.measure, G)
+    return paper_phi(loop, scenario.process_noise, scenario.measurement_noise)
+
+
+def experiment(name, scenario, taus, trials, steps, seed, log=None, fail_labels=None,
+               replace_labels=None, objective="rho", time_limit=None):
+    """Designs, rho table, simulations for one network (and its recovery): one record."""
+    log = log or _quiet
+
+
+    paper = PAPER[name]
+    record = {"scenario": scenario.name, "n": scenario.n, "N": scenario.N,
+              "rho_A": scenario.rho_A, "trials": trials, "steps": steps, "seed": seed,
+              "taus": list(taus), "problems": []}
+    designs = {}
+    for tau in taus:
+        t0 = time.perf_counter()
+        designs[tau] = design_for_bound(scenario, tau, seed, objective, time_limit)
+        log(f"  designed {scenario.name} tau={tau}: exact radius {designs[tau][2]:.4f} "
+            f"({time.perf_counter() - t0:.1f} s)")
+    record["rho_table"] = rho_table(scenario, taus, paper["rho"], designs, log)
+    record["phi_delay_free_gain"] = _phi(scenario, designs[taus[0]][0])
+    record["paper_phi"] = paper["phi"]
+
+    sims, curves = [], []
+    for tau in taus:
+        G, D, _ = designs[tau]
+        rho, exact = _exact(scenario, G, D)
+        res = simulate(scenario, G, steps=steps, trials=trials, seed=seed, delays=D)
+        curves.append((f"tau = {tau}", res))
+        sims.append(_sim_row(tau, res, rho, exact))
+        if rho >= 1:
+            record["problems"].append(f"{scenario.name}: no stabilising gain for tau = {tau}")
+    record["simulations"] = sims
+    record["curves"] = curves
+    log(f"  simulated {scenario.name}")
+
+    if fail_labels:
+        record["failure"] = failure_experiment(
+            scenario, taus, designs, trials, steps, seed, log, fail_labels,
+            replace_labels, objective, time_limit)
+        record["problems"] += record["failure"].pop("problems")
+    return record
+
+
+def _unmeasured_parent_radius(scenario, failed):
+    """Spectral radius of A on the parent SCCs no surviving agent measures (None: none)."""
+
+
+    st = influence_structure(scenario.A)
+    kept = {v for i in range(scenario.N) if i not in failed for v in scenario.measure[i]}
+    nodes = [v for c in st.parents for v in st.components[c]
+             if not kept & set(st.components[c])]
+    if not nodes:
+        return None
+    sub = scenario.A[np.ix_(nodes, nodes)]
+    return float(np.max(np.abs(np.linalg.eigvals(sub))))
+
+
+def _sim_row(tau, res, rho, exact):
+    return {"tau": tau, "rho_exact": rho, "mse_steady_sim": res.mse_steady,
+            "mse_steady_se": _steady_se(res), "mse_steady_exact": exact,
+            "diverged": res.diverged, "mse": res.mse.tolist()}
+
+
+def failure_experiment(scenario, taus, designs, trials, steps, seed, log, fail_labels,
+                       replace_labels, objective="rho", time_limit=None):
+    """Failure of the agents measuring ``fail_labels`` at step ``steps // 2``, recovered
+    by the planner with gains designed for the new network, for each delay bound."""
+
+
+    failed = _rows_measuring(scenario, fail_labels)
+    f_step = steps // 2
+    rec = {"failed_agents": [a + 1 for a in failed], "failed_nodes": list(fail_labels),
+           "fail_step": f_step, "problems": []}
+    big = scenario.replace(standby=max(scenario.standby, len(failed)))
+    sims, curves, table = [], [], []
+    for tau in taus:
+        G, D, _ = designs[tau]
+        s_tau = big.replace(delays=D)
+        plan = plan_recovery(s_tau, failed)
+        new = plan.scenario_after
+        if new is None:
+            rec["problems"].append(f"no recovery for the failure of {fail_labels}")
+            return rec
+        got = [scenario.labels[r.node_to] for r in plan.replacements]
+        rec["replacement_nodes"] = got
+        if replace_labels and sorted(got) != sorted(replace_labels):
+            rec["problems"].append(
+                f"recovery planner replaced {fail_labels} by {got}, the paper by {replace_labels}")
+        t0 = time.perf_counter()
+        G2, D2, _ = design_for_bound(new, tau, seed, objective, time_limit)
+        log(f"  designed recovered network tau={tau} ({time.perf_counter() - t0:.1f} s)")
+        rho2, exact2 = _exact(new, G2, D2)
+        if rho2 >= 1:
+            rec["problems"].append(f"recovered network: no stabilising gain for tau = {tau}")
+        res = simulate(s_tau, G, steps=steps, trials=trials, seed=seed, fail=(f_step, failed),
+                       recover=Recovery.from_plan(plan, G2, delays=D2))
+        curves.append((f"tau = {tau}", res))
+        sims.append(_sim_row(tau, res, rho2, exact2))
+        table.append({"tau": tau, "exact_designed_gain": rho2, "new_scenario": new})
+        if tau == taus[0]:
+            rec["measure_after"] = [new.agent_labels(i) for i in range(new.N)]
+            rec["agents_after"] = list(plan.agent_ids)
+            rec["phi_delay_free_gain"] = _phi(new, G2)
+            G2_0 = G2
+            new_0 = new
+            no_rec = simulate(s_tau, G, steps=steps, trials=trials, seed=seed,
+                              fail=(f_step, failed))
+            rec["unmeasured_parent_radius"] = _unmeasured_parent_radius(scenario, failed)
+    rho0 = table[0]["exact_designed_gain"]
+    rows = []
+    for t, paper in zip(table, PAPER["paper-14-recovered"]["rho"]):
+        D = uniform_delays(t["new_scenario"].W, t["tau"])
+        rows.append({"tau": t["tau"], "paper": paper,
+                     "paper_formula_ours": paper_formula(rho0, t["tau"]),
+                     "exact_delay_free_gain": closed_loop_for(new_0, G2_0, D).spectral_radius(),
+                     "exact_designed_gain": t["exact_designed_gain"]})
+    rec["rho_table"] = rows
+    rec["simulations"] = sims
+    rec["no_recovery"] = {"tau": taus[0], "mse_steady_sim": no_rec.mse_steady,
+                          "diverged": no_rec.diverged, "mse": no_rec.mse.tolist()}
+    curves.append((f"tau = {taus[0]}, no recovery", no_rec))
+    rec["curves"] = curves
+    log("  simulated failure and recovery")
+    return rec
+
+
+def steady_z(sim):
+    """|simulated - exact| steady MSE in standard errors (None when undefined)."""
+    exact, got, se = sim["mse_steady_exact"], sim["mse_steady_sim"], sim["mse_steady_se"]
+    if exact is None or se is None or not se > 0 or not math.isfinite(got):
+        return None
+    return abs(got - exact) / se
+
+
+
+
+def reproduce_section5(steps: int = 300, seed: int = 0, trials=None, objective: str = "rho",
+                       time_limit=None, sampson_path=None, log=None) -> dict:
+    """Every record of ``socmon reproduce``: paper-14 with its failure, and Sampson.
+
+    Parameters
+    ----------
+    steps, seed : int
+        Steps of every simulation and the seed of designs and simulations.
+    trials : int or None
+        Monte-Carlo trials; None = the paper's (20 for paper-14, 50 for Sampson).
+    objective, time_limit
+        Passed to :func:`~design.gain_design.design_gains` for every gain.
+    sampson_path : path or None
+        Sampson's edge list; None skips Section 5.2.
+    log : callable, optional
+        Called with one line of progress at a time.
+
+    Returns
+    -------
+    dict
+        ``"paper-14"`` (and ``"sampson"``) records as :func:`experiment` builds them,
+        ``"objective"``, ``"problems"`` (every configuration without a stabilising gain
+        or recovery), ``"diverged"`` (some run diverged) and ``"seconds"``. The records
+        keep their simulation results under ``"curves"`` and the recovered scenarios
+        under ``"new_scenario"``: drop those keys for JSON.
+
+    Raises
+    ------
+    ScenarioError
+        The Sampson file is missing or invalid (``source`` is ``"sampson"`` or the path).
+    """
+    log = log or _quiet
+    sampson = sampson_scenario(sampson_path) if sampson_path is not None else None
+    t0 = time.perf_counter()
+    results = {"objective": objective}
+    log("paper-14 (Section 5.1)")
+    results["paper-14"] = experiment(
+        "paper-14", load_scenario("paper-14"), PAPER["paper-14"]["taus"],
+        trials or PAPER["paper-14"]["trials"], steps, seed, log, fail_labels=["7", "9"],
+        replace_labels=["8", "10"], objective=objective, time_limit=time_limit)
+    if sampson is not None:
+        log("Sampson (Section 5.2)")
+        results["sampson"] = experiment(
+            "sampson", sampson, PAPER["sampson"]["taus"], trials or PAPER["sampson"]["trials"],
+            steps, seed, log, objective=objective, time_limit=time_limit)
+        results["sampson"]["weights_seed"] = 0
+    keys = [k for k in ("paper-14", "sampson") if k in results]
+    results["problems"] = [p for k in keys for p in results[k]["problems"]]
+    results["diverged"] = any(
+        s["diverged"] for k in keys
+        for s in results[k]["simulations"] + results[k].get("failure", {}).get("simulations", []))
+    results["seconds"] = time.perf_counter() - t0
+    return results

@@ -1,0 +1,115 @@
+"""The import layers of the packages, checked on every import statement (lazy ones too).
+
+Rules (stated in the package docstrings): inside ``design`` a module imports only from
+its own layer or lower (``design.LAYERS``); ``design`` and ``broker_free_net`` never import
+each other nor ``agent``; inside ``agent`` only the command line (``agent.cli``,
+``agent.commands``) imports the command line.
+"""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import design
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("design", "agent", "broker_free_net")
+
+
+def modules():
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            yield ".".join(parts), path
+
+
+def imported(module: str, path: Path) -> list:
+    """Absolute names of every module ``module`` imports (``from x import y`` gives x.y too)."""
+    is_pkg = path.name == "__init__.py"
+    package = module if is_pkg else module.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module
+            out.append((name, node.lineno))
+            out += [(f"{name}.{a.name}", node.lineno) for a in node.names]
+    return out
+
+
+def violations(module: str, target: str):
+    top = module.split(".")[0]
+    dest = target.split(".")[0]
+    if dest not in PACKAGES:
+        return None
+    if top in ("design", "broker_free_net") and dest != top:
+        return f"{top} must not import {dest}"
+    if top == "design":
+        src_layer = design.LAYERS.get(module.split(".")[1]) if "." in module else 5
+        parts = target.split(".")
+        if len(parts) > 1 and parts[1] in design.LAYERS:
+            if design.LAYERS[parts[1]] > src_layer:
+                return (f"layer {src_layer} module imports {parts[1]} of layer "
+                        f"{design.LAYERS[parts[1]]}")
+    if top == "agent":
+        is_cli = module == "agent.cli" or module.startswith("agent.commands")
+        if not is_cli and (target == "agent.cli" or target.startswith("agent.commands")):
+            return "only the command line imports the command line"
+    return None
+
+
+ALL = list(modules())
+
+
+def test_every_design_module_has_a_layer():
+    names = {m.split(".")[1] for m, _ in ALL if m.startswith("design.")}
+    assert names == set(design.LAYERS), names ^ set(design.LAYERS)
+
+
+@pytest.mark.parametrize("module, path", ALL, ids=[m for m, _ in ALL])
+def test_no_upward_import(module, path):
+    bad = [f"line {line}: {target}: {why}" for target, line in imported(module, path)
+           if (why := violations(module, target))]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_checker_sees_upward_imports():
+    assert violations("design.graph", "design.analysis.analyze")
+    assert violations("design.scenario", "design.observability")
+    assert violations("design.simulate", "agent.core")
+    assert violations("broker_free_net.peer", "design.scenario")
+    assert violations("agent.core", "agent.commands._common")
+    assert not violations("design.analysis", "design.graph")
+    assert not violations("agent.commands.plan", "design.recovery")
+    assert not violations("agent.core", "broker_free_net.impair")
+
+
+def test_no_import_cycle_between_project_modules():
+    names = {m for m, _ in ALL}
+    graph = {m: sorted({t for t, _ in imported(m, p) if t in names and t != m}) for m, p in ALL}
+    # a package's __init__ importing its own submodules is not a cycle of interest
+    graph = {m: [t for t in ts if not m.startswith(t + ".") and not t.startswith(m + ".")]
+             for m, ts in graph.items()}
+    state = {}
+
+    def visit(m, stack):
+        state[m] = "open"
+        for t in graph[m]:
+            if state.get(t) == "open":
+                raise AssertionError("import cycle: " + " -> ".join(stack + [m, t]))
+            if t not in state:
+                visit(t, stack + [m])
+        state[m] = "done"
+
+    for m in graph:
+        if m not in state:
+            visit(m, [])
