@@ -220,7 +220,7 @@ def check_detectable(scenario) -> Detectability:
 
 
 def design_gains(scenario, delays=None, method: str = "default", objective: str = "rho",
-                 seed: int = 0, **options) -> DesignResult:
+                 seed: int = 0, exact_mse: bool = True, **options) -> DesignResult:
     """Design the per-agent gains ``G_i`` for ``scenario``.
 
     Parameters
@@ -233,6 +233,9 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
     objective : "rho" (minimise the exact spectral radius) or "mse" (minimise the exact
         steady mean-squared error subject to stability; ``default`` only)
     seed : int, seeds the extra starts of ``default`` (the result is deterministic)
+    exact_mse : bool
+        Certify the steady MSE of the result by the dense Lyapunov solve (default True;
+        False leaves ``mse_steady`` None and saves that solve; the radius is always exact).
     **options
         ``default``: ``max_iter`` (per start and stage, 200), ``starts`` (3),
         ``time_limit`` (s, None: an optional safety cap; without it the result depends
@@ -285,7 +288,7 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
     if method == "default" and opts["mse"] not in ("impulse", "lyapunov"):
         raise DesignError(f"mse: expected 'impulse' or 'lyapunov', got {opts['mse']!r}")
     with blas_threads(opts.pop("blas_threads")):
-        return _design(scenario, D, method, objective, int(seed), opts, t0)
+        return _design(scenario, D, method, objective, int(seed), opts, t0, exact_mse)
 
 
 def blas_threads(count):
@@ -305,7 +308,7 @@ def blas_threads(count):
     return threadpool_limits(limits=int(count), user_api="blas")
 
 
-def _design(scenario, D, method, objective, seed, opts, t0):
+def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True):
     detect = check_detectable(scenario)
     if method == "ccl":
         res = _design_ccl(scenario, D, opts)
@@ -315,7 +318,8 @@ def _design(scenario, D, method, objective, seed, opts, t0):
     loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
     rho = loop.spectral_radius()
     stable = bool(rho < 1)
-    mse = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) if stable else None
+    mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
+           if stable and exact_mse else None)
     rho0 = ClosedLoop(scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
     shown = {k: v for k, v in opts.items() if k != "init"}
     return DesignResult(
