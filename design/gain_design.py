@@ -59,16 +59,18 @@ METHODS = ("default", "ccl")
 OBJECTIVES = ("rho", "mse")
 
 _DEFAULT_OPTIONS = {
-    "max_iter": 200,        # BFGS iterations per start and stage
+    "max_iter": 200,        # BFGS iterations per start and stage (bounds the work)
     "starts": 3,            # number of starts (the first is deterministic, the rest from seed)
-    "time_limit": 60.0,     # seconds of optimisation (the best gain so far is returned)
+    "time_limit": None,     # optional safety cap in seconds (the best gain so far is
+                            # returned); None: the result never depends on the machine
     "margin": 1e-3,         # the MSE stage keeps rho <= 1 - margin
     "smooth": 0.0,          # soft-max temperature over the top eigenvalue moduli
-    "init": None,           # an initial gain (list of G_i), tried first
-    "patience": 20,
-    "patience_tol": 1e-4,
+    "init": None,           # an initial gain (list of G_i) tried first, or "delay-free"
+    "patience": 20,         # convergence window (iterations) ...
+    "patience_tol": 1e-3,   # ... stop when the objective fell by less than this (relative)
     "blas_threads": 1,
     "target": None,         # objective rho: stop as soon as rho < target
+    "mse": "impulse",       # MSE evaluation: "impulse" (structured) or "lyapunov" (dense)
 }
 _CCL_OPTIONS = {
     "solver": "CLARABEL",
@@ -210,7 +212,7 @@ def check_detectable(scenario) -> Detectability:
 
 
 def design_gains(scenario, delays=None, method: str = "default", objective: str = "rho",
-                 seed: int = 0, **options) -> DesignResult:
+                 seed: int = 0, exact_mse: bool = True, **options) -> DesignResult:
     """Design the per-agent gains ``G_i`` for ``scenario``.
 
     Parameters
@@ -223,11 +225,21 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
     objective : "rho" (minimise the exact spectral radius) or "mse" (minimise the exact
         steady mean-squared error subject to stability; ``default`` only)
     seed : int, seeds the extra starts of ``default`` (the result is deterministic)
+    exact_mse : bool
+        Certify the steady MSE of the result by the dense Lyapunov solve (default True;
+        False leaves ``mse_steady`` None and saves that solve; the radius is always exact).
     **options
         ``default``: ``max_iter`` (per start and stage, 200), ``starts`` (3),
-        ``time_limit`` (s, 60), ``margin`` (1e-3), ``smooth`` (0), ``init`` (a gain to
-        start from), ``patience``/``patience_tol`` (20, 1e-4), ``target`` (objective rho:
-        stop as soon as the radius is below it; default None = minimise).
+        ``time_limit`` (s, None: an optional safety cap; without it the result depends
+        only on the arguments, never on the machine's speed), ``margin`` (1e-3),
+        ``smooth`` (0), ``init`` (a gain to start from, e.g. a neighbouring design or
+        :func:`design.reconfigure.initial_gains`; or ``"delay-free"``: first design for
+        the delay-free loop and start from it), ``patience``/``patience_tol`` (20, 1e-3:
+        a stage stops when its objective fell by less than ``patience_tol`` relative over
+        the last ``patience`` iterations), ``target`` (objective rho: stop as soon as the
+        radius is below it; default None = minimise), ``mse`` ("impulse": the MSE and its
+        gradient from the loop's impulse response, no dense solve; "lyapunov": two dense
+        Lyapunov solves per evaluation, as before).
         ``ccl``: ``solver`` ("CLARABEL"/"SCS"), ``max_iter`` (50), ``keep_iterating``
         (False), ``eps`` (1e-6), ``time_limit`` (None), ``solver_options`` (dict for the
         solver).
@@ -265,8 +277,10 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
         raise DesignError(f"options {unknown} are not known to method {method} "
                           f"(known: {', '.join(sorted(allowed))})")
     opts = {**allowed, **options}
+    if method == "default" and opts["mse"] not in ("impulse", "lyapunov"):
+        raise DesignError(f"mse: expected 'impulse' or 'lyapunov', got {opts['mse']!r}")
     with blas_threads(opts.pop("blas_threads")):
-        return _design(scenario, D, method, objective, int(seed), opts, t0)
+        return _design(scenario, D, method, objective, int(seed), opts, t0, exact_mse)
 
 
 def blas_threads(count):
@@ -286,7 +300,7 @@ def blas_threads(count):
     return threadpool_limits(limits=int(count), user_api="blas")
 
 
-def _design(scenario, D, method, objective, seed, opts, t0):
+def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True):
     detect = check_detectable(scenario)
     if method == "ccl":
         res = _design_ccl(scenario, D, opts)
@@ -296,7 +310,8 @@ def _design(scenario, D, method, objective, seed, opts, t0):
     loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
     rho = loop.spectral_radius()
     stable = bool(rho < 1)
-    mse = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) if stable else None
+    mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
+           if stable and exact_mse else None)
     rho0 = ClosedLoop(scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
     shown = {k: v for k, v in opts.items() if k != "init"}
     return DesignResult(
@@ -347,12 +362,20 @@ def _starts(model, scenario, seed, count, init):
 
 def _design_default(scenario, D, objective, seed, opts, t0):
     model = LoopModel(scenario.A, scenario.W, D, scenario.measure)
-    deadline = t0 + float(opts["time_limit"])
+    deadline = None if opts["time_limit"] is None else t0 + float(opts["time_limit"])
     smooth = float(opts["smooth"])
     common = dict(max_iter=int(opts["max_iter"]), deadline=deadline,
                   patience=int(opts["patience"]), patience_tol=float(opts["patience_tol"]))
     init = opts["init"]
-    if init is not None:
+    if isinstance(init, str):
+        if init != "delay-free":
+            raise DesignError(f"init: a list of gains or 'delay-free', got {init!r}")
+        sub = {k: v for k, v in opts.items() if k not in ("init", "time_limit")}
+        sub["init"], sub["time_limit"] = None, None
+        if deadline is not None:
+            sub["time_limit"] = max(deadline - time.perf_counter(), 1e-3)
+        init = _design_default(scenario, np.zeros_like(D), objective, seed, sub, t0)[0]
+    elif init is not None:
         from .gains import check_gains_fit
         check_gains_fit(list(init), scenario, where="init")
     starts = _starts(model, scenario, seed, int(opts["starts"]), init)
@@ -362,14 +385,22 @@ def _design_default(scenario, D, objective, seed, opts, t0):
     def f_rho(x):
         return model.spectral_radius_and_gradient(x, smooth=smooth)
 
+    lowest = [np.inf]
+
     def f_mse(x):
-        J, g = model.mse_and_gradient(x, q, r, rho_max=rho_max)
-        return (np.inf, np.zeros_like(x)) if g is None else (J, g)
+        # a trial point whose error sum passes 10x the lowest MSE seen cannot be accepted
+        # by the line search: the impulse sum stops there (unstable points end early)
+        J, g = model.mse_and_gradient(x, q, r, rho_max=rho_max, method=opts["mse"],
+                                      bound=10.0 * lowest[0])
+        if g is None:
+            return np.inf, np.zeros_like(x)
+        lowest[0] = min(lowest[0], J)
+        return J, g
 
     history, iterations = [], 0
     best = None            # (key, x, status)
     for k, x0 in enumerate(starts):
-        if k and time.perf_counter() > deadline:
+        if k and deadline is not None and time.perf_counter() > deadline:
             history.append({"stage": "stop", "note": f"time limit before start {k}"})
             break
         label = f"start {k} rho"
@@ -388,11 +419,19 @@ def _design_default(scenario, D, objective, seed, opts, t0):
             key = rho
         else:
             if rho < rho_max:
+                lowest[0] = np.inf
                 res2 = bfgs_minimise(f_mse, x, label=f"start {k} mse", **common)
                 history += res2.history
                 iterations += res2.iterations
-                x, status = res2.x, res2.reason
-                key = (0, res2.f)
+                rho2 = model.spectral_radius(res2.x) if res2.iterations else rho
+                if rho2 < 1.0:
+                    x, status, rho = res2.x, res2.reason, rho2
+                    key = (0, res2.f)
+                else:
+                    # a mode the noise does not reach went unstable: keep the stage-1 gain
+                    status = f"{res2.reason}; MSE stage left the stable set, stage-1 gain kept"
+                    J0 = model.mse_and_gradient(x, q, r, rho_max=1.0)[0]
+                    key = (0, J0)
             else:
                 key = (1, rho)      # not stabilised: ranks after every stable start
         history.append({"stage": f"start {k} done", "rho": float(rho), "status": status})

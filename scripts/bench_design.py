@@ -118,6 +118,118 @@ def child(case: str, method: str, target: float | None, memory_gb: float) -> Non
                       "peak_mb": peak}))
 
 
+# -- targets of the fast design (``--targets``) ----------------------------------------
+#
+# Rows: paper-14 uniform:7 (objectives rho and mse); a recovered network (agent 1 of
+# paper-14 replaced by its standby; agent 1 of the Sampson-like scenario replaced by a
+# standby) with uniform 7-step delays: the fast stabilising gain and the refined MSE gain
+# warm started from the gains before the failure; every single failure of the
+# Sampson-like scenario precomputed. "baseline" rows run today's default (60 s budget)
+# from ``--baseline-root`` (a checkout of the code before this change) when given, else
+# the current code with the old settings (60 s, dense Lyapunov MSE, window 1e-4).
+
+TARGETS = ["p14 rho", "p14 mse", "p14-rec fast", "p14-rec refined", "sam-rec fast",
+           "sam-rec refined", "sam precompute", "p14 rho baseline", "p14 mse baseline",
+           "p14-rec mse baseline", "sam-rec mse baseline"]
+
+
+def _recovered(which):
+    from design.recovery import plan_recovery
+    from design.scenario import uniform_delays
+
+    s = load("paper-14") if which == "p14" else sampson_scenario().replace(standby=1)
+    D = uniform_delays(s.W, 7)
+    plan = plan_recovery(s.replace(delays=D), [0])
+    new = plan.scenario_after
+    return s, D, plan, new, uniform_delays(new.W, 7)
+
+
+def target_child(name: str, legacy: bool) -> None:
+    # the code under test comes from PYTHONPATH (this tree, or --baseline-root)
+    from design.closed_loop import ClosedLoop
+    from design.gain_design import design_gains
+
+    t0 = time.perf_counter()
+    row = {"case": name}
+    old = ({} if legacy else {"time_limit": 60.0, "mse": "lyapunov", "patience_tol": 1e-4})
+    if name.startswith("p14 "):
+        obj = name.split()[1]
+        s = load("paper-14")
+        res = design_gains(s, delays="uniform:7", objective=obj,
+                           **(old if "baseline" in name else {}))
+        row.update(rho=res.rho, mse=res.mse_steady, status=res.status)
+    elif "baseline" in name:
+        _, _, _, new, D2 = _recovered(name.split("-")[0])
+        res = design_gains(new, delays=D2, objective="mse", **old)
+        row.update(rho=res.rho, mse=res.mse_steady, status=res.status)
+    elif name == "sam precompute":
+        from design.reconfigure import precompute_failures
+
+        s = sampson_scenario().replace(standby=1)
+        D = _uniform7(s)
+        G = design_gains(s, delays=D, objective="mse").G
+        t0 = time.perf_counter()
+        out = precompute_failures(s, D, G=G)
+        row.update(sets=len(out), rho=max(p.rho for p in out.values()),
+                   mse=max(p.mse_steady for p in out.values()),
+                   status=f"{sum(p.refined for p in out.values())} refined of {len(out)}")
+    else:
+        from design.reconfigure import fast_recovery_gains, initial_gains, refined_recovery_gains
+
+        which, kind = name.split("-")[0], name.split()[1]
+        s, D, plan, new, D2 = _recovered(which)
+        G = design_gains(s, delays=D, objective="mse").G       # the gains before the failure
+        init = initial_gains(plan, G, s.replace(delays=D))
+        t0 = time.perf_counter()
+        fast = fast_recovery_gains(new, D2, init=init)
+        row["stable_seconds"] = time.perf_counter() - t0
+        res = fast if kind == "fast" else refined_recovery_gains(new, D2, init=fast.G)
+        mse = res.mse_steady
+        if mse is None and res.stable:
+            mse = ClosedLoop(new.A, new.W, D2, new.measure, res.G).mse_steady(
+                new.process_noise, new.measurement_noise)
+        row.update(rho=res.rho, mse=mse, status=res.status)
+    row["seconds"] = time.perf_counter() - t0
+    print(json.dumps(row))
+
+
+def _uniform7(s):
+    from design.scenario import uniform_delays
+
+    return uniform_delays(s.W, 7)
+
+
+def run_targets(cap, baseline_root=None) -> list:
+    rows = []
+    for name in TARGETS:
+        legacy = "baseline" in name and baseline_root is not None
+        root = Path(baseline_root) if legacy else ROOT
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--target-child", name]
+        if legacy:
+            cmd.append("--legacy")
+        env = dict(os.environ, PYTHONPATH=str(root))
+        try:
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=cap, env=env,
+                                 cwd=str(ROOT))
+            lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+            row = json.loads(lines[-1]) if lines else {
+                "case": name, "failed": (out.stderr.strip().splitlines() or ["?"])[-1][:160]}
+        except subprocess.TimeoutExpired:
+            row = {"case": name, "failed": f"stopped after {cap:.0f} s"}
+        rows.append(row)
+        print(_format_target(row), flush=True)
+    return rows
+
+
+def _format_target(r) -> str:
+    if "failed" in r:
+        return f"| {r['case']} | - | - | - | {r['failed']} |"
+    mse = "-" if r.get("mse") is None else f"{r['mse']:.4f}"
+    extra = f"; stable after {r['stable_seconds']:.2f} s" if "stable_seconds" in r else ""
+    return (f"| {r['case']} | {r['seconds']:.2f} | {r['rho']:.4f} | {mse} | "
+            f"{r['status']}{extra} |")
+
+
 def run_case(case, method, cap, target=None, memory_gb=MEMORY_GB):
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", case, method,
            "--memory-gb", repr(memory_gb)]
@@ -152,7 +264,26 @@ def main(argv=None) -> int:
                     help=f"address-space cap per case in GiB (default {MEMORY_GB:g})")
     ap.add_argument("--child", nargs=2, metavar=("CASE", "METHOD"), help=argparse.SUPPRESS)
     ap.add_argument("--target", type=float, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--targets", action="store_true",
+                    help="run the fast-design targets (paper-14 uniform:7, recovered networks, "
+                         "Sampson single failures precomputed) beside the 60 s baseline")
+    ap.add_argument("--baseline-root", default=None, metavar="DIR",
+                    help="--targets: run the baseline rows from this checkout of the old code")
+    ap.add_argument("--target-child", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--legacy", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.target_child:
+        target_child(args.target_child, args.legacy)
+        return 0
+    if args.targets:
+        print(f"# bench_design --targets: {os.cpu_count()} cores, load "
+              f"{os.getloadavg()[0]:.2f}", flush=True)
+        print("| case | seconds | rho (exact) | steady MSE (exact) | status |")
+        print("| --- | ---: | ---: | ---: | --- |")
+        rows = run_targets(args.cap, args.baseline_root)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1))
+        return 0
     if args.child:
         child(args.child[0], args.child[1], args.target, args.memory_gb)
         return 0

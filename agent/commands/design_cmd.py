@@ -50,7 +50,15 @@ def add_arguments(parser) -> None:
     parser.add_argument("--starts", type=int_flag(lo=1), default=None, metavar="K",
                         help="--method default: number of starts (default 3)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
-                        help="stop and keep the best gain found after this long")
+                        help="optional safety cap: stop and keep the best gain found after "
+                             "this long (default none: the result does not depend on the "
+                             "machine's speed)")
+    parser.add_argument("--window", type=int, default=None, metavar="N",
+                        help="--method default: a stage stops when its objective fell by "
+                             "less than --rel-tol over the last N iterations (default 20)")
+    parser.add_argument("--rel-tol", type=float, default=None, metavar="X",
+                        help="--method default: relative progress over --window below which "
+                             "a stage stops (default 1e-3)")
     parser.add_argument("--target", type=float, default=None, metavar="RHO",
                         help="--method default, --objective rho: stop once rho < RHO")
     parser.add_argument("--keep-iterating", action="store_true",
@@ -64,7 +72,8 @@ def add_arguments(parser) -> None:
 def _options(args) -> dict:
     opts = {}
     if args.method == "ccl":
-        for flag, value in (("--starts", args.starts), ("--target", args.target)):
+        for flag, value in (("--starts", args.starts), ("--target", args.target),
+                            ("--window", args.window), ("--rel-tol", args.rel_tol)):
             if value is not None:
                 raise CommandError(f"{flag} applies to --method default only")
         if args.objective == "mse":
@@ -78,6 +87,14 @@ def _options(args) -> dict:
             raise CommandError("--keep-iterating applies to --method ccl only")
         if args.starts is not None:
             opts["starts"] = args.starts
+        if args.window is not None:
+            if args.window < 1:
+                raise CommandError(f"--window: must be at least 1, got {args.window}")
+            opts["patience"] = args.window
+        if args.rel_tol is not None:
+            if not 0 <= args.rel_tol < 1:
+                raise CommandError(f"--rel-tol: must be in [0, 1), got {args.rel_tol}")
+            opts["patience_tol"] = args.rel_tol
         if args.target is not None:
             if args.objective != "rho" or not 0 < args.target:
                 raise CommandError("--target: a positive radius, with --objective rho only")

@@ -101,47 +101,18 @@ def design_for(scenario, delays, seed: int, objective: str = "rho", time_limit=N
     return design_gains(scenario, delays=delays, seed=seed, objective=objective, **options)
 
 
-def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rho"):
-    """Recovery plan for ``failed`` (0-based) and gains designed for its configuration.
+def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rho",
+                   previous=None):
+    """:func:`design.reconfigure.build_recovery` (warm started from ``previous``, the
+    gains before the failure); its RecoveryDesignError becomes a CommandError (status 1)."""
+    from design.reconfigure import RecoveryDesignError
+    from design.reconfigure import build_recovery as _build
 
-    Returns ``(Recovery, info)``; raises CommandError (status 1) when the failure cannot
-    be recovered or no stabilising gain is found for the new configuration.
-    """
-    from design.recovery import plan_recovery
-    from design.simulate import Recovery
-
-    plan = plan_recovery(scenario, failed)
-    new = plan.scenario_after
-    if new is None or not plan.structurally_observable_after:
-        raise CommandError(
-            "--recover: the failure of agents "
-            f"{[a + 1 for a in failed]} cannot be recovered (no equivalent sensor or "
-            "no connected network left)", status=EXIT_NEGATIVE)
-    delays = resolve_delays_arg(new, delay_spec)
-    result = design_for(new, delays, seed, objective)
-    if not result.stable:
-        raise CommandError(
-            f"--recover: no stabilising gain found for the recovered configuration "
-            f"(best radius {result.rho:.6g})", status=EXIT_NEGATIVE)
-    info = {
-        "agents_after": list(plan.agent_ids),
-        "measure_after": [new.agent_labels(i) for i in range(new.N)],
-        "replacements": [
-            {"failed": r.failed + 1, "from": scenario.labels[r.node_from],
-             "to": scenario.labels[r.node_to], "by": r.by}
-            for r in plan.replacements
-        ],
-        "added_links": [{"from": u, "to": v} for u, v in plan.added_links],
-        "rho_after": float(result.rho),
-        "mse_steady_exact_after": _finite_or_none(getattr(result, "mse_steady", None)),
-    }
-    return Recovery.from_plan(plan, result.G, delays=delays), info
-
-
-def _finite_or_none(x):
-    import math
-
-    return float(x) if x is not None and math.isfinite(float(x)) else None
+    try:
+        return _build(scenario, failed, delay_spec, seed=seed, objective=objective,
+                      previous=previous)
+    except RecoveryDesignError as exc:
+        raise CommandError(f"--recover: {exc}", status=EXIT_NEGATIVE) from None
 
 
 # ---------------------------------------------------------------------------------
@@ -211,7 +182,8 @@ def _run(args) -> int:
     if args.recover:
         objective = gains.meta.get("objective")
         objective = objective if objective in ("rho", "mse") else "rho"
-        recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed, objective)
+        recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed, objective,
+                                                 previous=gains.G)
         recovery_info["objective"] = objective
 
     bar = ProgressBar()
