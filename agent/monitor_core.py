@@ -152,14 +152,19 @@ class _Agent:
 class GainSource:
     """Gains for a configuration: precomputed ones first, else a fast design.
 
-    ``design(roster)`` -> list of G_i (by row) or None when no stabilising gain is
-    found. The default designs with :func:`design.gain_design.design_gains` against the
-    roster's delays (a first stabilising gain: target radius, a bounded iteration count).
+    ``fast(roster)`` / ``refined(roster)`` -> list of G_i (by row) or None when no
+    stabilising gain is found. Defaults: :func:`design.reconfigure.fast_recovery_gains`
+    (a first stabilising gain: a target radius, few iterations) for a configuration
+    nobody foresaw, and :func:`design.reconfigure.refined_recovery_gains` (least steady
+    MSE, certified stable by the exact radius) for the ones precomputed in the
+    background. Both are designed against the configuration's delays and bounded by
+    iterations, not by the clock.
     """
 
-    def __init__(self, design=None):
+    def __init__(self, fast=None, refined=None):
         self._cache: dict = {}
-        self._design = design or _fast_design
+        self._fast = fast or _fast_design
+        self._refined = refined or _refined_design
 
     @staticmethod
     def key(roster) -> tuple:
@@ -173,12 +178,12 @@ class GainSource:
     def has(self, roster) -> bool:
         return self.key(roster) in self._cache
 
-    def get(self, roster):
+    def get(self, roster, refined: bool = False):
         """(G, precomputed?)"""
         k = self.key(roster)
         if k in self._cache:
             return self._cache[k], True
-        G = self._design(roster)
+        G = (self._refined if refined else self._fast)(roster)
         if G is not None:
             self._cache[k] = G
         return G, False
@@ -186,14 +191,24 @@ class GainSource:
 
 def _fast_design(roster):
     from design.errors import SocmonError
-    from design.gain_design import design_gains
+    from design.reconfigure import fast_recovery_gains
 
     try:
-        res = design_gains(roster.scenario, delays=roster.delays, objective="rho",
-                           target=0.9, starts=2, max_iter=150, time_limit=30.0)
+        res = fast_recovery_gains(roster.scenario, roster.delays)
     except SocmonError:
         return None
     return list(res.G) if res.stable else None
+
+
+def _refined_design(roster):
+    from design.errors import SocmonError
+    from design.reconfigure import refined_recovery_gains
+
+    try:
+        res = refined_recovery_gains(roster.scenario, roster.delays)
+    except SocmonError:
+        return None
+    return list(res.G) if res.stable else _fast_design(roster)
 
 
 class MonitorCore:

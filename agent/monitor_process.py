@@ -71,7 +71,7 @@ def precompute_single_failures(roster, gains: GainSource, stop=lambda: False, lo
             continue
         if nxt is None or gains.has(nxt):
             continue
-        G, _ = gains.get(nxt)
+        G, _ = gains.get(nxt, refined=True)
         done += G is not None
         if log is not None:
             print(f"monitor: precomputed the failure of agents {a}: "

@@ -29,5 +29,5 @@ LAYERS = {
     "observability": 2, "recovery": 2, "analysis": 2, "roster": 2,
     "estimator": 3, "closed_loop": 3, "certificates": 3,
     "ccl": 4, "gradient": 4, "gain_design": 4, "simulate": 4,
-    "experiments": 5,
+    "reconfigure": 5, "experiments": 5,
 }

@@ -44,7 +44,9 @@ def gains_for(scenario, gains_path, delays):
     from design.gain_design import design_gains
 
     try:
-        result = design_gains(scenario, delays=delays)
+        # the error users see: steady MSE (certified stable), bounded by iterations, not
+        # by the clock, so that every process of a run designs the same gain
+        result = design_gains(scenario, delays=delays, objective="mse")
     except SocmonError as exc:   # not observable / not detectable, bad delays
         raise CommandError(f"gain design: {exc}") from None
     if not result.rho < 1:

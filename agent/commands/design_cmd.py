@@ -50,9 +50,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--starts", type=int_flag(lo=1), default=None, metavar="K",
                         help="--method default: number of starts (default 3)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
-                        help="optional safety cap: stop and keep the best gain found after "
-                             "this long (default none: the result does not depend on the "
-                             "machine's speed)")
+                        help="safety cap: stop and keep the best gain found after this long "
+                             "(default: 60 s for --objective rho, whose radius converges slowly "
+                             "with long delays; none for --objective mse, whose result then "
+                             "does not depend on the machine's speed)")
     parser.add_argument("--window", type=int, default=None, metavar="N",
                         help="--method default: a stage stops when its objective fell by "
                              "less than --rel-tol over the last N iterations (default 20)")
@@ -107,6 +108,8 @@ def _options(args) -> dict:
         if not args.time_limit > 0:
             raise CommandError(f"--time-limit: must be positive, got {args.time_limit}")
         opts["time_limit"] = args.time_limit
+    elif args.method == "default" and args.objective == "rho":
+        opts["time_limit"] = 60.0
     return opts
 
 
