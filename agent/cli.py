@@ -33,6 +33,7 @@ COMMANDS = {
     "up": "up",
     "inject": "inject",
     "monitor": "monitor",
+    "keys": "keys",
 }
 
 
