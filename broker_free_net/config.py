@@ -92,8 +92,10 @@ def _check_endpoints(name: str, value) -> tuple[str, ...]:
 
 def _zenoh_message(exc: Exception) -> str:
     """One line out of a zenoh error (its json5 parser reports over several lines)."""
-    text = str(exc)
-    text = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", text)
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))  # locations in zenoh's sources
+    serde = re.search(r'msg: "(.*?)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
+    if serde:
+        return f"line {serde.group(2)}, column {serde.group(3)}: {serde.group(1)}"
     where = re.search(r"-->\s*(\d+):(\d+)", text)
     what = re.search(r"=\s*(.+)", text)
     if where and what:
