@@ -384,6 +384,9 @@ def net_config_from_args(args: argparse.Namespace, identity: str | None = None) 
         Naming the field, which is also the flag (``zenoh_config`` -> ``--zenoh-config``).
     """
     keys = getattr(args, "keys", None)
+    if keys is not None and identity is None:
+        raise InvalidNetConfig("keys", "this command does not say whose credentials to use "
+                                       "(net_config_from_args needs identity=)")
     return NetConfig(
         run=args.run,
         listen=tuple(args.listen) if args.listen else None,

@@ -183,3 +183,16 @@ def test_argparse_helpers():
     with pytest.raises(InvalidNetConfig) as info:
         net_config_from_args(parser.parse_args(["--run", "a/b"]))
     assert info.value.field == "run"
+
+
+def test_keys_flag_needs_an_identity(tmp_path):
+    from broker_free_net.security import make_run_keys, run_identities
+
+    ks = make_run_keys(tmp_path / "k", "r9", run_identities(1))
+    parser = add_net_arguments(argparse.ArgumentParser())
+    args = parser.parse_args(["--keys", str(ks.dir)])
+    with pytest.raises(InvalidNetConfig) as info:
+        net_config_from_args(args)
+    assert info.value.field == "keys"
+    net = net_config_from_args(args, identity="agent-1")
+    assert (net.run, net.identity, net.listen) == ("r9", "agent-1", ("tls/127.0.0.1:0",))
