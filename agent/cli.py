@@ -36,6 +36,7 @@ COMMANDS = {
     "inject": "inject",
     "monitor": "monitor",
     "chaos": "chaos",
+    "keys": "keys",
 }
 
 

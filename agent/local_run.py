@@ -78,6 +78,7 @@ class RunConfig:
     drop: float = 0.0
     faults: tuple = ()
     start_timeout: float = 60.0
+    secure: bool = False
 
     @property
     def M(self) -> int:
@@ -125,6 +126,8 @@ class LocalRun:
         c = self.config
         common = ["--run", rec.run_id, "--connect", ep[0], "--seed", str(c.seed),
                   "--manifest", str((c.out / "manifest.json").resolve())]
+        if c.secure:
+            common += ["--keys", str((c.out / "keys").resolve())]
         crash_at = {f.agent: f.step for f in c.faults if f.kind == "crash"}
         out = {"world": ["world", c.scenario_arg, *common, "--listen", ep[1],
                          "--steps", str(c.steps), "--step-ms", str(c.step_ms),
@@ -157,7 +160,14 @@ class LocalRun:
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
         rec.rosters = [(0, tuple(range(1, N + 1)), 0)]
-        ep = [f"tcp/127.0.0.1:{p}" for p in rec.ports]
+        scheme = "tls" if c.secure else "tcp"
+        ep = [f"{scheme}/127.0.0.1:{p}" for p in rec.ports]
+        net_extra = {}
+        if c.secure:
+            from broker_free_net.security import make_run_keys, run_identities
+
+            make_run_keys(c.out / "keys", rec.run_id, run_identities(M))
+            net_extra = {"keys": str((c.out / "keys").resolve()), "identity": "recorder"}
         write_manifest(c.out / "manifest.json", c.scenario, c.gains_path, c.seed,
                        c.delays_spec, c.delays, rec.run_id)
         children = rec.children = Children(c.out / "logs")
@@ -180,7 +190,8 @@ class LocalRun:
         old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         t_begin = time.monotonic()
         try:
-            with Peer(NetConfig(run=rec.run_id, listen=(ep[0],)), "recorder", 0) as peer:
+            with Peer(NetConfig(run=rec.run_id, listen=(ep[0],), **net_extra), "recorder",
+                      0) as peer:
                 truth_in = peer.subscribe(keys.truth_key(rec.run_id), maxlen=1 << 16)
                 ctl_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "ctl"),
                                         maxlen=1 << 12)

@@ -1,9 +1,11 @@
 """Session configuration: plain values -> ``zenoh.Config``.
 
-The order of precedence is: zenoh defaults < optional zenoh config file
-(json5) < the values of :class:`NetConfig`. Only the keys listed in
-:func:`build_zenoh_config` are overridden; everything else in the file
-passes through untouched (TLS, interfaces, queue sizes, ...).
+The order of precedence is: zenoh defaults < the zenoh config file (json5, optional) <
+the secure fragment of the process (``keys``, optional) < the values given to
+:class:`NetConfig`. A field left unset (``None``) takes the file's value when the file sets
+that key, else socmon's default; so a file with ``listen/endpoints`` or ``mode`` keeps them
+unless a flag says otherwise. Keys socmon never sets pass through untouched (TLS, interfaces,
+queue sizes, ...).
 """
 
 from __future__ import annotations
@@ -19,7 +21,9 @@ import zenoh
 __all__ = [
     "DEFAULT_LEASE_MS",
     "DEFAULT_LISTEN",
+    "DEFAULT_SECURE_LISTEN",
     "MAX_MESSAGE_BYTES",
+    "SOCMON_KEYS",
     "InvalidNetConfig",
     "NetConfig",
     "add_net_arguments",
@@ -35,10 +39,24 @@ DEFAULT_LEASE_MS = 1000
 KEEP_ALIVES_PER_LEASE = 4
 #: Default listen endpoint: loopback, port chosen by the OS.
 DEFAULT_LISTEN = ("tcp/127.0.0.1:0",)
+#: Default listen endpoint of a secured process (``keys`` given).
+DEFAULT_SECURE_LISTEN = ("tls/127.0.0.1:0",)
 #: Largest message zenoh will reassemble (``transport/link/rx/max_message_size``).
 #: zenoh's default is 1 GiB; socmon messages are a few hundred bytes.
 MAX_MESSAGE_BYTES = 1 << 20
-
+#: The zenoh keys socmon sets, each with the NetConfig field or the fixed value it takes
+#: when the config file does not set it.
+SOCMON_KEYS = {
+    "mode": "mode (default peer)",
+    "listen/endpoints": "listen (--listen)",
+    "connect/endpoints": "connect (--connect)",
+    "scouting/multicast/enabled": "multicast (--multicast)",
+    "transport/link/tx/lease": "lease_ms (--lease-ms)",
+    "scouting/gossip/enabled": "true",
+    "transport/link/tx/keep_alive": str(KEEP_ALIVES_PER_LEASE),
+    "transport/link/rx/max_message_size": str(MAX_MESSAGE_BYTES),
+}
+_MODES = ("peer", "client")
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # <protocol>/<address>[?<metadata>][#<config>]
 _ENDPOINT_RE = re.compile(r"^[a-z][a-z0-9+\-]*/\S+$")
@@ -50,7 +68,8 @@ class InvalidNetConfig(ValueError):
     Attributes
     ----------
     field : str
-        Name of the offending field (as in :class:`NetConfig`).
+        Name of the offending field (as in :class:`NetConfig`; ``zenoh_config`` and
+        ``keys`` are also the names of their flags).
     """
 
     def __init__(self, field: str, message: str):
@@ -71,64 +90,214 @@ def _check_endpoints(name: str, value) -> tuple[str, ...]:
     return endpoints
 
 
+def _zenoh_message(exc: Exception) -> str:
+    """One line out of a zenoh error (its json5 parser reports over several lines)."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))  # locations in zenoh's sources
+    serde = re.search(r'msg: "(.*?)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
+    if serde:
+        return f"line {serde.group(2)}, column {serde.group(3)}: {serde.group(1)}"
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    what = re.search(r"=\s*(.+)", text)
+    if where and what:
+        return f"line {where.group(1)}, column {where.group(2)}: {what.group(1).strip()}"
+    return " ".join(text.split())
+
+
+def _flatten(tree: dict, prefix: str = ""):
+    for k, v in tree.items():
+        if isinstance(v, dict) and v:
+            yield from _flatten(v, f"{prefix}{k}/")
+        else:
+            yield f"{prefix}{k}", v
+
+
+_DEFAULTS: dict[str, object] = {}
+
+
+def _default(key: str):
+    if key not in _DEFAULTS:
+        _DEFAULTS[key] = json.loads(zenoh.Config().get_json(key))
+    return _DEFAULTS[key]
+
+
+def _base_config(zenoh_config: str | None, fragment: dict | None) -> zenoh.Config:
+    """The file (or zenoh's defaults) with the secure fragment inserted on top."""
+    if zenoh_config is not None:
+        try:
+            conf = zenoh.Config.from_file(zenoh_config)
+        except zenoh.ZError as exc:
+            raise InvalidNetConfig("zenoh_config", f"cannot load {zenoh_config!r}: {_zenoh_message(exc)}") from None
+    else:
+        conf = zenoh.Config()
+    for key, value in _flatten(fragment or {}):
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as exc:
+            raise InvalidNetConfig("keys", f"cannot apply {key}: {_zenoh_message(exc)}") from None
+    return conf
+
+
+def _file_value(conf: zenoh.Config, key: str):
+    """The value of `key` if the file (or fragment) set it, else None.
+
+    A value equal to zenoh's default is not told apart from no value.
+    """
+    value = json.loads(conf.get_json(key))
+    return None if value == _default(key) else value
+
+
+def _per_mode(value, mode: str):
+    # zenoh accepts a list or {router: [...], peer: [...], client: [...]}
+    return value.get(mode, []) if isinstance(value, dict) else value
+
+
 @dataclass(frozen=True)
 class NetConfig:
     """Transport settings of one socmon process.
 
+    Fields left at ``None`` are resolved when the NetConfig is made: from the zenoh config
+    file (or the secure fragment of `keys`) when it sets the matching key, else socmon's
+    default. After construction every field holds the value the session will use.
+
     Parameters
     ----------
-    run : str
-        Run id; every key of the run lives under ``socmon/<run>/``. Letters,
-        digits, ``_``, ``.``, ``-``.
-    listen : sequence of str
-        zenoh endpoints to listen on, e.g. ``("tcp/127.0.0.1:7447",)``.
-    connect : sequence of str
-        Endpoints to connect to. One seed peer is enough: the rest of the
-        mesh is found by gossip scouting.
-    multicast : bool
-        Enable UDP multicast scouting (LAN discovery without seeds).
-    lease_ms : int
-        Link lease in milliseconds: how fast a silent peer is declared dead.
-    config_file : str or None
-        Optional zenoh json5 config file, applied before the values above.
+    run : str or None
+        Run id; every key of the run lives under ``socmon/<run>/``. Letters, digits,
+        ``_``, ``.``, ``-``. Default: the run of `keys`, else ``"default"``.
+    listen : sequence of str or None
+        zenoh endpoints to listen on, e.g. ``("tcp/127.0.0.1:7447",)``. Default
+        :data:`DEFAULT_LISTEN` (:data:`DEFAULT_SECURE_LISTEN` with `keys`).
+    connect : sequence of str or None
+        Endpoints to connect to. One seed peer is enough: the rest of the mesh is found
+        by gossip scouting. Default none.
+    multicast : bool or None
+        Enable UDP multicast scouting (LAN discovery without seeds). Default False.
+    lease_ms : int or None
+        Link lease in milliseconds: how fast a silent peer is declared dead. Default
+        :data:`DEFAULT_LEASE_MS`.
+    zenoh_config : str or None
+        Optional zenoh json5 config file, applied first.
+    keys : str or Path or None
+        Key directory made by ``socmon keys init``: the process then talks TLS with
+        mutual authentication only, under the run's access control (see
+        :mod:`broker_free_net.security`). Requires `identity`.
+    identity : str or None
+        Process name whose credentials to use: ``"world"``, ``"agent-<i>"``,
+        ``"monitor"``, ``"operator"`` or ``"recorder"``.
+    mode : str or None
+        zenoh mode, ``"peer"`` (default) or ``"client"``.
+
+    Examples
+    --------
+    >>> NetConfig(run="demo", connect=["tcp/127.0.0.1:7447"]).listen
+    ('tcp/127.0.0.1:0',)
     """
 
-    run: str = "default"
-    listen: tuple[str, ...] = DEFAULT_LISTEN
-    connect: tuple[str, ...] = ()
-    multicast: bool = False
-    lease_ms: int = DEFAULT_LEASE_MS
-    config_file: str | None = field(default=None)
+    run: str | None = None
+    listen: tuple[str, ...] | None = None
+    connect: tuple[str, ...] | None = None
+    multicast: bool | None = None
+    lease_ms: int | None = None
+    zenoh_config: str | None = field(default=None)
+    keys: str | None = None
+    identity: str | None = None
+    mode: str | None = None
 
     def __post_init__(self):
+        from .security import InvalidKeys, load_fragment, load_key_set
+
+        put = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
+        if self.zenoh_config is not None:
+            if not isinstance(self.zenoh_config, (str, Path)):
+                raise InvalidNetConfig("zenoh_config", f"expected a path, got {type(self.zenoh_config).__name__}")
+            path = Path(self.zenoh_config)
+            if not path.is_file():
+                raise InvalidNetConfig("zenoh_config", f"no such file {str(self.zenoh_config)!r}")
+            put("zenoh_config", str(path))
+        fragment = None
+        if self.keys is not None:
+            if not isinstance(self.keys, (str, Path)):
+                raise InvalidNetConfig("keys", f"expected a directory, got {type(self.keys).__name__}")
+            if self.identity is None:
+                raise InvalidNetConfig("identity", "keys given without the identity whose credentials to use")
+            try:
+                key_set = load_key_set(self.keys)
+                if self.run is None:
+                    put("run", key_set.run)
+                fragment = load_fragment(self.keys, self.identity, self.run)
+            except InvalidKeys as exc:
+                raise InvalidNetConfig("keys", str(exc).removeprefix("keys: ")) from None
+            put("keys", str(key_set.dir))
+        elif self.identity is not None:
+            raise InvalidNetConfig("keys", f"identity {self.identity!r} given without keys")
+        if self.run is None:
+            put("run", "default")
         if not isinstance(self.run, str) or not _RUN_RE.match(self.run):
             raise InvalidNetConfig("run", f"invalid run id {self.run!r} (letters, digits, '_', '.', '-')")
-        object.__setattr__(self, "listen", _check_endpoints("listen", self.listen))
-        object.__setattr__(self, "connect", _check_endpoints("connect", self.connect))
+
+        conf = _base_config(self.zenoh_config, fragment) if (self.zenoh_config or fragment) else None
+        src = "zenoh_config"
+
+        def from_file(name, key):
+            return None if conf is None else _file_value(conf, key)
+
+        if self.mode is None:
+            put("mode", from_file("mode", "mode") or "peer")
+            if self.mode not in _MODES:
+                raise InvalidNetConfig(src, f"mode {self.mode!r} is not one of {', '.join(_MODES)}")
+        elif self.mode not in _MODES:
+            raise InvalidNetConfig("mode", f"{self.mode!r} is not one of {', '.join(_MODES)}")
+        for name, key in (("listen", "listen/endpoints"), ("connect", "connect/endpoints")):
+            value = getattr(self, name)
+            if value is None:
+                found = from_file(name, key)
+                if found is not None:
+                    try:
+                        put(name, _check_endpoints(name, _per_mode(found, self.mode)))
+                    except InvalidNetConfig as exc:
+                        raise InvalidNetConfig(src, f"{key}: {exc}") from None
+                else:
+                    default = (DEFAULT_SECURE_LISTEN if fragment else DEFAULT_LISTEN) if name == "listen" else ()
+                    put(name, default)
+            else:
+                put(name, _check_endpoints(name, value))
+        if self.multicast is None:
+            put("multicast", bool(from_file("multicast", "scouting/multicast/enabled") or False))
         if not isinstance(self.multicast, bool):
             raise InvalidNetConfig("multicast", f"expected bool, got {type(self.multicast).__name__}")
+        if self.lease_ms is None:
+            put("lease_ms", from_file("lease_ms", "transport/link/tx/lease") or DEFAULT_LEASE_MS)
         if isinstance(self.lease_ms, bool) or not isinstance(self.lease_ms, int):
             raise InvalidNetConfig("lease_ms", f"expected int, got {type(self.lease_ms).__name__}")
         if not 100 <= self.lease_ms <= 600_000:
             raise InvalidNetConfig("lease_ms", f"{self.lease_ms} out of range [100, 600000]")
-        if self.config_file is not None:
-            path = Path(self.config_file)
-            if not path.is_file():
-                raise InvalidNetConfig("config_file", f"no such file {self.config_file!r}")
-            object.__setattr__(self, "config_file", str(path))
+        if fragment is not None:
+            for name in ("listen", "connect"):
+                plain = [ep for ep in getattr(self, name) if not ep.startswith("tls/")]
+                if plain:
+                    raise InvalidNetConfig(name, f"{plain[0]!r}: with keys every endpoint is tls/ "
+                                                 f"(e.g. tls/127.0.0.1:7447)")
+
+    def fragment(self) -> dict | None:
+        """The secure zenoh config fragment of this process (None without `keys`)."""
+        if self.keys is None:
+            return None
+        from .security import load_fragment
+
+        return load_fragment(self.keys, self.identity, self.run)
 
 
 def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     """Build the ``zenoh.Config`` of a socmon peer.
 
-    Overridden keys (everything else comes from ``net.config_file`` or the
-    zenoh defaults):
-
-    ``mode`` = ``"peer"``; ``listen/endpoints``; ``connect/endpoints``;
-    ``scouting/multicast/enabled``; ``scouting/gossip/enabled`` = true;
-    ``transport/link/tx/lease`` = ``net.lease_ms``;
-    ``transport/link/tx/keep_alive`` = 4 (keep-alives per lease);
-    ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`.
+    Keys set by socmon (:data:`SOCMON_KEYS`), from the resolved fields of `net`:
+    ``mode``; ``listen/endpoints``; ``connect/endpoints``; ``scouting/multicast/enabled``;
+    ``transport/link/tx/lease``. Unless the config file sets them:
+    ``scouting/gossip/enabled`` = true; ``transport/link/tx/keep_alive`` = 4 (keep-alives
+    per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`.
+    With ``net.keys``, the process's secure fragment (TLS, mTLS, access control, connect
+    timeout) is applied over the file. Everything else comes from ``net.zenoh_config`` or
+    the zenoh defaults.
 
     Parameters
     ----------
@@ -140,54 +309,91 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     """
     if not isinstance(net, NetConfig):
         raise TypeError(f"net: expected NetConfig, got {type(net).__name__}")
-    if net.config_file is not None:
-        try:
-            conf = zenoh.Config.from_file(net.config_file)
-        except zenoh.ZError as exc:
-            raise InvalidNetConfig("config_file", f"cannot load {net.config_file!r}: {exc}") from exc
-    else:
-        conf = zenoh.Config()
-    overrides = {
-        "mode": "peer",
-        "listen/endpoints": list(net.listen),
-        "connect/endpoints": list(net.connect),
-        "scouting/multicast/enabled": net.multicast,
+    conf = _base_config(net.zenoh_config, net.fragment())
+    has_file = net.zenoh_config is not None
+    fixed = {
         "scouting/gossip/enabled": True,
-        "transport/link/tx/lease": net.lease_ms,
         "transport/link/tx/keep_alive": KEEP_ALIVES_PER_LEASE,
         "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES,
     }
+    overrides = {
+        "mode": net.mode,
+        "listen/endpoints": list(net.listen),
+        "connect/endpoints": list(net.connect),
+        "scouting/multicast/enabled": net.multicast,
+        "transport/link/tx/lease": net.lease_ms,
+    }
+    for key, value in fixed.items():
+        if not (has_file and _file_value(conf, key) is not None):
+            overrides[key] = value
     for key, value in overrides.items():
         conf.insert_json5(key, json.dumps(value))
     return conf
+
+
+_NET_HELP = (
+    "socmon sets these zenoh keys: mode (peer), listen/endpoints, connect/endpoints, "
+    "scouting/multicast/enabled, transport/link/tx/lease, and, unless the --zenoh-config "
+    f"file sets them, scouting/gossip/enabled (true), transport/link/tx/keep_alive "
+    f"({KEEP_ALIVES_PER_LEASE}) and transport/link/rx/max_message_size ({MAX_MESSAGE_BYTES}). "
+    "A value in the --zenoh-config file is kept unless its flag is given; every other key "
+    "of the file passes through. --keys adds TLS with mutual authentication and access "
+    "control (see docs/security.md)."
+)
 
 
 def add_net_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the transport flags to an argparse parser.
 
     Flags: ``--run``, ``--listen`` (repeatable), ``--connect`` (repeatable),
-    ``--multicast``, ``--zenoh-config``, ``--lease-ms``.
+    ``--multicast``, ``--zenoh-config``, ``--lease-ms``, ``--keys``. Every flag defaults to
+    None (not given), so that a value of the ``--zenoh-config`` file is kept.
     """
-    group = parser.add_argument_group("network")
-    group.add_argument("--run", default="default", help="run id (key prefix socmon/<run>/)")
+    group = parser.add_argument_group("network", _NET_HELP)
+    group.add_argument("--run", default=None,
+                       help="run id (key prefix socmon/<run>/; default: the run of --keys, else 'default')")
     group.add_argument("--listen", action="append", metavar="ENDPOINT",
-                       help=f"zenoh endpoint to listen on (repeatable; default {DEFAULT_LISTEN[0]})")
+                       help=f"zenoh endpoint to listen on (repeatable; default {DEFAULT_LISTEN[0]}, "
+                            f"{DEFAULT_SECURE_LISTEN[0]} with --keys)")
     group.add_argument("--connect", action="append", metavar="ENDPOINT",
                        help="seed endpoint to connect to (repeatable)")
-    group.add_argument("--multicast", action="store_true", help="enable multicast scouting (LAN)")
+    group.add_argument("--multicast", action="store_true", default=None,
+                       help="enable multicast scouting (LAN)")
     group.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config file applied first")
-    group.add_argument("--lease-ms", type=int, default=DEFAULT_LEASE_MS,
+    group.add_argument("--lease-ms", type=int, default=None,
                        help=f"link lease in ms (default {DEFAULT_LEASE_MS})")
+    group.add_argument("--keys", metavar="DIR",
+                       help="key directory of the run (socmon keys init): TLS, mutual "
+                            "authentication and access control")
     return parser
 
 
-def net_config_from_args(args: argparse.Namespace) -> NetConfig:
-    """Build a :class:`NetConfig` from arguments added by :func:`add_net_arguments`."""
+def net_config_from_args(args: argparse.Namespace, identity: str | None = None) -> NetConfig:
+    """Build a :class:`NetConfig` from arguments added by :func:`add_net_arguments`.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+    identity : str or None
+        The process name whose credentials ``--keys`` holds (e.g. ``"agent-3"``, see
+        :func:`broker_free_net.security.identity_name`); required with ``--keys``.
+
+    Raises
+    ------
+    InvalidNetConfig
+        Naming the field, which is also the flag (``zenoh_config`` -> ``--zenoh-config``).
+    """
+    keys = getattr(args, "keys", None)
+    if keys is not None and identity is None:
+        raise InvalidNetConfig("keys", "this command does not say whose credentials to use "
+                                       "(net_config_from_args needs identity=)")
     return NetConfig(
         run=args.run,
-        listen=tuple(args.listen) if args.listen else DEFAULT_LISTEN,
-        connect=tuple(args.connect or ()),
-        multicast=bool(args.multicast),
-        lease_ms=getattr(args, "lease_ms", DEFAULT_LEASE_MS),
-        config_file=args.zenoh_config,
+        listen=tuple(args.listen) if args.listen else None,
+        connect=tuple(args.connect) if args.connect else None,
+        multicast=args.multicast,
+        lease_ms=getattr(args, "lease_ms", None),
+        zenoh_config=args.zenoh_config,
+        keys=keys,
+        identity=identity if keys is not None else None,
     )

@@ -89,7 +89,9 @@ def run(args) -> int:
         if not deadline_ms > 0:
             raise CommandError(f"--deadline-ms: must be > 0, got {deadline_ms}")
         try:
-            net = net_config_from_args(args)
+            from broker_free_net.security import identity_name  # noqa: F401
+
+            net = net_config_from_args(args, identity=identity_name("agent", args.id))
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
         if not 0 <= args.drop < 1:

@@ -125,7 +125,9 @@ def run(args) -> int:
         except MalformedMessage as exc:
             raise CommandError(f"{args.what}: {exc}") from None
         try:
-            net = net_config_from_args(args)
+            from broker_free_net.security import identity_name  # noqa: F401
+
+            net = net_config_from_args(args, identity="operator")
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
         if not net.connect and not net.multicast:

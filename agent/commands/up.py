@@ -42,6 +42,10 @@ def add_arguments(parser) -> None:
                         help="SIGKILL the monitor once the world reaches STEP and start it again")
     parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
                         help="the monitor's hang timeout (default 1.0 s)")
+    parser.add_argument("--secure", action="store_true",
+                        help="a fresh key set for this run (RUN_FOLDER/keys): mutual TLS between "
+                             "every process and access control on every peer "
+                             "(docs/security.md)")
 
 
 def run(args) -> int:
@@ -107,7 +111,8 @@ def run_config(args, say, prog="up"):
                      delays=delays, delays_spec=args.delays, steps=args.steps, seed=args.seed,
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
                      monitor=not args.no_monitor, hang_timeout=args.hang_timeout,
-                     drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout)
+                     drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
+                     secure=getattr(args, "secure", False))
 
 
 def _up(args) -> int:

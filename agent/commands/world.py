@@ -55,7 +55,9 @@ def run(args) -> int:
                                   what="expected comma-separated agent ids",
                                   out_of_range="no agent {value} (agents are 1..{hi})")
         try:
-            net = net_config_from_args(args)
+            from broker_free_net.security import identity_name  # noqa: F401
+
+            net = net_config_from_args(args, identity="world")
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
         return run_world(scenario, net, seed=args.seed, steps=args.steps, step_ms=args.step_ms,
