@@ -220,7 +220,9 @@ def roster_from_specs(scenario, table, ids, specs: dict):
     W = np.zeros((n, n))
     measure, G = [], []
     for i, a in enumerate(ids):
-        sp = specs[a]
+        sp = specs.get(a)
+        if sp is None:
+            raise RosterError(f"no role recorded for agent {a}")
         for b, w in sp.neighbours.items():
             if b not in ids:
                 raise RosterError(f"agent {a} listens to {b}, which holds no role")

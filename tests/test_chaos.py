@@ -53,6 +53,18 @@ def _recording(live, rosters, est_epochs):
     return rec
 
 
+def _assignments(live, failed, epoch):
+    """The assignments a monitor publishes for the failure of ``failed`` (by id)."""
+    from design.roster import Roster, replan, role_specs
+
+    _, nxt = replan(Roster.initial(live), failed)
+    G = [0.5 * np.eye(live.n)[:, list(m)] for m in nxt.scenario.measure]
+    return {(a, epoch): {"measure": list(sp.measure), "neighbours": sp.neighbours,
+                         "self_weight": sp.self_weight, "gain": sp.gain,
+                         "take_over": sp.take_over}
+            for a, sp in role_specs(nxt, G).items()}
+
+
 def _summary(failures=(), exit_status=None):
     return {"failures": list(failures), "orphans": [],
             "exit_status": exit_status or {"world": 0, "agent-1": 0, "agent-2": 0,
@@ -69,6 +81,7 @@ def test_the_checker_flags_an_outsider_publishing_under_the_current_epoch(live, 
         est = {1: {k: (0 if k < 120 else epoch) for k in range(131)},
                4: {k: 1 for k in range(119, 301)}}
         rec = _recording(live, rosters, est)
+        rec.assigns = _assignments(live, [1], epoch=1)
         v = [x for x in check_invariants(_config(live, [Fault(110, "kill", 1)], tmp_path), rec,
                                          _summary(), steps, mse) if x.invariant == "fencing"]
         assert len(v) == expected, v
