@@ -12,7 +12,12 @@ separate processes on loopback) and reads each run folder:
   the exact prediction for the new configuration;
 - false positives: verdicts in healthy runs, per 10,000 steps.
 
-Usage: python scripts/bench_monitor.py [--repeats 3] [--healthy-steps 3000]
+Usage: python scripts/bench_monitor.py [--scenario paper-14-live|sampson] [--repeats 3]
+       [--healthy-steps 3000]
+
+``sampson`` is the Sampson-like scenario of the paper's Section 5.2 built from
+../shared/data/sampson (18 nodes, 4 agents) with A rescaled to rho(A) = 0.98 for long live
+runs and one standby agent added.
 """
 
 import argparse
@@ -27,7 +32,25 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def up(out, *flags, steps=400, scenario="paper-14-live"):
+SCENARIO = "paper-14-live"
+
+
+def sampson_live(tmp):
+    """The Sampson-like scenario, rho(A) = 0.98, one standby, as a TOML file."""
+    sys.path.insert(0, str(ROOT))
+    from design.experiments import sampson_scenario
+    from design.scenario import scenario_to_toml
+
+    s = sampson_scenario(ROOT.parent / "shared" / "data" / "sampson" /
+                         "sampson_samplike_edges.csv")
+    s = s.replace(name="sampson-live", A=s.A * (0.98 / s.rho_A), standby=1)
+    path = Path(tmp) / "sampson-live.toml"
+    path.write_text(scenario_to_toml(s))
+    return str(path)
+
+
+def up(out, *flags, steps=400, scenario=None):
+    scenario = scenario or SCENARIO
     cmd = [sys.executable, "-m", "agent.cli", "up", scenario, "--steps", str(steps), "--out",
            str(out), "--json", "--quiet", *flags]
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=900)
@@ -57,10 +80,13 @@ def recovery_steps(out, summary):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="paper-14-live", choices=("paper-14-live", "sampson"))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--healthy-steps", type=int, default=3000)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-monitor-"))
+    global SCENARIO
+    SCENARIO = sampson_live(tmp) if args.scenario == "sampson" else args.scenario
     rows = {"crash": [], "hang": []}
     for r in range(args.repeats):
         out = tmp / f"crash{r}"
@@ -86,7 +112,7 @@ def main():
     out = tmp / "healthy"
     s = up(out, steps=args.healthy_steps)
     fp = len(s["failures"])
-    print(f"paper-14-live, 20 ms steps, {args.repeats} runs per fault, on this machine")
+    print(f"{args.scenario}, 20 ms steps, {args.repeats} runs per fault, on this machine")
     print(f"{'fault':6} {'detect ms median/worst':>24} {'verdict->confirmed ms':>24} "
           f"{'steps to 2x predicted':>22}")
     for name, rs in rows.items():
