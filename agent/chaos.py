@@ -139,7 +139,6 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     structure = influence_structure(s.A)
     parents = {int(p) for p in structure.parents}
     table = link_delay_table(s, c.delays)
-    hang_steps = math.ceil(c.hang_timeout / step_s)
 
     # the configurations in force, as the recorder heard them, with their roles
     configs = []
@@ -261,5 +260,4 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
             out.append(Violation("convictions", v["detected_step"],
                                  f"agent {v['agent']} convicted ({v['cause']}: "
                                  f"{v.get('evidence')}) but no fault was injected into it"))
-    del hang_steps
     return out

@@ -103,6 +103,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             out_file.flush()
 
     worker = {"thread": None, "roster": None}
+    recorded = {"verdicts": 0, "history": 0, "waiting": None}   # what events_out holds
 
     def precompute_for(roster):
         if not precompute or worker["roster"] is roster:
@@ -177,22 +178,21 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 for line in core.events:
                     print(f"monitor {monitor_id}: {line}", file=log, flush=True)
                 core.events.clear()
-                while len(core.verdicts) > worker.get("verdicts", 0):
-                    v = core.verdicts[worker.get("verdicts", 0)]
-                    worker["verdicts"] = worker.get("verdicts", 0) + 1
+                for v in core.verdicts[recorded["verdicts"]:]:
                     record("verdict", agent=v.agent, cause=v.cause, evidence=v.evidence,
                            step=v.step, mono=v.at,
                            detected_t=time.time() - (time.monotonic() - v.at))
-                while len(core.history) > worker.get("history", 0):
-                    h = core.history[worker.get("history", 0)]
-                    worker["history"] = worker.get("history", 0) + 1
+                recorded["verdicts"] = len(core.verdicts)
+                for h in core.history[recorded["history"]:]:
                     record("reassign", **{k: v for k, v in h.items() if k != "decided_at"},
                            mono=h["decided_at"])
                     precompute_for(core.roster)
+                recorded["history"] = len(core.history)
                 if core.history and not core.confirmed():
-                    worker["waiting"] = core.epoch
-                elif worker.get("waiting") is not None and core.confirmed():
-                    record("confirmed", epoch=core.epoch, waited_for=worker.pop("waiting"))
+                    recorded["waiting"] = core.epoch
+                elif recorded["waiting"] is not None and core.confirmed():
+                    record("confirmed", epoch=core.epoch, waited_for=recorded["waiting"])
+                    recorded["waiting"] = None
                 if core._roster_msg is not None and now >= next_roster:
                     m = core._roster_msg
                     peer.put(keys.ctl_key(run, 0), wire.encode_roster(m.epoch, m.activate_at, m.ids))

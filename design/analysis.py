@@ -363,7 +363,6 @@ def analyze(scenario, tol=None, max_subsets=None) -> Analysis:
     max_subsets : int, optional
         Bound on the failure sets :func:`design.recovery.failure_tolerance` examines.
     """
-    from .recovery import DEFAULT_MAX_SUBSETS, failure_tolerance, redundancy_tolerance
     s = scenario
     A, H = s.A, s.H_all
     structural = structural_analysis(A, [v for m in s.measure for v in m])

@@ -32,15 +32,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
-import scipy.sparse as sp
 
 from .ccl import SolverError, ccl_design
 from .closed_loop import ClosedLoop
 from .errors import NotObservableError, SocmonError
 from .gradient import LoopModel, bfgs_minimise
 from .graph import influence_structure, unmeasured_parents
-from .observability import observable_basis
+from .observability import distributed_detectability
 from .scenario import resolve_delays
 
 __all__ = [
@@ -193,7 +191,6 @@ def check_detectable(scenario) -> Detectability:
             f"not observable: parent SCC{'s' if len(sccs) > 1 else ''} {names} "
             f"{'have' if len(sccs) > 1 else 'has'} no sensor; let an agent measure a node "
             "of each", sccs)
-    from .observability import distributed_detectability
 
     p = distributed_detectability(scenario.A, scenario.W, scenario.measure)
     d = Detectability(rank=p.rank, order=p.order,

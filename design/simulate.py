@@ -375,7 +375,6 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     q = float(scenario.process_noise)
     ids0 = list(range(1, N + 1))
     configs = [_config(scenario, G, D, ids0)]
-    activate_step = None
     chain = [] if recover is None else (
         list(recover) if isinstance(recover, (list, tuple)) else [recover])
     if recover is not None and not chain:
@@ -391,7 +390,6 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         if activations and at <= activations[-1]:
             raise SimulationError("recover: activate_at must increase along the sequence")
         activations.append(at)
-    activate_step = activations[0] if activations else None
     max_delay = max(int(c.delays.max()) if c.delays.size else 0 for c in configs)
     if max_age is None:
         max_age = hold_limit(max_delay)

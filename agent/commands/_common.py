@@ -7,8 +7,6 @@ import math
 import sys
 import warnings
 
-import numpy as np
-
 from ..jsonable import to_jsonable  # noqa: F401 - re-exported for the commands
 
 from design.errors import GainsError, ScenarioError

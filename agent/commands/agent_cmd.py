@@ -89,7 +89,7 @@ def run(args) -> int:
         if not deadline_ms > 0:
             raise CommandError(f"--deadline-ms: must be > 0, got {deadline_ms}")
         try:
-            from broker_free_net.security import identity_name  # noqa: F401
+            from broker_free_net.security import identity_name
 
             net = net_config_from_args(args, identity=identity_name("agent", args.id))
         except InvalidNetConfig as exc:

@@ -6,7 +6,6 @@ from design.analysis import analyze
 
 from ._common import (
     EXIT_OK,
-    CommandError,
     add_scenario_argument,
     int_flag,
     load_scenario_arg,

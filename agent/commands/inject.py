@@ -125,8 +125,6 @@ def run(args) -> int:
         except MalformedMessage as exc:
             raise CommandError(f"{args.what}: {exc}") from None
         try:
-            from broker_free_net.security import identity_name  # noqa: F401
-
             net = net_config_from_args(args, identity="operator")
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None

@@ -74,8 +74,6 @@ def run(args) -> int:
         if args.lead_steps < 1:
             raise CommandError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
         try:
-            from broker_free_net.security import identity_name  # noqa: F401
-
             net = net_config_from_args(args, identity="monitor")
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None

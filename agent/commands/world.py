@@ -55,8 +55,6 @@ def run(args) -> int:
                                   what="expected comma-separated agent ids",
                                   out_of_range="no agent {value} (agents are 1..{hi})")
         try:
-            from broker_free_net.security import identity_name  # noqa: F401
-
             net = net_config_from_args(args, identity="world")
         except InvalidNetConfig as exc:
             raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
