@@ -131,6 +131,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
     if stop is not None and isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
         signal.signal(signal.SIGINT, stop)
+    # fault injection (socmon up/chaos "hang"): SIGUSR1 stops the estimator loop for good
+    # while the process and its zenoh session, liveliness token included, stay alive
+    hung = []
+    signal.signal(signal.SIGUSR1, lambda *_: hung.append(True))
     core = AgentCore(config)
     run, me = net.run, config.agent
     stats = MessageStats()
@@ -192,6 +196,9 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             peer.put(status_key, wire.encode_status(st))
 
         def handle_sensor(label, item):
+            if core.impair.get((0, me)).partition:    # the world's link cut: a quiet sensor
+                core.impaired += 1
+                return
             msg = try_decode(item.payload, sensor_schema, stats,
                              now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
@@ -218,6 +225,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             core.on_estimate(msg["agent"], msg["step"], msg["x"], now)
 
         while not stop.flag:
+            if hung:
+                say(f"agent {me}: loop hung on request (SIGUSR1); the token stays")
+                while not stop.flag:
+                    time.sleep(0.05)
+                break
             now = time.monotonic()
             urgent_status = False
             for ev in watch.drain():

@@ -415,7 +415,10 @@ class AgentCore:
                 del nb.est[s]
 
     def on_impairment(self, msg: dict) -> bool:
-        """Apply a decoded impairment change if it concerns a link into this agent."""
+        """Apply a decoded impairment change if it concerns a link into this agent.
+
+        Link ``0 -> agent`` is the world's (the sensor readings): a partition of it
+        silences this agent's sensors."""
         if msg["op"] != "clear_all" and msg.get("dst") != self.id:
             return False
         apply_impairment_message(self.impair, msg)

@@ -42,7 +42,10 @@ __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KI
 #: agent cut for ``seconds``; delay: ``value`` steps of delay on every link into the
 #: agent for ``seconds``; drop: drop probability ``value`` on every link into the agent
 #: for ``seconds``.
-FAULT_KINDS = ("crash", "kill", "stop", "monitor", "partition", "delay", "drop")
+#: hang: the agent's loop stops for good (SIGUSR1) while its token stays; sensor: the
+#: agent's sensor readings stop (the world's link into it cut) for ``seconds``.
+FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
+               "drop")
 
 
 @dataclass(frozen=True, order=True)
@@ -246,6 +249,13 @@ class LocalRun:
                     if f.kind == "kill":
                         _signal(children, name, signal.SIGKILL)
                         event(process=name, signal="SIGKILL", step=k_now)
+                    elif f.kind == "hang":
+                        _signal(children, name, signal.SIGUSR1)
+                        event(process=name, signal="SIGUSR1", step=k_now)
+                    elif f.kind == "sensor":
+                        impair(0, f.agent, partition=True)
+                        event(process=name, impair="sensor cut", step=k_now)
+                        undo.append((now + f.seconds, f))
                     elif f.kind == "stop":
                         _signal(children, name, signal.SIGSTOP)
                         event(process=name, signal="SIGSTOP", step=k_now)
@@ -289,6 +299,9 @@ class LocalRun:
                         restarts += 1
                         children.start(f"monitor-{restarts + 1}", argv["monitor"])
                         event(process=f"monitor-{restarts + 1}", started=True, step=k_now)
+                    elif f.kind == "sensor":
+                        impair(0, f.agent, partition=False)
+                        event(process=name, impair="sensor restored", step=k_now)
                     elif f.kind == "partition":
                         for b in range(1, M + 1):
                             if b != f.agent:

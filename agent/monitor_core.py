@@ -144,6 +144,7 @@ class _Agent:
     pending: int = 0
     active: bool = False
     progress_at: float | None = None     # when its step last moved
+    status_at: float | None = None       # when its last status arrived
     others_at_progress: int = -1         # the others' newest step then
     sensor_last: int = -1
     status: dict = field(default_factory=dict)
@@ -273,6 +274,7 @@ class MonitorCore:
             a.progress_at = now
             a.others_at_progress = self.newest_step(exclude=msg["agent"])
         a.step = step
+        a.status_at = now
         if step >= self._clock[0]:
             self._clock = (step, now)
         a.epoch = int(msg.get("epoch", 0))
@@ -379,15 +381,18 @@ class MonitorCore:
                                      "the monitor started", now, newest))
             elif (a.progress_at is not None and now - a.progress_at > cfg.hang_timeout_s
                   and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
-                found.append(Verdict(
-                    i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
-                    f"others reached step {newest}", now, newest))
-            elif (a.step >= 0 and a.sensor_last >= 0
-                  and newest - a.sensor_last > cfg.sensor_lag_steps
-                  and now - a.progress_at > cfg.hang_timeout_s):
-                found.append(Verdict(
-                    i, "sensor", f"last reading at step {a.sensor_last}, others at {newest}",
-                    now, newest))
+                # stuck: a quiet sensor if its loop still reports (statuses arrive) and its
+                # last reading is behind; otherwise its loop is hung
+                talking = a.status_at is not None and now - a.status_at < cfg.hang_timeout_s / 2
+                if talking and a.sensor_last >= 0 and newest - a.sensor_last > cfg.sensor_lag_steps:
+                    found.append(Verdict(
+                        i, "sensor", f"no reading since step {a.sensor_last} while the others "
+                        f"reached step {newest}; its loop still reports", now, newest))
+                else:
+                    found.append(Verdict(
+                        i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
+                        f"others reached step {newest}"
+                        + ("" if talking else "; no status either"), now, newest))
             else:
                 ages = self._listener_ages(i)
                 if ages and min(ages.values()) > cfg.silent_steps:

@@ -170,3 +170,18 @@ def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
     assert {m.agent for m in asg} == {1, 2, 3} and {m.epoch for m in asg} == {1}
     G_new = [asg_by.spec.gain for asg_by in sorted(asg, key=lambda m: m.agent)]
     assert closed_loop_for(paper14, G_new, D9).spectral_radius() < 1
+
+
+def test_a_quiet_sensor_is_told_from_a_hung_loop(core):
+    """Agent 2's step stops. If its statuses keep coming and say its last reading is old,
+    the verdict is 'sensor'; if its statuses stop too, 'hang'."""
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    t = 1.1
+    while t < 2.7:
+        for a in (1, 3, 4):
+            core.on_status(_status(a, int(50 * t), active=a <= 3), t)
+        core.on_status(_status(2, 50, sensor_last=49), t)       # loop alive, no readings
+        core.tick(t)
+        t += 0.1
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "sensor")]
+    assert "its loop still reports" in core.verdicts[0].evidence

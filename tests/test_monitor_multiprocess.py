@@ -117,3 +117,15 @@ def test_a_secure_run_recovers_from_a_crash_and_equals_the_simulator(tmp_path, l
     assert (tmp_path / "run" / "keys" / "ca.pem").is_file()
     assert s["recovered"] and s["rosters"][-1]["ids"] == [4, 2, 3]
     assert s["max_rel_diff_vs_simulator"] <= 1e-9 and s["malformed"] == 0
+
+
+@pytest.mark.parametrize("fault, cause", [("hang:100:2", "hang"), ("sensor:100:2:30", "sensor")])
+def test_a_hung_loop_and_a_quiet_sensor_are_told_apart_and_replaced(tmp_path, live_gains,
+                                                                   fault, cause):
+    """Agent 2's loop stops with its token alive (hang), or its readings stop while its
+    loop goes on (sensor): both are convicted with their own cause and replaced."""
+    s = _up(tmp_path, live_gains, "--fault", fault, steps=400)
+    (f,) = s["failures"]
+    assert (f["agent"], f["cause"]) == (2, cause), f
+    assert f["replacement"]["agent"] == 4 and s["recovered"]
+    assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []

@@ -40,6 +40,12 @@ def add_arguments(parser) -> None:
                              "SECONDS later (repeatable)")
     parser.add_argument("--kill-monitor", type=int, default=None, metavar="STEP",
                         help="SIGKILL the monitor once the world reaches STEP and start it again")
+    parser.add_argument("--fault", action="append", default=[],
+                        metavar="KIND:STEP[:AGENT[:SECONDS[:VALUE]]]",
+                        help="any scheduled fault (repeatable): kill, stop, hang (the agent's "
+                             "loop stops, its token stays), sensor (its readings stop for "
+                             "SECONDS), partition, delay (VALUE steps), drop (VALUE "
+                             "probability), monitor; see docs/monitor.md")
     parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
                         help="the monitor's hang timeout (default 1.0 s)")
     parser.add_argument("--secure", action="store_true",
@@ -226,4 +232,25 @@ def parse_faults(args, scenario) -> list:
     faults += [Fault(k, "stop", a, secs) for a, (k, secs) in out["stop"].items()]
     if args.kill_monitor is not None:
         faults.append(Fault(args.kill_monitor, "monitor"))
+    from ..local_run import FAULT_KINDS
+
+    for spec in getattr(args, "fault", []):
+        parts = spec.split(":")
+        kind = parts[0]
+        if kind not in FAULT_KINDS or kind == "crash" or not 2 <= len(parts) <= 5:
+            raise CommandError(f"--fault: expected KIND:STEP[:AGENT[:SECONDS[:VALUE]]] with "
+                               f"KIND one of {', '.join(k for k in FAULT_KINDS if k != 'crash')}"
+                               f", got {spec!r}")
+        k = step(parts[1], "--fault")
+        a = agent_id(parts[2], "--fault") if len(parts) > 2 else 0
+        if kind != "monitor" and not a:
+            raise CommandError(f"--fault: {kind} needs an agent, got {spec!r}")
+        try:
+            secs = float(parts[3]) if len(parts) > 3 else 0.0
+            value = float(parts[4]) if len(parts) > 4 else 0.0
+        except ValueError:
+            raise CommandError(f"--fault: SECONDS and VALUE are numbers, got {spec!r}") from None
+        if not (0 <= secs < 3600 and 0 <= value <= 1_000_000):
+            raise CommandError(f"--fault: SECONDS in [0, 3600) and VALUE >= 0, got {spec!r}")
+        faults.append(Fault(k, kind, a, secs, value))
     return sorted(faults)
