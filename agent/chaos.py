@@ -21,7 +21,7 @@ Invariants (the bounds are in :class:`Bounds`):
   ``window`` steps stays below ``error_factor`` times the exact steady MSE of the
   configuration in force (its gains, the run's delays);
 - ``convictions``: the monitor convicts only agents that were made faulty (killed,
-  stopped, partitioned).
+  stopped, hung, silenced sensors, partitioned).
 
 Examples
 --------
@@ -46,7 +46,7 @@ from .local_run import Fault
 __all__ = ["CHAOS_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
 
 #: the fault kinds ``socmon chaos`` draws from (``crash`` is the scripted variant of up)
-CHAOS_KINDS = ("kill", "stop", "monitor", "partition", "delay", "drop")
+CHAOS_KINDS = ("kill", "stop", "hang", "sensor", "monitor", "partition", "delay", "drop")
 
 
 @dataclass(frozen=True)
@@ -98,14 +98,16 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: f
             out.append(Fault(k, "monitor"))
             continue
         # keep at least two agents alive: one to measure, one to talk to
-        if kind == "kill" and len(alive) <= 2:
+        if kind in ("kill", "hang") and len(alive) <= 2:
             kind = "stop" if "stop" in kinds else None
         if kind is None:
             continue
         agent = int(alive[int(rng.integers(len(alive)))])
-        if kind == "kill":
+        if kind in ("kill", "hang"):
             alive.remove(agent)
-            out.append(Fault(k, "kill", agent))
+            out.append(Fault(k, kind, agent))
+        elif kind == "sensor":
+            out.append(Fault(k, "sensor", agent, float(np.round(rng.uniform(1.0, 4.0), 2))))
         elif kind == "stop":
             out.append(Fault(k, "stop", agent, float(np.round(rng.uniform(0.3, 3.0), 2))))
         elif kind == "partition":
@@ -159,9 +161,10 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     for f in c.faults:
         # a stop is convicted after the hang timeout (from its last status, 0.2 s apart);
         # a partition after its listeners' ages pass 25 steps and then the hang timeout
-        if f.kind in ("kill", "crash") or (f.kind == "stop" and f.seconds > c.hang_timeout
-                                           + 0.5) or (f.kind == "partition" and f.seconds
-                                                      > c.hang_timeout + 25 * step_s + 1.0):
+        if f.kind in ("kill", "crash", "hang") or (
+                f.kind == "stop" and f.seconds > c.hang_timeout + 0.5) or (
+                f.kind in ("partition", "sensor") and f.seconds > c.hang_timeout
+                + 25 * step_s + 1.0):
             taken_out.append(f)
     for f in taken_out:
         in_force = _roster_at(rec.rosters, f.step)
@@ -254,7 +257,8 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
         k += bounds.window
 
     # -- convictions -------------------------------------------------------------------------
-    faulty = {f.agent for f in c.faults if f.kind in ("kill", "crash", "stop", "partition")}
+    faulty = {f.agent for f in c.faults
+              if f.kind in ("kill", "crash", "stop", "hang", "sensor", "partition")}
     for v in summary.get("failures", []):
         if v["agent"] and v["agent"] not in faulty:
             out.append(Violation("convictions", v["detected_step"],

@@ -13,9 +13,9 @@ def add_arguments(parser) -> None:
                         help="seed of the fault schedule and of the run (default 0)")
     parser.add_argument("--duration", type=int, default=1000, metavar="STEPS",
                         help="steps to run (default 1000)")
-    parser.add_argument("--faults", default="kill,stop,monitor,partition,delay,drop",
-                        help="fault kinds to draw from (default: all of kill, stop, monitor, "
-                             "partition, delay, drop)")
+    parser.add_argument("--faults", default="kill,stop,hang,sensor,monitor,partition,delay,drop",
+                        help="fault kinds to draw from (default: all of kill, stop, hang, "
+                             "sensor, monitor, partition, delay, drop)")
     parser.add_argument("--rate", type=float, default=3.0,
                         help="faults per 1000 steps (default 3; at least 160 steps apart)")
     parser.add_argument("--gains", help="gains file (.npz); default: designed")
@@ -151,7 +151,8 @@ def _timeline(out, summary, steps, mse, schedule, rosters):
     ax.set_title(f"{summary['scenario']}: chaos, seed {summary['seed']}")
     M = summary["agents"] + summary["standby"]
     colours = {"kill": "tab:red", "stop": "tab:orange", "partition": "tab:purple",
-               "delay": "tab:brown", "drop": "tab:olive", "monitor": "k", "crash": "tab:red"}
+               "delay": "tab:brown", "drop": "tab:olive", "monitor": "k", "crash": "tab:red",
+               "hang": "tab:pink", "sensor": "tab:cyan"}
     for f in schedule:
         y = f.agent if f.agent else 0
         width = max(1.0, f.seconds * 1000.0 / summary["step_ms"]) if f.seconds else 3
