@@ -34,11 +34,12 @@ from collections import deque
 import numpy as np
 
 from broker_free_net import keys
-from broker_free_net.codec import MalformedMessage, MessageStats, try_decode
+from broker_free_net.codec import MalformedMessage, MessageStats, shorten, try_decode
 from broker_free_net.impair import InvalidImpairment, decode_impairment
 from broker_free_net.peer import Peer
 
 from . import wire
+from .control_auth import SignatureError
 from .core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role
 from .ratelimit import LogLimiter
 
@@ -125,8 +126,12 @@ class _Stop:
         self.flag = True
 
 
-def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None) -> int:
-    """Run one agent until stopped or the world leaves. Returns the exit status."""
+def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None,
+              verifier=None) -> int:
+    """Run one agent until stopped or the world leaves. Returns the exit status.
+
+    ``verifier`` (:class:`agent.control_auth.ControlVerifier`): assignments and rosters
+    must carry the run's control signature; what fails is dropped and counted."""
     stop = stop or _Stop()
     if stop is not None and isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
@@ -195,6 +200,20 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                                                          int(0.99 * len(ordered)))]}
             peer.put(status_key, wire.encode_status(st))
 
+        def signed(msg) -> bool:
+            """True unless a verifier is set and the control signature fails."""
+            if verifier is None:
+                return True
+            try:
+                verifier.check(msg)
+                return True
+            except SignatureError as exc:
+                bad("signature")
+                core.ctl_rejected += 1
+                core.ctl_last_error = shorten(str(exc))
+                say(f"agent {me}: rejected control message: {exc}")
+                return False
+
         def handle_sensor(label, item):
             if core.impair.get((0, me)).partition:    # the world's link cut: a quiet sensor
                 core.impaired += 1
@@ -241,7 +260,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     core.set_alive(int(ev.id), ev.alive)
             for item in ctl_in.drain():
                 msg = try_decode(item.payload, ctl_schema, stats)
-                if msg is None:
+                if msg is None or not signed(msg):
                     continue
                 try:
                     role = core.on_assignment(msg)
@@ -252,7 +271,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 urgent_status = True
             for item in roster_in.drain():
                 msg = try_decode(item.payload, roster_schema, stats)
-                if msg is not None and core.on_roster(msg):
+                if msg is not None and signed(msg) and core.on_roster(msg):
                     say(f"agent {me}: roster epoch {msg['epoch']} from step "
                         f"{msg['activate_at']}: {msg['ids']}")
                     urgent_status = True

@@ -1,4 +1,5 @@
-"""JSON for records and summaries: numpy values made plain, non-finite floats as strings.
+"""JSON for records and summaries: numpy values made plain, non-finite floats as strings,
+bytes (signatures) as hex.
 
 >>> import numpy as np
 >>> to_jsonable({1: np.array([1.5, np.inf]), "ok": np.bool_(True)})
@@ -26,6 +27,8 @@ def to_jsonable(obj):
         return bool(obj)
     if isinstance(obj, (np.integer,)):
         return int(obj)
+    if isinstance(obj, (bytes, bytearray)):
+        return bytes(obj).hex()
     if isinstance(obj, (np.floating, float)):
         x = float(obj)
         return x if math.isfinite(x) else ("inf" if x > 0 else "-inf" if x < 0 else "nan")

@@ -149,7 +149,8 @@ class LocalRun:
         out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
                           "--gains", str(c.gains_path), "--delays", c.delays_spec,
                           "--hang-timeout", str(c.hang_timeout), "--step-ms", str(c.step_ms),
-                          "--events", str((c.out / "events.jsonl").resolve())]
+                          "--events", str((c.out / "events.jsonl").resolve()),
+                          "--control-key", str((c.out / "control.key").resolve())]
         return out
 
     # -- the run -------------------------------------------------------------------------
@@ -171,8 +172,14 @@ class LocalRun:
 
             make_run_keys(c.out / "keys", rec.run_id, run_identities(M))
             net_extra = {"keys": str((c.out / "keys").resolve()), "identity": "recorder"}
+        from agent.control_auth import ControlSigner
+
+        signer = ControlSigner.generate()       # the run's control key: the monitor's
+        key_path = c.out / "control.key"
+        key_path.touch(mode=0o600)
+        key_path.write_bytes(signer.private_bytes())
         write_manifest(c.out / "manifest.json", c.scenario, c.gains_path, c.seed,
-                       c.delays_spec, c.delays, rec.run_id)
+                       c.delays_spec, c.delays, rec.run_id, signer.public_bytes())
         children = rec.children = Children(c.out / "logs")
         stats = MessageStats()
         n = c.scenario.n

@@ -46,7 +46,7 @@ def file_digest(path) -> str:
 
 
 def write_manifest(path, scenario, gains_path, seed: int, delays_spec: str, delays,
-                   run: str) -> None:
+                   run: str, control_public: bytes | None = None) -> None:
     data = {
         "run": run,
         "scenario": scenario.name,
@@ -58,6 +58,8 @@ def write_manifest(path, scenario, gains_path, seed: int, delays_spec: str, dela
         "seed": int(seed),
         "delays_spec": delays_spec,
         "delays": np.asarray(delays, dtype=int).tolist(),
+        # agents verify control messages with it (agent.control_auth)
+        "control_public_key": None if control_public is None else bytes(control_public).hex(),
     }
     Path(path).write_text(json.dumps(data, indent=2) + "\n")
 

@@ -81,7 +81,8 @@ def precompute_single_failures(roster, gains: GainSource, stop=lambda: False, lo
 
 
 def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorConfig = None,
-                log=sys.stderr, stop=None, events_out=None, precompute: bool = True) -> int:
+                log=sys.stderr, stop=None, events_out=None, precompute: bool = True,
+                signer=None) -> int:
     """Run the monitor until stopped (SIGTERM/SIGINT). Returns the exit status.
 
     ``events_out``: a path; every verdict and reassignment is appended as one JSON line.
@@ -170,10 +171,11 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                         sp = m.spec
                         peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
                             m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
-                            sp.self_weight, sp.gain, take_over=sp.take_over))
+                            sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
+                            run=run))
                     elif isinstance(m, RosterUpdate):
-                        peer.put(keys.ctl_key(run, 0),
-                                 wire.encode_roster(m.epoch, m.activate_at, m.ids))
+                        peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                            m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                         next_roster = now + ROSTER_S
                 for line in core.events:
                     print(f"monitor {monitor_id}: {line}", file=log, flush=True)
@@ -195,7 +197,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     recorded["waiting"] = None
                 if core._roster_msg is not None and now >= next_roster:
                     m = core._roster_msg
-                    peer.put(keys.ctl_key(run, 0), wire.encode_roster(m.epoch, m.activate_at, m.ids))
+                    peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                        m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                     next_roster = now + ROSTER_S
             peer.wait(timeout=TICK_S)
     if out_file is not None:

@@ -161,7 +161,20 @@ class Loose:
         return value
 
 
+class Sig:
+    """An Ed25519 signature: 64 bytes (:mod:`agent.control_auth`)."""
+
+    def __init__(self, required: bool = False):
+        self.required = required
+
+    def check(self, name, value):
+        if not isinstance(value, (bytes, bytearray)) or len(value) != 64:
+            raise MalformedMessage("type", "expected 64 signature bytes", name)
+        return bytes(value)
+
+
 _STEP = Int(0, MAX_STEP)
+_SIGNED = {"seq": Int(1, 2**62, required=False), "sig": Sig(required=False)}
 _AGENT = Int(1, MAX_AGENT)
 
 
@@ -196,6 +209,7 @@ def ctl_schema(n: int) -> Schema:
         "self_weight": Float(0.0, 1.0),
         "gain": F64Array((n, None)),
         "take_over": Int(1, MAX_AGENT, required=False),
+        **_SIGNED,
     })
 
 
@@ -206,6 +220,7 @@ def roster_schema() -> Schema:
         "epoch": Int(1, 2**62),
         "activate_at": _STEP,
         "ids": AgentIds(),
+        **_SIGNED,
     })
 
 
@@ -254,20 +269,28 @@ def encode_est(agent: int, step: int, x, epoch: int, t: float) -> bytes:
 
 
 def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: dict,
-               self_weight: float, gain, take_over: int | None = None) -> bytes:
-    """Encode a role assignment; ``neighbours`` maps agent id (int) -> weight."""
-    extra = {} if take_over is None else {"take_over": int(take_over)}
-    return encode({**extra,
-        "kind": "assign", "agent": int(agent), "epoch": int(epoch),
-        "activate_at": int(activate_at), "measure": [str(m) for m in measure],
-        "neighbours": {str(int(a)): _f(w) for a, w in neighbours.items()},
-        "self_weight": _f(self_weight), "gain": np.asarray(gain, dtype=float),
-    })
+               self_weight: float, gain, take_over: int | None = None, signer=None,
+               run: str | None = None) -> bytes:
+    """Encode a role assignment; ``neighbours`` maps agent id (int) -> weight.
+
+    With ``signer`` (:class:`agent.control_auth.ControlSigner`) and ``run``, the message
+    is signed as it will be decoded."""
+    msg = {"kind": "assign", "agent": int(agent), "epoch": int(epoch),
+           "activate_at": int(activate_at), "measure": [str(m) for m in measure],
+           "neighbours": {int(a): _f(w) for a, w in neighbours.items()},
+           "self_weight": _f(self_weight), "gain": np.asarray(gain, dtype=float)}
+    if take_over is not None:
+        msg["take_over"] = int(take_over)
+    if signer is not None:
+        msg = signer.sign(msg, run)
+    msg["neighbours"] = {str(a): w for a, w in msg["neighbours"].items()}
+    return encode(msg)
 
 
-def encode_roster(epoch: int, activate_at: int, ids) -> bytes:
-    return encode({"kind": "roster", "epoch": int(epoch), "activate_at": int(activate_at),
-                   "ids": [int(a) for a in ids]})
+def encode_roster(epoch: int, activate_at: int, ids, signer=None, run: str | None = None) -> bytes:
+    msg = {"kind": "roster", "epoch": int(epoch), "activate_at": int(activate_at),
+           "ids": [int(a) for a in ids]}
+    return encode(msg if signer is None else signer.sign(msg, run))
 
 
 def encode_status(status: dict) -> bytes:

@@ -129,3 +129,59 @@ def test_a_hung_loop_and_a_quiet_sensor_are_told_apart_and_replaced(tmp_path, li
     assert (f["agent"], f["cause"]) == (2, cause), f
     assert f["replacement"]["agent"] == 4 and s["recovered"]
     assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
+
+
+def test_forged_control_messages_are_rejected_and_the_monitor_still_commands(tmp_path,
+                                                                            live_gains):
+    """Joined as an outsider on the run's mesh (no --secure): an unsigned assignment with
+    epoch 2^62 and one signed with another key are dropped by agent 1 (counted
+    'signature', its epoch stays 0); the monitor's signed reassignment after a crash is
+    still applied. (Re-stamped and replayed commands: tests/test_control_auth.py.)"""
+    import threading
+    import time
+
+    from agent import wire
+    from agent.control_auth import ControlSigner
+    from broker_free_net import keys
+    from broker_free_net.codec import MessageStats, try_decode
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import Peer
+
+    out = tmp_path / "run"
+    result = {}
+    runner = threading.Thread(target=lambda: result.update(s=_up(
+        tmp_path, live_gains, "--kill", "300:2", steps=500)))
+    runner.start()
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "run.json").is_file():
+            assert time.monotonic() < deadline and runner.is_alive()
+            time.sleep(0.05)
+        run = json.loads((out / "run.json").read_text())
+        net = NetConfig(run=run["run"], listen=("tcp/127.0.0.1:0",), connect=(run["connect"],))
+        with Peer(net, "attacker", 0) as peer:
+            status_in = peer.subscribe(keys.any_agent_pattern(run["run"], "status"))
+            ctl = keys.ctl_key(run["run"], 1)
+            peer.publisher(ctl, block=True)
+            G = np.zeros((14, 1))
+            forged = [
+                wire.encode_ctl(1, 2**62, 10**6, ["7"], {2: 0.5}, 0.5, G),
+                wire.encode_ctl(1, 5, 10**6, ["7"], {2: 0.5}, 0.5, G,
+                                signer=ControlSigner.generate(), run=run["run"]),
+            ]
+            stats, seen = MessageStats(), {}
+            while seen.get("signature", 0) < 2:
+                assert time.monotonic() < deadline and runner.is_alive(), seen
+                for payload in forged:
+                    peer.put(ctl, payload)
+                item = status_in.get(timeout=0.5)
+                for it in ([item] if item else []) + status_in.drain():
+                    m = try_decode(it.payload, wire.STATUS_SCHEMA, stats)
+                    if m is not None and m["agent"] == 1:
+                        seen = m["malformed_reasons"]
+                        assert m["epoch"] == 0 and m["ctl"]["pending"] == 0, m
+    finally:
+        runner.join(timeout=300)
+    s = result["s"]
+    assert s["recovered"] and s["failures"][0]["agent"] == 2
+    assert s["final_roles"]["1"]["epoch"] >= 1          # the monitor's command was applied

@@ -68,13 +68,24 @@ def run(args) -> int:
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
+        verifier = None
         if args.manifest:
             from ..manifest import ManifestMismatch, check_manifest
 
             try:
-                check_manifest(args.manifest, scenario, args.gains, args.seed, args.delays)
+                manifest = check_manifest(args.manifest, scenario, args.gains, args.seed,
+                                          args.delays)
             except ManifestMismatch as exc:
                 raise CommandError(str(exc)) from None
+            if manifest.get("control_public_key"):
+                from ..control_auth import ControlVerifier
+
+                try:
+                    verifier = ControlVerifier(bytes.fromhex(manifest["control_public_key"]),
+                                               manifest["run"])
+                except ValueError:
+                    raise CommandError("--manifest: control_public_key is not a 32-byte "
+                                       "Ed25519 public key in hex") from None
         M = scenario.N + scenario.standby
         if not 1 <= args.id <= M:
             raise CommandError(f"--id: no agent {args.id} (agents 1..{scenario.N}"
@@ -100,6 +111,6 @@ def run(args) -> int:
             raise CommandError(f"--crash-at: must be a step >= 1, got {args.crash_at}")
         config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
                               impair_seed=args.seed * 1000 + args.id, drop=args.drop)
-        return run_agent(config, net, crash_at=args.crash_at)
+        return run_agent(config, net, crash_at=args.crash_at, verifier=verifier)
 
     return run_command(body)

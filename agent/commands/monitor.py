@@ -32,6 +32,9 @@ def add_arguments(parser) -> None:
                         help="the run's step period (default: the scenario's step_ms)")
     parser.add_argument("--events", metavar="FILE",
                         help="append every verdict and reassignment to FILE as JSON lines")
+    parser.add_argument("--control-key", metavar="FILE",
+                        help="the run's control key (32 raw bytes; socmon up writes "
+                             "RUN_FOLDER/control.key): every assignment and roster is signed")
     parser.add_argument("--no-precompute", action="store_true",
                         help="do not precompute the single failures at start-up")
     parser.add_argument("--manifest", metavar="FILE",
@@ -82,7 +85,20 @@ def run(args) -> int:
             raise CommandError(f"--step-ms: must be > 0, got {step_ms}")
         config = MonitorConfig(hang_timeout_s=args.hang_timeout, lead_steps=args.lead_steps,
                                step_s=step_ms / 1000.0)
+        signer = None
+        if args.control_key:
+            from ..control_auth import ControlSigner
+
+            try:
+                signer = ControlSigner(open(args.control_key, "rb").read())
+            except OSError as exc:
+                raise CommandError(f"--control-key: cannot read {args.control_key!r}: "
+                                   f"{exc.strerror}") from None
+            except ValueError:
+                raise CommandError(f"--control-key: {args.control_key!r} is not a 32-byte "
+                                   "Ed25519 private key") from None
         return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
-                           events_out=args.events, precompute=not args.no_precompute)
+                           events_out=args.events, precompute=not args.no_precompute,
+                           signer=signer)
 
     return run_command(body)
