@@ -127,11 +127,12 @@ class _Stop:
 
 
 def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None,
-              verifier=None) -> int:
+              verifier=None, operator_verifier=None) -> int:
     """Run one agent until stopped or the world leaves. Returns the exit status.
 
     ``verifier`` (:class:`agent.control_auth.ControlVerifier`): assignments and rosters
-    must carry the run's control signature; what fails is dropped and counted."""
+    must carry the run's control signature; what fails is dropped and counted.
+    ``operator_verifier``: the same for impairment changes (the operator's key)."""
     stop = stop or _Stop()
     if stop is not None and isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
@@ -200,12 +201,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                                                          int(0.99 * len(ordered)))]}
             peer.put(status_key, wire.encode_status(st))
 
-        def signed(msg) -> bool:
+        def signed(msg, check=None) -> bool:
             """True unless a verifier is set and the control signature fails."""
-            if verifier is None:
+            check = check or verifier
+            if check is None:
                 return True
             try:
-                verifier.check(msg)
+                check.check(msg)
                 return True
             except SignatureError as exc:
                 bad("signature")
@@ -280,6 +282,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     msg = decode_impairment(item.payload)
                 except MalformedMessage as exc:
                     bad(exc.reason)
+                    continue
+                if operator_verifier is not None and not signed(msg, operator_verifier):
                     continue
                 try:
                     if core.on_impairment(msg):

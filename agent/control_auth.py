@@ -58,7 +58,12 @@ def _norm(value):
     if isinstance(value, (int, np.integer)):
         return int(value)
     if isinstance(value, (float, np.floating)):
-        return struct.pack("<d", float(value))
+        x = float(value)
+        # a number field may be sent as 0 and decoded as 0.0: integral values below 2^53
+        # are one form; everything else is its exact float64 bytes
+        if math.isfinite(x) and x.is_integer() and abs(x) < 2**53:
+            return int(x)
+        return struct.pack("<d", x)
     return str(value)
 
 

@@ -175,11 +175,14 @@ class LocalRun:
         from agent.control_auth import ControlSigner
 
         signer = ControlSigner.generate()       # the run's control key: the monitor's
-        key_path = c.out / "control.key"
-        key_path.touch(mode=0o600)
-        key_path.write_bytes(signer.private_bytes())
+        operator = ControlSigner.generate()     # the operator's (impairments): this run's
+        for name, key in (("control.key", signer), ("operator.key", operator)):
+            key_path = c.out / name
+            key_path.touch(mode=0o600)
+            key_path.write_bytes(key.private_bytes())
         write_manifest(c.out / "manifest.json", c.scenario, c.gains_path, c.seed,
-                       c.delays_spec, c.delays, rec.run_id, signer.public_bytes())
+                       c.delays_spec, c.delays, rec.run_id, signer.public_bytes(),
+                       operator.public_bytes())
         children = rec.children = Children(c.out / "logs")
         stats = MessageStats()
         n = c.scenario.n
@@ -249,7 +252,8 @@ class LocalRun:
                     rec.events.append({**fields, "t": time.time()})
 
                 def impair(src, dst, **params):
-                    peer.put(impair_key, encode_impairment("set", src, dst, **params))
+                    peer.put(impair_key, encode_impairment(
+                        "set", src, dst, sign=lambda m: operator.sign(m, rec.run_id), **params))
 
                 def inject(f, k_now, now):
                     name = f"agent-{f.agent}"

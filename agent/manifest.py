@@ -46,7 +46,8 @@ def file_digest(path) -> str:
 
 
 def write_manifest(path, scenario, gains_path, seed: int, delays_spec: str, delays,
-                   run: str, control_public: bytes | None = None) -> None:
+                   run: str, control_public: bytes | None = None,
+                   operator_public: bytes | None = None) -> None:
     data = {
         "run": run,
         "scenario": scenario.name,
@@ -60,6 +61,7 @@ def write_manifest(path, scenario, gains_path, seed: int, delays_spec: str, dela
         "delays": np.asarray(delays, dtype=int).tolist(),
         # agents verify control messages with it (agent.control_auth)
         "control_public_key": None if control_public is None else bytes(control_public).hex(),
+        "operator_public_key": None if operator_public is None else bytes(operator_public).hex(),
     }
     Path(path).write_text(json.dumps(data, indent=2) + "\n")
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from broker_free_net.codec import (
     Bool,
+    Bytes,
     F64Array,
     Float,
     Int,
@@ -161,20 +162,10 @@ class Loose:
         return value
 
 
-class Sig:
-    """An Ed25519 signature: 64 bytes (:mod:`agent.control_auth`)."""
-
-    def __init__(self, required: bool = False):
-        self.required = required
-
-    def check(self, name, value):
-        if not isinstance(value, (bytes, bytearray)) or len(value) != 64:
-            raise MalformedMessage("type", "expected 64 signature bytes", name)
-        return bytes(value)
-
-
 _STEP = Int(0, MAX_STEP)
-_SIGNED = {"seq": Int(1, 2**62, required=False), "sig": Sig(required=False)}
+#: an authenticated control message: signer's sequence and Ed25519 signature
+#: (agent.control_auth)
+_SIGNED = {"seq": Int(1, 2**62, required=False), "sig": Bytes(64, required=False)}
 _AGENT = Int(1, MAX_AGENT)
 
 

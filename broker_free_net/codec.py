@@ -222,6 +222,19 @@ class Ident:
 
 
 @dataclass(frozen=True)
+class Bytes:
+    """Raw bytes of an exact ``length`` (e.g. a signature); opaque to the transport."""
+
+    length: int
+    required: bool = True
+
+    def check(self, name, value):
+        if not isinstance(value, (bytes, bytearray)) or len(value) != self.length:
+            raise MalformedMessage("type", f"expected {self.length} bytes", name)
+        return bytes(value)
+
+
+@dataclass(frozen=True)
 class F64Array:
     """A float64 array of the given shape; ``None`` in `shape` matches any length.
 

@@ -29,7 +29,7 @@ import time
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Hashable, NamedTuple
 
-from .codec import Bool, Float, Ident, Int, MalformedMessage, Schema, Str, decode, encode
+from .codec import Bool, Bytes, Float, Ident, Int, MalformedMessage, Schema, Str, decode, encode
 
 __all__ = [
     "DELIVER",
@@ -336,11 +336,15 @@ IMPAIR_SCHEMA = Schema({
     "drop": Float(0.0, 1.0, required=False),
     "burst": Float(1.0, 1e6, required=False),
     "partition": Bool(required=False),
+    # an authenticated change carries its signer's sequence number and signature; they
+    # are opaque here (the agent checks them)
+    "seq": Int(1, 2**62, required=False),
+    "sig": Bytes(64, required=False),
 })
 _PARAM_NAMES = ("delay_steps", "delay_ms", "jitter_ms", "drop", "burst", "partition")
 
 
-def encode_impairment(op: str, src=None, dst=None, **params) -> bytes:
+def encode_impairment(op: str, src=None, dst=None, sign=None, **params) -> bytes:
     """Encode an impairment change.
 
     Parameters
@@ -348,6 +352,9 @@ def encode_impairment(op: str, src=None, dst=None, **params) -> bytes:
     op : {"set", "clear", "clear_all"}
     src, dst : int or str
         The directed link (not for "clear_all").
+    sign : callable, optional
+        ``sign(msg) -> msg`` adds authentication fields (``seq``, ``sig``) to the
+        message as it will be decoded.
     **params
         For "set": any of ``delay_steps, delay_ms, jitter_ms, drop, burst,
         partition``. ``burst=None`` is sent as "absent" (unchanged).
@@ -362,6 +369,8 @@ def encode_impairment(op: str, src=None, dst=None, **params) -> bytes:
     if dst is not None:
         msg["dst"] = dst
     msg.update({k: v for k, v in params.items() if v is not None})
+    if sign is not None:
+        msg = sign(msg)
     payload = encode(msg)
     _check_impairment(decode(payload, IMPAIR_SCHEMA))  # fail at the sender, not at every receiver
     return payload

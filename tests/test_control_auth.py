@@ -79,3 +79,20 @@ def test_rosters_and_assignments_have_their_own_sequence(signer):
                          wire.roster_schema())
     v.check(roster)
     v.check(asg)
+
+
+def test_signed_impairments_verify_and_forged_ones_fail():
+    """The operator signs impairment changes on the transport's own wire form."""
+    from broker_free_net.impair import decode_impairment, encode_impairment
+
+    op = ControlSigner.generate()
+    v = ControlVerifier(op.public_bytes(), "r")
+    payload = encode_impairment("set", 2, 1, sign=lambda m: op.sign(m, "r"), drop=0,
+                                partition=True)
+    v.check(decode_impairment(payload))            # sent as 0, decoded as 0.0: one form
+    forged = encode_impairment("set", 2, 1, sign=lambda m: ControlSigner.generate().sign(m, "r"),
+                               partition=True)
+    with pytest.raises(SignatureError, match="does not verify"):
+        v.check(decode_impairment(forged))
+    with pytest.raises(SignatureError, match="missing"):
+        v.check(decode_impairment(encode_impairment("clear_all")))

@@ -68,7 +68,7 @@ def run(args) -> int:
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
-        verifier = None
+        verifier = operator_verifier = None
         if args.manifest:
             from ..manifest import ManifestMismatch, check_manifest
 
@@ -85,6 +85,15 @@ def run(args) -> int:
                                                manifest["run"])
                 except ValueError:
                     raise CommandError("--manifest: control_public_key is not a 32-byte "
+                                       "Ed25519 public key in hex") from None
+            if manifest.get("operator_public_key"):
+                from ..control_auth import ControlVerifier
+
+                try:
+                    operator_verifier = ControlVerifier(
+                        bytes.fromhex(manifest["operator_public_key"]), manifest["run"])
+                except ValueError:
+                    raise CommandError("--manifest: operator_public_key is not a 32-byte "
                                        "Ed25519 public key in hex") from None
         M = scenario.N + scenario.standby
         if not 1 <= args.id <= M:
@@ -111,6 +120,7 @@ def run(args) -> int:
             raise CommandError(f"--crash-at: must be a step >= 1, got {args.crash_at}")
         config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
                               impair_seed=args.seed * 1000 + args.id, drop=args.drop)
-        return run_agent(config, net, crash_at=args.crash_at, verifier=verifier)
+        return run_agent(config, net, crash_at=args.crash_at, verifier=verifier,
+                         operator_verifier=operator_verifier)
 
     return run_command(body)

@@ -47,6 +47,9 @@ def add_arguments(parser) -> None:
 
 
 def _common(p):
+    p.add_argument("--control-key", metavar="FILE",
+                   help="the run's operator key (socmon up writes RUN_FOLDER/operator.key): "
+                        "sign the change, as agents started with the run's manifest require")
     p.add_argument("--timeout", type=float, default=10.0,
                    help="seconds to wait for the agents to confirm (default 10)")
     p.add_argument("--no-confirm", action="store_true",
@@ -120,8 +123,23 @@ def run(args) -> int:
         from .. import wire
 
         op, src, dst, params = change_from_args(args)
+        sign = None
+        if args.control_key:
+            from ..control_auth import ControlSigner
+
+            try:
+                signer = ControlSigner(open(args.control_key, "rb").read())
+            except OSError as exc:
+                raise CommandError(f"--control-key: cannot read {args.control_key!r}: "
+                                   f"{exc.strerror}") from None
+            except ValueError:
+                raise CommandError(f"--control-key: {args.control_key!r} is not a 32-byte "
+                                   "Ed25519 private key") from None
+            if not args.run:
+                raise CommandError("--control-key: give the run id too (--run)")
+            sign = lambda m: signer.sign(m, args.run)      # noqa: E731
         try:
-            payload = encode_impairment(op, src, dst, **params)
+            payload = encode_impairment(op, src, dst, sign=sign, **params)
         except MalformedMessage as exc:
             raise CommandError(f"{args.what}: {exc}") from None
         try:
