@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-__all__ = ["summarize", "mse_by_step", "specs_in_force", "effective_rosters", "compare_simulator",
+__all__ = ["run_and_summarize", "summarize", "mse_by_step", "specs_in_force", "effective_rosters", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
@@ -32,6 +32,24 @@ def mse_by_step(rec, K):
                 if k in rec.est[a]]
         mse.append(float(np.mean(errs)) if errs else float("nan"))
     return steps, np.array(mse)
+
+
+def run_and_summarize(config, say=lambda text: None) -> tuple:
+    """Run ``config`` live (:class:`agent.local_run.LocalRun`) and summarize it:
+    ``(rec, summary, steps, mse, predicted)``, ``predicted`` the exact steady MSE of the
+    configuration started with (inf when its loop is not stable)."""
+    from design.closed_loop import closed_loop_for
+
+    from .local_run import LocalRun
+
+    s = config.scenario
+    loop = closed_loop_for(s, config.G, config.delays)
+    rho = loop.spectral_radius()
+    predicted = loop.mse_steady(s.process_noise, s.measurement_noise) if rho < 1 \
+        else float("inf")
+    rec = LocalRun(config, say).run()
+    summary, steps, mse = summarize(config, rec, rho, predicted)
+    return rec, summary, steps, mse, predicted
 
 
 def summarize(config, rec, loop_rho, predicted) -> tuple:

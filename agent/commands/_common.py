@@ -179,6 +179,21 @@ def print_json(obj) -> None:
     sys.stdout.write("\n")
 
 
+def load_signer(path, flag: str = "--control-key"):
+    """An :class:`agent.control_auth.ControlSigner` from a 32-byte key file; CommandError
+    (exit 2) naming ``flag`` when it cannot be read or is not a key."""
+    from ..control_auth import ControlSigner
+
+    try:
+        with open(path, "rb") as f:
+            return ControlSigner(f.read())
+    except OSError as exc:
+        raise CommandError(f"{flag}: cannot read {str(path)!r}: {exc.strerror}") from None
+    except ValueError:
+        raise CommandError(f"{flag}: {str(path)!r} is not a 32-byte Ed25519 private key") \
+            from None
+
+
 def run_command(body):
     """Run ``body()`` and turn a CommandError into its message and exit status."""
     try:

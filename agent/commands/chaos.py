@@ -44,11 +44,8 @@ def _chaos(args) -> int:
     import time
     from pathlib import Path
 
-    from design.closed_loop import closed_loop_for
-
     from ..chaos import CHAOS_KINDS, check_invariants, draw_schedule
-    from ..local_run import LocalRun
-    from ..run_summary import summarize, write_run_folder
+    from ..run_summary import run_and_summarize, write_run_folder
     from ._common import CommandError, to_jsonable
     from .up import run_config
 
@@ -82,12 +79,7 @@ def _chaos(args) -> int:
     say(f"{len(schedule)} faults: " + ", ".join(
         f"{f.kind}{' ' + str(f.agent) if f.agent else ''}@{f.step}" for f in schedule))
     s = config.scenario
-    loop = closed_loop_for(s, config.G, config.delays)
-    rho = loop.spectral_radius()
-    predicted = loop.mse_steady(s.process_noise, s.measurement_noise) if rho < 1 \
-        else float("inf")
-    rec = LocalRun(config, say).run()
-    summary, steps, mse = summarize(config, rec, rho, predicted)
+    rec, summary, steps, mse, predicted = run_and_summarize(config, say)
     violations = [] if rec.failure else check_invariants(config, rec, summary, steps, mse)
     write_run_folder(config.out, summary, steps, mse, predicted, rec.rosters)
     report = {

@@ -125,16 +125,9 @@ def run(args) -> int:
         op, src, dst, params = change_from_args(args)
         sign = None
         if args.control_key:
-            from ..control_auth import ControlSigner
+            from ._common import load_signer
 
-            try:
-                signer = ControlSigner(open(args.control_key, "rb").read())
-            except OSError as exc:
-                raise CommandError(f"--control-key: cannot read {args.control_key!r}: "
-                                   f"{exc.strerror}") from None
-            except ValueError:
-                raise CommandError(f"--control-key: {args.control_key!r} is not a 32-byte "
-                                   "Ed25519 private key") from None
+            signer = load_signer(args.control_key)
             if not args.run:
                 raise CommandError("--control-key: give the run id too (--run)")
             sign = lambda m: signer.sign(m, args.run)      # noqa: E731

@@ -85,18 +85,9 @@ def run(args) -> int:
             raise CommandError(f"--step-ms: must be > 0, got {step_ms}")
         config = MonitorConfig(hang_timeout_s=args.hang_timeout, lead_steps=args.lead_steps,
                                step_s=step_ms / 1000.0)
-        signer = None
-        if args.control_key:
-            from ..control_auth import ControlSigner
+        from ._common import load_signer
 
-            try:
-                signer = ControlSigner(open(args.control_key, "rb").read())
-            except OSError as exc:
-                raise CommandError(f"--control-key: cannot read {args.control_key!r}: "
-                                   f"{exc.strerror}") from None
-            except ValueError:
-                raise CommandError(f"--control-key: {args.control_key!r} is not a 32-byte "
-                                   "Ed25519 private key") from None
+        signer = load_signer(args.control_key) if args.control_key else None
         return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
                            events_out=args.events, precompute=not args.no_precompute,
                            signer=signer)

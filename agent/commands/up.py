@@ -125,14 +125,11 @@ def _up(args) -> int:
     import json
     import sys
 
-    from design.closed_loop import closed_loop_for
-
-    from ..local_run import LocalRun
     from ..run_summary import (
         CHECK_TOL,
         compare_simulator,
+        run_and_summarize,
         save_estimates,
-        summarize,
         write_run_folder,
     )
     from ._common import to_jsonable
@@ -143,12 +140,7 @@ def _up(args) -> int:
 
     config = run_config(args, say)
     s = config.scenario
-    loop = closed_loop_for(s, config.G, config.delays)
-    rho = loop.spectral_radius()
-    predicted = loop.mse_steady(s.process_noise, s.measurement_noise) if rho < 1 \
-        else float("inf")
-    rec = LocalRun(config, say).run()
-    summary, steps_done, mse = summarize(config, rec, rho, predicted)
+    rec, summary, steps_done, mse, predicted = run_and_summarize(config, say)
     status_code = 0
     if rec.failure:
         summary["error"] = rec.failure
