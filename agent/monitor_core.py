@@ -179,6 +179,10 @@ class GainSource:
     def has(self, roster) -> bool:
         return self.key(roster) in self._cache
 
+    def design(self, roster, refined: bool = False):
+        """Design gains for ``roster`` now (no cache): list of G_i or None."""
+        return (self._refined if refined else self._fast)(roster)
+
     def get(self, roster, refined: bool = False):
         """(G, precomputed?)"""
         k = self.key(roster)
