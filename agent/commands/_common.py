@@ -28,6 +28,13 @@ def add_scenario_argument(parser) -> None:
     parser.add_argument("scenario", help="scenario TOML file or built-in name (e.g. paper-14)")
 
 
+def add_manifest_argument(parser) -> None:
+    """``--manifest FILE`` of the processes of a run (agent.manifest)."""
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="the run's manifest.json (socmon up writes one): refuse to start "
+                             "when the scenario, gains, seed or delays differ from the run's")
+
+
 def add_gains_argument(parser) -> None:
     """The required ``--gains FILE`` flag of the commands that evaluate a given gain."""
     parser.add_argument("--gains", required=True, metavar="FILE",

@@ -8,7 +8,7 @@ HELP = "run one agent: the shared estimator step every step, over zenoh"
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_scenario_argument
+    from ._common import add_manifest_argument, add_scenario_argument
 
     add_scenario_argument(parser)
     parser.add_argument("--id", type=int, required=True,
@@ -28,9 +28,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--crash-at", type=int, default=None, metavar="STEP",
                         help="scripted crash: publish step STEP-1, then SIGKILL itself "
                              "(reproducible failures; socmon up --kill uses it)")
-    parser.add_argument("--manifest", metavar="FILE",
-                        help="the run's manifest.json (socmon up writes one): refuse to start "
-                             "when the scenario, gains, seed or delays differ from the run's")
+    add_manifest_argument(parser)
     add_net_arguments(parser)
 
 

@@ -8,7 +8,7 @@ HELP = "run the monitor: detect failed agents and reassign their roles to equiva
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_scenario_argument
+    from ._common import add_manifest_argument, add_scenario_argument
 
     add_scenario_argument(parser)
     parser.add_argument("--gains", required=True, metavar="FILE",
@@ -37,9 +37,7 @@ def add_arguments(parser) -> None:
                              "RUN_FOLDER/control.key): every assignment and roster is signed")
     parser.add_argument("--no-precompute", action="store_true",
                         help="do not precompute the single failures at start-up")
-    parser.add_argument("--manifest", metavar="FILE",
-                        help="the run's manifest.json (socmon up writes one): refuse to start "
-                             "when the scenario, gains, seed or delays differ from the run's")
+    add_manifest_argument(parser)
     add_net_arguments(parser)
 
 

@@ -8,7 +8,7 @@ HELP = "run the world: simulate the social system and publish sensor readings (t
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_scenario_argument, int_flag
+    from ._common import add_manifest_argument, add_scenario_argument, int_flag
 
     add_scenario_argument(parser)
     parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="run seed (default 0)")
@@ -21,9 +21,7 @@ def add_arguments(parser) -> None:
                              "(default: every active and standby agent of the scenario)")
     parser.add_argument("--start-timeout", type=float, default=60.0,
                         help="seconds to wait for the agents (default 60)")
-    parser.add_argument("--manifest", metavar="FILE",
-                        help="the run's manifest.json (socmon up writes one): refuse to start "
-                             "when the scenario, gains, seed or delays differ from the run's")
+    add_manifest_argument(parser)
     add_net_arguments(parser)
 
 
