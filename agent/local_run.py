@@ -255,6 +255,12 @@ class LocalRun:
                     peer.put(impair_key, encode_impairment(
                         "set", src, dst, sign=lambda m: operator.sign(m, rec.run_id), **params))
 
+                def impair_links(agent, outgoing, **params):
+                    """Every link out of (``outgoing``) or into ``agent``."""
+                    for b in range(1, M + 1):
+                        if b != agent:
+                            impair(*((agent, b) if outgoing else (b, agent)), **params)
+
                 def inject(f, k_now, now):
                     name = f"agent-{f.agent}"
                     if f.kind == "kill":
@@ -276,23 +282,14 @@ class LocalRun:
                                 f"monitor-{restarts + 1}", signal.SIGKILL)
                         event(process="monitor", signal="SIGKILL", step=k_now)
                         undo.append((now, f))        # start it again at once
-                    elif f.kind == "partition":
-                        for b in range(1, M + 1):
-                            if b != f.agent:
-                                impair(f.agent, b, partition=True)
-                        event(process=name, impair="partition", step=k_now)
-                        undo.append((now + f.seconds, f))
-                    elif f.kind == "delay":
-                        for b in range(1, M + 1):
-                            if b != f.agent:
-                                impair(b, f.agent, delay_steps=int(f.value))
-                        event(process=name, impair=f"delay {int(f.value)} steps", step=k_now)
-                        undo.append((now + f.seconds, f))
-                    elif f.kind == "drop":
-                        for b in range(1, M + 1):
-                            if b != f.agent:
-                                impair(b, f.agent, drop=float(f.value))
-                        event(process=name, impair=f"drop {f.value:g}", step=k_now)
+                    elif f.kind in ("partition", "delay", "drop"):
+                        if f.kind == "partition":
+                            impair_links(f.agent, True, partition=True)
+                        elif f.kind == "delay":
+                            impair_links(f.agent, False, delay_steps=int(f.value))
+                        else:
+                            impair_links(f.agent, False, drop=float(f.value))
+                        event(process=name, impair=f"{f.kind} {f.value:g}", step=k_now)
                         undo.append((now + f.seconds, f))
                     self.say(f"step {k_now}: {f.kind}"
                              + (f" agent {f.agent}" if f.agent else "")
@@ -314,9 +311,7 @@ class LocalRun:
                         impair(0, f.agent, partition=False)
                         event(process=name, impair="sensor restored", step=k_now)
                     elif f.kind == "partition":
-                        for b in range(1, M + 1):
-                            if b != f.agent:
-                                impair(f.agent, b, partition=False)
+                        impair_links(f.agent, True, partition=False)
                         event(process=name, impair="healed", step=k_now)
                     elif f.kind in ("delay", "drop"):
                         from design.roster import link_delay_table

@@ -281,6 +281,24 @@ def save_estimates(path, steps_done, truth, est, agents, n):
              agents=np.array(agents, dtype=int))
 
 
+def pyplot():
+    """matplotlib's pyplot on the Agg backend, or None when matplotlib is missing."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def plottable(mse) -> np.ndarray:
+    """Mask of the MSE values a log plot can show (finite, positive, not overflowing)."""
+    mse = np.asarray(mse, dtype=float)
+    return np.isfinite(mse) & (mse > 0) & (mse < 1e250)
+
+
 def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     import csv
     import json
@@ -296,17 +314,11 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
             w.writerow([k, repr(float(m))])
     (out / "mse.json").write_text(json.dumps(to_jsonable(
         {"step": steps_done, "mse": list(mse)})) + "\n")
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return
-    import numpy as np
-
+    ok = plottable(mse)
     mse = np.asarray(mse, dtype=float)
-    ok = np.isfinite(mse) & (mse > 0) & (mse < 1e250)
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
     if predicted and predicted != float("inf"):

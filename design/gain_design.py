@@ -49,6 +49,7 @@ __all__ = [
     "SolverError",
     "Detectability",
     "check_detectable",
+    "resolve_design_delays",
     "METHODS",
     "OBJECTIVES",
 ]
@@ -267,7 +268,7 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
                           "method default for objective mse")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise DesignError(f"seed: must be a non-negative integer, got {seed!r}")
-    D = _resolve(scenario, delays)
+    D = resolve_design_delays(scenario, delays)
     allowed = _DEFAULT_OPTIONS if method == "default" else _CCL_OPTIONS
     unknown = sorted(set(options) - set(allowed))
     if unknown:
@@ -320,7 +321,10 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True):
     )
 
 
-def _resolve(scenario, delays) -> np.ndarray:
+def resolve_design_delays(scenario, delays) -> np.ndarray:
+    """The (N, N) int delay matrix a design is made for: None (the scenario's), a spec
+    string (``"none"``, ``"uniform:T"``...) or a matrix, checked; DesignError naming
+    ``delays`` (ScenarioError for a matrix off the links of W)."""
     if delays is None:
         return scenario.delays.copy()
     if isinstance(delays, str):

@@ -133,17 +133,13 @@ def initial_gains(plan, previous, scenario) -> list:
 
 
 def _resolve_new(new, delays) -> np.ndarray:
-    from .scenario import resolve_delays
+    """:func:`design.gain_design.resolve_design_delays` for the new configuration."""
+    from .gain_design import DesignError, resolve_design_delays
 
-    if delays is None:
-        return new.delays.copy()
-    if isinstance(delays, str):
-        return resolve_delays(new, delays)
-    D = np.asarray(delays)
-    if D.shape != (new.N, new.N) or not np.issubdtype(D.dtype, np.integer):
-        raise RecoveryDesignError(f"delays: must be an {new.N} x {new.N} integer matrix for the "
-                                  f"new configuration, got {D.dtype} of shape {D.shape}")
-    return D.astype(int)
+    try:
+        return resolve_design_delays(new, delays)
+    except DesignError as exc:
+        raise RecoveryDesignError(f"{exc} (for the new configuration)") from None
 
 
 def fast_recovery_gains(scenario_after, delays, init=None, seed: int = 0,

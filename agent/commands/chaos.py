@@ -127,15 +127,13 @@ def _timeline(out, summary, steps, mse, schedule, rosters):
               for at, ids, ep in rosters[1:]]
     items.sort(key=lambda x: x["step"])
     (out / "timeline.json").write_text(json.dumps(to_jsonable(items), indent=2) + "\n")
-    try:
-        import matplotlib
+    from ..run_summary import plottable, pyplot
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = pyplot()
+    if plt is None:
         return
+    ok = plottable(mse)
     mse = np.asarray(mse, dtype=float)
-    ok = np.isfinite(mse) & (mse > 0) & (mse < 1e250)
     fig, (ax, lane) = plt.subplots(2, 1, figsize=(9, 5), sharex=True,
                                    gridspec_kw={"height_ratios": [3, 1.4]})
     ax.semilogy(np.asarray(steps)[ok], mse[ok], lw=0.8, label="MSE (live)")
