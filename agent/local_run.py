@@ -32,7 +32,9 @@ from broker_free_net.impair import encode_impairment
 from broker_free_net.peer import Peer
 
 from . import wire
-from .launcher import Children, free_port
+from broker_free_net.ports import listen_port
+
+from .launcher import Children
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS"]
 
@@ -160,7 +162,7 @@ class LocalRun:
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
         rec = Recording(run_id=f"up{os.getpid()}x{random.randrange(10**6)}",
-                        ports=[free_port() for _ in range(M + 3)])
+                        ports=[listen_port() for _ in range(M + 3)])
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
         rec.rosters = [(0, tuple(range(1, N + 1)), 0)]

@@ -84,9 +84,9 @@ def echo(endpoint: str) -> None:
 def raw_rtt(pings: int) -> dict:
     import zenoh
 
-    from agent.launcher import free_port
+    from broker_free_net.ports import listen_port
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = f"tcp/127.0.0.1:{listen_port()}"
     child = subprocess.Popen([sys.executable, __file__, "--echo", endpoint],
                              start_new_session=True)
     try:

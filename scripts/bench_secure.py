@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from agent.launcher import free_port  # noqa: E402
+from broker_free_net.ports import listen_port  # noqa: E402
 from broker_free_net.config import NetConfig  # noqa: E402
 from broker_free_net.peer import Peer  # noqa: E402
 from broker_free_net.security import make_run_keys, run_identities  # noqa: E402
@@ -50,7 +50,7 @@ def _keys(run):
 
 def _net(run, keys_dir, identity, listen=None, connect=None):
     proto = "tls" if keys_dir else "tcp"
-    return NetConfig(run=run, listen=(listen or f"{proto}/127.0.0.1:{free_port()}",),
+    return NetConfig(run=run, listen=(listen or f"{proto}/127.0.0.1:{listen_port()}",),
                      connect=(connect,) if connect else (),
                      keys=keys_dir, identity=identity if keys_dir else None)
 
@@ -97,7 +97,7 @@ def bench_mode(mode, n, warmup, flood) -> dict:
     if mode == "secure":
         keys_dir = str(make_run_keys(Path(tmp.name) / "keys", run, run_identities(2)).dir)
     proto = "tls" if keys_dir else "tcp"
-    listen = f"{proto}/127.0.0.1:{free_port()}"
+    listen = f"{proto}/127.0.0.1:{listen_port()}"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--pong", "--run", run, "--listen", listen]
     if keys_dir:
         cmd += ["--keys", keys_dir]

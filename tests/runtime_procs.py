@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 from agent import wire
-from agent.launcher import ROOT, Children, free_port
+from agent.launcher import ROOT, Children
+from broker_free_net.ports import listen_port
 from broker_free_net import keys
 from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.config import NetConfig
@@ -28,7 +29,7 @@ class Deployment:
         self.run = f"t{os.getpid()}x{random.randrange(10**9)}"
         self.children = Children(tmp / "logs")
         self.n = n
-        port = [free_port() for _ in range(len(agents) + 2)]
+        port = [listen_port() for _ in range(len(agents) + 2)]
         self.ep = [f"tcp/127.0.0.1:{p}" for p in port]
         self.peer = Peer(NetConfig(run=self.run, listen=(self.ep[0],)), "monitor", 0)
         self.status_in = self.peer.subscribe(keys.any_agent_pattern(self.run, "status"))

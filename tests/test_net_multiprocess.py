@@ -8,7 +8,6 @@ always killed at teardown.
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ from broker_free_net import keys
 from broker_free_net.codec import MessageStats, decode, encode, try_decode
 from broker_free_net.config import NetConfig
 from broker_free_net.peer import Peer
+from broker_free_net.ports import listen_port
 
 pytestmark = pytest.mark.multiprocess
 
@@ -30,12 +30,6 @@ sys.path.insert(0, str(Path(__file__).parent))
 from net_echo_peer import REPLY, REQUEST  # noqa: E402
 
 DEADLINE = 20.0  # seconds; generous for a loaded 2-core machine
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def endpoint(port: int) -> str:
@@ -62,7 +56,7 @@ def spawn(run_id):
     procs = []
 
     def start(id_, connect=()):
-        port = free_port()
+        port = listen_port()
         cmd = [sys.executable, str(ECHO), "--run", run_id, "--id", str(id_), "--listen", endpoint(port)]
         for ep in connect:
             cmd += ["--connect", ep]
@@ -186,7 +180,7 @@ def test_gossip_finds_peers_through_one_seed(spawn, run_id):
 
 
 def test_peer_close_is_idempotent_and_withdraws_token(run_id):
-    port = free_port()
+    port = listen_port()
     a = Peer(NetConfig(run=run_id, listen=(endpoint(port),)), "agent", 0)
     with Peer(NetConfig(run=run_id, connect=(endpoint(port),)), "agent", 1) as b:
         assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, DEADLINE)

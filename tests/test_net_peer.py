@@ -1,6 +1,5 @@
 """In-process tests of Inbox and Peer (no child processes)."""
 
-import socket
 import threading
 import time
 
@@ -10,6 +9,7 @@ from broker_free_net import keys
 from broker_free_net.config import NetConfig
 from broker_free_net.keys import InvalidKey
 from broker_free_net.peer import Inbox, LivelinessWatch, Peer, Received
+from broker_free_net.ports import listen_port
 
 
 def test_inbox_drop_oldest_and_counters():
@@ -69,12 +69,6 @@ def test_peer_rejects_bad_role_and_config():
         Peer(NetConfig(), "a/b", 0)
 
 
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def wait_for_item(inbox, predicate, timeout=20):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -85,8 +79,8 @@ def wait_for_item(inbox, predicate, timeout=20):
 
 
 def test_two_peers_in_one_process_wait_and_drain():
-    run = f"inproc{free_port()}"
-    port = free_port()
+    run = f"inproc{listen_port()}"
+    port = listen_port()
     with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
             Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
         inbox = b.subscribe(keys.any_agent_pattern(run, "est"))
@@ -109,8 +103,8 @@ def test_two_peers_in_one_process_wait_and_drain():
 
 def test_start_order_does_not_matter():
     """A peer whose seed is not up yet keeps retrying and joins when it starts."""
-    run = f"late{free_port()}"
-    port = free_port()
+    run = f"late{listen_port()}"
+    port = listen_port()
     with Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as early:
         with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0):
             assert early.wait_for_peers(lambda alive: ("agent", "0") in alive, 30)
@@ -146,8 +140,8 @@ def test_payloads_over_the_limit_are_not_delivered():
     """Messages over MAX_PAYLOAD_BYTES never reach an inbox (refused before the copy)."""
     from broker_free_net.codec import MAX_PAYLOAD_BYTES
 
-    run = f"big{free_port()}"
-    port = free_port()
+    run = f"big{listen_port()}"
+    port = listen_port()
     with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
             Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
         inbox = b.subscribe(keys.est_key(run, 0), include_local=False)

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from agent.launcher import free_port
+from broker_free_net.ports import listen_port
 from broker_free_net.config import NetConfig, build_zenoh_config
 from broker_free_net.peer import Peer
 from broker_free_net.security import make_run_keys, run_identities
@@ -94,7 +94,7 @@ def keyset(tmp_path, run_id):
 @pytest.fixture
 def child(keyset, run_id):
     """Agent 1, secured, listening on a fresh TLS port; puts est/1 (its own) and est/2 (not)."""
-    ep = f"tls/127.0.0.1:{free_port()}"
+    ep = f"tls/127.0.0.1:{listen_port()}"
     c = Child([sys.executable, str(CHILD), "--keys", str(keyset.dir), "--identity", "agent-1",
                "--run", run_id, "--listen", ep,
                "--put", f"socmon/{run_id}/est/1", "--put", f"socmon/{run_id}/est/2"])
@@ -106,7 +106,7 @@ def child(keyset, run_id):
 
 
 def secure(keyset, run_id, identity, ep):
-    return NetConfig(run=run_id, listen=(f"tls/127.0.0.1:{free_port()}",), connect=(ep,),
+    return NetConfig(run=run_id, listen=(f"tls/127.0.0.1:{listen_port()}",), connect=(ep,),
                      keys=keyset.dir, identity=identity)
 
 
@@ -180,7 +180,7 @@ def _outsider_configs(tmp_path, keyset, run_id, ep):
     anon.insert_json5("transport/link/tls/verify_name_on_connect", "false")
     # 3. a complete secured config of the same run name, from another CA
     other = make_run_keys(tmp_path / "other", run_id, run_identities(3))
-    foreign = build_zenoh_config(NetConfig(run=run_id, listen=(f"tls/127.0.0.1:{free_port()}",),
+    foreign = build_zenoh_config(NetConfig(run=run_id, listen=(f"tls/127.0.0.1:{listen_port()}",),
                                            connect=(ep,), keys=other.dir, identity="monitor"))
     out = {"plain-tcp": plain, "tls-no-cert": anon, "other-ca": foreign}
     for conf in out.values():
