@@ -5,7 +5,7 @@ Each command module defines ``HELP`` (one line), ``add_arguments(parser)`` and
 does not need it to build its flags) happen inside the functions that use them. Exit
 status: 0 success, 1 the command ran but the result is negative (e.g. no stabilising
 gain), 2 bad input (named in the message, argparse's rejections included), 130
-interrupted.
+interrupted, 141 stdout closed by its reader (``socmon certify ... | head``; nothing printed).
 """
 
 from __future__ import annotations
@@ -21,6 +21,9 @@ import sys
 # the user says otherwise; set before numpy is first imported.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+
+#: exit status when the reader of stdout went away (128 + SIGPIPE, as a shell reports it)
+EXIT_BROKEN_PIPE = 141
 
 #: subcommand -> module under agent.commands, in the order shown by --help
 COMMANDS = {
@@ -71,6 +74,13 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("socmon: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # the reader went away (`socmon certify ... | head`): stop quietly, as a shell
+        # command killed by SIGPIPE would; stdout is pointed at devnull so that the
+        # interpreter's final flush does not raise a second time
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":

@@ -106,8 +106,49 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     }
     summary.update(_failures(c.out / "events.jsonl", rec, c.scenario, c.delays, steps, mse,
                              c.G))
+    summary["warnings"] = list(dict.fromkeys(
+        list(c.scenario.warnings) + log_warnings(c.out / "logs") + summary.get("warnings", [])))
     return summary, steps, mse
     return summary, steps, mse
+
+
+#: Most warnings taken from the processes' logs into a summary (a log is never read whole
+#: into the summary: the rest is counted).
+MAX_LOG_WARNINGS = 20
+
+
+def log_warnings(logs_dir) -> list:
+    """The warnings the run's processes printed (``NAME: warning: TEXT`` lines of
+    ``logs_dir/*.log``) as ``"NAME: TEXT"``, in file order, at most
+    :data:`MAX_LOG_WARNINGS` (then one line saying how many more).
+
+    >>> import pathlib, tempfile
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "world.log").write_text("world: started\\nworld: warning: float64 ran out\\n")
+    >>> log_warnings(d)
+    ['world: float64 ran out']
+    """
+    import re
+    from pathlib import Path
+
+    pattern = re.compile(r"^([\w.-]+): warning: (.*\S)")
+    found, more = [], 0
+    for path in sorted(Path(logs_dir).glob("*.log")):
+        try:
+            with open(path, errors="replace") as f:
+                for line in f:
+                    m = pattern.match(line)
+                    if m is None:
+                        continue
+                    if len(found) < MAX_LOG_WARNINGS:
+                        found.append(f"{m.group(1)}: {m.group(2)}")
+                    else:
+                        more += 1
+        except OSError:
+            continue
+    if more:
+        found.append(f"{more} more warnings in {logs_dir}")
+    return found
 
 
 def effective_rosters(rosters):

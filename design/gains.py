@@ -81,6 +81,10 @@ def load_gains(path, scenario=None) -> Gains:
         wrong shape or non-finite entries.
     """
     path = Path(path)
+    if path.is_file() and not zipfile.is_zipfile(path):
+        # np.load would take it as .npy or pickle and answer with advice on allow_pickle
+        raise GainsError(f"{path}: not a .npz gains file (not a zip archive; "
+                         "`socmon design --out FILE.npz` writes one)")
     try:
         with np.load(path, allow_pickle=False) as data:
             files = set(data.files)
@@ -108,6 +112,8 @@ def load_gains(path, scenario=None) -> Gains:
         raise
     except FileNotFoundError:
         raise GainsError(f"{path}: no such gains file") from None
+    except IsADirectoryError:
+        raise GainsError(f"{path}: is a directory, not a gains file") from None
     except (OSError, ValueError, zipfile.BadZipFile, KeyError) as exc:
         raise GainsError(f"{path}: not a readable .npz gains file ({exc})") from None
     for i, g in enumerate(G, start=1):

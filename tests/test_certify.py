@@ -184,7 +184,7 @@ def test_cli_certify_bad_gains_files(tmp_path, capsys):
     junk = tmp_path / "junk.npz"
     junk.write_text("not a zip")
     assert main(["certify", "paper-14", "--gains", str(junk)]) == 2
-    assert "not a readable .npz gains file" in capsys.readouterr().err
+    assert "not a .npz gains file" in capsys.readouterr().err
     wrong = tmp_path / "wrong.npz"
     save_gains(wrong, [np.zeros((14, 2))] * 3, {"method": "wrong"})
     assert main(["certify", "paper-14", "--gains", str(wrong)]) == 2

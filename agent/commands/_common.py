@@ -39,6 +39,14 @@ def add_gains_argument(parser) -> None:
     """The required ``--gains FILE`` flag of the commands that evaluate a given gain."""
     parser.add_argument("--gains", required=True, metavar="FILE",
                         help="gains file (.npz with K1..KN and meta)")
+    add_force_gains_argument(parser)
+
+
+def add_force_gains_argument(parser) -> None:
+    """``--force-gains``: accept a gains file designed for another scenario."""
+    parser.add_argument("--force-gains", action="store_true",
+                        help="accept a gains file whose scenario digest is not this "
+                             "scenario's (by default that is an error, exit 2)")
 
 
 def load_scenario_arg(spec):
@@ -57,11 +65,45 @@ def load_scenario_arg(spec):
     return scenario
 
 
-def load_gains_arg(path, scenario):
+def load_gains_arg(path, scenario, force: bool = False, flag: str = "--gains"):
+    """Load the gains file of ``flag`` for ``scenario``; CommandError (exit 2) naming the flag
+    when it cannot be read, does not fit, or was designed for another scenario (its meta's
+    ``scenario_digest`` is not ``scenario.digest()``) unless ``force`` (``--force-gains``),
+    which prints a warning instead. A file without a digest (written by hand) is accepted."""
     try:
-        return load_gains(path, scenario)
+        gains = load_gains(path, scenario)
     except GainsError as exc:
-        raise CommandError(f"bad gains file: {exc}") from None
+        raise CommandError(f"{flag}: {exc}") from None
+    problem = gains_scenario_mismatch(gains.meta, scenario)
+    if problem is not None:
+        if not force:
+            raise CommandError(f"{flag}: {path}: {problem} (--force-gains to use it anyway)")
+        print(f"warning: {flag}: {path}: {problem}", file=sys.stderr)
+    return gains
+
+
+def gains_scenario_mismatch(meta: dict, scenario) -> str | None:
+    """Why the gains of ``meta`` were not designed for ``scenario``, or None when they were
+    (or when the file does not say)."""
+    digest = meta.get("scenario_digest")
+    if digest is None or digest == scenario.digest():
+        return None
+    return (f"gains designed for scenario {meta.get('scenario', '?')!s} (digest {digest}), "
+            f"not for scenario {scenario.name} (digest {scenario.digest()})")
+
+
+def net_config_arg(args, identity: str):
+    """The :class:`broker_free_net.NetConfig` of the transport flags; CommandError (exit 2)
+    naming the flag (``--zenoh-config``, ``--listen``, ...) when a value is bad."""
+    from broker_free_net.config import InvalidNetConfig, net_config_from_args
+
+    try:
+        return net_config_from_args(args, identity=identity)
+    except InvalidNetConfig as exc:
+        message = str(exc)
+        if message.startswith(f"{exc.field}: "):
+            message = message[len(exc.field) + 2:]
+        raise CommandError(f"--{exc.field.replace('_', '-')}: {message}") from None
 
 
 def _int_or_reason(text, lo: int, hi: int | None):

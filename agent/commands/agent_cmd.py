@@ -8,13 +8,14 @@ HELP = "run one agent: the shared estimator step every step, over zenoh"
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_manifest_argument, add_scenario_argument
+    from ._common import add_force_gains_argument, add_manifest_argument, add_scenario_argument
 
     add_scenario_argument(parser)
     parser.add_argument("--id", type=int, required=True,
                         help="agent id (1..N active, N+1.. standby agents of the scenario)")
     parser.add_argument("--gains", help="gains file (.npz); default: design with the default "
                                         "method (every agent designs the same gain)")
+    add_force_gains_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="run seed (same as the world's)")
     parser.add_argument("--delays", default="scenario",
                         help="link delays injected at start (receiver side): scenario, none "
@@ -32,12 +33,13 @@ def add_arguments(parser) -> None:
     add_net_arguments(parser)
 
 
-def gains_for(scenario, gains_path, delays):
-    """Load ``gains_path`` or design the default gain; CommandError when impossible."""
+def gains_for(scenario, gains_path, delays, force: bool = False):
+    """Load ``gains_path`` (``force``: even when designed for another scenario) or design the
+    default gain; CommandError when impossible."""
     from ._common import CommandError, load_gains_arg
 
     if gains_path:
-        return load_gains_arg(gains_path, scenario).G
+        return load_gains_arg(gains_path, scenario, force=force).G
     from design.errors import SocmonError
     from design.gain_design import design_gains
 
@@ -57,12 +59,11 @@ def run(args) -> int:
     from ._common import CommandError, run_command
 
     def body():
-        from broker_free_net.config import InvalidNetConfig, net_config_from_args
         from design.errors import ScenarioError
         from design.scenario import resolve_delays
 
         from ..agent_process import agent_config, run_agent
-        from ._common import check_run_flags, load_scenario_arg
+        from ._common import check_run_flags, load_scenario_arg, net_config_arg
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
@@ -102,16 +103,13 @@ def run(args) -> int:
             delays = resolve_delays(scenario, args.delays)
         except ScenarioError as exc:
             raise CommandError(str(exc)) from None
-        G = gains_for(scenario, args.gains, delays) if args.id <= scenario.N else None
+        G = gains_for(scenario, args.gains, delays, args.force_gains) if args.id <= scenario.N else None
         deadline_ms = args.deadline_ms if args.deadline_ms is not None else scenario.step_ms
         if not deadline_ms > 0:
             raise CommandError(f"--deadline-ms: must be > 0, got {deadline_ms}")
-        try:
-            from broker_free_net.security import identity_name
+        from broker_free_net.security import identity_name
 
-            net = net_config_from_args(args, identity=identity_name("agent", args.id))
-        except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        net = net_config_arg(args, identity=identity_name("agent", args.id))
         if not 0 <= args.drop < 1:
             raise CommandError(f"--drop: must be a probability in [0, 1), got {args.drop}")
         if args.crash_at is not None and args.crash_at < 1:

@@ -15,6 +15,7 @@ from ._common import (
     EXIT_OK,
     add_gains_argument,
     add_scenario_argument,
+    gains_scenario_mismatch,
     load_gains_arg,
     int_flag,
     load_scenario_arg,
@@ -48,15 +49,13 @@ def _run(args) -> int:
                           out_of_range="{value} is above the largest delay, {hi}")
     cap = DEFAULT_TAU_CAP if args.tau_cap is None else args.tau_cap
     scenario = load_scenario_arg(args.scenario)
-    gains = load_gains_arg(args.gains, scenario)
+    gains = load_gains_arg(args.gains, scenario, force=args.force_gains)
     result = certify(scenario, gains.G, taus=taus, tau_cap=cap)
     result["gains_file"] = str(args.gains)
     result["gains_meta"] = gains.meta
-    digest = gains.meta.get("scenario_digest")
-    if digest is not None and digest != scenario.digest():
-        result["warning"] = (
-            f"gains were designed for scenario digest {digest}, this scenario is "
-            f"{scenario.digest()}")
+    mismatch = gains_scenario_mismatch(gains.meta, scenario)   # only with --force-gains
+    if mismatch is not None:
+        result["warning"] = mismatch
     if args.json:
         print_json(result)
     else:

@@ -16,7 +16,7 @@ Examples::
 
 from __future__ import annotations
 
-from ._common import CommandError, int_flag, run_command
+from ._common import CommandError, int_flag, net_config_arg, run_command
 
 HELP = "inject a link delay, drop rate or partition into a running deployment"
 
@@ -116,7 +116,6 @@ def run(args) -> int:
 
         from broker_free_net import keys
         from broker_free_net.codec import MalformedMessage, MessageStats, try_decode
-        from broker_free_net.config import InvalidNetConfig, net_config_from_args
         from broker_free_net.impair import encode_impairment
         from broker_free_net.peer import Peer
 
@@ -135,10 +134,7 @@ def run(args) -> int:
             payload = encode_impairment(op, src, dst, sign=sign, **params)
         except MalformedMessage as exc:
             raise CommandError(f"{args.what}: {exc}") from None
-        try:
-            net = net_config_from_args(args, identity="operator")
-        except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        net = net_config_arg(args, identity="operator")
         if not net.connect and not net.multicast:
             raise CommandError("--connect: give the endpoint of a process of the run "
                                "(or --multicast on a LAN)")

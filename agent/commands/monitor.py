@@ -8,11 +8,12 @@ HELP = "run the monitor: detect failed agents and reassign their roles to equiva
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_manifest_argument, add_scenario_argument
+    from ._common import add_force_gains_argument, add_manifest_argument, add_scenario_argument
 
     add_scenario_argument(parser)
     parser.add_argument("--gains", required=True, metavar="FILE",
                         help="the gains file the agents run (.npz)")
+    add_force_gains_argument(parser)
     parser.add_argument("--delays", default="scenario",
                         help="link delays of the run: scenario, none or uniform:T (default "
                              "scenario); new gains are certified for them")
@@ -47,13 +48,12 @@ def run(args) -> int:
     def body():
         import math
 
-        from broker_free_net.config import InvalidNetConfig, net_config_from_args
         from design.errors import ScenarioError
         from design.scenario import resolve_delays
 
         from ..monitor_core import MonitorConfig
         from ..monitor_process import run_monitor
-        from ._common import load_gains_arg, load_scenario_arg
+        from ._common import load_gains_arg, load_scenario_arg, net_config_arg
 
         scenario = load_scenario_arg(args.scenario)
         if args.manifest:
@@ -67,17 +67,14 @@ def run(args) -> int:
             delays = resolve_delays(scenario, args.delays)
         except ScenarioError as exc:
             raise CommandError(f"--delays: {exc}") from None
-        G = load_gains_arg(args.gains, scenario).G
+        G = load_gains_arg(args.gains, scenario, force=args.force_gains).G
         if args.id < 1:
             raise CommandError(f"--id: must be >= 1, got {args.id}")
         if not (math.isfinite(args.hang_timeout) and args.hang_timeout > 0):
             raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
         if args.lead_steps < 1:
             raise CommandError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
-        try:
-            net = net_config_from_args(args, identity="monitor")
-        except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        net = net_config_arg(args, identity="monitor")
         step_ms = args.step_ms if args.step_ms is not None else scenario.step_ms
         if not (math.isfinite(step_ms) and step_ms > 0):
             raise CommandError(f"--step-ms: must be > 0, got {step_ms}")

@@ -170,7 +170,7 @@ def _run(args) -> int:
     seed = parse_int(args.seed, "--seed", lo=0)
     drop = parse_drop(args.drop)
     scenario = load_scenario_arg(args.scenario)
-    gains = load_gains_arg(args.gains, scenario)
+    gains = load_gains_arg(args.gains, scenario, force=args.force_gains)
     delays = resolve_delays_arg(scenario, args.delays)
     fail = parse_fail(args.fail, scenario, steps) if args.fail is not None else None
     if args.recover and fail is None:

@@ -7,11 +7,12 @@ HELP = "run world + one process per agent on this machine, record, and write a r
 
 
 def add_arguments(parser) -> None:
-    from ._common import add_scenario_argument
+    from ._common import add_force_gains_argument, add_scenario_argument
 
     add_scenario_argument(parser)
     parser.add_argument("--steps", type=int, default=200, help="steps to run (default 200)")
     parser.add_argument("--gains", help="gains file (.npz); default: design with the default method")
+    add_force_gains_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="run seed (default 0)")
     parser.add_argument("--out", help="run folder (default runs/<scenario>-<time>)")
     parser.add_argument("--check-simulator", action="store_true",
@@ -95,7 +96,7 @@ def run_config(args, say, prog="up"):
         raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
     faults = parse_faults(args, scenario) if prog == "up" else ()
     if args.gains:
-        G = gains_for(scenario, args.gains, delays)
+        G = gains_for(scenario, args.gains, delays, getattr(args, "force_gains", False))
         method = "file"
     else:
         say("designing gains with the default method ...")
@@ -155,6 +156,8 @@ def _up(args) -> int:
     active = [a for a in range(1, config.M + 1) if rec.est[a]]
     save_estimates(config.out / "estimates.npz", steps_done, rec.truth, rec.est, active, s.n)
     summary["out"] = str(config.out)
+    for warning in summary.get("warnings", []):
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         print(json.dumps(to_jsonable(summary), indent=2))
     else:

@@ -29,10 +29,9 @@ def run(args) -> int:
     from ._common import CommandError, run_command
 
     def body():
-        from broker_free_net.config import InvalidNetConfig, net_config_from_args
 
         from ..world_process import run_world
-        from ._common import check_run_flags, load_scenario_arg, parse_int_list
+        from ._common import check_run_flags, load_scenario_arg, net_config_arg, parse_int_list
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
@@ -52,10 +51,7 @@ def run(args) -> int:
                                   item="agent", allow_empty=True,
                                   what="expected comma-separated agent ids",
                                   out_of_range="no agent {value} (agents are 1..{hi})")
-        try:
-            net = net_config_from_args(args, identity="world")
-        except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        net = net_config_arg(args, identity="world")
         return run_world(scenario, net, seed=args.seed, steps=args.steps, step_ms=args.step_ms,
                          wait_agents=wait, start_timeout=args.start_timeout)
 

@@ -1,0 +1,144 @@
+"""What a user sees when something is wrong: one-line errors naming the flag (exit 2), gains
+of another scenario refused, a closed pipe handled once, warnings carried to the summary."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.cli import EXIT_BROKEN_PIPE, main
+from agent.run_summary import MAX_LOG_WARNINGS, log_warnings
+from design.gains import gains_meta, save_gains
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def paper14_gains(paper14, tmp_path_factory):
+    """A stabilising gain of paper-14 with paper-14's digest in its meta."""
+    from design.gain_design import design_gains
+
+    result = design_gains(paper14, starts=1, max_iter=40)
+    path = tmp_path_factory.mktemp("g") / "g14.npz"
+    save_gains(path, result.G, gains_meta(paper14, "default", paper14.delays, result.rho))
+    return str(path)
+
+
+def _one_line(err: str) -> str:
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+# -- gains designed for another scenario ------------------------------------------------
+
+@pytest.mark.parametrize("command", [
+    ["simulate", "paper-14-live", "--steps", "20", "--trials", "2"],
+    ["certify", "paper-14-live", "--taus", "0"],
+    ["up", "paper-14-live", "--steps", "5"],
+    ["agent", "paper-14-live", "--id", "1"],
+    ["monitor", "paper-14-live", "--run", "r"],
+])
+def test_gains_of_another_scenario_exit_2_naming_both(paper14_gains, command, capsys):
+    from design.scenario import load_scenario
+
+    live = load_scenario("paper-14-live")
+    assert main(command + ["--gains", paper14_gains]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith("socmon: --gains: ")
+    assert "scenario paper-14 (digest 89e4451208cda747)" in err
+    assert f"scenario paper-14-live (digest {live.digest()})" in err
+    assert "--force-gains" in err
+
+
+@pytest.mark.parametrize("command", [
+    ["simulate", "paper-14-live", "--steps", "20", "--trials", "2"],
+    ["certify", "paper-14-live", "--taus", "0"],
+])
+def test_force_gains_runs_with_a_warning(paper14_gains, command, capsys):
+    rc = main(command + ["--gains", paper14_gains, "--force-gains"])
+    err = capsys.readouterr().err
+    assert rc in (0, 1)
+    assert "warning: --gains:" in err and "paper-14-live" in err
+
+
+def test_gains_without_a_digest_are_accepted(paper14, tmp_path, capsys):
+    path = tmp_path / "hand.npz"
+    save_gains(path, [np.zeros((14, 1))] * 3, {"method": "hand"})
+    assert main(["certify", "paper-14-live", "--gains", str(path), "--taus", "0"]) in (0, 1)
+    assert "warning" not in capsys.readouterr().err
+
+
+# -- a file that is not a gains file ------------------------------------------------------
+
+def test_png_as_gains_is_one_line_without_numpy_advice(tmp_path, capsys):
+    png = tmp_path / "mse.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
+    assert main(["simulate", "paper-14", "--gains", str(png), "--steps", "10"]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith("socmon: --gains: ") and "not a .npz gains file" in err
+    assert "allow_pickle" not in err
+
+
+def test_npy_and_directory_as_gains(tmp_path, capsys):
+    npy = tmp_path / "k.npy"
+    np.save(npy, np.zeros(3))
+    assert main(["certify", "paper-14", "--gains", str(npy)]) == 2
+    assert "not a .npz gains file" in _one_line(capsys.readouterr().err)
+    assert main(["certify", "paper-14", "--gains", str(tmp_path)]) == 2
+    assert "is a directory" in _one_line(capsys.readouterr().err)
+
+
+# -- --zenoh-config --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", [
+    ["world", "paper-14", "--steps", "5"],
+    ["agent", "paper-14", "--id", "1"],
+    ["monitor", "paper-14", "--run", "r"],
+    ["inject", "clear-all", "--connect", "tcp/127.0.0.1:9"],
+])
+def test_zenoh_config_malformed_or_missing(paper14_gains, command, tmp_path, capsys):
+    if command[0] in ("agent", "monitor"):
+        command = command + ["--gains", paper14_gains]
+    bad = tmp_path / "bad.json5"
+    bad.write_text('{ mode: "peer", listen: { endpoints: [\n')
+    assert main(command + ["--zenoh-config", str(bad)]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith(f"socmon: --zenoh-config: cannot load {str(bad)!r}: line "), err
+    missing = tmp_path / "none.json5"
+    assert main(command + ["--zenoh-config", str(missing)]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err == f"socmon: --zenoh-config: no such file {str(missing)!r}\n"
+
+
+# -- a reader that goes away --------------------------------------------------------------
+
+def test_closed_stdout_ends_quietly():
+    """``socmon analyze --json | head -0``: no traceback, the SIGPIPE status."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "analyze", "paper-14", "--json"],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()              # the reader is gone before the first write
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == EXIT_BROKEN_PIPE
+    assert err == "", err
+
+
+# -- warnings of a run ------------------------------------------------------------------------
+
+def test_log_warnings_are_collected_and_bounded(tmp_path):
+    (tmp_path / "world.log").write_text(
+        "world: 4 agents ready\n"
+        "world: warning: rho(A) = 1.0857 > 1: float64 loses an O(1) error from step 427\n")
+    (tmp_path / "monitor.log").write_text("monitor: no warning: here\n")
+    assert log_warnings(tmp_path) == [
+        "world: rho(A) = 1.0857 > 1: float64 loses an O(1) error from step 427"]
+    (tmp_path / "agent-1.log").write_text(
+        "".join(f"agent-1: warning: late {i}\n" for i in range(MAX_LOG_WARNINGS + 3)))
+    found = log_warnings(tmp_path)
+    assert found[:2] == ["agent-1: late 0", "agent-1: late 1"]
+    assert len(found) == MAX_LOG_WARNINGS + 1
+    assert found[-1] == f"4 more warnings in {tmp_path}"
+    assert log_warnings(tmp_path / "absent") == []
