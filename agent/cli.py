@@ -27,6 +27,7 @@ EXIT_BROKEN_PIPE = 141
 
 #: subcommand -> module under agent.commands, in the order shown by --help
 COMMANDS = {
+    "init": "init",
     "analyze": "analyze",
     "plan": "plan",
     "certify": "certify",

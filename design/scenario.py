@@ -41,16 +41,50 @@ __all__ = [
     "resolve_delays",
     "uniform_delays",
     "RankDeficientWarning",
+    "scenario_schema",
+    "starter_scenario_toml",
 ]
 
-_TOP_KEYS = {"name", "social", "agents", "network", "runtime"}
-_SOCIAL_KEYS = {
-    "A", "transpose", "edges", "labels", "self_weight", "seed", "spectral_radius",
-    "process_noise",
-}
-_AGENT_KEYS = {"measure", "measurement_noise", "standby"}
-_NETWORK_KEYS = {"topology", "self_weight", "weights", "delays", "max_delay", "delay_seed"}
-_RUNTIME_KEYS = {"step_ms"}
+def scenario_schema() -> dict:
+    """The JSON Schema of a scenario file (``design/scenario.schema.json``, docs/scenario.md).
+
+    The loader takes its key sets and defaults from it; tests check that the schema and
+    the loader's own checks agree on every key.
+
+    >>> scenario_schema()["properties"]["agents"]["properties"]["standby"]["default"]
+    0
+    """
+    res = importlib.resources.files("design") / "scenario.schema.json"
+    return json.loads(res.read_text())
+
+
+_SCHEMA = scenario_schema()
+
+
+def starter_scenario_toml() -> str:
+    """The commented starter scenario that ``socmon init`` writes (6 individuals, 2 agents).
+
+    >>> s = scenario_from_dict(tomllib.loads(starter_scenario_toml()))
+    >>> s.n, s.N, s.standby
+    (6, 2, 1)
+    """
+    return (importlib.resources.files("design") / "scenario_starter.toml").read_text()
+
+
+def _table_keys(table: str) -> set:
+    return set(_SCHEMA["properties"][table]["properties"])
+
+
+def _default(table: str, key: str):
+    """The schema's default of ``[table] key``."""
+    return _SCHEMA["properties"][table]["properties"][key]["default"]
+
+
+_TOP_KEYS = set(_SCHEMA["properties"])
+_SOCIAL_KEYS = _table_keys("social")
+_AGENT_KEYS = _table_keys("agents")
+_NETWORK_KEYS = _table_keys("network")
+_RUNTIME_KEYS = _table_keys("runtime")
 _EDGE_HEADERS = (("source", "target"), ("i", "j"))
 _ROW_SUM_TOL = 1e-9
 #: Largest link delay, in steps, that a scenario or a delay flag may name. The exact closed
@@ -332,9 +366,11 @@ def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Sce
         name = "scenario"
 
     A, labels = _parse_social(social, base_dir, problems)
-    q = _positive_number(social, "process_noise", "social.process_noise", problems, 0.05)
-    r = _positive_number(agents, "measurement_noise", "agents.measurement_noise", problems, 0.05)
-    standby = agents.get("standby", 0)
+    q = _positive_number(social, "process_noise", "social.process_noise", problems,
+                         _default("social", "process_noise"))
+    r = _positive_number(agents, "measurement_noise", "agents.measurement_noise", problems,
+                         _default("agents", "measurement_noise"))
+    standby = agents.get("standby", _default("agents", "standby"))
     if not _is_int(standby) or not 0 <= standby <= MAX_STANDBY:
         problems.append(
             f"agents.standby: must be a non-negative integer (at most {MAX_STANDBY}), "
@@ -344,7 +380,7 @@ def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Sce
     N = len(measure) if measure is not None else 0
     W = _parse_weights(network, N, problems) if N else None
     delays = _parse_delays(network, W, problems) if W is not None else None
-    step_ms = runtime.get("step_ms", 20)
+    step_ms = runtime.get("step_ms", _default("runtime", "step_ms"))
     if not _is_int(step_ms) or step_ms <= 0:
         problems.append(f"runtime.step_ms: must be a positive integer, got {step_ms!r}")
         step_ms = 20
@@ -508,12 +544,14 @@ def _parse_social(social, base_dir, problems):
         if A.shape[0] != A.shape[1]:
             problems.append(f"social.A: must be square, got {A.shape[0]} x {A.shape[1]}")
             return np.eye(1), ["1"]
-        transpose = social.get("transpose", False)
+        transpose = social.get("transpose", _default("social", "transpose"))
         if not isinstance(transpose, bool):
             problems.append("social.transpose: must be true or false")
         elif transpose:
             A = A.T.copy()
     else:
+        if "transpose" in social:
+            problems.append("social.transpose: only meaningful with social.A")
         A, labels = _edges_matrix(social, base_dir, labels, problems)
         if A is None:
             return np.eye(1), ["1"]
@@ -601,13 +639,13 @@ def _edges_matrix(social, base_dir, labels, problems):
     mask = np.zeros((n, n), dtype=bool)
     for a, b in pairs:
         mask[index[canon[a]], index[canon[b]]] = True
-    self_weight = social.get("self_weight", True)
+    self_weight = social.get("self_weight", _default("social", "self_weight"))
     if not isinstance(self_weight, bool):
         problems.append("social.self_weight: must be true or false")
         self_weight = True
     if self_weight:
         np.fill_diagonal(mask, True)
-    seed = social.get("seed", 0)
+    seed = social.get("seed", _default("social", "seed"))
     if not _is_int(seed) or seed < 0:
         problems.append(f"social.seed: must be a non-negative integer, got {seed!r}")
         seed = 0
@@ -657,8 +695,8 @@ def _parse_weights(network, N, problems):
             )
             return None
     else:
-        topology = network.get("topology", "cycle")
-        sw = network.get("self_weight", 0.5)
+        topology = network.get("topology", _default("network", "topology"))
+        sw = network.get("self_weight", _default("network", "self_weight"))
         if not _is_number(sw) or not 0 < sw <= 1:
             problems.append(f"network.self_weight: must be in (0, 1], got {sw!r}")
             return None
@@ -735,8 +773,8 @@ def _parse_delays(network, W, problems):
             return np.zeros((N, N), dtype=int)
         D = np.asarray(raw, dtype=int)
     elif has_random:
-        tmax = network.get("max_delay", 0)
-        seed = network.get("delay_seed", 0)
+        tmax = network.get("max_delay", _default("network", "max_delay"))
+        seed = network.get("delay_seed", _default("network", "delay_seed"))
         if not _is_int(tmax) or not 0 <= tmax <= MAX_DELAY:
             problems.append(
                 f"network.max_delay: must be a non-negative integer (at most {MAX_DELAY}), "
