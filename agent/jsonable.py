@@ -12,7 +12,21 @@ import math
 
 import numpy as np
 
-__all__ = ["to_jsonable"]
+__all__ = ["to_jsonable", "versioned", "SCHEMA_VERSION"]
+
+#: Version of the JSON vocabulary (docs/json.md) of every ``--json`` output and of the run
+#: files (summary.json, reproduce's results.json); raised when a key changes meaning or name.
+SCHEMA_VERSION = 1
+
+
+def versioned(record: dict) -> dict:
+    """``record`` with ``schema_version`` as its first key.
+
+    >>> versioned({"scenario": "paper-14"})
+    {'schema_version': 1, 'scenario': 'paper-14'}
+    """
+    return {"schema_version": SCHEMA_VERSION,
+            **{k: v for k, v in record.items() if k != "schema_version"}}
 
 
 def to_jsonable(obj):

@@ -56,7 +56,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md)."""
     import json
 
-    from .jsonable import to_jsonable
+    from .jsonable import SCHEMA_VERSION, to_jsonable
 
     (config.out / "assignments.json").write_text(json.dumps(to_jsonable(
         [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(rec.assigns.items())]))
@@ -69,6 +69,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
     children = rec.children.children.values()
     summary = {
+        "schema_version": SCHEMA_VERSION,
         "scenario": c.scenario.name,
         "run": rec.run_id,
         "ports": rec.ports,
@@ -79,11 +80,12 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "deadline_ms": c.deadline_ms,
         "agents": N,
         "standby": c.scenario.standby,
-        "delays": c.delays_spec,
+        "delays_spec": c.delays_spec,
+        "delays": np.asarray(c.delays).tolist(),
         "drop": c.drop,
-        "rho_closed_loop": loop_rho,
+        "rho_exact": loop_rho,
         "mse_steady": mse_steady,
-        "mse_steady_predicted": predicted,
+        "mse_steady_exact": predicted,
         "drops": sum(s.get("drops", 0) for s in last.values()),
         "late": sum(s.get("late", 0) for s in last.values()),
         "malformed": sum(s.get("malformed", 0) for s in last.values()),
@@ -241,12 +243,12 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             new, G, D = roster_from_specs(scenario, table, ids, specs)
             loop = closed_loop_for(new, G, D)
             rho = loop.spectral_radius()
-            out["rho_closed_loop_after_recovery"] = rho
-            out["mse_steady_predicted_after_recovery"] = (
+            out["rho_exact_after_recovery"] = rho
+            out["mse_steady_exact_after_recovery"] = (
                 loop.mse_steady(new.process_noise, new.measurement_noise)
                 if rho < 1 else math.inf)
         except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
-            out["mse_steady_predicted_after_recovery"] = None
+            out["mse_steady_exact_after_recovery"] = None
             out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")
     elif failures:
         out["recovered"] = False
@@ -364,7 +366,7 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
     if predicted and predicted != float("inf"):
         ax.axhline(predicted, color="k", ls="--", lw=0.8, label="predicted steady MSE")
-    after = summary.get("mse_steady_predicted_after_recovery")
+    after = summary.get("mse_steady_exact_after_recovery")
     if after and after != float("inf"):
         ax.axhline(after, color="tab:green", ls=":", lw=0.9,
                    label="predicted after recovery")

@@ -296,7 +296,7 @@ class Analysis:
         parents = set(st.parents)
         ft, ftl = self.failure_tolerance, self.failure_tolerance_with_links
         return {
-            "name": s.name,
+            "scenario": s.name,
             "n": s.n,
             "N": s.N,
             "standby": s.standby,

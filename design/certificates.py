@@ -157,11 +157,12 @@ def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> d
     Returns
     -------
     dict
-        Keys ``rho_delay_free``, ``rho_scenario_delays``, ``scenario_taubar``,
-        ``stable_scenario_delays``, ``tau_star``, ``tau_star_cap``, ``tau_star_capped``,
-        ``rows`` (each ``tau``, ``rho_exact``, ``stable``, ``paper_formula``,
-        ``theorem1_rho``, ``theorem1_holds``), ``mse_steady_delay_free``,
-        ``mse_steady_scenario_delays``, ``phi`` and its ingredients, and ``notes``.
+        Keys (docs/json.md) ``rho_delay_free``, ``rho_exact`` and ``stable`` (with the
+        scenario's ``delays``), ``scenario_taubar``, ``stable_delay_free``, ``tau_star``,
+        ``tau_star_cap``, ``tau_star_capped``, ``rows`` (each ``tau``, ``rho_exact``,
+        ``stable``, ``mse_steady_exact``, ``paper_formula``, ``theorem1_rho``,
+        ``theorem1_holds``), ``mse_steady_delay_free``, ``mse_steady_exact``, ``phi`` and
+        its ingredients, and ``notes``.
     """
     s = scenario
     taus = _check_taus(taus)
@@ -184,6 +185,7 @@ def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> d
             "tau": tau,
             "rho_exact": rho_exact,
             "stable": rho_exact < 1.0,
+            "mse_steady_exact": loop.mse_steady(q, r) if rho_exact < 1.0 else None,
             "paper_formula": paper_formula(rho_free, tau),
             "theorem1_rho": t1,
             "theorem1_holds": t1 < 1.0,
@@ -191,17 +193,18 @@ def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> d
     out = {
         "scenario": s.name,
         "scenario_digest": s.digest(),
+        "delays": s.delays.tolist(),
         "rho_delay_free": rho_free,
-        "rho_scenario_delays": rho_own,
+        "rho_exact": rho_own,
         "scenario_taubar": s.taubar,
         "stable_delay_free": rho_free < 1.0,
-        "stable_scenario_delays": rho_own < 1.0,
+        "stable": rho_own < 1.0,
         "tau_star": tau_star,
         "tau_star_cap": int(tau_cap),
         "tau_star_capped": capped,
         "rows": rows,
         "mse_steady_delay_free": free.mse_steady(q, r) if rho_free < 1 else None,
-        "mse_steady_scenario_delays": own.mse_steady(q, r) if rho_own < 1 else None,
+        "mse_steady_exact": own.mse_steady(q, r) if rho_own < 1 else None,
     }
     out.update(paper_phi(free, q, r))
     out["notes"] = [

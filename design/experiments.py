@@ -199,7 +199,7 @@ def _unmeasured_parent_radius(scenario, failed):
 
 
 def _sim_row(tau, res, rho, exact):
-    return {"tau": tau, "rho_exact": rho, "mse_steady_sim": res.mse_steady,
+    return {"tau": tau, "rho_exact": rho, "mse_steady": res.mse_steady,
             "mse_steady_se": _steady_se(res), "mse_steady_exact": exact,
             "diverged": res.diverged, "mse": res.mse.tolist()}
 
@@ -259,7 +259,7 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, log, fail_l
                      "exact_designed_gain": t["exact_designed_gain"]})
     rec["rho_table"] = rows
     rec["simulations"] = sims
-    rec["no_recovery"] = {"tau": taus[0], "mse_steady_sim": no_rec.mse_steady,
+    rec["no_recovery"] = {"tau": taus[0], "mse_steady": no_rec.mse_steady,
                           "diverged": no_rec.diverged, "mse": no_rec.mse.tolist()}
     curves.append((f"tau = {taus[0]}, no recovery", no_rec))
     rec["curves"] = curves
@@ -269,7 +269,7 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, log, fail_l
 
 def steady_z(sim):
     """|simulated - exact| steady MSE in standard errors (None when undefined)."""
-    exact, got, se = sim["mse_steady_exact"], sim["mse_steady_sim"], sim["mse_steady_se"]
+    exact, got, se = sim["mse_steady_exact"], sim["mse_steady"], sim["mse_steady_se"]
     if exact is None or se is None or not se > 0 or not math.isfinite(got):
         return None
     return abs(got - exact) / se

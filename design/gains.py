@@ -50,7 +50,7 @@ def gains_meta(scenario, method: str, delays, rho: float, **extra) -> dict:
         "measure": [scenario.agent_labels(i) for i in range(scenario.N)],
         "method": method,
         "delays": np.asarray(delays).tolist(),
-        "rho": float(rho),
+        "rho_exact": float(rho),
     }
     meta.update(extra)
     return meta

@@ -30,7 +30,7 @@ Examples
 >>> from design.gain_design import design_gains
 >>> G = design_gains(s, delays="uniform:2", starts=1, max_iter=40).G
 >>> rec, info = build_recovery(s, [0], "uniform:2", objective="rho", previous=G, max_iter=20)
->>> rec.ids, info["rho_after"] < 1
+>>> rec.ids, info["rho_exact_after_recovery"] < 1
 ((4, 2, 3), True)
 """
 
@@ -225,8 +225,8 @@ def build_recovery(scenario, failed, delays, seed: int = 0, objective: str = "ms
             for r in plan.replacements
         ],
         "added_links": [{"from": u, "to": v} for u, v in plan.added_links],
-        "rho_after": float(result.rho),
-        "mse_steady_exact_after": (None if result.mse_steady is None
+        "rho_exact_after_recovery": float(result.rho),
+        "mse_steady_exact_after_recovery": (None if result.mse_steady is None
                                    or not np.isfinite(result.mse_steady)
                                    else float(result.mse_steady)),
         "design_seconds": float(result.seconds),

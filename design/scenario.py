@@ -230,7 +230,7 @@ class Scenario:
     def to_dict(self) -> dict:
         """JSON-ready summary with 1-based agents and node labels."""
         return {
-            "name": self.name,
+            "scenario": self.name,
             "n": self.n,
             "N": self.N,
             "labels": list(self.labels),

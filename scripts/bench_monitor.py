@@ -68,7 +68,7 @@ def recovery_steps(out, summary):
 
     rows = list(csv.reader(open(Path(out) / "mse.csv")))[1:]
     mse = {int(k): float(m) for k, m in rows}
-    pred = summary.get("mse_steady_predicted_after_recovery")
+    pred = summary.get("mse_steady_exact_after_recovery")
     f = summary["failures"][0]
     start = f["detected_step"]
     for k in range(f["activate_at"], max(mse) - 20):

@@ -10,7 +10,7 @@ from design.certificates import CertifyError, certify, find_tau_star, paper_form
 from design.closed_loop import ClosedLoop
 from design.errors import GainsError
 from design.gains import gains_meta, save_gains
-from design.scenario import scenario_from_dict
+from design.scenario import scenario_from_dict, uniform_delays
 from scripts.bench_analysis import radius_descent_gain
 
 # ---------------------------------------------------------------------------------
@@ -48,7 +48,7 @@ def test_scalar_certificate_by_hand():
     c = certify(s, G_HALF, taus=[0, 2, 5])
     # Ahat = (1 - 0.5) * 1.1 * W, W = [[.5, .5], [.5, .5]] has eigenvalues 1, 0
     assert c["rho_delay_free"] == pytest.approx(0.55)
-    assert c["rho_scenario_delays"] == pytest.approx(0.55)
+    assert c["rho_exact"] == pytest.approx(0.55)
     # Theorem 1: 0.5 * 1.1^(tau+1) < 1 iff tau + 1 <= 7
     assert c["tau_star"] == 6 and not c["tau_star_capped"]
     for row in c["rows"]:
@@ -78,17 +78,30 @@ def test_mse_with_scenario_delays_is_the_exact_delayed_one():
     s = two_agents().replace(delays=np.array([[0, 2], [1, 0]]))
     c = certify(s, G_HALF, taus=[0])
     loop = ClosedLoop(s.A, s.W, s.delays, s.measure, G_HALF)
-    assert c["rho_scenario_delays"] == pytest.approx(loop.spectral_radius())
-    assert c["scenario_taubar"] == 2 and c["stable_scenario_delays"]
-    assert c["mse_steady_scenario_delays"] == pytest.approx(loop.mse_steady(0.1, 0.1))
-    assert c["mse_steady_scenario_delays"] != pytest.approx(c["mse_steady_delay_free"])
+    assert c["rho_exact"] == pytest.approx(loop.spectral_radius())
+    assert c["scenario_taubar"] == 2 and c["stable"]
+    assert c["mse_steady_exact"] == pytest.approx(loop.mse_steady(0.1, 0.1))
+    assert c["mse_steady_exact"] != pytest.approx(c["mse_steady_delay_free"])
+
+
+def test_every_row_has_the_exact_mse_at_its_delay():
+    s = two_agents()
+    c = certify(s, G_HALF, taus=[0, 1, 4])
+    assert c["rows"][0]["mse_steady_exact"] == pytest.approx(c["mse_steady_delay_free"])
+    for row in c["rows"]:
+        loop = ClosedLoop(s.A, s.W, uniform_delays(s.W, row["tau"]), s.measure, G_HALF)
+        assert row["stable"]
+        assert row["mse_steady_exact"] == pytest.approx(loop.mse_steady(0.1, 0.1), rel=1e-10)
+    assert c["rows"][2]["mse_steady_exact"] > c["rows"][0]["mse_steady_exact"]
+    unstable = certify(two_agents(a=3.0), G_HALF, taus=[0, 2])
+    assert [r["mse_steady_exact"] for r in unstable["rows"]] == [None, None]
 
 
 def test_unstable_loop_has_no_mse_and_phi_undefined():
     s = two_agents(a=3.0)
     c = certify(s, G_HALF, taus=[0, 1])
     assert c["rho_delay_free"] == pytest.approx(1.5)
-    assert c["mse_steady_delay_free"] is None and c["mse_steady_scenario_delays"] is None
+    assert c["mse_steady_delay_free"] is None and c["mse_steady_exact"] is None
     assert c["phi"] is None and "Phi is undefined" in c["phi_note"]
     assert c["tau_star"] is None
 
@@ -139,8 +152,8 @@ def test_paper14_certificate_is_consistent(paper14, paper14_gain):
 # ---------------------------------------------------------------------------------
 # CLI
 
-CERT_KEYS = {"rho_delay_free", "rho_scenario_delays", "tau_star", "rows", "mse_steady_delay_free",
-             "mse_steady_scenario_delays", "phi", "tau_star_cap"}
+CERT_KEYS = {"rho_delay_free", "rho_exact", "tau_star", "rows", "mse_steady_delay_free",
+             "mse_steady_exact", "phi", "tau_star_cap"}
 
 
 def test_cli_certify_paper14(tmp_path, paper14, paper14_gain, capsys):
@@ -161,7 +174,7 @@ def test_cli_certify_unstable_gain_exits_1(tmp_path, paper14, capsys):
     save_gains(path, [np.zeros((14, 1))] * 3, {"method": "zero"})
     assert main(["certify", "paper-14", "--gains", str(path), "--taus", "0", "--json"]) == 1
     d = json.loads(capsys.readouterr().out)
-    assert d["rho_scenario_delays"] > 1 and d["mse_steady_delay_free"] is None
+    assert d["rho_exact"] > 1 and d["mse_steady_delay_free"] is None
 
 
 @pytest.mark.parametrize("taus, message", [

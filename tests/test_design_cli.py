@@ -26,8 +26,8 @@ def test_json_record_and_gains_file_round_trip(capsys, tmp_path):
                             "--max-iter", "25", "--seed", "2", "--out", str(path), "--json")
     assert status == 0, err
     rec = json.loads(out)
-    for key in ("method", "objective", "delays", "rho", "mse_steady", "seconds", "iterations",
-                "stable"):
+    for key in ("schema_version", "scenario", "method", "objective", "delays", "rho_exact",
+                "mse_steady_exact", "rho_delay_free", "seconds", "iterations", "stable"):
         assert key in rec
     assert rec["method"] == "default" and rec["objective"] == "rho" and rec["stable"] is True
     s = load_scenario("paper-14")
@@ -35,11 +35,11 @@ def test_json_record_and_gains_file_round_trip(capsys, tmp_path):
     assert rec["delays"] == D.tolist()
     g = load_gains(path, s)
     rho = ClosedLoop(s.A, s.W, D, s.measure, g.G).spectral_radius()
-    assert rec["rho"] == pytest.approx(rho, abs=1e-12) and rho < 1
+    assert rec["rho_exact"] == pytest.approx(rho, abs=1e-12) and rho < 1
     assert g.meta["method"] == "default" and g.meta["delays"] == D.tolist()
     assert g.meta["scenario_digest"] == s.digest() and g.meta["seed"] == 2
-    assert g.meta["rho"] == pytest.approx(rho, abs=1e-12)
-    assert rec["mse_steady"] == pytest.approx(g.meta["mse_steady"])
+    assert g.meta["rho_exact"] == pytest.approx(rho, abs=1e-12)
+    assert rec["mse_steady_exact"] == pytest.approx(g.meta["mse_steady_exact"])
 
 
 def test_delay_free_ccl_design_is_unstable_at_uniform7_and_writes_nothing(capsys, tmp_path):
@@ -48,7 +48,7 @@ def test_delay_free_ccl_design_is_unstable_at_uniform7_and_writes_nothing(capsys
                             "--delays", "uniform:7", "--out", str(path), "--json")
     assert status == 1
     rec = json.loads(out)
-    assert rec["stable"] is False and rec["rho"] > 1 and rec["rho_delay_free"] < 1
+    assert rec["stable"] is False and rec["rho_exact"] > 1 and rec["rho_delay_free"] < 1
     assert "no stabilising gain" in err and not path.exists()
     status, out, err = _run(capsys, "paper-14", "--method", "ccl", "--solver", "scs",
                             "--delays", "uniform:7", "--out", str(path), "--force")
@@ -97,5 +97,5 @@ def test_mse_objective_from_the_cli(capsys, tmp_path):
     s = load_scenario("paper-14")
     g = load_gains(path, s)
     loop = ClosedLoop(s.A, s.W, np.zeros((3, 3), int), s.measure, g.G)
-    assert rec["mse_steady"] == pytest.approx(loop.mse_steady(0.05, 0.05), rel=1e-10)
-    assert rec["objective"] == "mse" and rec["mse_steady"] < 1.0
+    assert rec["mse_steady_exact"] == pytest.approx(loop.mse_steady(0.05, 0.05), rel=1e-10)
+    assert rec["objective"] == "mse" and rec["mse_steady_exact"] < 1.0

@@ -49,7 +49,7 @@ def test_crashed_agent_is_replaced_and_the_run_equals_the_simulator(tmp_path, li
     assert s["recovered"] and s["rosters"][-1]["ids"] == [4, 2, 3]
     assert s["max_rel_diff_vs_simulator"] <= 1e-9
     assert s["exit_status"]["agent-1"] == -9 and s["orphans"] == []
-    predicted = s["mse_steady_predicted_after_recovery"]
+    predicted = s["mse_steady_exact_after_recovery"]
     assert 0.2 * predicted < s["mse_steady_after_recovery"] < 5 * predicted, s
 
 

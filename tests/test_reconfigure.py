@@ -73,7 +73,7 @@ def test_build_recovery_delays_and_errors(paper14, g2):
                                max_iter=10)
     np.testing.assert_array_equal(rec.delays, uniform_delays(rec.scenario.W, 2))
     assert rec.ids == (4, 2, 3) and rec.replaces == {4: 0}
-    assert info["rho_after"] < 1 and info["mse_steady_exact_after"] > 0
+    assert info["rho_exact_after_recovery"] < 1 and info["mse_steady_exact_after_recovery"] > 0
     with pytest.raises(RecoveryDesignError, match="cannot be recovered"):
         build_recovery(paper14.replace(standby=0), [0, 1, 2], "none")
     with pytest.raises(RecoveryDesignError, match="3 x 3 integer"):

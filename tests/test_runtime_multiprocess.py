@@ -114,7 +114,7 @@ def test_up_with_delays_stays_stable_where_certified(tmp_path, gains_files):
     assert code == 0, stderr
     summary = json.loads(stdout)
     assert summary["learned_delays"]["1"] == {"2": 3}
-    assert summary["rho_closed_loop"] == pytest.approx(rho)
+    assert summary["rho_exact"] == pytest.approx(rho)
     # one run: the tail mean of MSE is within a broad factor of the exact steady value
     assert 0.2 * predicted < summary["mse_steady"] < 5 * predicted, (summary, predicted)
 

@@ -104,6 +104,6 @@ def test_recover_designs_gains_for_the_new_configuration(gains_file, capsys):
                "200", "--fail", "100:1", "--recover", "--json"])
     out = json.loads(capsys.readouterr().out)
     assert rc == 0, out
-    assert out["recovered"] is True and out["recovery"]["rho_after"] < 1
+    assert out["recovered"] is True and out["recovery"]["rho_exact_after_recovery"] < 1
     assert out["recovery"]["replacements"][0]["from"] == "7"
     assert not out["diverged"]

@@ -7,7 +7,7 @@ import math
 import sys
 import warnings
 
-from ..jsonable import to_jsonable  # noqa: F401 - re-exported for the commands
+from ..jsonable import to_jsonable, versioned  # noqa: F401 - re-exported for the commands
 
 from design.errors import GainsError, ScenarioError
 from design.gains import load_gains
@@ -224,7 +224,9 @@ def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:
 
 
 def print_json(obj) -> None:
-    json.dump(to_jsonable(obj), sys.stdout, indent=2)
+    """Print a command's ``--json`` record (with ``schema_version``, docs/json.md)."""
+    json.dump(to_jsonable(versioned(obj) if isinstance(obj, dict) else obj), sys.stdout,
+              indent=2)
     sys.stdout.write("\n")
 
 

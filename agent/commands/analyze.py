@@ -54,7 +54,7 @@ def _modes(modes) -> str:
 
 def format_text(d: dict) -> str:
     lines = [
-        f"scenario {d['name']}: n = {d['n']} individuals, N = {d['N']} agents "
+        f"scenario {d['scenario']}: n = {d['n']} individuals, N = {d['N']} agents "
         f"(+{d['standby']} standby)",
         f"social dynamics: rho(A) = {d['rho_A']:.5g}, rank(A) = {d['rank_A']}"
         + ("" if d["full_rank"] else "  (rank deficient: Assumption 1 fails)"),

@@ -54,13 +54,12 @@ def _run(args) -> int:
     result["gains_file"] = str(args.gains)
     result["gains_meta"] = gains.meta
     mismatch = gains_scenario_mismatch(gains.meta, scenario)   # only with --force-gains
-    if mismatch is not None:
-        result["warning"] = mismatch
+    result["warnings"] = [mismatch] if mismatch is not None else []
     if args.json:
         print_json(result)
     else:
         print(format_text(result))
-    return EXIT_OK if result["stable_scenario_delays"] else EXIT_NEGATIVE
+    return EXIT_OK if result["stable"] else EXIT_NEGATIVE
 
 
 def _f(x, digits=5) -> str:
@@ -73,9 +72,9 @@ def format_text(d: dict) -> str:
         f"exact radius, delay-free:          {_f(d['rho_delay_free'])}"
         f" ({'stable' if d['stable_delay_free'] else 'UNSTABLE'})",
         f"exact radius, scenario delays (taubar = {d['scenario_taubar']}): "
-        f"{_f(d['rho_scenario_delays'])} ({'stable' if d['stable_scenario_delays'] else 'UNSTABLE'})",
+        f"{_f(d['rho_exact'])} ({'stable' if d['stable'] else 'UNSTABLE'})",
         f"steady MSE (exact), delay-free:    {_f(d['mse_steady_delay_free'])}",
-        f"steady MSE (exact), scenario delays: {_f(d['mse_steady_scenario_delays'])}",
+        f"steady MSE (exact), scenario delays: {_f(d['mse_steady_exact'])}",
     ]
     ts = d["tau_star"]
     if ts is None:
@@ -86,10 +85,12 @@ def format_text(d: dict) -> str:
             + (f" (search capped at {d['tau_star_cap']})" if d["tau_star_capped"]
                else f" (tau_star = {ts}; searched up to {d['tau_star_cap']})"))
     lines.append("")
-    lines.append("  tau   exact radius  stable   paper's formula   Theorem 1 rho  holds")
+    lines.append("  tau   exact radius  stable   exact steady MSE   paper's formula   "
+                 "Theorem 1 rho  holds")
     for r in d["rows"]:
         lines.append(
             f"  {r['tau']:>3}   {r['rho_exact']:12.6f}  {'yes' if r['stable'] else 'NO ':<6}"
+            f"   {_f(r['mse_steady_exact'], 6):>16}"
             f"   {r['paper_formula']:15.6f}   {r['theorem1_rho']:13.6g}  "
             f"{'yes' if r['theorem1_holds'] else 'no'}")
     lines.append("  (paper's formula = rho(Ahat)^(1/(tau+1)), Tables 2-4; not a certificate)")
@@ -101,6 +102,6 @@ def format_text(d: dict) -> str:
             f"paper's Phi (Remark 2): {_f(d['phi'], 4)} with {d['phi_beta_choice']} = "
             f"{_f(d['phi_beta'], 4)}; alpha1 = {_f(d['phi_alpha1'], 4)}, "
             f"alpha2 = {_f(d['phi_alpha2'], 4)}")
-    if "warning" in d:
-        lines.append(f"warning: {d['warning']}")
+    for warning in d.get("warnings", []):
+        lines.append(f"warning: {warning}")
     return "\n".join(lines)

@@ -46,6 +46,7 @@ def _chaos(args) -> int:
 
     from ..chaos import CHAOS_KINDS, check_invariants, draw_schedule
     from ..run_summary import run_and_summarize, write_run_folder
+    from ..jsonable import SCHEMA_VERSION
     from ._common import CommandError, to_jsonable
     from .up import run_config
 
@@ -83,6 +84,7 @@ def _chaos(args) -> int:
     violations = [] if rec.failure else check_invariants(config, rec, summary, steps, mse)
     write_run_folder(config.out, summary, steps, mse, predicted, rec.rosters)
     report = {
+        "schema_version": SCHEMA_VERSION,
         "scenario": s.name, "seed": args.seed, "duration": args.duration,
         "faults": [f.to_dict() for f in schedule],
         "failures": summary.get("failures", []),

@@ -145,7 +145,7 @@ def _run(args) -> int:
     if res.stable or args.force:
         meta = gains_meta(
             scenario, res.method, res.delays, res.rho, objective=res.objective,
-            mse_steady=res.mse_steady, stable=res.stable, seconds=res.seconds,
+            mse_steady_exact=res.mse_steady, stable=res.stable, seconds=res.seconds,
             iterations=res.iterations, seed=res.seed, status=res.status,
             rho_delay_free=res.rho_delay_free,
             options={k: v for k, v in res.options.items() if k != "init"},
@@ -154,8 +154,8 @@ def _run(args) -> int:
         # the radius reported is that of the file as written, computed afresh
         written = load_gains(out, scenario)
         loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, written.G)
-        record["rho"] = loop.spectral_radius()
-        record["stable"] = bool(record["rho"] < 1)
+        record["rho_exact"] = loop.spectral_radius()
+        record["stable"] = bool(record["rho_exact"] < 1)
         record["written"] = str(out)
     status = EXIT_OK if record["stable"] else EXIT_NEGATIVE
     if args.json:
@@ -164,7 +164,7 @@ def _run(args) -> int:
         _print_text(record, res)
     if not record["stable"]:
         where = f"written to {out} (--force)" if record["written"] else "no file written"
-        print(f"socmon: no stabilising gain found for these delays (rho = {record['rho']:.6g}); "
+        print(f"socmon: no stabilising gain found for these delays (rho = {record['rho_exact']:.6g}); "
               f"{where}", file=sys.stderr)
     return status
 
@@ -174,11 +174,11 @@ def _print_text(record, res) -> None:
     taubar = max((max(r) for r in delays), default=0)
     print(f"design {record['scenario']}: method {record['method']}, objective "
           f"{record['objective']}, delays up to {taubar} steps")
-    print(f"  rho (exact, delays as designed for) = {record['rho']:.6f}  "
+    print(f"  rho (exact, delays as designed for) = {record['rho_exact']:.6f}  "
           f"{'stable' if record['stable'] else 'NOT stable'}")
     print(f"  rho (delay-free loop)              = {record['rho_delay_free']:.6f}")
-    if record["mse_steady"] is not None:
-        print(f"  steady MSE                         = {record['mse_steady']:.6g}")
+    if record["mse_steady_exact"] is not None:
+        print(f"  steady MSE (exact)                 = {record['mse_steady_exact']:.6g}")
     det = record["detectability"]
     print(f"  distributed pair rank {det['rank']} of {det['order']}"
           f" ({'observable' if det['observable'] else 'detectable'})")

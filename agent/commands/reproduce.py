@@ -29,7 +29,8 @@ from pathlib import Path
 from design.errors import ScenarioError
 from design.experiments import PAPER, reproduce_section5, steady_z
 
-from ._common import EXIT_NEGATIVE, EXIT_OK, CommandError, parse_int, run_command, to_jsonable
+from ._common import (EXIT_NEGATIVE, EXIT_OK, CommandError, parse_int, run_command,
+                      to_jsonable, versioned)
 
 HELP = "regenerate the paper's Section 5 (rho tables, MSE figures, steady MSE) with a report"
 
@@ -91,7 +92,7 @@ def _mse_section(title, sims, paper_phi, our_phi):
              "|---|---|---|---|---|---|---|"]
     for i, s in enumerate(sims):
         se = s["mse_steady_se"]
-        sim = _f(s["mse_steady_sim"]) + (f" ± {_f(se)}" if se is not None else "")
+        sim = _f(s["mse_steady"]) + (f" ± {_f(se)}" if se is not None else "")
         if s["diverged"]:
             sim += " (diverged)"
         z = steady_z(s)
@@ -145,7 +146,7 @@ def write_report(out: Path, results: dict) -> Path:
                 nr = f["no_recovery"]
                 rad = f.get("unmeasured_parent_radius")
                 L += ["", f"Without recovery (tau = {nr['tau']}): steady MSE "
-                      f"{_f(nr['mse_steady_sim'])}"
+                      f"{_f(nr['mse_steady'])}"
                       + (" (diverged)" if nr["diverged"] else "")
                       + ", the mean over the agents still running (their own gains, the "
                       "failed neighbours' weights on themselves)."
@@ -171,14 +172,14 @@ def _mse_statement(name, sim, paper_phi, our_phi, note) -> str:
     return (
         f"- **Steady MSE against Phi ({name}, delay-free).** The paper's Phi is {paper_phi}; "
         f"for our gain the exact steady MSE (Lyapunov) is {_f(exact)}{ratio}, the "
-        f"simulation gives {_f(sim['mse_steady_sim'])}, and Remark 2's Phi for our gain is "
+        f"simulation gives {_f(sim['mse_steady'])}, and Remark 2's Phi for our gain is "
         f"{phi_text}. Phi is an approximation with an unspecified beta, neither a bound nor "
         "an exact value, and depends on the gain; the Lyapunov value is exact for our gain"
         + _agreement(sim) + ".")
 
 
 def _agreement(sim) -> str:
-    exact, got, se = sim["mse_steady_exact"], sim["mse_steady_sim"], sim["mse_steady_se"]
+    exact, got, se = sim["mse_steady_exact"], sim["mse_steady"], sim["mse_steady_se"]
     if exact is None or se is None:
         return ""
     z = abs(got - exact) / se if se > 0 else math.inf
@@ -308,7 +309,7 @@ def _run(args) -> int:
     write_figures(out, results)
     report = write_report(out, results)
     clean = _strip(results)
-    (out / "results.json").write_text(json.dumps(to_jsonable(clean), indent=1) + "\n")
+    (out / "results.json").write_text(json.dumps(to_jsonable(versioned(clean)), indent=1) + "\n")
     print(f"report: {report}")
     for p in results["problems"]:
         print(f"problem: {p}")

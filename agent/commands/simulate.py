@@ -204,6 +204,7 @@ def _run(args) -> int:
     out["scenario"] = scenario.name
     out["gains_file"] = str(args.gains)
     out["delays"] = delays.tolist()
+    out["delays_spec"] = args.delays
     exact = fail is None and drop == 0   # the loop simulated is the one certify sees
     out["mse_steady_exact"] = exact_steady_mse(scenario, gains.G, delays) if exact else None
     out["rho_exact"] = exact_radius(scenario, gains.G, delays) if exact else None
@@ -268,7 +269,7 @@ def format_text(d: dict) -> str:
         if r["added_links"]:
             lines.append("  added links: " + ", ".join(
                 f"{x['from']} -> {x['to']}" for x in r["added_links"]))
-        lines.append(f"  exact radius after recovery: {r['rho_after']:.6g}")
+        lines.append(f"  exact radius after recovery: {r['rho_exact_after_recovery']:.6g}")
     lines.append(f"MSE at step 0: {_f(mse[0] if isinstance(mse[0], float) else mse[0])}, "
                  f"at step {d['steps']}: {_f(mse[-1] if isinstance(mse[-1], float) else mse[-1])}")
     lines.append(f"steady MSE (mean over the last quarter): {_f(d['mse_steady'])}")

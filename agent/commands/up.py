@@ -174,7 +174,7 @@ def _up(args) -> int:
                      f"{f.get('activate_at')}" if rep else ""))
         if "mse_steady_after_recovery" in summary:
             print(f"  after recovery: mse_steady {summary['mse_steady_after_recovery']:.4g} "
-                  f"(predicted {summary.get('mse_steady_predicted_after_recovery') or float('nan'):.4g})")
+                  f"(predicted {summary.get('mse_steady_exact_after_recovery') or float('nan'):.4g})")
         print(f"run folder: {config.out}")
     if rec.failure:
         print(f"socmon up: {rec.failure}", file=sys.stderr)
