@@ -17,7 +17,8 @@ Layers, lowest first. A module imports only from its own layer or the layers bel
    :mod:`~design.closed_loop`, :mod:`~design.certificates`.
 4. **estimation** -- gains and Monte-Carlo runs: :mod:`~design.ccl`,
    :mod:`~design.gradient`, :mod:`~design.gain_design`, :mod:`~design.simulate`.
-5. **experiments** -- pipelines over all of the above: :mod:`~design.experiments`.
+5. **experiments** -- pipelines over all of the above: :mod:`~design.experiments`,
+   :mod:`~design.reconfigure`, and :mod:`~design.interop` (python-control, networkx).
 
 Heavy imports (cvxpy) happen inside the functions that need them.
 """
@@ -29,5 +30,5 @@ LAYERS = {
     "observability": 2, "recovery": 2, "analysis": 2, "roster": 2,
     "estimator": 3, "closed_loop": 3, "certificates": 3,
     "ccl": 4, "gradient": 4, "gain_design": 4, "simulate": 4,
-    "reconfigure": 5, "experiments": 5,
+    "reconfigure": 5, "experiments": 5, "interop": 5,
 }

@@ -214,37 +214,53 @@ class ClosedLoop:
             col += g.shape[1]
         return B, Gz
 
+    def noise_state_space(self, q: float, r: float):
+        """``(M, B, C)``: the error as a linear system driven by unit-variance white noise.
+
+        ``x_{k+1} = M x_k + B w_k``, ``e_k = C x_k`` with ``w_k = (nu_k / sqrt(q),
+        zeta_{k+1} / sqrt(r))``: the process noise (n components) and the readings' noise of
+        the next step (p components, entering as ``-G zeta``). Without delays ``x = e``
+        and ``M = F_0``; with delays ``x = (e_k, ..., e_{k-T}, nu_{k-1}, ..., nu_{k-T})``,
+        the companion state augmented with the process-noise window, and ``M`` has the
+        spectral radius of the companion matrix. The steady error covariance is
+        ``C P C^T`` with ``P = M P M^T + B B^T``.
+        """
+        m, n, T = self.n * self.N, self.n, self.taubar
+        Bs, Gz = self.noise_input(q, r)
+        if T == 0:
+            M, Bin, Gin = self.F(0), Bs[0], Gz
+        else:
+            # fresh inputs nu_k, zeta_{k+1}
+            order = (T + 1) * m + T * n
+            M = np.zeros((order, order))
+            M[: (T + 1) * m, : (T + 1) * m] = self.companion(sparse=False)
+            nu0 = (T + 1) * m
+            for s in range(1, T + 1):
+                M[:m, nu0 + (s - 1) * n: nu0 + s * n] = Bs[s]
+            if T > 1:
+                M[nu0 + n:, nu0: nu0 + (T - 1) * n] = np.eye((T - 1) * n)
+            Bin = np.zeros((order, n))
+            Bin[:m] = Bs[0]
+            Bin[nu0: nu0 + n] = np.eye(n)
+            Gin = np.zeros((order, Gz.shape[1]))
+            Gin[:m] = Gz
+        B = np.hstack([np.sqrt(q) * Bin, -np.sqrt(r) * Gin])
+        C = np.eye(m, M.shape[0])
+        return M, B, C
+
     def steady_error_covariance(self, q: float, r: float) -> np.ndarray:
         """Steady covariance (nN x nN) of the stacked error with ``Q = qI``, ``R = rI``.
 
-        Solves the discrete Lyapunov equation of the companion system augmented with the
-        process-noise window. Raises ValueError if the loop is not stable.
+        Solves the discrete Lyapunov equation of :meth:`noise_state_space` (the companion
+        system augmented with the process-noise window). Raises ValueError if the loop is
+        not stable.
         """
         rho = self.spectral_radius()
         if not rho < 1:
             raise ValueError(f"closed loop is not stable (rho = {rho:.6g}): no steady error")
-        m, n, T = self.n * self.N, self.n, self.taubar
-        B, Gz = self.noise_input(q, r)
-        if T == 0:
-            S = q * (B[0] @ B[0].T) + r * (Gz @ Gz.T)
-            return _solve_lyapunov(self.F(0), S)
-        # state: (e_k, ..., e_{k-T}, nu_{k-1}, ..., nu_{k-T}); fresh inputs nu_k, zeta_{k+1}
-        order = (T + 1) * m + T * n
-        M = np.zeros((order, order))
-        M[: (T + 1) * m, : (T + 1) * m] = self.companion(sparse=False)
-        nu0 = (T + 1) * m
-        for s in range(1, T + 1):
-            M[:m, nu0 + (s - 1) * n: nu0 + s * n] = B[s]
-        if T > 1:
-            M[nu0 + n:, nu0: nu0 + (T - 1) * n] = np.eye((T - 1) * n)
-        Bin = np.zeros((order, n))
-        Bin[:m] = B[0]
-        Bin[nu0: nu0 + n] = np.eye(n)
-        Gin = np.zeros((order, Gz.shape[1]))
-        Gin[:m] = Gz
-        S = q * (Bin @ Bin.T) + r * (Gin @ Gin.T)
-        P = _solve_lyapunov(M, S)
-        return P[:m, :m]
+        M, B, C = self.noise_state_space(q, r)
+        P = _solve_lyapunov(M, B @ B.T)
+        return C @ P @ C.T
 
     def mse_steady(self, q: float, r: float) -> float:
         """Steady mean-squared error per agent and per state: ``trace(P) / (nN)``."""
