@@ -73,9 +73,7 @@ def test_every_json_output_speaks_the_glossary(name, gains14, tmp_path, capsys):
     assert next(iter(out)) == "schema_version" and out["schema_version"] == SCHEMA_VERSION
     keys = _keys(out)
     assert not keys & set(FORMER), keys & set(FORMER)
-    assert "name" not in out
-    if name != "plan":
-        assert out["scenario"] == "paper-14"
+    assert "name" not in out and out["scenario"] == "paper-14"
     for value in _delays_values(out):
         assert isinstance(value, list) and all(isinstance(r, list) for r in value), value
         assert np.asarray(value).dtype.kind == "i"

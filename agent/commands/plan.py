@@ -48,7 +48,7 @@ def _run(args) -> int:
     scenario = load_scenario_arg(args.scenario)
     failed = parse_agent_list(args.fail, scenario, flag="--fail")
     plan = plan_recovery(scenario, failed, add_links=not args.no_new_links)
-    data = plan.to_dict(scenario)
+    data = {"scenario": scenario.name, **plan.to_dict(scenario)}
     if args.write_scenario:
         if plan.scenario_after is None:
             raise CommandError(
