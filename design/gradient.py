@@ -45,6 +45,7 @@ Examples
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -418,18 +419,30 @@ def _dense_top_eigenpairs(M, k):
     vl = np.empty((order, len(lam)), dtype=complex)
     b = np.cos(np.arange(order) + 0.5) + 1.0     # fixed start, not orthogonal to a vector
     scale = max(1.0, float(np.abs(Md).max()))
+    exact = None                                  # (values, left, right) of eig, if needed
     for c, mu in enumerate(lam):
         shifted = Md - mu * np.eye(order)
-        lu = sla.lu_factor(shifted, check_finite=False)
-        piv = np.abs(np.diag(lu[0]))
-        if piv.min() == 0:                        # exactly singular: nudge the shift
-            lu = sla.lu_factor(shifted - (1e-14 * scale) * np.eye(order), check_finite=False)
-        v, u = b.astype(complex), b.astype(complex)
-        for _ in range(2):
-            v = sla.lu_solve(lu, v, check_finite=False)
-            v /= np.linalg.norm(v)
-            u = sla.lu_solve(lu, u, trans=2, check_finite=False)
-            u /= np.linalg.norm(u)
+        with warnings.catch_warnings(), np.errstate(divide="ignore", invalid="ignore"):
+            # an exactly singular shift is expected (mu is an eigenvalue) and handled here
+            warnings.simplefilter("ignore", sla.LinAlgWarning)
+            lu = sla.lu_factor(shifted, check_finite=False)
+            piv = np.abs(np.diag(lu[0]))
+            if piv.min() == 0:                    # exactly singular: nudge the shift
+                lu = sla.lu_factor(shifted - (1e-14 * scale) * np.eye(order),
+                                   check_finite=False)
+            v, u = b.astype(complex), b.astype(complex)
+            for _ in range(2):
+                v = sla.lu_solve(lu, v, check_finite=False)
+                v /= np.linalg.norm(v)
+                u = sla.lu_solve(lu, u, trans=2, check_finite=False)
+                u /= np.linalg.norm(u)
+        if not (np.all(np.isfinite(v)) and np.all(np.isfinite(u))):
+            # inverse iteration broke down (a shift singular even after the nudge, e.g. a
+            # zero eigenvalue of a rank-deficient loop): take the vectors from eig
+            if exact is None:
+                exact = sla.eig(Md, left=True, right=True)
+            i = int(np.argmin(np.abs(exact[0] - mu)))
+            v, u = exact[2][:, i], exact[1][:, i]
         vr[:, c], vl[:, c] = v, u
     return lam, vr, vl
 
