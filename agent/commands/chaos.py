@@ -6,7 +6,7 @@ HELP = "run live under a random fault schedule drawn from a seed and check the i
 
 
 def add_arguments(parser) -> None:
-    from ._common import add_scenario_argument
+    from ._common import add_force_gains_argument, add_scenario_argument
 
     add_scenario_argument(parser)
     parser.add_argument("--seed", type=int, default=0,
@@ -19,6 +19,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--rate", type=float, default=3.0,
                         help="faults per 1000 steps (default 3; at least 160 steps apart)")
     parser.add_argument("--gains", help="gains file (.npz); default: designed")
+    add_force_gains_argument(parser)
     parser.add_argument("--delays", default="scenario",
                         help="link delays: scenario, none or uniform:T (default scenario)")
     parser.add_argument("--step-ms", type=float, default=None,

@@ -68,7 +68,9 @@ def run(args) -> int:
         manifest = json.loads((Path(ks.dir) / "keys.json").read_text())
         manifest["dir"] = str(ks.dir)
         if args.json:
-            print(json.dumps(manifest, indent=2))
+            from ._common import print_json
+
+            print_json(manifest)
             return 0
         agents = [n for n in ks.names if n.startswith("agent-")]
         print(f"key set of run {ks.run} in {ks.dir}")
