@@ -164,7 +164,8 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     for e in events:
         name = e.get("process", "")
         if name.startswith("agent-") and (e.get("exit_status") is not None or
-                                          e.get("signal") == "SIGSTOP"):
+                                          e.get("signal") == "SIGSTOP" or
+                                          e.get("link") == "down"):
             deaths.setdefault(int(name.split("-")[1]), e)
     failures = []
     reassigns = [r for r in records if r.get("kind") == "reassign"]
@@ -172,7 +173,8 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         entry = {"agent": v["agent"], "cause": v["cause"], "evidence": v["evidence"],
                  "detected_step": v["step"]}
         death = deaths.get(v["agent"])
-        if death is not None and death.get("signal") == "SIGSTOP":
+        if death is not None and (death.get("signal") == "SIGSTOP" or
+                                  death.get("link") == "down"):
             entry["detection_ms"] = 1e3 * (v.get("detected_t", v["t"]) - death["t"])
         r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
         if r is not None:
