@@ -259,6 +259,10 @@ class LocalRun:
                     for item in status_in.drain():
                         m = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                         if m is not None:
+                            was = rec.status.get(m["agent"])
+                            if was is not None and was["active"] and not m["active"]:
+                                event(process=f"agent-{m['agent']}", role="dropped",
+                                      epoch=m["epoch"], step=m["step"])
                             rec.status[m["agent"]] = m
                     for item in ctl_in.drain():
                         if item.key == keys.ctl_key(rec.run_id, 0):

@@ -167,6 +167,13 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                                           e.get("signal") == "SIGSTOP" or
                                           e.get("link") == "down"):
             deaths.setdefault(int(name.split("-")[1]), e)
+    returns, dropped = {}, {}       # agent -> its SIGCONT / link up; its role dropped
+    for e in events:
+        name = e.get("process", "")
+        if name.startswith("agent-") and (e.get("signal") == "SIGCONT" or e.get("link") == "up"):
+            returns.setdefault(int(name.split("-")[1]), e)
+        elif name.startswith("agent-") and e.get("role") == "dropped":
+            dropped.setdefault(int(name.split("-")[1]), e)
     failures = []
     reassigns = [r for r in records if r.get("kind") == "reassign"]
     for v in [r for r in records if r.get("kind") == "verdict"]:
@@ -176,6 +183,10 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         if death is not None and (death.get("signal") == "SIGSTOP" or
                                   death.get("link") == "down"):
             entry["detection_ms"] = 1e3 * (v.get("detected_t", v["t"]) - death["t"])
+        back, gone = returns.get(v["agent"]), dropped.get(v["agent"])
+        if back is not None and gone is not None and gone["t"] >= back["t"]:
+            # resolution: the agent's status period (0.2 s)
+            entry["fenced_ms"] = 1e3 * (gone["t"] - back["t"])
         r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
         if r is not None:
             entry.update(epoch=r["epoch"], activate_at=r["activate_at"],
