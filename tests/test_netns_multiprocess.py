@@ -162,3 +162,14 @@ def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, l
     assert f["fenced_ms"] >= 0            # dropped its role after the link came back
     assert s["fenced"] > 0                # its estimates were rejected meanwhile
     assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--fault", "linkdown:100:2:2"], "linkdown brings a host's link down and needs --netns"),
+    (["--netns", "--fault", "linkdown:100:2"], "linkdown needs SECONDS > 0"),
+])
+def test_a_linkdown_fault_needs_a_testbed_and_a_duration(tmp_path, capsys, flags, message):
+    from agent.cli import main
+
+    assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), *flags]) == 2
+    assert message in capsys.readouterr().err
