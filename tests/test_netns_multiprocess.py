@@ -173,3 +173,29 @@ def test_a_linkdown_fault_needs_a_testbed_and_a_duration(tmp_path, capsys, flags
 
     assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), *flags]) == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.slow
+def test_a_terminated_run_removes_its_testbed_and_its_processes(tmp_path, live_gains, prefix):
+    """SIGTERM to ``up --netns`` while it runs: exit 130, no child left, no namespace."""
+    import signal
+
+    from tests.test_runtime_multiprocess import _processes_with, _start_long_up
+
+    gains = {"paper-14-live": (live_gains, None, None)}
+    proc, marker = _start_long_up(tmp_path, gains, "--netns", "--netns-prefix", prefix)
+    try:
+        assert any(n.startswith(prefix + "-") for n in netns.list_namespaces())
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 130, err
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+        for pid in _processes_with(marker):
+            os.kill(pid, signal.SIGKILL)
+    assert _processes_with(marker) == []
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import signal
 
 HELP = "run world + one process per agent on this machine, record, and write a run folder"
 
@@ -153,10 +154,16 @@ def testbed_for(args, config, say):
         raise CommandError(f"--netns: {exc}", status=1) from None
     say(f"testbed: {len(testbed.hosts)} hosts in namespaces {testbed.prefix}-*, switch "
         f"{testbed.switch}")
+
+    def on_term(*_):                  # SIGTERM outside the run itself: still clean up
+        raise KeyboardInterrupt
+
+    old_term = signal.signal(signal.SIGTERM, on_term)
     try:
         yield testbed
     finally:
         testbed.close()
+        signal.signal(signal.SIGTERM, old_term)
 
 
 def _up(args) -> int:
