@@ -38,8 +38,8 @@ import re
 import shutil
 import subprocess
 
-__all__ = ["SUBNET", "Testbed", "TestbedError", "host_names", "host_of", "remove_testbed",
-           "unavailable_reason", "default_prefix"]
+__all__ = ["SUBNET", "Testbed", "TestbedError", "check_prefix", "default_prefix", "host_names",
+           "host_of", "list_namespaces", "remove_testbed", "unavailable_reason"]
 
 #: Addresses of the hosts (the switch has none): .1 for the first host, .2 for the next...
 SUBNET = ipaddress.ip_network("10.200.0.0/24")
@@ -84,6 +84,18 @@ def host_names(M: int) -> list:
 def host_of(process: str) -> str:
     """The host a process runs on: a restarted monitor (``monitor-2``) on the monitor's."""
     return "monitor" if process.startswith("monitor") else process
+
+
+def check_prefix(prefix: str) -> str:
+    """``prefix`` if it is a valid namespace prefix, else ValueError naming what is wrong.
+
+    >>> check_prefix("run7")
+    'run7'
+    """
+    if not isinstance(prefix, str) or not _PREFIX_RE.match(prefix):
+        raise ValueError(f"prefix: expected 1-12 lower-case letters and digits starting "
+                         f"with a letter, got {prefix!r}")
+    return prefix
 
 
 def default_prefix() -> str:
@@ -162,10 +174,7 @@ class Testbed:
     __test__ = False
 
     def __init__(self, hosts, prefix: str | None = None):
-        prefix = default_prefix() if prefix is None else prefix
-        if not _PREFIX_RE.match(prefix):
-            raise ValueError(f"prefix: expected 1-12 lower-case letters and digits starting "
-                             f"with a letter, got {prefix!r}")
+        prefix = default_prefix() if prefix is None else check_prefix(prefix)
         hosts = list(hosts)
         if len(set(hosts)) != len(hosts):
             raise ValueError(f"hosts: names must be unique, got {hosts}")

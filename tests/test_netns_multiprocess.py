@@ -167,8 +167,10 @@ def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, l
 @pytest.mark.parametrize("flags, message", [
     (["--fault", "linkdown:100:2:2"], "linkdown brings a host's link down and needs --netns"),
     (["--netns", "--fault", "linkdown:100:2"], "linkdown needs SECONDS > 0"),
+    (["--netns-prefix", "abc"], "--netns-prefix: only with --netns"),
+    (["--netns", "--netns-prefix", "a-b"], "--netns-prefix: prefix: expected 1-12 lower-case"),
 ])
-def test_a_linkdown_fault_needs_a_testbed_and_a_duration(tmp_path, capsys, flags, message):
+def test_netns_flags_are_checked_before_anything_starts(tmp_path, capsys, flags, message):
     from agent.cli import main
 
     assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), *flags]) == 2

@@ -104,6 +104,15 @@ def run_config(args, say, prog="up"):
     if not args.hang_timeout > 0:
         raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
     faults = parse_faults(args, scenario) if prog == "up" else ()
+    if getattr(args, "netns_prefix", None) is not None:
+        from ..netns import check_prefix
+
+        if not args.netns:
+            raise CommandError("--netns-prefix: only with --netns")
+        try:
+            check_prefix(args.netns_prefix)
+        except ValueError as exc:
+            raise CommandError(f"--netns-prefix: {exc}") from None
     if args.gains:
         G = gains_for(scenario, args.gains, delays)
         method = "file"
@@ -144,10 +153,7 @@ def testbed_for(args, config, say):
     why = unavailable_reason()
     if why is not None:
         raise CommandError(f"--netns: {why}", status=1)
-    try:
-        testbed = Testbed(host_names(config.M), prefix=args.netns_prefix)
-    except ValueError as exc:
-        raise CommandError(f"--netns-prefix: {exc}") from None
+    testbed = Testbed(host_names(config.M), prefix=args.netns_prefix)
     try:
         testbed.create()
     except TestbedError as exc:
