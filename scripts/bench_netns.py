@@ -5,13 +5,18 @@ process on its own network namespace host, agent AGENT's bridge port down for SE
 reads each run's summary (its failures come from the monitor's ``events.jsonl``):
 
 - detection: the monitor's verdict time minus the time ``up`` brought the link down;
-- activation: steps from the link going down to the new configuration's ``activate_at``,
+- activation: steps from the link going down to the first reassignment's ``activate_at``,
   times the step period (the nominal time the replacement's role begins);
+- confirmed: from the link going down to the monitor's record that every agent confirmed
+  (absent when confirmed within the tick of the reassignment); ``epochs``: the last epoch
+  (above 1 when ``activate_at`` passed before every agent confirmed and the monitor
+  re-issued the roles);
 - fenced: from the link coming back to the first status of the cut-off agent saying it
   dropped its role (resolution: the status period, 0.2 s);
 - rejected: estimates of the old agent that receivers dropped as fenced meanwhile.
 
 Usage (root): python scripts/bench_netns.py [--repeats 3] [--seconds 2] [--steps 400]
+[--out DIR]
 """
 
 import argparse
@@ -40,10 +45,16 @@ def one_run(out, step, agent, seconds, steps):
     if not failures:
         return {"convicted": False}
     f = failures[0]
+    records = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    confirmed = next((r for r in records if r.get("kind") == "confirmed"), None)
+    up = next(e for e in s["events"] if e.get("link") == "up")
     return {"convicted": True, "cause": f["cause"], "detection_ms": f["detection_ms"],
             "activation_ms": (f["activate_at"] - down["step"]) * STEP_MS,
+            "confirmed_ms": 1e3 * (confirmed["t"] - down["t"]) if confirmed else None,
+            "link_up_ms": 1e3 * (up["t"] - down["t"]),
             "fenced_ms": f.get("fenced_ms"), "rejected": s["fenced"],
-            "recovered": s["recovered"], "other_failures": len(s["failures"]) - 1}
+            "recovered": s["recovered"], "epochs": s["rosters"][-1]["epoch"],
+            "other_failures": len(s["failures"]) - 1}
 
 
 def main():
@@ -51,6 +62,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=2.0, help="link down for (default 2)")
     ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--out", help="keep the run folders here (default: a temporary folder)")
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT))
     from agent.netns import unavailable_reason
@@ -61,15 +73,16 @@ def main():
         return 2
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(args.out) if args.out else Path(tmp)
         for i in range(args.repeats):
-            r = one_run(Path(tmp) / f"run{i}", 100, 2, args.seconds, args.steps)
+            r = one_run(folder / f"run{i}", 100, 2, args.seconds, args.steps)
             rows.append(r)
             print(f"run {i}: " + ", ".join(
                 f"{k} {v:.0f}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()),
                 flush=True)
     print(f"\n{SCENARIO}, {STEP_MS:g} ms steps, agent 2's link down {args.seconds:g} s at "
           f"step 100, {args.repeats} runs (lease 1 s, hang timeout 1 s):")
-    for key in ("detection_ms", "activation_ms", "fenced_ms"):
+    for key in ("detection_ms", "activation_ms", "confirmed_ms", "link_up_ms", "fenced_ms"):
         vals = [r[key] for r in rows if r.get(key) is not None]
         if vals:
             print(f"  {key:14s} median {statistics.median(vals):7.0f}  min {min(vals):7.0f}  "

@@ -144,7 +144,9 @@ def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, l
     statuses stop, then its token's lease expires), the standby takes its role; when the
     link is up again agent 2 reconnects, its estimates are rejected by the receivers
     (older epoch) and it drops its role on hearing the roster."""
-    s = _up(tmp_path, live_gains, prefix, "--fault", "linkdown:100:2:2", steps=400)
+    # 300 steps (6 s) after the link returns: the old agent hears the roster once the
+    # monitor's session reaches it again (about 1 s when reconnection is prompt)
+    s = _up(tmp_path, live_gains, prefix, "--fault", "linkdown:100:2:2", steps=500)
     down, up = (e for e in s["events"] if e.get("link"))
     assert (down["link"], up["link"]) == ("down", "up")
     (f,) = s["failures"]
