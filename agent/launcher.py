@@ -42,7 +42,10 @@ class Children:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict = {}
 
-    def start(self, name: str, argv: list) -> Child:
+    def start(self, name: str, argv: list, wrap=()) -> Child:
+        """Start ``python -m agent.cli *argv`` as ``name``; ``wrap`` is an argv prefix that
+        execs it in place (e.g. ``ip netns exec NS``, :meth:`agent.netns.Testbed.exec_prefix`).
+        """
         log_path = self.log_dir / f"{name}.log"
         log = open(log_path, "wb")
         env = dict(os.environ)
@@ -53,7 +56,7 @@ class Children:
         # contend for the cores with the other processes of the run
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             env.setdefault(var, "1")
-        proc = subprocess.Popen([sys.executable, "-m", "agent.cli", *argv], cwd=str(ROOT),
+        proc = subprocess.Popen([*wrap, sys.executable, "-m", "agent.cli", *argv], cwd=str(ROOT),
                                 env=env, stdin=subprocess.DEVNULL, stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True)
         child = Child(name, proc, log_path, _log=log)

@@ -35,6 +35,7 @@ from . import wire
 from broker_free_net.ports import listen_port
 
 from .launcher import Children
+from .netns import host_names, host_of
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS"]
 
@@ -46,8 +47,10 @@ __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KI
 #: for ``seconds``.
 #: hang: the agent's loop stops for good (SIGUSR1) while its token stays; sensor: the
 #: agent's sensor readings stop (the world's link into it cut) for ``seconds``.
+#: linkdown: the agent's host's link brought down for ``seconds`` (a real partition; a run
+#: on a testbed of network namespaces only, :mod:`agent.netns`).
 FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
-               "drop")
+               "drop", "linkdown")
 
 
 @dataclass(frozen=True, order=True)
@@ -84,6 +87,9 @@ class RunConfig:
     faults: tuple = ()
     start_timeout: float = 60.0
     secure: bool = False
+    #: an :class:`agent.netns.Testbed` (made and removed by the caller) with the hosts of
+    #: :func:`agent.netns.host_names`: each process, the recorder included, on its own host
+    testbed: object = None
 
     @property
     def M(self) -> int:
@@ -157,6 +163,20 @@ class LocalRun:
 
     # -- the run -------------------------------------------------------------------------
     def run(self) -> Recording:
+        if self.config.testbed is None:
+            return self._run()
+        with self.config.testbed.inside("recorder"):     # the recorder's peer is there
+            return self._run()
+
+    def _host_ip(self, process):
+        tb = self.config.testbed
+        return "127.0.0.1" if tb is None else tb.ip(host_of(process))
+
+    def _wrap(self, process):
+        tb = self.config.testbed
+        return () if tb is None else tb.exec_prefix(host_of(process))
+
+    def _run(self) -> Recording:
         from agent.manifest import write_manifest
 
         c = self.config
@@ -167,7 +187,8 @@ class LocalRun:
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
         rec.rosters = [(0, tuple(range(1, N + 1)), 0)]
         scheme = "tls" if c.secure else "tcp"
-        ep = [f"{scheme}/127.0.0.1:{p}" for p in rec.ports]
+        ep = [f"{scheme}/{self._host_ip(name)}:{p}"
+              for name, p in zip(host_names(M), rec.ports)]
         net_extra = {}
         if c.secure:
             from broker_free_net.security import make_run_keys, run_identities
@@ -215,11 +236,11 @@ class LocalRun:
                 status_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "status"))
                 impair_key = keys.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
-                children.start("world", argv["world"])
+                children.start("world", argv["world"], self._wrap("world"))
                 for a in range(1, M + 1):
-                    children.start(f"agent-{a}", argv[f"agent-{a}"])
+                    children.start(f"agent-{a}", argv[f"agent-{a}"], self._wrap(f"agent-{a}"))
                 if c.monitor:
-                    children.start("monitor", argv["monitor"])
+                    children.start("monitor", argv["monitor"], self._wrap("monitor"))
                 self._write_run_json(rec, ep)
                 self.say(f"run {rec.run_id}: world + {N} agents + {c.scenario.standby} standby"
                          f"{' + monitor' if c.monitor else ''} started; waiting for all to be "
@@ -238,6 +259,10 @@ class LocalRun:
                     for item in status_in.drain():
                         m = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                         if m is not None:
+                            was = rec.status.get(m["agent"])
+                            if was is not None and was["active"] and not m["active"]:
+                                event(process=f"agent-{m['agent']}", role="dropped",
+                                      epoch=m["epoch"], step=m["step"])
                             rec.status[m["agent"]] = m
                     for item in ctl_in.drain():
                         if item.key == keys.ctl_key(rec.run_id, 0):
@@ -293,6 +318,10 @@ class LocalRun:
                             impair_links(f.agent, False, drop=float(f.value))
                         event(process=name, impair=f"{f.kind} {f.value:g}", step=k_now)
                         undo.append((now + f.seconds, f))
+                    elif f.kind == "linkdown":
+                        c.testbed.set_link(name, up=False)
+                        event(process=name, link="down", step=k_now)
+                        undo.append((now + f.seconds, f))
                     self.say(f"step {k_now}: {f.kind}"
                              + (f" agent {f.agent}" if f.agent else "")
                              + (f" for {f.seconds:g} s" if f.seconds else ""))
@@ -307,7 +336,8 @@ class LocalRun:
                         old = "monitor" if not restarts else f"monitor-{restarts + 1}"
                         _wait_exit(children, old, 10.0)
                         restarts += 1
-                        children.start(f"monitor-{restarts + 1}", argv["monitor"])
+                        children.start(f"monitor-{restarts + 1}", argv["monitor"],
+                                       self._wrap("monitor"))
                         event(process=f"monitor-{restarts + 1}", started=True, step=k_now)
                     elif f.kind == "sensor":
                         impair(0, f.agent, partition=False)
@@ -315,6 +345,9 @@ class LocalRun:
                     elif f.kind == "partition":
                         impair_links(f.agent, True, partition=False)
                         event(process=name, impair="healed", step=k_now)
+                    elif f.kind == "linkdown":
+                        c.testbed.set_link(name, up=True)
+                        event(process=name, link="up", step=k_now)
                     elif f.kind in ("delay", "drop"):
                         from design.roster import link_delay_table
 
@@ -394,10 +427,12 @@ class LocalRun:
 
     def _write_run_json(self, rec, ep):
         c = self.config
-        names = ["recorder", "world"] + [f"agent-{a}" for a in range(1, c.M + 1)] + ["monitor"]
-        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)}
+        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(host_names(c.M))}
         for name, child in rec.children.children.items():
             procs.setdefault(name, {})["pid"] = child.proc.pid
+        if c.testbed is not None:         # attach with `ip netns exec NETNS socmon ...`
+            for name in procs:
+                procs[name]["netns"] = c.testbed.namespace(host_of(name))
         (c.out / "run.json").write_text(json.dumps({
             "run": rec.run_id, "scenario": c.scenario.name, "out": str(c.out.resolve()),
             "connect": ep[0], "processes": procs}, indent=2) + "\n")

@@ -207,16 +207,29 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     for e in events:
         name = e.get("process", "")
         if name.startswith("agent-") and (e.get("exit_status") is not None or
-                                          e.get("signal") == "SIGSTOP"):
+                                          e.get("signal") == "SIGSTOP" or
+                                          e.get("link") == "down"):
             deaths.setdefault(int(name.split("-")[1]), e)
+    returns, dropped = {}, {}       # agent -> its SIGCONT / link up; its role dropped
+    for e in events:
+        name = e.get("process", "")
+        if name.startswith("agent-") and (e.get("signal") == "SIGCONT" or e.get("link") == "up"):
+            returns.setdefault(int(name.split("-")[1]), e)
+        elif name.startswith("agent-") and e.get("role") == "dropped":
+            dropped.setdefault(int(name.split("-")[1]), e)
     failures = []
     reassigns = [r for r in records if r.get("kind") == "reassign"]
     for v in [r for r in records if r.get("kind") == "verdict"]:
         entry = {"agent": v["agent"], "cause": v["cause"], "evidence": v["evidence"],
                  "detected_step": v["step"]}
         death = deaths.get(v["agent"])
-        if death is not None and death.get("signal") == "SIGSTOP":
+        if death is not None and (death.get("signal") == "SIGSTOP" or
+                                  death.get("link") == "down"):
             entry["detection_ms"] = 1e3 * (v.get("detected_t", v["t"]) - death["t"])
+        back, gone = returns.get(v["agent"]), dropped.get(v["agent"])
+        if back is not None and gone is not None and gone["t"] >= back["t"]:
+            # resolution: the agent's status period (0.2 s)
+            entry["fenced_ms"] = 1e3 * (gone["t"] - back["t"])
         r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
         if r is not None:
             entry.update(epoch=r["epoch"], activate_at=r["activate_at"],

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+
 HELP = "run world + one process per agent on this machine, record, and write a run folder"
 
 
@@ -46,13 +49,20 @@ def add_arguments(parser) -> None:
                         help="any scheduled fault (repeatable): kill, stop, hang (the agent's "
                              "loop stops, its token stays), sensor (its readings stop for "
                              "SECONDS), partition, delay (VALUE steps), drop (VALUE "
-                             "probability), monitor; see docs/monitor.md")
+                             "probability), monitor, linkdown (the agent's host's link down "
+                             "for SECONDS; with --netns); see docs/monitor.md")
     parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
                         help="the monitor's hang timeout (default 1.0 s)")
     parser.add_argument("--secure", action="store_true",
                         help="a fresh key set for this run (RUN_FOLDER/keys): mutual TLS between "
                              "every process and access control on every peer "
                              "(docs/security.md)")
+    parser.add_argument("--netns", action="store_true",
+                        help="each process on its own host: a network namespace per process, "
+                             "wired by veth pairs to a bridge in a switch namespace, 10.200.0.x "
+                             "addresses; removed after the run (needs root; docs/runtime.md)")
+    parser.add_argument("--netns-prefix", default=None, metavar="PREFIX",
+                        help="namespace names PREFIX-<host> (default sm<pid>)")
 
 
 def run(args) -> int:
@@ -95,6 +105,15 @@ def run_config(args, say, prog="up"):
     if not args.hang_timeout > 0:
         raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
     faults = parse_faults(args, scenario) if prog == "up" else ()
+    if getattr(args, "netns_prefix", None) is not None:
+        from ..netns import check_prefix
+
+        if not args.netns:
+            raise CommandError("--netns-prefix: only with --netns")
+        try:
+            check_prefix(args.netns_prefix)
+        except ValueError as exc:
+            raise CommandError(f"--netns-prefix: {exc}") from None
     if args.gains:
         G = gains_for(scenario, args.gains, delays, getattr(args, "force_gains", False))
         method = "file"
@@ -122,7 +141,40 @@ def run_config(args, say, prog="up"):
                      secure=getattr(args, "secure", False))
 
 
+@contextlib.contextmanager
+def testbed_for(args, config, say):
+    """With ``--netns``: a testbed with one host per process of the run, removed after it
+    (also when the run fails or is interrupted); else None."""
+    if not getattr(args, "netns", False):
+        yield None
+        return
+    from ..netns import Testbed, TestbedError, host_names, unavailable_reason
+    from ._common import CommandError
+
+    why = unavailable_reason()
+    if why is not None:
+        raise CommandError(f"--netns: {why}", status=1)
+    testbed = Testbed(host_names(config.M), prefix=args.netns_prefix)
+    try:
+        testbed.create()
+    except TestbedError as exc:
+        raise CommandError(f"--netns: {exc}", status=1) from None
+    say(f"testbed: {len(testbed.hosts)} hosts in namespaces {testbed.prefix}-*, switch "
+        f"{testbed.switch}")
+
+    def on_term(*_):                  # SIGTERM outside the run itself: still clean up
+        raise KeyboardInterrupt
+
+    old_term = signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield testbed
+    finally:
+        testbed.close()
+        signal.signal(signal.SIGTERM, old_term)
+
+
 def _up(args) -> int:
+    import dataclasses
     import json
     import sys
 
@@ -141,7 +193,10 @@ def _up(args) -> int:
 
     config = run_config(args, say)
     s = config.scenario
-    rec, summary, steps_done, mse, predicted = run_and_summarize(config, say)
+    with testbed_for(args, config, say) as testbed:
+        if testbed is not None:
+            config = dataclasses.replace(config, testbed=testbed)
+        rec, summary, steps_done, mse, predicted = run_and_summarize(config, say)
     status_code = 0
     if rec.failure:
         summary["error"] = rec.failure
@@ -240,6 +295,9 @@ def parse_faults(args, scenario) -> list:
         a = agent_id(parts[2], "--fault") if len(parts) > 2 else 0
         if kind != "monitor" and not a:
             raise CommandError(f"--fault: {kind} needs an agent, got {spec!r}")
+        if kind == "linkdown" and not getattr(args, "netns", False):
+            raise CommandError(f"--fault: linkdown brings a host's link down and needs "
+                               f"--netns, got {spec!r}")
         try:
             secs = float(parts[3]) if len(parts) > 3 else 0.0
             value = float(parts[4]) if len(parts) > 4 else 0.0
@@ -247,5 +305,8 @@ def parse_faults(args, scenario) -> list:
             raise CommandError(f"--fault: SECONDS and VALUE are numbers, got {spec!r}") from None
         if not (0 <= secs < 3600 and 0 <= value <= 1_000_000):
             raise CommandError(f"--fault: SECONDS in [0, 3600) and VALUE >= 0, got {spec!r}")
+        if kind == "linkdown" and not secs > 0:
+            raise CommandError(f"--fault: linkdown needs SECONDS > 0 (how long the link is "
+                               f"down), got {spec!r}")
         faults.append(Fault(k, kind, a, secs, value))
     return sorted(faults)

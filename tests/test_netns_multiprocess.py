@@ -1,0 +1,210 @@
+"""Runs across network namespaces: every process on its own host, real IP links.
+
+``socmon up --netns`` puts the recorder, the world, each agent and the monitor in a network
+namespace of their own, wired to a bridge in a switch namespace (agent/netns.py); a
+``linkdown`` fault brings a host's bridge port down (a real partition) and up again.
+Namespace names carry a prefix unique to the test, and a finalizer deletes whatever is left
+under it, also when ``socmon up`` was killed. Skipped, with the reason, where namespaces
+cannot be made (not root, no iproute2, no CAP_NET_ADMIN).
+"""
+
+import itertools
+import json
+import os
+import socket
+import subprocess
+
+import numpy as np
+import pytest
+
+from agent import netns
+from design.closed_loop import closed_loop_for
+from design.gains import save_gains
+from design.scenario import load_scenario, resolve_delays
+from tests.test_runtime_multiprocess import _socmon
+
+_serial = itertools.count()
+
+
+@pytest.fixture(scope="module")
+def can_make_namespaces():
+    why = netns.unavailable_reason()
+    if why is not None:
+        pytest.skip(f"no network namespaces on this machine: {why}")
+
+
+@pytest.fixture
+def prefix(can_make_namespaces):
+    """A namespace prefix of this test only; whatever is left under it is deleted after."""
+    p = f"st{os.getpid()}x{next(_serial)}"
+    yield p
+    netns.remove_testbed(p)
+
+
+@pytest.fixture(scope="module")
+def live_gains(tmp_path_factory):
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    rho = closed_loop_for(s, G, resolve_delays(s, "scenario")).spectral_radius()
+    assert rho < 1
+    path = tmp_path_factory.mktemp("gains") / "live.npz"
+    save_gains(path, G, {"method": "fixed", "rho": rho})
+    return path
+
+
+def _root_addresses():
+    return subprocess.run(["ip", "-4", "-o", "addr", "show"], capture_output=True,
+                          text=True, check=True).stdout
+
+
+def _connects(tb, src, dst, port, timeout):
+    """Whether a TCP connection from host ``src`` to ``dst``:``port`` is accepted."""
+    with tb.inside(src):
+        s = socket.socket()
+    with s:
+        s.settimeout(timeout)
+        try:
+            s.connect((tb.ip(dst), port))
+            return True
+        except OSError:
+            return False
+
+
+# -- the testbed itself -----------------------------------------------------------------------
+def test_testbed_names_are_checked():
+    with pytest.raises(ValueError, match="prefix"):
+        netns.Testbed(["a"], prefix="Bad_Prefix")
+    with pytest.raises(ValueError, match="unique"):
+        netns.Testbed(["a", "a"], prefix="ok")
+    tb = netns.Testbed(netns.host_names(4), prefix="ok")
+    assert tb.ip("recorder") == "10.200.0.1" and tb.ip("monitor") == "10.200.0.7"
+    assert tb.namespace("agent-3") == "ok-a3" and tb.port("agent-3") == "p-a3"
+    with pytest.raises(KeyError, match="no host 'agent-9'"):
+        tb.ip("agent-9")
+
+
+@pytest.mark.netns
+def test_a_downed_link_cuts_a_host_off_and_nothing_is_left_behind(prefix):
+    """Hosts reach each other over the bridge; a downed port cuts one host off, bringing it
+    up again restores it; the namespace it was made from gains no address, and closing
+    removes every namespace."""
+    before = _root_addresses()
+    with netns.Testbed(["a", "b", "c"], prefix=prefix) as tb:
+        assert "10.200." not in _root_addresses()
+        with tb.inside("a"):
+            server = socket.socket()
+        with server:
+            server.bind((tb.ip("a"), 0))
+            server.listen(8)
+            port = server.getsockname()[1]
+            assert _connects(tb, "b", "a", port, 5.0)
+            tb.set_link("a", up=False)
+            assert not _connects(tb, "b", "a", port, 0.5)
+            assert _connects(tb, "c", "b", 1, 5.0) is False    # b and c: no listener
+            tb.set_link("a", up=True)
+            assert any(_connects(tb, "c", "a", port, 1.0) for _ in range(10))
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]
+    assert _root_addresses() == before
+
+
+# -- whole runs -------------------------------------------------------------------------------
+def _up(tmp_path, gains, prefix, *flags, steps):
+    code, out, err = _socmon("up", "paper-14-live", "--steps", str(steps), "--gains",
+                             str(gains), "--out", str(tmp_path / "run"), "--json",
+                             "--step-ms", "20", "--netns", "--netns-prefix", prefix, *flags)
+    assert code == 0, err
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")], \
+        "socmon up left namespaces behind"
+    return json.loads(out)
+
+
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.slow
+def test_a_run_across_namespaces_equals_the_simulator(tmp_path, live_gains, prefix):
+    """Recorder, world, four agents and the monitor, each on its own host (its endpoint an
+    address that exists only in its namespace); the estimates equal design.simulate's."""
+    s = _up(tmp_path, live_gains, prefix, "--check-simulator", steps=150)
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9 and s["malformed"] == 0
+    assert s["simulator_compared"].startswith("estimates")
+    procs = json.loads((tmp_path / "run" / "run.json").read_text())["processes"]
+    names = netns.host_names(4)
+    assert [procs[n]["endpoint"].split(":")[0] for n in names] == \
+        [f"tcp/10.200.0.{i}" for i in range(1, 8)]
+    assert len({procs[n]["netns"] for n in names}) == 7
+    assert all(procs[n]["netns"].startswith(prefix + "-") for n in names)
+
+
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.slow
+def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, live_gains,
+                                                                    prefix):
+    """Agent 2's link is down for 2 s: the monitor convicts it while it is cut off (its
+    statuses stop, then its token's lease expires), the standby takes its role; when the
+    link is up again agent 2 reconnects, its estimates are rejected by the receivers
+    (older epoch) and it drops its role on hearing the roster."""
+    # 300 steps (6 s) after the link returns: the old agent hears the roster once the
+    # monitor's session reaches it again (about 1 s when reconnection is prompt)
+    s = _up(tmp_path, live_gains, prefix, "--fault", "linkdown:100:2:2", steps=500)
+    down, up = (e for e in s["events"] if e.get("link"))
+    assert (down["link"], up["link"]) == ("down", "up")
+    f, *others = s["failures"]
+    assert f["agent"] == 2 and f["cause"] in {"hang", "crash"}, f
+    assert 0 < f["detection_ms"] < 1e3 * (up["t"] - down["t"])
+    assert down["step"] <= f["detected_step"] < up["step"]
+    assert f["replacement"]["agent"] == 4 and s["recovered"]
+    # Seen in 4 of 22 runs, cause not established (docs/runtime.md): a survivor's readings,
+    # or the monitor's view of it, stall from about one lease after the cut until the link
+    # returns, and the monitor convicts it too (`sensor` or `hang`). Agent 2 is convicted
+    # first, once, and never as anything but cut off.
+    assert all(o["agent"] != 2 and o["cause"] in {"sensor", "hang"} for o in others), others
+    assert 2 not in s["rosters"][-1]["ids"] and 4 in s["rosters"][-1]["ids"]
+    verdicts = [json.loads(line) for line in
+                (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
+    assert [v["agent"] for v in verdicts if v.get("kind") == "verdict"][0] == 2
+    final = s["final_roles"]
+    assert final["2"]["active"] is False and final["2"]["epoch"] >= f["epoch"]
+    assert final["4"]["active"] is True
+    assert f["fenced_ms"] >= 0            # dropped its role after the link came back
+    assert s["fenced"] > 0                # its estimates were rejected meanwhile
+    assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--fault", "linkdown:100:2:2"], "linkdown brings a host's link down and needs --netns"),
+    (["--netns", "--fault", "linkdown:100:2"], "linkdown needs SECONDS > 0"),
+    (["--netns-prefix", "abc"], "--netns-prefix: only with --netns"),
+    (["--netns", "--netns-prefix", "a-b"], "--netns-prefix: prefix: expected 1-12 lower-case"),
+])
+def test_netns_flags_are_checked_before_anything_starts(tmp_path, capsys, flags, message):
+    from agent.cli import main
+
+    assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), *flags]) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.slow
+def test_a_terminated_run_removes_its_testbed_and_its_processes(tmp_path, live_gains, prefix):
+    """SIGTERM to ``up --netns`` while it runs: exit 130, no child left, no namespace."""
+    import signal
+
+    from tests.test_runtime_multiprocess import _processes_with, _start_long_up
+
+    gains = {"paper-14-live": (live_gains, None, None)}
+    proc, marker = _start_long_up(tmp_path, gains, "--netns", "--netns-prefix", prefix)
+    try:
+        assert any(n.startswith(prefix + "-") for n in netns.list_namespaces())
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 130, err
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+        for pid in _processes_with(marker):
+            os.kill(pid, signal.SIGKILL)
+    assert _processes_with(marker) == []
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]
