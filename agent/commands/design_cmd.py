@@ -49,7 +49,8 @@ def add_arguments(parser) -> None:
                         help="iterations: BFGS per start and stage (default 200) or "
                              "cone-complementarity iterations (default 50)")
     parser.add_argument("--starts", type=int_flag(lo=1), default=None, metavar="K",
-                        help="--method default: number of starts (default 3)")
+                        help="--method default: number of starts (default 3 for --objective "
+                             "rho, 1 for mse)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                         help="safety cap: stop and keep the best gain found after this long "
                              "(default: 60 s for --objective rho, whose radius converges slowly "
