@@ -91,13 +91,23 @@ def design_for_bound(scenario, tau: int, seed: int = 0, objective: str = "rho",
 
     ``init``: a neighbouring design to start from (the gain of the next smaller delay
     bound, or the gains before a failure); ``progress`` as for ``design_gains``."""
+    G, D, rho, _ = _design_bound(scenario, tau, seed, objective, time_limit, init, progress)
+    return G, D, rho
+
+
+def _design_bound(scenario, tau, seed, objective, time_limit, init, progress):
+    """:func:`design_for_bound` and the certified steady MSE: ``(G, D, rho, mse)``
+    (``mse`` None when unstable); the design's own exact figures, not computed twice."""
     D = uniform_delays(scenario.W, tau)
     options = {} if time_limit is None else {"time_limit": float(time_limit)}
     if init is not None:
         options["init"] = init
     result = design_gains(scenario, delays=D, seed=seed, objective=objective,
                           progress=progress, **options)
-    return list(result.G), D, float(result.rho)
+    G, rho, mse = list(result.G), float(result.rho), result.mse_steady
+    if mse is None and rho < 1:
+        mse = _exact(scenario, G, D)[1]
+    return G, D, rho, (None if mse is None else float(mse))
 
 
 def _rows_measuring(scenario, labels):
@@ -136,7 +146,7 @@ def rho_table(scenario, taus, paper_rho, designs, log=None):
             "exact_delay_free_gain": closed_loop_for(scenario, G0, D).spectral_radius(),
             "theorem1_delay_free_gain": theorem1_radius(scenario.A, scenario.W,
                                                         scenario.measure, G0, tau),
-            "exact_designed_gain": closed_loop_for(scenario, G, D).spectral_radius(),
+            "exact_designed_gain": designs[tau][2],      # the design's exact radius
         })
     log(f"  rho table done ({scenario.name})")
     return rows
@@ -168,14 +178,15 @@ def experiment(name, scenario, taus, trials, steps, seed, log=None, fail_labels=
     record = {"scenario": scenario.name, "n": scenario.n, "N": scenario.N,
               "rho_A": scenario.rho_A, "trials": trials, "steps": steps, "seed": seed,
               "taus": list(taus), "problems": []}
-    designs = {}
+    designs, exacts = {}, {}
     previous = None
     for tau in taus:
         t0 = time.perf_counter()
-        designs[tau] = design_for_bound(
-            scenario, tau, seed, objective, time_limit, init=previous,
-            progress=_labelled(progress, f"{scenario.name} tau = {tau}"))
-        previous = designs[tau][0]
+        G, D, rho, mse = _design_bound(
+            scenario, tau, seed, objective, time_limit, previous,
+            _labelled(progress, f"{scenario.name} tau = {tau}"))
+        designs[tau], exacts[tau] = (G, D, rho), (rho, mse)
+        previous = G
         log(f"  designed {scenario.name} tau={tau}: exact radius {designs[tau][2]:.4f} "
             f"({time.perf_counter() - t0:.1f} s)")
     record["rho_table"] = rho_table(scenario, taus, paper["rho"], designs, log)
@@ -185,7 +196,7 @@ def experiment(name, scenario, taus, trials, steps, seed, log=None, fail_labels=
     sims, curves = [], []
     for tau in taus:
         G, D, _ = designs[tau]
-        rho, exact = _exact(scenario, G, D)
+        rho, exact = exacts[tau]
         res = simulate(scenario, G, steps=steps, trials=trials, seed=seed, delays=D,
                        progress=sim_progress)
         curves.append((f"tau = {tau}", res))
@@ -268,11 +279,10 @@ def failure_experiment(scenario, taus, designs, trials, steps, seed, log, fail_l
             rec["problems"].append(
                 f"recovery planner replaced {fail_labels} by {got}, the paper by {replace_labels}")
         t0 = time.perf_counter()
-        G2, D2, _ = design_for_bound(
-            new, tau, seed, objective, time_limit, init=initial_gains(plan, G, s_tau),
-            progress=_labelled(progress, f"recovered {scenario.name} tau = {tau}"))
+        G2, D2, rho2, exact2 = _design_bound(
+            new, tau, seed, objective, time_limit, initial_gains(plan, G, s_tau),
+            _labelled(progress, f"recovered {scenario.name} tau = {tau}"))
         log(f"  designed recovered network tau={tau} ({time.perf_counter() - t0:.1f} s)")
-        rho2, exact2 = _exact(new, G2, D2)
         if rho2 >= 1:
             rec["problems"].append(f"recovered network: no stabilising gain for tau = {tau}")
         res = simulate(s_tau, G, steps=steps, trials=trials, seed=seed, fail=(f_step, failed),
