@@ -99,7 +99,8 @@ class DesignProgress:
     iterations : int, iterations of the whole design so far
     quantity : "rho" or "mse", what ``value`` is
     value : float, the stage's current objective (the radius, or the steady MSE as the
-        optimiser evaluates it; ``inf`` for an unstable point)
+        optimiser evaluates it; ``inf`` for an unstable point; ``nan`` in the final
+        ``"certifying ..."`` stage, which has no iterations)
     best : float or None, the best objective of the starts already finished
     elapsed : float, seconds since the design began
     time_left : float or None, seconds until ``time_limit`` (None without one)
@@ -378,6 +379,9 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
     else:
         res = _design_default(scenario, D, objective, seed, opts, t0, report)
     G, history, iterations, status = res
+    certify = report.stage("certifying (exact radius and steady MSE)", "rho", 0)
+    if certify is not None:
+        certify(0, float("nan"))        # one dense eigenvalue problem and Lyapunov solve
     loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
     rho = loop.spectral_radius()
     stable = bool(rho < 1)

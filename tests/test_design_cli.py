@@ -125,6 +125,12 @@ def test_progress_line_only_on_a_terminal():
     line.design(p)
     assert ("design: start 1 of 3, radius: iteration 4/200, rho 0.91234, 1.5 s, "
             "58 s left of --time-limit") in term.getvalue()
+    line.design(DesignProgress(stage="certifying (exact radius and steady MSE)",
+                               iteration=0, iterations=4, quantity="rho",
+                               value=float("nan"), best=None, elapsed=2.0, time_left=None,
+                               max_iter=0))
+    assert term.getvalue().rstrip().endswith("design: certifying (exact radius and steady MSE)"
+                                              ", 2.0 s")
     line.note("designed")
     line.close()
     assert term.getvalue().endswith("designed\n")

@@ -24,8 +24,11 @@ __all__ = ["ProgressLine", "format_design_progress"]
 def format_design_progress(p) -> str:
     """One line for a :class:`design.gain_design.DesignProgress`."""
     name = "rho" if p.quantity == "rho" else "MSE"
-    text = (f"{p.stage}: iteration {p.iteration}/{p.max_iter}, {name} "
-            f"{_num(p.value)}")
+    if p.value != p.value:              # nan: a stage without iterations (certifying)
+        text = p.stage
+    else:
+        text = (f"{p.stage}: iteration {p.iteration}/{p.max_iter}, {name} "
+                f"{_num(p.value)}")
     if p.best is not None:
         text += f" (best so far {_num(p.best)})"
     text += f", {p.elapsed:.1f} s"
