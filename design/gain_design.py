@@ -378,12 +378,14 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
         res = _design_ccl(scenario, D, opts, report)
     else:
         res = _design_default(scenario, D, objective, seed, opts, t0, report)
-    G, history, iterations, status = res
+    G, history, iterations, status, rho_exact = res
     certify = report.stage("certifying (exact radius and steady MSE)", "rho", 0)
     if certify is not None:
         certify(0, float("nan"))        # one dense eigenvalue problem and Lyapunov solve
     loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
-    rho = loop.spectral_radius()
+    # the exact radius of this very gain, computed once (by ClosedLoop) where the design
+    # already did: a dense eigenvalue problem of order (taubar + 1) nN is not repeated
+    rho = loop.spectral_radius() if rho_exact is None else float(rho_exact)
     stable = bool(rho < 1)
     mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
            if stable and exact_mse else None)
@@ -422,7 +424,7 @@ def _design_ccl(scenario, D, opts, report):
                      solver_options=opts["solver_options"],
                      callback=report.stage(f"ccl ({opts['solver']}), delay-free radius", "rho",
                                            opts["max_iter"]))
-    return out["G"], out["history"], out["iterations"], out["reason"]
+    return out["G"], out["history"], out["iterations"], out["reason"], None
 
 
 def _starts(model, scenario, seed, count, init):
@@ -530,8 +532,8 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
                 key = (1, rho)      # not stabilised: ranks after every stable start
         history.append({"stage": f"start {k} done", "rho": float(rho), "status": status})
         if best is None or key < best[0]:
-            best = (key, x, status)
+            best = (key, x, status, rho)        # rho: exact radius of x (ClosedLoop)
         if objective == "rho" and opts["target"] is not None and rho < float(opts["target"]):
             break
-    _, x, status = best
-    return model.unpack(x), history, iterations, status
+    _, x, status, rho = best
+    return model.unpack(x), history, iterations, status, rho
