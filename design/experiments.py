@@ -456,7 +456,7 @@ def explain_failure(results) -> list:
                 + " With `--objective rho` (the smallest radius, the paper's design goal) "
                 "the MSE is not designed for: a radius-minimising gain pushes every "
                 "eigenvalue inwards at any cost in noise gain, so its steady MSE is larger "
-                "and need not grow with the delay (docs/gain-design.md compares both).")
+                "and need not grow with the delay (docs/simulation.md compares both).")
     else:
         text = ("- **Gains chosen by radius, not MSE.** Every gain here minimises the exact "
                 "spectral radius (objective rho, the paper's design goal); the steady MSE is "
