@@ -133,7 +133,8 @@ def _solve(problem, solver, what, history, verbose=False, solver_options=None):
 
 def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
                keep_iterating: bool = False, eps: float = 1e-6, trace_tol: float = 1e-3,
-               deadline=None, verbose: bool = False, solver_options=None) -> dict:
+               deadline=None, verbose: bool = False, solver_options=None,
+               callback=None) -> dict:
     """Algorithm 1 of the paper; returns a dict with ``G``, ``rho_delay_free``, ``history``.
 
     Parameters
@@ -145,6 +146,7 @@ def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
     eps : margin of the strict LMIs
     deadline : ``time.perf_counter()`` value after which no new solve starts
     solver_options : dict passed to the solver (e.g. ``{"max_iters": 10000}`` for SCS)
+    callback : callable ``(iteration, rho_delay_free)`` called after every solve, or None
 
     Raises
     ------
@@ -163,6 +165,8 @@ def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
     G = lmi.gains()
     rho = spectral_radius(lmi.closed_loop_value())
     history[-1].update({"iteration": 0, "rho_delay_free": rho})
+    if callback is not None:
+        callback(0, float(rho))
     best = (rho, G)
     target = 2.0 * lmi.m
     iterations = 0
@@ -184,6 +188,8 @@ def ccl_design(A, W, measure, solver: str = "CLARABEL", max_iter: int = 50,
             rho = spectral_radius(lmi.closed_loop_value())
             trace = float(lmi.problem.value)
             history[-1].update({"iteration": it, "trace": trace, "rho_delay_free": rho})
+            if callback is not None:
+                callback(it, float(rho))
             if rho < best[0]:
                 best = (rho, G)
             if rho < 1 and not keep_iterating:

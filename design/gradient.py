@@ -468,18 +468,23 @@ class OptimResult:
 
 
 def bfgs_minimise(fg, x0, max_iter=200, stop=None, deadline=None, f_tol=1e-9,
-                  patience=20, patience_tol=1e-4, step0=None, label="") -> OptimResult:
+                  patience=20, patience_tol=1e-4, step0=None, label="",
+                  callback=None) -> OptimResult:
     """Minimise ``fg(x) -> (f, g)`` by BFGS with a weak Wolfe line search.
 
     ``f`` may be ``inf`` (rejected trial point). ``stop(f)`` ends the run early when it
     returns True; ``deadline`` is a ``time.perf_counter()`` value. The run also ends when
     the last ``patience`` iterations lowered ``f`` by less than ``patience_tol * |f|`` in
-    total (a nonsmooth minimum is approached slowly). Deterministic.
+    total (a nonsmooth minimum is approached slowly). ``callback(iteration, f)`` is
+    called with the start value (iteration 0) and after every accepted iteration; it
+    must not change anything. Deterministic.
     """
     x = np.asarray(x0, dtype=float).copy()
     f, g = fg(x)
     evals = 1
     history = [{"stage": label, "iteration": 0, "value": float(f)}]
+    if callback is not None:
+        callback(0, float(f))
     if not np.isfinite(f):
         return OptimResult(x, f, 0, evals, "infeasible start", history)
     if stop is not None and stop(f):
@@ -519,6 +524,8 @@ def bfgs_minimise(fg, x0, max_iter=200, stop=None, deadline=None, f_tol=1e-9,
         decrease = f - ft
         x, f, g = xt, ft, gt
         history.append({"stage": label, "iteration": it, "value": float(f), "step": float(t)})
+        if callback is not None:
+            callback(it, float(f))
         if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
             rho_ = 1.0 / sy
             Hy = Hinv @ y

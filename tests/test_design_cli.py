@@ -99,3 +99,50 @@ def test_mse_objective_from_the_cli(capsys, tmp_path):
     loop = ClosedLoop(s.A, s.W, np.zeros((3, 3), int), s.measure, g.G)
     assert rec["mse_steady_exact"] == pytest.approx(loop.mse_steady(0.05, 0.05), rel=1e-10)
     assert rec["objective"] == "mse" and rec["mse_steady_exact"] < 1.0
+
+
+def test_progress_line_only_on_a_terminal():
+    import io
+
+    from agent.commands._progress import ProgressLine
+    from design.gain_design import DesignProgress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    p = DesignProgress(stage="start 1 of 3, radius", iteration=4, iterations=4,
+                       quantity="rho", value=0.91234, best=None, elapsed=1.5,
+                       time_left=58.5, max_iter=200)
+    for stream, enabled in ((io.StringIO(), None), (Terminal(), False)):
+        line = ProgressLine("design", stream=stream, enabled=enabled, delay=0, interval=0)
+        line.design(p)
+        line.note("done")
+        line.close()
+        assert stream.getvalue() == ""                 # a pipe, or --json: nothing
+    term = Terminal()
+    line = ProgressLine("design", stream=term, delay=0, interval=0)
+    line.design(p)
+    assert ("design: start 1 of 3, radius: iteration 4/200, rho 0.91234, 1.5 s, "
+            "58 s left of --time-limit") in term.getvalue()
+    line.design(DesignProgress(stage="certifying (exact radius and steady MSE)",
+                               iteration=0, iterations=4, quantity="rho",
+                               value=float("nan"), best=None, elapsed=2.0, time_left=None,
+                               max_iter=0))
+    assert term.getvalue().rstrip().endswith("design: certifying (exact radius and steady MSE)"
+                                              ", 2.0 s")
+    line.note("designed")
+    line.close()
+    assert term.getvalue().endswith("designed\n")
+
+
+def test_design_help_shows_every_budget(capsys):
+    try:
+        main(["design", "--help"])
+    except SystemExit:
+        pass
+    out = " ".join(capsys.readouterr().out.split())
+    for text in ("--time-limit SECONDS", "60 s for --objective rho", "--target RHO",
+                 "--max-iter N", "(default 200)", "--window N", "(default 20)",
+                 "--rel-tol X", "(default 1e-3)", "--starts K"):
+        assert text in out, text

@@ -218,3 +218,74 @@ def test_bad_arguments_are_named(paper14):
         design_gains(paper14, delays=np.array([[0, 1, 1], [0, 0, 1], [1, 0, 0]]))
     with pytest.raises(ValueError, match="solver"):
         design_gains(paper14, method="ccl", solver="MOSEK")
+
+
+# -- warm starts, progress, the structured MSE ----------------------------------------
+
+
+def test_warm_start_from_a_neighbouring_design_is_certified_stable(paper14):
+    # the gain for 2-step delays starts the design for 3-step delays: one start
+    s = paper14
+    G2 = design_gains(s, delays="uniform:2", starts=1, max_iter=30).G
+    res = design_gains(s, delays="uniform:3", objective="mse", init=G2, max_iter=30)
+    assert [h["stage"] for h in res.history if h["stage"].endswith("done")] == ["start 0 done"]
+    D = resolve_delays(s, "uniform:3")
+    loop = ClosedLoop(s.A, s.W, D, s.measure, res.G)
+    assert res.stable and res.rho == pytest.approx(loop.spectral_radius(), abs=1e-12)
+    assert res.rho < 1
+    assert res.mse_steady == pytest.approx(loop.mse_steady(s.process_noise,
+                                                           s.measurement_noise), rel=1e-12)
+    # from the delay-free design: also one start, also certified
+    res0 = design_gains(s, delays="uniform:3", objective="rho", init="delay-free",
+                        max_iter=20, target=0.95)
+    assert res0.stable and res0.rho < 0.95
+    assert res0.rho == pytest.approx(ClosedLoop(s.A, s.W, D, s.measure, res0.G)
+                                     .spectral_radius(), abs=1e-12)
+
+
+def test_progress_callback_reports_every_iteration(paper14):
+    seen = []
+    res = design_gains(paper14, delays="uniform:2", objective="mse", max_iter=25,
+                       time_limit=600, progress=seen.append)
+    stages = [p.stage for p in seen]
+    assert stages[0] == "start 1 of 1, radius" and stages[-2] == "start 1 of 1, MSE"
+    assert stages[-1].startswith("certifying") and np.isnan(seen[-1].value)
+    seen.pop()
+    assert {p.quantity for p in seen} == {"rho", "mse"}
+    # one report per iteration of each stage (iteration 0 is the stage's start)
+    mse = [p for p in seen if p.quantity == "mse"]
+    assert [p.iteration for p in mse] == list(range(len(mse)))
+    assert seen[-1].iterations == res.iterations
+    assert all(b.elapsed >= a.elapsed for a, b in zip(seen, seen[1:]))
+    assert all(p.time_left is not None and 0 <= p.time_left <= 600 for p in seen)
+    # the last MSE reported is the certified steady MSE of the result
+    assert mse[-1].value == pytest.approx(res.mse_steady, rel=1e-9)
+    # the default design's own starts: three for the radius, with the best so far
+    seen.clear()
+    design_gains(paper14, delays="none", max_iter=5, progress=seen.append)
+    assert {p.stage for p in seen[:-1]} == {f"start {k} of 3, radius" for k in (1, 2, 3)}
+    assert seen[0].best is None and seen[-1].best is not None
+
+
+@pytest.mark.parametrize("delays", [[[0, 2], [1, 0]], [[0, 3], [0, 0]], [[0, 0], [0, 0]]])
+def test_structured_mse_equals_the_dense_lyapunov_one(delays):
+    # small cases with unequal delays: the impulse-response MSE and its gradient against
+    # two dense Lyapunov solves of the augmented loop
+    s = _tiny([[1.05, 0.3, 0.0], [0.0, 0.6, 0.4], [0.5, 0.0, 0.7]], [["1"], ["3"]],
+              W=[[0.6, 0.4], [0.3, 0.7]])
+    D = np.array(delays)
+    model = LoopModel(s.A, s.W, D, s.measure)
+    rng = np.random.default_rng(7)
+    q, r = 0.3, 0.2
+    for _ in range(3):
+        x = 0.5 + 0.2 * rng.standard_normal(model.size)
+        if not ClosedLoop(s.A, s.W, D, s.measure, model.unpack(x)).spectral_radius() < 0.98:
+            continue
+        J, g, _ = model.mse_impulse(x, q, r)
+        J_ref, g_ref = model.mse_and_gradient(x, q, r, method="lyapunov")
+        exact = ClosedLoop(s.A, s.W, D, s.measure, model.unpack(x)).mse_steady(q, r)
+        assert abs(J - exact) <= 1e-9 * exact and abs(J - J_ref) <= 1e-9 * J_ref
+        np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-9 * max(1.0, np.abs(g_ref).max()))
+        break
+    else:
+        pytest.fail("no stable sample gain")

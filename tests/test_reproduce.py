@@ -63,6 +63,31 @@ def test_reproduce_writes_report_tables_and_figures(fast, tmp_path, sampson_edge
     report = (out / "report.md").read_text()
     assert "| 1 | 0.970 |" in report and "Where our numbers differ" in report
     assert "Sampson" in report and "paper's formula" in report
+    # what the failure figure shows, and why (issue: the lowest curve without recovery,
+    # the MSE against the delay, the standby added without a word)
+    assert fail["standby_declared"] == 1 and fail["standby_added"] == 1
+    assert "## What the failure figure shows, and why" in report
+    assert "paper-14 declares 1 standby" in report and "adds 1 standby" in report
+    assert "over the 1 agent(s) still running" in report and "all 3 agents after" in report
+    rad = fail["unmeasured_parent_radius"]
+    assert 0 < rad < 1 and f"radius {rad:.4f} < 1" in report and "stays detectable" in report
+    assert "Gains chosen for the steady MSE" in report and res["objective"] == "mse"
+    assert "No wall-clock limit" in report
+
+
+def test_failure_explanations_follow_the_objective_and_budget():
+    sims = [{"tau": t, "mse_steady_exact": e, "mse_steady_sim": e} for t, e in
+            ((0, 1.9), (3, 1.5), (7, 57.9))]
+    results = {"objective": "rho", "time_limit": 30.0, "paper-14": {"N": 3, "failure": {
+        "failed_agents": [1, 2], "agents_after": [4, 5, 3], "standby_declared": 2,
+        "standby_added": 0, "unmeasured_parent_radius": 1.2, "simulations": sims,
+        "no_recovery": {"tau": 0, "mse_steady_sim": 0.38}}}}
+    text = "\n".join(rep.explain_failure(results))
+    assert "Standbys added" not in text
+    assert "Gains chosen by radius, not MSE" in text and "not monotone in the delay" in text
+    assert ">= 1: without recovery the error cannot stay bounded" in text
+    assert "capped at 30 s" in text
+    assert rep.explain_failure({"objective": "mse"}) == []
 
 
 def test_sampson_scenario_follows_the_papers_settings(sampson_edges):

@@ -74,6 +74,8 @@ def test_diverging_run_exits_1(paper14, tmp_path, capsys):
     (["--seed", "-1"], "--seed"),
     (["--delays", "uniform:-2"], "--delays"),
     (["--recover"], "--recover: needs --fail"),
+    (["--time-limit", "5"], "--time-limit: a positive number of seconds, with --recover only"),
+    (["--fail", "10:1", "--recover", "--time-limit", "0"], "--time-limit"),
 ])
 def test_bad_flags_exit_2(gains_file, capsys, flags, message):
     rc = main(["simulate", "paper-14", "--gains", gains_file, "--steps", "50"] + flags)

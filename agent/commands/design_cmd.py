@@ -28,6 +28,7 @@ from ._common import (
     print_json,
     run_command,
 )
+from ._progress import ProgressLine
 
 HELP = "design the agents' gains (the paper's LMI method or the delay-aware default)"
 
@@ -48,7 +49,8 @@ def add_arguments(parser) -> None:
                         help="iterations: BFGS per start and stage (default 200) or "
                              "cone-complementarity iterations (default 50)")
     parser.add_argument("--starts", type=int_flag(lo=1), default=None, metavar="K",
-                        help="--method default: number of starts (default 3)")
+                        help="--method default: number of starts (default 3 for --objective "
+                             "rho, 1 for mse)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                         help="safety cap: stop and keep the best gain found after this long "
                              "(default: 60 s for --objective rho, whose radius converges slowly "
@@ -129,15 +131,18 @@ def _run(args) -> int:
     if out.is_dir():
         raise CommandError(f"--out: {str(out)!r} is a folder, give a file name")
     opts = _options(args)
+    line = ProgressLine("design", enabled=not args.json)
     try:
         res = design_gains(scenario, delays=D, method=args.method, objective=args.objective,
-                           seed=args.seed, **opts)
+                           seed=args.seed, progress=line.design, **opts)
     except NotObservableError as exc:
         raise CommandError(str(exc), EXIT_BAD_INPUT) from None
     except SolverError as exc:
         raise CommandError(f"ccl design failed: {exc}", EXIT_NEGATIVE) from None
     except DesignError as exc:
         raise CommandError(str(exc)) from None
+    finally:
+        line.close()
 
     record = res.summary()
     record["scenario"] = scenario.name
@@ -183,5 +188,9 @@ def _print_text(record, res) -> None:
     print(f"  distributed pair rank {det['rank']} of {det['order']}"
           f" ({'observable' if det['observable'] else 'detectable'})")
     print(f"  {record['iterations']} iterations, {record['seconds']:.2f} s; stopped: {record['status']}")
+    if record["status"] == "time limit":
+        print("  (the --time-limit budget ended the design: raise it for a lower "
+              + ("radius, or give --target RHO to stop at a radius)"
+                 if record["objective"] == "rho" else "MSE)"))
     if record["written"]:
         print(f"  gains written to {record['written']}")

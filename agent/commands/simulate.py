@@ -23,6 +23,7 @@ from ._common import (
     print_json,
     run_command,
 )
+from ._progress import ProgressLine
 
 HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops, failures"
 
@@ -43,7 +44,11 @@ def add_arguments(parser) -> None:
                         help="agents (1-based ids, comma-separated) fail at STEP, e.g. 150:1,2")
     parser.add_argument("--recover", action="store_true",
                         help="at the failure step, switch to the recovery plan with gains "
-                             "designed for the new configuration")
+                             "designed for the new configuration (warm started from --gains; "
+                             "the design stops when it has converged)")
+    parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                        help="--recover: cap on the recovery gain design; the best gain "
+                             "found is kept (default: none, the design stops when converged)")
     parser.add_argument("--plot", default=None, metavar="OUT.png",
                         help="write the MSE figure (log scale, 10-90 percentile band)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
@@ -102,7 +107,7 @@ def design_for(scenario, delays, seed: int, objective: str = "rho", time_limit=N
 
 
 def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rho",
-                   previous=None):
+                   previous=None, **design_options):
     """:func:`design.reconfigure.build_recovery` (warm started from ``previous``, the
     gains before the failure); its RecoveryDesignError becomes a CommandError (status 1)."""
     from design.reconfigure import RecoveryDesignError
@@ -110,7 +115,7 @@ def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rh
 
     try:
         return _build(scenario, failed, delay_spec, seed=seed, objective=objective,
-                      previous=previous)
+                      previous=previous, **design_options)
     except RecoveryDesignError as exc:
         raise CommandError(f"--recover: {exc}", status=EXIT_NEGATIVE) from None
 
@@ -178,15 +183,22 @@ def _run(args) -> int:
     if fail is not None and not args.recover and len(fail[1]) == scenario.N:
         raise CommandError("--fail: every agent fails; nothing is left to estimate "
                            "(use --recover)")
+    if args.time_limit is not None and not (args.recover and args.time_limit > 0):
+        raise CommandError("--time-limit: a positive number of seconds, with --recover only")
     recover, recovery_info = None, None
     if args.recover:
         objective = gains.meta.get("objective")
         objective = objective if objective in ("rho", "mse") else "rho"
-        recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed, objective,
-                                                 previous=gains.G)
+        budget = {} if args.time_limit is None else {"time_limit": args.time_limit}
+        with ProgressLine("simulate --recover", enabled=not args.json) as line:
+            line.context = "gains for the recovered network"
+            recover, recovery_info = build_recovery(scenario, fail[1], args.delays, seed,
+                                                     objective, previous=gains.G,
+                                                     progress=line.design, **budget)
         recovery_info["objective"] = objective
 
     bar = ProgressBar()
+    bar.enabled = bar.enabled and not args.json
     try:
         result = simulate(scenario, gains.G, steps=steps, trials=trials, seed=seed,
                           delays=delays, drop=drop, fail=fail, recover=recover, progress=bar)
