@@ -422,8 +422,8 @@ def explain_failure(results) -> list:
     survivors = p["N"] - len(failed)
     rad = f.get("unmeasured_parent_radius")
     text = (f"- **Without recovery against with recovery (tau = {nr['tau']}).** Simulated "
-            f"steady MSE {_fmt(nr['mse_steady_sim'])} without recovery, "
-            f"{_fmt(rec0.get('mse_steady_sim'))} with it (exact "
+            f"steady MSE {_fmt(nr['mse_steady'])} without recovery, "
+            f"{_fmt(rec0.get('mse_steady'))} with it (exact "
             f"{_fmt(rec0.get('mse_steady_exact'))}). The two are means over different "
             f"agents: without recovery over the {survivors} agent(s) still running, with "
             f"it over all {len(after)} agents after the failure, the replacements included "

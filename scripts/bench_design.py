@@ -167,7 +167,7 @@ def target_child(name: str, legacy: bool) -> None:
                    status=f"objective {res['objective']}; problems {len(res['problems'])}; "
                           "recovered MSE by tau " + ", ".join(
                               f"{s['mse_steady_exact']:.3g}" for s in rec)
-                          + f"; no recovery {res['paper-14']['failure']['no_recovery']['mse_steady_sim']:.3g}")
+                          + f"; no recovery {res['paper-14']['failure']['no_recovery']['mse_steady']:.3g}")
     elif name.startswith("p14 "):
         obj = name.split()[1]
         s = load("paper-14")

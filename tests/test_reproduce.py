@@ -76,12 +76,12 @@ def test_reproduce_writes_report_tables_and_figures(fast, tmp_path, sampson_edge
 
 
 def test_failure_explanations_follow_the_objective_and_budget():
-    sims = [{"tau": t, "mse_steady_exact": e, "mse_steady_sim": e} for t, e in
+    sims = [{"tau": t, "mse_steady_exact": e, "mse_steady": e} for t, e in
             ((0, 1.9), (3, 1.5), (7, 57.9))]
     results = {"objective": "rho", "time_limit": 30.0, "paper-14": {"N": 3, "failure": {
         "failed_agents": [1, 2], "agents_after": [4, 5, 3], "standby_declared": 2,
         "standby_added": 0, "unmeasured_parent_radius": 1.2, "simulations": sims,
-        "no_recovery": {"tau": 0, "mse_steady_sim": 0.38}}}}
+        "no_recovery": {"tau": 0, "mse_steady": 0.38}}}}
     text = "\n".join(rep.explain_failure(results))
     assert "Standbys added" not in text
     assert "Gains chosen by radius, not MSE" in text and "not monotone in the delay" in text
