@@ -33,6 +33,7 @@ COMMANDS = {
     "world": "world",
     "agent": "agent_cmd",
     "up": "up",
+    "watch": "watch",
     "inject": "inject",
     "monitor": "monitor",
     "chaos": "chaos",

@@ -20,21 +20,20 @@ import os
 import random
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from broker_free_net import keys
-from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.config import NetConfig
 from broker_free_net.impair import encode_impairment
 from broker_free_net.peer import Peer
 
-from . import wire
 from broker_free_net.ports import listen_port
 
 from .launcher import Children
+from .recorder import Recorder, Recording
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS"]
 
@@ -84,6 +83,8 @@ class RunConfig:
     faults: tuple = ()
     start_timeout: float = 60.0
     secure: bool = False
+    run_id: str | None = None        # default: a fresh id
+    listen: str | None = None        # the recorder's endpoint (every child connects to it)
 
     @property
     def M(self) -> int:
@@ -97,26 +98,6 @@ class RunConfig:
 
 class RunFailed(Exception):
     pass
-
-
-@dataclass
-class Recording:
-    """What the recorder saw, by step."""
-
-    run_id: str
-    ports: list
-    truth: dict = field(default_factory=dict)          # step -> x
-    est: dict = field(default_factory=dict)            # agent -> {step: x}
-    est_epoch: dict = field(default_factory=dict)      # agent -> {step: epoch}
-    status: dict = field(default_factory=dict)         # agent -> last status
-    rosters: list = field(default_factory=list)        # (activate_at, ids, epoch)
-    assigns: dict = field(default_factory=dict)        # (agent, epoch) -> assignment
-    events: list = field(default_factory=list)         # exits, signals, impairments
-    recorder_malformed: int = 0
-    wall: float = 0.0
-    failure: str | None = None
-    interrupted: bool = False
-    children: Children | None = None
 
 
 class LocalRun:
@@ -161,13 +142,13 @@ class LocalRun:
 
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
-        rec = Recording(run_id=f"up{os.getpid()}x{random.randrange(10**6)}",
-                        ports=[listen_port() for _ in range(M + 3)])
-        rec.est = {a: {} for a in range(1, M + 1)}
-        rec.est_epoch = {a: {} for a in range(1, M + 1)}
-        rec.rosters = [(0, tuple(range(1, N + 1)), 0)]
+        recorder = Recorder(c.run_id or f"up{os.getpid()}x{random.randrange(10**6)}",
+                            c.scenario.n, N, M, ports=[listen_port() for _ in range(M + 3)])
+        rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
         ep = [f"{scheme}/127.0.0.1:{p}" for p in rec.ports]
+        if c.listen:
+            ep[0] = c.listen
         net_extra = {}
         if c.secure:
             from broker_free_net.security import make_run_keys, run_identities
@@ -186,10 +167,6 @@ class LocalRun:
                        c.delays_spec, c.delays, rec.run_id, signer.public_bytes(),
                        operator.public_bytes())
         children = rec.children = Children(c.out / "logs")
-        stats = MessageStats()
-        n = c.scenario.n
-        est_schema, truth_schema = wire.est_schema(n), wire.truth_schema(n)
-        roster_schema, ctl_schema = wire.roster_schema(), wire.ctl_schema(n)
         argv = self._argv(rec, ep)
         pending = sorted(c.faults)
         undo = []                      # (time, action) of faults that end after seconds
@@ -207,12 +184,7 @@ class LocalRun:
         try:
             with Peer(NetConfig(run=rec.run_id, listen=(ep[0],), **net_extra), "recorder",
                       0) as peer:
-                truth_in = peer.subscribe(keys.truth_key(rec.run_id), maxlen=1 << 16)
-                ctl_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "ctl"),
-                                        maxlen=1 << 12)
-                est_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "est"),
-                                        maxlen=1 << 16)
-                status_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "status"))
+                recorder.subscribe(peer)
                 impair_key = keys.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
                 children.start("world", argv["world"])
@@ -221,34 +193,12 @@ class LocalRun:
                 if c.monitor:
                     children.start("monitor", argv["monitor"])
                 self._write_run_json(rec, ep)
-                self.say(f"run {rec.run_id}: world + {N} agents + {c.scenario.standby} standby"
+                self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}): "
+                         f"world + {N} agents + {c.scenario.standby} standby"
                          f"{' + monitor' if c.monitor else ''} started; waiting for all to be "
                          f"ready (clock starts then), {K} steps of {c.step_ms:g} ms")
 
-                def drain():
-                    for item in truth_in.drain():
-                        m = try_decode(item.payload, truth_schema, stats)
-                        if m is not None:
-                            rec.truth[m["step"]] = np.array(m["x"])
-                    for item in est_in.drain():
-                        m = try_decode(item.payload, est_schema, stats, senders=set(rec.est))
-                        if m is not None:
-                            rec.est[m["agent"]][m["step"]] = np.array(m["x"])
-                            rec.est_epoch[m["agent"]][m["step"]] = m["epoch"]
-                    for item in status_in.drain():
-                        m = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
-                        if m is not None:
-                            rec.status[m["agent"]] = m
-                    for item in ctl_in.drain():
-                        if item.key == keys.ctl_key(rec.run_id, 0):
-                            m = try_decode(item.payload, roster_schema, stats)
-                            if m is not None and m["epoch"] > rec.rosters[-1][2]:
-                                rec.rosters.append((m["activate_at"], tuple(m["ids"]),
-                                                    m["epoch"]))
-                        else:
-                            m = try_decode(item.payload, ctl_schema, stats)
-                            if m is not None:
-                                rec.assigns.setdefault((m["agent"], m["epoch"]), m)
+                drain = recorder.drain
 
                 def event(**fields):
                     rec.events.append({**fields, "t": time.time()})
@@ -389,18 +339,22 @@ class LocalRun:
             signal.signal(signal.SIGTERM, old_term)
             signal.signal(signal.SIGINT, old_int)
         rec.wall = time.monotonic() - t_begin
-        rec.recorder_malformed = stats.total_dropped
         return rec
 
     def _write_run_json(self, rec, ep):
+        from .run_folder import write_run_json
+
         c = self.config
         names = ["recorder", "world"] + [f"agent-{a}" for a in range(1, c.M + 1)] + ["monitor"]
         procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)}
         for name, child in rec.children.children.items():
             procs.setdefault(name, {})["pid"] = child.proc.pid
-        (c.out / "run.json").write_text(json.dumps({
-            "run": rec.run_id, "scenario": c.scenario.name, "out": str(c.out.resolve()),
-            "connect": ep[0], "processes": procs}, indent=2) + "\n")
+        write_run_json(c.out, run=rec.run_id, connect=ep[0], processes=procs,
+                       scenario=c.scenario.name, scenario_arg=c.scenario_arg,
+                       keys=c.out / "keys" if c.secure else None,
+                       operator_key=c.out / "operator.key", control_key=c.out / "control.key",
+                       manifest=c.out / "manifest.json", gains=c.gains_path, seed=c.seed,
+                       delays=c.delays_spec, steps=c.steps, step_ms=c.step_ms)
 
 
 def _signal(children, name, sig):
