@@ -13,7 +13,7 @@ Examples
 ...                        "late": 0, "malformed": 0}}}
 >>> print(format_line(view))
 run demo  step 12  mse 0.5 (step 11)  drops 1  late 0  malformed 0  roster 1,2 (epoch 0)
->>> out = io.StringIO(); LiveView(out, "json", interval=0).show(view); out.getvalue()[:30]
+>>> out = io.StringIO(); LiveView(out, "json", interval=0).show(view); out.getvalue()[:31]
 '{"kind": "view", "run": "demo",'
 """
 
