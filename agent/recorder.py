@@ -67,9 +67,13 @@ class Recorder:
         Active agents (the initial roster is 1..N) and all agents (active + standby).
     ports : list
         Kept in the recording (``up``'s listen ports).
+    keep_steps : int or None
+        Keep the truth and estimates of the newest ``keep_steps`` steps only (a watcher of
+        an endless run must not grow without bound); None keeps all (``up``: K is known).
     """
 
-    def __init__(self, run_id: str, n: int, N: int, M: int, ports=()):
+    def __init__(self, run_id: str, n: int, N: int, M: int, ports=(),
+                 keep_steps: int | None = None):
         rec = self.recording = Recording(run_id=run_id, ports=list(ports))
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
@@ -80,6 +84,8 @@ class Recorder:
                          "roster": wire.roster_schema(), "ctl": wire.ctl_schema(n)}
         self._roster_key = keys.ctl_key(run_id, 0)
         self._inboxes = ()
+        self.keep_steps = keep_steps
+        self._newest = -1
 
     # -- the wire -----------------------------------------------------------------------
     def subscribe(self, peer) -> None:
@@ -108,6 +114,9 @@ class Recorder:
             m = try_decode(payload, self._schemas["truth"], self.stats)
             if m is not None:
                 rec.truth[m["step"]] = np.array(m["x"])
+                self._newest = max(self._newest, m["step"])
+                if self.keep_steps is not None and len(rec.truth) > self.keep_steps:
+                    self._forget_oldest()
         elif kind == "est":
             m = try_decode(payload, self._schemas["est"], self.stats, senders=set(rec.est))
             if m is not None:
@@ -139,11 +148,22 @@ class Recorder:
                     self.stats.count_dropped("event")
         self.recording.recorder_malformed = self.stats.total_dropped
 
+    def _forget_oldest(self) -> None:
+        """Drop the oldest steps beyond ``keep_steps`` (the dicts hold steps in arrival
+        order, which is step order but for a few late ones)."""
+        rec = self.recording
+        while len(rec.truth) > self.keep_steps:
+            del rec.truth[next(iter(rec.truth))]
+        cutoff = min(next(iter(rec.truth)), self.step - self.keep_steps)
+        for by_step in (*rec.est.values(), *rec.est_epoch.values()):
+            while by_step and next(iter(by_step)) < cutoff:
+                del by_step[next(iter(by_step))]
+
     # -- what it shows ------------------------------------------------------------------
     @property
     def step(self) -> int:
         """The newest step of the truth heard (-1 before the clock starts)."""
-        return max(self.recording.truth) if self.recording.truth else -1
+        return self._newest
 
     def in_force(self, k: int) -> tuple:
         """The agent ids of the roster in force at step ``k`` (the first before step 0)."""
@@ -154,8 +174,9 @@ class Recorder:
         force and its MSE (mean over those agents, as :func:`agent.run_summary.mse_by_step`),
         the sums over the agents' last statuses, the verdicts, and one row per agent."""
         rec = self.recording
-        k = next((k for k in sorted(rec.truth, reverse=True)
-                  if any(k in rec.est[a] for a in self.in_force(k))), None)
+        k = next((k for k in range(self.step, max(-1, self.step - 10_000), -1)
+                  if k in rec.truth and any(k in rec.est[a] for a in self.in_force(k))),
+                 None)
         mse = None
         if k is not None:
             errs = [np.mean((rec.est[a][k] - rec.truth[k]) ** 2) for a in self.in_force(k)

@@ -43,6 +43,7 @@ class WatchConfig:
     step_ms: float | None = None
     out: Path | None = None
     timeout: float = 60.0
+    keep_steps: int | None = 100_000  # the recording keeps the newest steps only
 
 
 @dataclass
@@ -63,7 +64,7 @@ def watch(config: WatchConfig, view) -> WatchResult:
     c = config
     s = c.scenario
     M = s.N + s.standby
-    recorder = Recorder(c.net.run, s.n, s.N, M)
+    recorder = Recorder(c.net.run, s.n, s.N, M, keep_steps=c.keep_steps)
     try:
         ended = watch_run(c.net, recorder, steps=c.steps, timeout=c.timeout,
                           on_view=view.show)

@@ -165,3 +165,14 @@ def test_up_run_and_listen_checked():
         busy = sock.getsockname()[1]
         with pytest.raises(CommandError, match="--listen: cannot listen"):
             check_run_endpoint(None, f"tcp/127.0.0.1:{busy}", False)
+
+
+def test_recorder_keeps_the_newest_steps_only():
+    r = Recorder(RUN, n=1, N=1, M=1, keep_steps=5)
+    for k in range(20):
+        r.feed(keys.truth_key(RUN), wire.encode_truth(k, [float(k)]))
+        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
+    rec = r.recording
+    assert sorted(rec.truth) == list(range(15, 20)) and r.step == 19
+    assert sorted(rec.est[1]) == list(range(14, 20))   # one older estimate at most
+    assert r.view()["mse"] == 1.0 and mse_by_step(rec, 19)[0] == list(range(15, 20))
