@@ -12,7 +12,7 @@ Examples
 ...         "agents": {1: {"step": 11, "active": True, "epoch": 0, "mse": 0.4, "drops": 1,
 ...                        "late": 0, "malformed": 0}}}
 >>> print(format_line(view))
-run demo  step 12  mse 0.5 (step 11)  drops 1  late 0  malformed 0  roster 1,2 (epoch 0)
+run demo  step 12  mse 0.5 (step 11; - over the last 100)  drops 1  late 0  malformed 0  roster 1,2 (epoch 0)
 >>> out = io.StringIO(); LiveView(out, "json", interval=0).show(view); out.getvalue()[:31]
 '{"kind": "view", "run": "demo",'
 """
@@ -34,7 +34,8 @@ def _num(x) -> str:
 def format_line(view: dict) -> str:
     """The run in one line."""
     return (f"run {view['run']}  step {view['step']}  mse {_num(view['mse'])}"
-            + (f" (step {view['mse_step']})" if view["mse_step"] is not None else "")
+            + (f" (step {view['mse_step']}; {_num(view.get('mse_last100'))} over the last 100)"
+               if view["mse_step"] is not None else "")
             + f"  drops {view['drops']}  late {view['late']}  malformed {view['malformed']}"
             + f"  roster {','.join(map(str, view['roster']))} (epoch {view['epoch']})"
             + "".join(f"  FAILED agent {f['agent']} ({f['cause']}, step {f['step']})"

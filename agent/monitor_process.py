@@ -132,6 +132,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         t.start()
 
     with Peer(net, "monitor", monitor_id) as peer:
+        peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
         publish.append(peer.put)
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         roster_in = peer.subscribe(keys.ctl_key(run, 0))

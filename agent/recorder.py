@@ -171,17 +171,20 @@ class Recorder:
 
     def view(self) -> dict:
         """A snapshot for a live view: the newest step with an estimate of an agent in
-        force and its MSE (mean over those agents, as :func:`agent.run_summary.mse_by_step`),
-        the sums over the agents' last statuses, the verdicts, and one row per agent."""
+        force and its MSE (mean over those agents, as :func:`agent.run_summary.mse_by_step`)
+        with its mean over the last 100 steps (``mse_last100``), the sums over the agents' last statuses, the verdicts, and one row per agent."""
         rec = self.recording
         k = next((k for k in range(self.step, max(-1, self.step - 10_000), -1)
                   if k in rec.truth and any(k in rec.est[a] for a in self.in_force(k))),
                  None)
-        mse = None
-        if k is not None:
+        def mse_at(k):
             errs = [np.mean((rec.est[a][k] - rec.truth[k]) ** 2) for a in self.in_force(k)
                     if k in rec.est[a]]
-            mse = float(np.mean(errs))
+            return float(np.mean(errs)) if errs else None
+
+        mse = mse_at(k) if k is not None else None
+        recent = [] if k is None else [m for m in (mse_at(j) for j in range(max(0, k - 99), k + 1)
+                                                   if j in rec.truth) if m is not None]
         agents = {}
         for a in range(1, self.M + 1):
             st = rec.status.get(a)
@@ -195,6 +198,7 @@ class Recorder:
                          "malformed": st["malformed"] if st else 0}
         verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict"]
         return {"run": rec.run_id, "step": self.step, "mse_step": k, "mse": mse,
+                "mse_last100": float(np.mean(recent)) if recent else None,
                 "drops": sum(r["drops"] for r in agents.values()),
                 "late": sum(r["late"] for r in agents.values()),
                 "malformed": sum(r["malformed"] for r in agents.values()),

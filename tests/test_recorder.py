@@ -54,6 +54,7 @@ def test_recorder_fed_by_hand_gives_the_mse_of_truth_and_estimates(fed):
     np.testing.assert_allclose(mse, [1.5, 1.5, 1.5, 1.0])
     view = fed.view()
     assert (view["step"], view["mse_step"], view["mse"]) == (3, 3, 1.0)
+    assert view["mse_last100"] == pytest.approx((3 * 1.5 + 1.0) / 4)
     assert (view["drops"], view["late"]) == (3, 1)
     assert view["agents"][2]["mse"] == 2.0 and view["agents"][3]["step"] is None
 
