@@ -137,10 +137,15 @@ def check_run_endpoint(run_id, listen, secure) -> tuple:
     import re
     import socket
 
+    from broker_free_net.config import InvalidNetConfig, NetConfig
+
     from ._common import CommandError
 
-    if run_id is not None and not re.fullmatch(r"[A-Za-z0-9_.\-]+", run_id):
-        raise CommandError(f"--run: invalid run id {run_id!r} (letters, digits, '_', '.', '-')")
+    try:                         # the transport's own rules for run ids and endpoints
+        NetConfig(run=run_id, listen=None if listen is None else (listen,))
+    except InvalidNetConfig as exc:
+        raise CommandError(f"--{exc.field}: {str(exc).removeprefix(exc.field + ': ')}") \
+            from None
     if listen is None:
         return run_id, None
     scheme = "tls" if secure else "tcp"
