@@ -86,6 +86,7 @@ class Recorder:
         self._inboxes = ()
         self.keep_steps = keep_steps
         self._newest = -1
+        self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
 
     # -- the wire -----------------------------------------------------------------------
     def subscribe(self, peer) -> None:
@@ -168,6 +169,19 @@ class Recorder:
     def in_force(self, k: int) -> tuple:
         """The agent ids of the roster in force at step ``k`` (the first before step 0)."""
         return [ids for at, ids, _ in self.recording.rosters if at <= max(k, 0)][-1]
+
+    def last_complete_step(self, alive=()) -> int | None:
+        """The newest step every agent still publishing has recorded: the smallest newest
+        estimate among the agents in force whose liveliness token is up (``alive``);
+        with none of them, the newest step with an estimate of an agent in force (None
+        before any). A watch stopped mid-step ends its record there, so that the last
+        step is not a mean over fewer agents."""
+        rec = self.recording
+        newest = [max(rec.est[a]) for a in self.in_force(self.step)
+                  if a in alive and rec.est.get(a)]
+        if newest and min(newest) in rec.truth:
+            return min(newest)
+        return self.view()["mse_step"]
 
     def view(self) -> dict:
         """A snapshot for a live view: the newest step with an estimate of an agent in
@@ -266,6 +280,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                     next_view = now + interval
                 k = recorder.step
                 agents_alive = {int(i) for r, i in alive if r == "agent" and i.isdigit()}
+                recorder.alive = agents_alive
                 in_force = [a for a in recorder.in_force(k) if a in agents_alive]
                 if steps is not None and k >= steps and all(
                         steps in rec.est[a] for a in in_force):

@@ -177,3 +177,10 @@ def test_recorder_keeps_the_newest_steps_only():
     assert sorted(rec.truth) == list(range(15, 20)) and r.step == 19
     assert sorted(rec.est[1]) == list(range(14, 20))   # one older estimate at most
     assert r.view()["mse"] == 1.0 and mse_by_step(rec, 19)[0] == list(range(15, 20))
+
+
+def test_last_complete_step_ignores_agents_that_stopped(fed):
+    # agent 2 stopped at step 2: with its token up the record ends at 2, without it at 3
+    assert fed.last_complete_step(alive={1, 2}) == 2
+    assert fed.last_complete_step(alive={1}) == 3
+    assert fed.last_complete_step() == 3
