@@ -83,6 +83,7 @@ class Recorder:
         self._schemas = {"truth": wire.truth_schema(n), "est": wire.est_schema(n),
                          "roster": wire.roster_schema(), "ctl": wire.ctl_schema(n)}
         self._roster_key = keys.ctl_key(run_id, 0)
+        self._truth_key = keys.truth_key(run_id)
         self._inboxes = ()
         self.keep_steps = keep_steps
         self._newest = -1
@@ -109,9 +110,9 @@ class Recorder:
 
     def feed(self, key: str, payload: bytes) -> None:
         """One message as received on ``key``; a malformed one is counted and dropped."""
-        rec, run = self.recording, self.recording.run_id
+        rec = self.recording
         kind = str(key).split("/")[2] if str(key).count("/") >= 2 else ""
-        if key == keys.truth_key(run):
+        if key == self._truth_key:
             m = try_decode(payload, self._schemas["truth"], self.stats)
             if m is not None:
                 rec.truth[m["step"]] = np.array(m["x"])
