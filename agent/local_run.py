@@ -3,14 +3,14 @@
 :class:`RunConfig` is everything a run is (frozen, checked by the command that builds
 it); :class:`LocalRun` starts the world, one process per agent and the monitor (each in
 its own process group, :class:`agent.launcher.Children`), joins the mesh as the
-recorder, injects the scheduled :class:`Fault` s at their steps, and returns a
+recorder (:class:`agent.recorder.Recorder`, which ``socmon watch`` uses too), injects the scheduled :class:`Fault` s at their steps, and returns a
 :class:`Recording`; :func:`agent.run_summary.summarize` turns that into the summary.
 ``socmon up`` and ``socmon chaos`` are both this.
 
 The run folder gets ``manifest.json`` (what every child checks: the scenario's digest,
 the gains file's digest, delays, seed; see :mod:`agent.manifest`) before the children
-start, and ``run.json`` (run id, every process's endpoint and PID) once they are up, so
-that other tools can attach.
+start, and ``run.json`` (:mod:`agent.run_folder`: run id, every process's endpoint and
+PID, keys) once they are up, so that other tools can attach (``--attach RUN_DIR``).
 """
 
 from __future__ import annotations
