@@ -3,8 +3,8 @@
 :class:`RunConfig` is everything a run is (frozen, checked by the command that builds
 it); :class:`LocalRun` starts the world, one process per agent and the monitor (each in
 its own process group, :class:`agent.launcher.Children`), joins the mesh as the
-recorder (:class:`agent.recorder.Recorder`, which ``socmon watch`` uses too), injects the scheduled :class:`Fault` s at their steps, and returns a
-:class:`Recording`; :func:`agent.run_summary.summarize` turns that into the summary.
+recorder (:class:`agent.recorder.Recorder`, which ``socmon watch`` uses too), injects
+the scheduled :class:`Fault` s at their steps, and returns a :class:`Recording`; :func:`agent.run_summary.summarize` turns that into the summary.
 ``socmon up`` and ``socmon chaos`` are both this.
 
 The run folder gets ``manifest.json`` (what every child checks: the scenario's digest,
