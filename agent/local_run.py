@@ -4,8 +4,9 @@
 it); :class:`LocalRun` starts the world, one process per agent and the monitor (each in
 its own process group, :class:`agent.launcher.Children`), joins the mesh as the
 recorder (:class:`agent.recorder.Recorder`, which ``socmon watch`` uses too), injects
-the scheduled :class:`Fault` s at their steps, and returns a :class:`Recording`; :func:`agent.run_summary.summarize` turns that into the summary.
-``socmon up`` and ``socmon chaos`` are both this.
+the scheduled :class:`Fault` s at their steps, and returns a :class:`Recording`;
+:func:`agent.run_summary.summarize` turns that into the summary. ``socmon up`` and
+``socmon chaos`` are both this.
 
 The run folder gets ``manifest.json`` (what every child checks: the scenario's digest,
 the gains file's digest, delays, seed; see :mod:`agent.manifest`) before the children
