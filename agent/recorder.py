@@ -88,6 +88,7 @@ class Recorder:
         self.keep_steps = keep_steps
         self._newest = -1
         self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
+        self.estimates_received = 0
 
     # -- the wire -----------------------------------------------------------------------
     def subscribe(self, peer) -> None:
@@ -124,6 +125,7 @@ class Recorder:
             if m is not None:
                 rec.est[m["agent"]][m["step"]] = np.array(m["x"])
                 rec.est_epoch[m["agent"]][m["step"]] = m["epoch"]
+                self.estimates_received += 1
         elif kind == "status":
             m = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
             if m is not None and m["agent"] in rec.est:
@@ -232,9 +234,9 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     """Attach to a run as a peer and record it until it ends; returns why it ended.
 
     Ends when step ``steps`` is recorded for the truth and every agent in force (with
-    ``steps``), when the world's liveliness token goes (then after the agents' tokens
-    go, or ``grace`` seconds), on SIGTERM or Ctrl-C (``"interrupted"``), or when no truth
-    was heard within ``timeout`` seconds (``"no world"``). ``on_view`` gets
+    ``steps``); when the world's liveliness token goes, then once the agents' tokens go
+    or no estimate came for ``grace`` seconds; on SIGTERM or Ctrl-C (``"interrupted"``);
+    or when no truth was heard within ``timeout`` seconds (``"no world"``). ``on_view`` gets
     :meth:`Recorder.view` every ``interval`` seconds and once at the end.
 
     Returns
@@ -262,6 +264,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
             alive_watch = peer.watch_liveliness()
             world_seen = False
             world_gone = None
+            heard, last_heard = 0, time.monotonic()    # estimates, and when the last came
             next_view = 0.0
             while True:
                 peer.wait(timeout=0.05)
@@ -287,7 +290,12 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                         steps in rec.est[a] for a in in_force):
                     why = "steps"
                     break
-                if world_gone is not None and (not agents_alive or now - world_gone > grace):
+                if recorder.estimates_received != heard:
+                    heard, last_heard = recorder.estimates_received, now
+                # after the world: until the agents leave (their last statuses come
+                # first) or stop publishing; an agent still catching up keeps the watch
+                if world_gone is not None and (not agents_alive or
+                                               now - max(world_gone, last_heard) > grace):
                     why = "world ended"
                     break
                 if not rec.truth and not world_seen and now - t_begin > timeout:

@@ -75,7 +75,10 @@ def watch(config: WatchConfig, view) -> WatchResult:
         raise NoWorld(f"nothing of run {c.net.run!r} heard within {c.timeout:g} s "
                       f"(connected to {', '.join(c.net.connect) or 'multicast'}): is the "
                       f"world running, and is --run right?")
-    last = recorder.last_complete_step(recorder.alive)
+    # stopped mid-step: end at the last step every live agent published; at the world's
+    # end: every step heard, as `up` (a silent agent does not truncate the record)
+    last = recorder.last_complete_step(recorder.alive) if ended == "interrupted" \
+        else recorder.view()["mse_step"]
     K = c.steps if ended == "steps" else (last if last is not None else -1)
     rho, predicted = predicted_mse(s, c.G, c.delays) if c.G is not None else (None, None)
     if c.out is not None:
