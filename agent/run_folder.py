@@ -21,6 +21,7 @@ Examples
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,7 +61,8 @@ _PATHS = ("keys", "operator_key", "control_key", "manifest", "gains")
 
 def write_run_json(folder, *, run: str, connect: str, processes: dict, scenario: str,
                    scenario_arg: str, **extra) -> None:
-    """Write ``folder/run.json``; ``extra``: the optional fields of :class:`RunInfo`."""
+    """Write ``folder/run.json`` (atomically); ``extra``: the optional fields of
+    :class:`RunInfo`."""
     folder = Path(folder)
     unknown = set(extra) - set(RunInfo.__dataclass_fields__)
     if unknown:
@@ -71,7 +73,10 @@ def write_run_json(folder, *, run: str, connect: str, processes: dict, scenario:
     for name, value in extra.items():
         data[name] = str(Path(value).resolve()) if name in _PATHS and value is not None \
             else value
-    (folder / RUN_JSON).write_text(json.dumps(data, indent=2) + "\n")
+    # atomically: a tool polling for run.json never reads it half-written
+    tmp = folder / f".{RUN_JSON}.tmp"
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, folder / RUN_JSON)
 
 
 def read_run_info(folder) -> RunInfo:
