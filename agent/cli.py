@@ -37,6 +37,7 @@ COMMANDS = {
     "world": "world",
     "agent": "agent_cmd",
     "up": "up",
+    "watch": "watch",
     "inject": "inject",
     "monitor": "monitor",
     "chaos": "chaos",

@@ -3,14 +3,15 @@
 :class:`RunConfig` is everything a run is (frozen, checked by the command that builds
 it); :class:`LocalRun` starts the world, one process per agent and the monitor (each in
 its own process group, :class:`agent.launcher.Children`), joins the mesh as the
-recorder, injects the scheduled :class:`Fault` s at their steps, and returns a
-:class:`Recording`; :func:`agent.run_summary.summarize` turns that into the summary.
-``socmon up`` and ``socmon chaos`` are both this.
+recorder (:class:`agent.recorder.Recorder`, which ``socmon watch`` uses too), injects
+the scheduled :class:`Fault` s at their steps, and returns a :class:`Recording`;
+:func:`agent.run_summary.summarize` turns that into the summary. ``socmon up`` and
+``socmon chaos`` are both this.
 
 The run folder gets ``manifest.json`` (what every child checks: the scenario's digest,
 the gains file's digest, delays, seed; see :mod:`agent.manifest`) before the children
-start, and ``run.json`` (run id, every process's endpoint and PID) once they are up, so
-that other tools can attach.
+start, and ``run.json`` (:mod:`agent.run_folder`: run id, every process's endpoint and
+PID, keys) once they are up, so that other tools can attach (``--attach RUN_DIR``).
 """
 
 from __future__ import annotations
@@ -20,22 +21,21 @@ import os
 import random
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from broker_free_net import keys
-from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.config import NetConfig
 from broker_free_net.impair import encode_impairment
 from broker_free_net.peer import Peer
 
-from . import wire
 from broker_free_net.ports import listen_port
 
 from .launcher import Children
 from .netns import host_names, host_of
+from .recorder import Recorder, Recording
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS"]
 
@@ -90,6 +90,8 @@ class RunConfig:
     #: an :class:`agent.netns.Testbed` (made and removed by the caller) with the hosts of
     #: :func:`agent.netns.host_names`: each process, the recorder included, on its own host
     testbed: object = None
+    run_id: str | None = None        # default: a fresh id
+    listen: str | None = None        # the recorder's endpoint (every child connects to it)
 
     @property
     def M(self) -> int:
@@ -103,26 +105,6 @@ class RunConfig:
 
 class RunFailed(Exception):
     pass
-
-
-@dataclass
-class Recording:
-    """What the recorder saw, by step."""
-
-    run_id: str
-    ports: list
-    truth: dict = field(default_factory=dict)          # step -> x
-    est: dict = field(default_factory=dict)            # agent -> {step: x}
-    est_epoch: dict = field(default_factory=dict)      # agent -> {step: epoch}
-    status: dict = field(default_factory=dict)         # agent -> last status
-    rosters: list = field(default_factory=list)        # (activate_at, ids, epoch)
-    assigns: dict = field(default_factory=dict)        # (agent, epoch) -> assignment
-    events: list = field(default_factory=list)         # exits, signals, impairments
-    recorder_malformed: int = 0
-    wall: float = 0.0
-    failure: str | None = None
-    interrupted: bool = False
-    children: Children | None = None
 
 
 class LocalRun:
@@ -181,14 +163,14 @@ class LocalRun:
 
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
-        rec = Recording(run_id=f"up{os.getpid()}x{random.randrange(10**6)}",
-                        ports=[listen_port() for _ in range(M + 3)])
-        rec.est = {a: {} for a in range(1, M + 1)}
-        rec.est_epoch = {a: {} for a in range(1, M + 1)}
-        rec.rosters = [(0, tuple(range(1, N + 1)), 0)]
+        recorder = Recorder(c.run_id or f"up{os.getpid()}x{random.randrange(10**6)}",
+                            c.scenario.n, N, M, ports=[listen_port() for _ in range(M + 3)])
+        rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
         ep = [f"{scheme}/{self._host_ip(name)}:{p}"
               for name, p in zip(host_names(M), rec.ports)]
+        if c.listen:
+            ep[0] = c.listen
         net_extra = {}
         if c.secure:
             from broker_free_net.security import make_run_keys, run_identities
@@ -207,10 +189,6 @@ class LocalRun:
                        c.delays_spec, c.delays, rec.run_id, signer.public_bytes(),
                        operator.public_bytes())
         children = rec.children = Children(c.out / "logs")
-        stats = MessageStats()
-        n = c.scenario.n
-        est_schema, truth_schema = wire.est_schema(n), wire.truth_schema(n)
-        roster_schema, ctl_schema = wire.roster_schema(), wire.ctl_schema(n)
         argv = self._argv(rec, ep)
         pending = sorted(c.faults)
         undo = []                      # (time, action) of faults that end after seconds
@@ -228,12 +206,7 @@ class LocalRun:
         try:
             with Peer(NetConfig(run=rec.run_id, listen=(ep[0],), **net_extra), "recorder",
                       0) as peer:
-                truth_in = peer.subscribe(keys.truth_key(rec.run_id), maxlen=1 << 16)
-                ctl_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "ctl"),
-                                        maxlen=1 << 12)
-                est_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "est"),
-                                        maxlen=1 << 16)
-                status_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "status"))
+                recorder.subscribe(peer)
                 impair_key = keys.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
                 children.start("world", argv["world"], self._wrap("world"))
@@ -242,38 +215,12 @@ class LocalRun:
                 if c.monitor:
                     children.start("monitor", argv["monitor"], self._wrap("monitor"))
                 self._write_run_json(rec, ep)
-                self.say(f"run {rec.run_id}: world + {N} agents + {c.scenario.standby} standby"
+                self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}): "
+                         f"world + {N} agents + {c.scenario.standby} standby"
                          f"{' + monitor' if c.monitor else ''} started; waiting for all to be "
                          f"ready (clock starts then), {K} steps of {c.step_ms:g} ms")
 
-                def drain():
-                    for item in truth_in.drain():
-                        m = try_decode(item.payload, truth_schema, stats)
-                        if m is not None:
-                            rec.truth[m["step"]] = np.array(m["x"])
-                    for item in est_in.drain():
-                        m = try_decode(item.payload, est_schema, stats, senders=set(rec.est))
-                        if m is not None:
-                            rec.est[m["agent"]][m["step"]] = np.array(m["x"])
-                            rec.est_epoch[m["agent"]][m["step"]] = m["epoch"]
-                    for item in status_in.drain():
-                        m = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
-                        if m is not None:
-                            was = rec.status.get(m["agent"])
-                            if was is not None and was["active"] and not m["active"]:
-                                event(process=f"agent-{m['agent']}", role="dropped",
-                                      epoch=m["epoch"], step=m["step"])
-                            rec.status[m["agent"]] = m
-                    for item in ctl_in.drain():
-                        if item.key == keys.ctl_key(rec.run_id, 0):
-                            m = try_decode(item.payload, roster_schema, stats)
-                            if m is not None and m["epoch"] > rec.rosters[-1][2]:
-                                rec.rosters.append((m["activate_at"], tuple(m["ids"]),
-                                                    m["epoch"]))
-                        else:
-                            m = try_decode(item.payload, ctl_schema, stats)
-                            if m is not None:
-                                rec.assigns.setdefault((m["agent"], m["epoch"]), m)
+                drain = recorder.drain
 
                 def event(**fields):
                     rec.events.append({**fields, "t": time.time()})
@@ -422,10 +369,11 @@ class LocalRun:
             signal.signal(signal.SIGTERM, old_term)
             signal.signal(signal.SIGINT, old_int)
         rec.wall = time.monotonic() - t_begin
-        rec.recorder_malformed = stats.total_dropped
         return rec
 
     def _write_run_json(self, rec, ep):
+        from .run_folder import write_run_json
+
         c = self.config
         procs = {name: {"endpoint": ep[i]} for i, name in enumerate(host_names(c.M))}
         for name, child in rec.children.children.items():
@@ -433,9 +381,12 @@ class LocalRun:
         if c.testbed is not None:         # attach with `ip netns exec NETNS socmon ...`
             for name in procs:
                 procs[name]["netns"] = c.testbed.namespace(host_of(name))
-        (c.out / "run.json").write_text(json.dumps({
-            "run": rec.run_id, "scenario": c.scenario.name, "out": str(c.out.resolve()),
-            "connect": ep[0], "processes": procs}, indent=2) + "\n")
+        write_run_json(c.out, run=rec.run_id, connect=ep[0], processes=procs,
+                       scenario=c.scenario.name, scenario_arg=c.scenario_arg,
+                       keys=c.out / "keys" if c.secure else None,
+                       operator_key=c.out / "operator.key", control_key=c.out / "control.key",
+                       manifest=c.out / "manifest.json", gains=c.gains_path, seed=c.seed,
+                       delays=c.delays_spec, steps=c.steps, step_ms=c.step_ms)
 
 
 def _signal(children, name, sig):

@@ -108,11 +108,15 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     run = net.run
     ctl_schema = wire.roster_schema()
     out_file = open(events_out, "a") if events_out else None
+    publish = []              # the peer's put, once it is open: watchers hear every event
 
     def record(kind, **fields):
+        event = {"kind": kind, "t": time.time(), **fields}
         if out_file is not None:
-            out_file.write(json.dumps({"kind": kind, "t": time.time(), **fields}) + "\n")
+            out_file.write(json.dumps(event) + "\n")
             out_file.flush()
+        for put in publish:
+            put(keys.monitor_events_key(run), wire.encode_monitor_event(event))
 
     worker = {"thread": None, "roster": None}
     recorded = {"verdicts": 0, "history": 0, "waiting": None}   # what events_out holds
@@ -128,6 +132,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         t.start()
 
     with Peer(net, "monitor", monitor_id) as peer:
+        peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
+        publish.append(peer.put)
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
         watch = peer.watch_liveliness()

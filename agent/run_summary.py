@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-__all__ = ["run_and_summarize", "summarize", "mse_by_step", "specs_in_force", "effective_rosters", "compare_simulator",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "summarize", "mse_by_step", "specs_in_force", "effective_rosters", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
@@ -38,18 +38,22 @@ def run_and_summarize(config, say=lambda text: None) -> tuple:
     """Run ``config`` live (:class:`agent.local_run.LocalRun`) and summarize it:
     ``(rec, summary, steps, mse, predicted)``, ``predicted`` the exact steady MSE of the
     configuration started with (inf when its loop is not stable)."""
-    from design.closed_loop import closed_loop_for
-
     from .local_run import LocalRun
 
-    s = config.scenario
-    loop = closed_loop_for(s, config.G, config.delays)
-    rho = loop.spectral_radius()
-    predicted = loop.mse_steady(s.process_noise, s.measurement_noise) if rho < 1 \
-        else float("inf")
+    rho, predicted = predicted_mse(config.scenario, config.G, config.delays)
     rec = LocalRun(config, say).run()
     summary, steps, mse = summarize(config, rec, rho, predicted)
     return rec, summary, steps, mse, predicted
+
+
+def predicted_mse(scenario, G, delays) -> tuple:
+    """``(rho, mse_steady)`` of the exact closed loop of ``G`` (mse inf when not stable)."""
+    from design.closed_loop import closed_loop_for
+
+    loop = closed_loop_for(scenario, G, delays)
+    rho = loop.spectral_radius()
+    return rho, (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
+                 if rho < 1 else float("inf"))
 
 
 def summarize(config, rec, loop_rho, predicted) -> tuple:
@@ -58,16 +62,17 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
 
     from .jsonable import SCHEMA_VERSION, to_jsonable
 
-    (config.out / "assignments.json").write_text(json.dumps(to_jsonable(
-        [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(rec.assigns.items())]))
-        + "\n")
+    if config.out is not None:
+        (config.out / "assignments.json").write_text(json.dumps(to_jsonable(
+            [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(rec.assigns.items())]))
+            + "\n")
     c = config
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
     tail = max(1, K // 4)
     mse_steady = float(np.mean(mse[-tail:])) if len(mse) else float("nan")
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
-    children = rec.children.children.values()
+    children = rec.children.children.values() if rec.children is not None else ()
     summary = {
         "schema_version": SCHEMA_VERSION,
         "scenario": c.scenario.name,
@@ -106,12 +111,26 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
                                  "measure": st.get("measure")}
                         for a, st in last.items() if st},
     }
-    summary.update(_failures(c.out / "events.jsonl", rec, c.scenario, c.delays, steps, mse,
+    summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec, c.scenario, c.delays, steps, mse,
                              c.G))
     summary["warnings"] = list(dict.fromkeys(
         list(c.scenario.warnings) + log_warnings(c.out / "logs") + summary.get("warnings", [])))
     return summary, steps, mse
-    return summary, steps, mse
+
+
+def failure_lines(summary) -> list:
+    """One line per failure of a summary (and the MSE after recovery), for terminals."""
+    lines = []
+    for f in summary.get("failures", []):
+        rep = f.get("replacement") or {}
+        lines.append(f"  failure: agent {f['agent']} {f['cause']} at step {f['detected_step']}"
+                     + (f"; agent {rep.get('agent')} measures {rep.get('node')} from step "
+                        f"{f.get('activate_at')}" if rep else ""))
+    if "mse_steady_after_recovery" in summary:
+        after = summary.get("mse_steady_exact_after_recovery")
+        lines.append(f"  after recovery: mse_steady {summary['mse_steady_after_recovery']:.4g}"
+                     f" (predicted {after if after is not None else float('nan'):.4g})")
+    return lines
 
 
 #: Most warnings taken from the processes' logs into a summary (a log is never read whole
@@ -201,8 +220,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                     records.append(json.loads(line))
                 except ValueError:
                     continue
-    except OSError:
+    except (OSError, TypeError):        # no file (TypeError: no run folder)
         pass
+    records = records or list(rec.monitor_events)  # a watcher has those heard on the wire
     deaths = {}
     for e in events:
         name = e.get("process", "")
@@ -240,7 +260,10 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         failures.append(entry)
     out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
                                                "epoch": ep} for at, ids, ep in rosters]}
-    if len(rosters) > 1:
+    if len(rosters) > 1 and G0 is None:           # a watcher given no gains
+        out["recovered"] = None
+        out.setdefault("warnings", []).append("no gains given: recovery not evaluated")
+    elif len(rosters) > 1:
         at = rosters[-1][0]
         ids, specs = specs_in_force(rosters, assigns, scenario, G0)
         recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at

@@ -48,6 +48,8 @@ __all__ = [
     "ctl_schema",
     "roster_schema",
     "STATUS_SCHEMA",
+    "MONITOR_EVENT_SCHEMA",
+    "encode_monitor_event",
     "encode_sensor",
     "encode_truth",
     "encode_est",
@@ -292,3 +294,16 @@ def encode_status(status: dict) -> bytes:
     if "ages" in status:
         msg["ages"] = {str(a): int(d) for a, d in status["ages"].items()}
     return encode(msg)
+
+
+#: ``socmon/<run>/monitor/events``: one record of the monitor's events file (its verdicts,
+#: reassignments, confirmations; docs/monitor.md) as its JSON text, for watchers.
+MONITOR_EVENT_SCHEMA = Schema({"kind": Str(choices=frozenset({"monitor_event"})),
+                               "event": Str(max_len=1 << 16)})
+
+
+def encode_monitor_event(record: dict) -> bytes:
+    """One monitor event (a JSON-able map with a str ``kind``) for the wire."""
+    import json
+
+    return encode({"kind": "monitor_event", "event": json.dumps(record)})

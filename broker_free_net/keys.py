@@ -27,6 +27,7 @@ __all__ = [
     "ctl_key",
     "est_key",
     "impair_key",
+    "monitor_events_key",
     "parse_agent_key",
     "parse_alive_key",
     "parse_sensor_key",
@@ -134,6 +135,11 @@ def truth_key(run: str) -> str:
 def impair_key(run: str) -> str:
     """Return ``socmon/<run>/impair``."""
     return f"{run_prefix(run)}/impair"
+
+
+def monitor_events_key(run: str) -> str:
+    """Return ``socmon/<run>/monitor/events`` (the monitor's verdicts, for watchers)."""
+    return f"{run_prefix(run)}/monitor/events"
 
 
 def alive_key(run: str, role: str, id) -> str:

@@ -252,3 +252,31 @@ def run_command(body):
     except CommandError as exc:
         print(f"socmon: {exc}", file=sys.stderr)
         return exc.status
+
+
+def add_attach_argument(parser, takes: str = "") -> None:
+    """``--attach RUN_DIR``: a run's coordinates from its ``run.json`` (agent.run_folder)."""
+    parser.add_argument("--attach", metavar="RUN_DIR",
+                        help="the folder of a running `socmon up`: take the run id, the "
+                             "endpoint to connect to and, for a --secure run, the keys "
+                             f"from its run.json{takes}; a flag given here wins")
+
+
+def attach_run(args):
+    """Fill ``--run``, ``--connect`` and ``--keys`` not given from ``--attach RUN_DIR``;
+    returns the :class:`agent.run_folder.RunInfo` (None without ``--attach``)."""
+    if not getattr(args, "attach", None):
+        return None
+    from ..run_folder import InvalidRunFolder, read_run_info
+
+    try:
+        info = read_run_info(args.attach)
+    except InvalidRunFolder as exc:
+        raise CommandError(f"--attach: {exc}") from None
+    if args.run is None:
+        args.run = info.run
+    if not args.connect:
+        args.connect = [info.connect]
+    if getattr(args, "keys", None) is None and info.keys is not None:
+        args.keys = str(info.keys)
+    return info

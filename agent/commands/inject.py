@@ -12,6 +12,7 @@ Examples::
     socmon inject partition 2 1 on|off ...
     socmon inject clear 2 1 ...
     socmon inject clear-all ...
+    socmon inject drop 2 1 0.2 --attach RUN_FOLDER     # a `socmon up` run, from its run.json
 """
 
 from __future__ import annotations
@@ -47,6 +48,10 @@ def add_arguments(parser) -> None:
 
 
 def _common(p):
+    from ._common import add_attach_argument
+
+    add_attach_argument(p, takes=", and its operator key (RUN_FOLDER/operator.key) to sign "
+                                 "the change")
     p.add_argument("--control-key", metavar="FILE",
                    help="the run's operator key (socmon up writes RUN_FOLDER/operator.key): "
                         "sign the change, as agents started with the run's manifest require")
@@ -121,7 +126,12 @@ def run(args) -> int:
 
         from .. import wire
 
+        from ._common import attach_run
+
         op, src, dst, params = change_from_args(args)
+        info = attach_run(args)
+        if args.control_key is None and info is not None and info.operator_key is not None:
+            args.control_key = str(info.operator_key)
         sign = None
         if args.control_key:
             from ._common import load_signer

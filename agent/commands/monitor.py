@@ -8,15 +8,21 @@ HELP = "run the monitor: detect failed agents and reassign their roles to equiva
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from ._common import add_force_gains_argument, add_manifest_argument, add_scenario_argument
+    from ._common import add_attach_argument, add_force_gains_argument, add_manifest_argument
 
-    add_scenario_argument(parser)
-    parser.add_argument("--gains", required=True, metavar="FILE",
-                        help="the gains file the agents run (.npz)")
+    parser.add_argument("scenario", nargs="?",
+                        help="scenario TOML file or built-in name (default with --attach: "
+                             "the run's)")
+    add_attach_argument(parser, takes=", and the scenario, gains, delays, seed, manifest and "
+                                      "control key of the run (use another --id than the "
+                                      "run's monitor, 1)")
+    parser.add_argument("--gains", metavar="FILE",
+                        help="the gains file the agents run (.npz; required unless --attach)")
     add_force_gains_argument(parser)
-    parser.add_argument("--delays", default="scenario",
+    parser.add_argument("--delays", default=None,
                         help="link delays of the run: scenario, none or uniform:T (default "
-                             "scenario); new gains are certified for them")
+                             "scenario, or the run's with --attach); new gains are certified "
+                             "for them")
     parser.add_argument("--seed", type=int, default=None,
                         help="the run's seed (only checked against --manifest)")
     parser.add_argument("--id", type=int, default=1,
@@ -53,8 +59,23 @@ def run(args) -> int:
 
         from ..monitor_core import MonitorConfig
         from ..monitor_process import run_monitor
-        from ._common import load_gains_arg, load_scenario_arg, net_config_arg
+        from ._common import attach_run, load_gains_arg, load_scenario_arg, net_config_arg
 
+        info = attach_run(args)
+        if info is not None:
+            args.scenario = args.scenario or info.scenario_arg
+            args.gains = args.gains or (str(info.gains) if info.gains else None)
+            args.delays = args.delays or info.delays
+            args.seed = args.seed if args.seed is not None else info.seed
+            args.manifest = args.manifest or (str(info.manifest) if info.manifest else None)
+            args.control_key = args.control_key or (str(info.control_key)
+                                                    if info.control_key else None)
+        args.delays = args.delays or "scenario"
+        if args.scenario is None:
+            raise CommandError("SCENARIO: give the run's scenario (or --attach RUN_DIR)")
+        if args.gains is None:
+            raise CommandError("--gains: give the gains file the agents run (or --attach "
+                               "RUN_DIR)")
         scenario = load_scenario_arg(args.scenario)
         if args.manifest:
             from ..manifest import ManifestMismatch, check_manifest

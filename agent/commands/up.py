@@ -53,6 +53,13 @@ def add_arguments(parser) -> None:
                              "for SECONDS; with --netns); see docs/monitor.md")
     parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
                         help="the monitor's hang timeout (default 1.0 s)")
+    parser.add_argument("--run", default=None, metavar="ID",
+                        help="run id (key prefix socmon/<ID>/; default a fresh one); printed "
+                             "and written in RUN_FOLDER/run.json")
+    parser.add_argument("--listen", default=None, metavar="ENDPOINT",
+                        help="endpoint of this command's own peer, the one every process of "
+                             "the run and every attached tool connects to (default "
+                             "tcp/127.0.0.1:<free port>, tls/ with --secure)")
     parser.add_argument("--secure", action="store_true",
                         help="a fresh key set for this run (RUN_FOLDER/keys): mutual TLS between "
                              "every process and access control on every peer "
@@ -114,6 +121,9 @@ def run_config(args, say, prog="up"):
             check_prefix(args.netns_prefix)
         except ValueError as exc:
             raise CommandError(f"--netns-prefix: {exc}") from None
+    run_id, listen = check_run_endpoint(getattr(args, "run", None),
+                                        getattr(args, "listen", None),
+                                        getattr(args, "secure", False))
     if args.gains:
         G = gains_for(scenario, args.gains, delays, getattr(args, "force_gains", False))
         method = "file"
@@ -138,7 +148,38 @@ def run_config(args, say, prog="up"):
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
                      monitor=not args.no_monitor, hang_timeout=args.hang_timeout,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
-                     secure=getattr(args, "secure", False))
+                     secure=getattr(args, "secure", False), run_id=run_id, listen=listen)
+
+
+def check_run_endpoint(run_id, listen, secure) -> tuple:
+    """``--run`` and ``--listen`` of ``up`` checked: a valid run id; a ``tcp/HOST:PORT``
+    (``tls/`` with ``--secure``) endpoint whose port is free now."""
+    import re
+    import socket
+
+    from broker_free_net.config import InvalidNetConfig, NetConfig
+
+    from ._common import CommandError
+
+    try:                         # the transport's own rules for run ids and endpoints
+        NetConfig(run=run_id, listen=None if listen is None else (listen,))
+    except InvalidNetConfig as exc:
+        raise CommandError(f"--{exc.field}: {str(exc).removeprefix(exc.field + ': ')}") \
+            from None
+    if listen is None:
+        return run_id, None
+    scheme = "tls" if secure else "tcp"
+    m = re.fullmatch(scheme + r"/(\[[0-9a-fA-F:]+\]|[^:/\s]+):([0-9]{1,5})", listen)
+    if not m or not 0 < int(m.group(2)) < 65536:
+        raise CommandError(f"--listen: expected {scheme}/HOST:PORT"
+                           f"{' (--secure runs speak tls)' if secure else ''}, got {listen!r}")
+    host = m.group(1).strip("[]")
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
+            sock.bind((host, int(m.group(2))))
+    except OSError as exc:
+        raise CommandError(f"--listen: cannot listen on {listen}: {exc.strerror}") from None
+    return run_id, listen
 
 
 @contextlib.contextmanager
@@ -181,6 +222,7 @@ def _up(args) -> int:
     from ..run_summary import (
         CHECK_TOL,
         compare_simulator,
+        failure_lines,
         run_and_summarize,
         save_estimates,
         write_run_folder,
@@ -216,20 +258,13 @@ def _up(args) -> int:
     if args.json:
         print(json.dumps(to_jsonable(summary), indent=2))
     else:
-        fails = summary.get("failures", [])
         print(f"{s.name}: {summary['steps']} steps, {s.N} agents, mse_steady "
               f"{summary['mse_steady']:.4g} (predicted {predicted:.4g}), drops "
               f"{summary['drops']}, late {summary['late']}, malformed {summary['malformed']}"
               + (f", max_rel_diff_vs_simulator {summary['max_rel_diff_vs_simulator']:.3g}"
                  if "max_rel_diff_vs_simulator" in summary else ""))
-        for f in fails:
-            rep = f.get("replacement") or {}
-            print(f"  failure: agent {f['agent']} {f['cause']} at step {f['detected_step']}"
-                  + (f"; agent {rep.get('agent')} measures {rep.get('node')} from step "
-                     f"{f.get('activate_at')}" if rep else ""))
-        if "mse_steady_after_recovery" in summary:
-            print(f"  after recovery: mse_steady {summary['mse_steady_after_recovery']:.4g} "
-                  f"(predicted {summary.get('mse_steady_exact_after_recovery') or float('nan'):.4g})")
+        for line in failure_lines(summary):
+            print(line)
         print(f"run folder: {config.out}")
     if rec.failure:
         print(f"socmon up: {rec.failure}", file=sys.stderr)

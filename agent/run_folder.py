@@ -1,0 +1,118 @@
+"""``run.json``: what another tool needs to attach to a run, and ``--attach RUN_DIR``.
+
+``socmon up`` writes ``run.json`` in its run folder once its processes are started: the
+run id, the endpoint to connect to (the recorder's), every process's endpoint and PID,
+and the paths of what a peer of the run needs: the key directory of a secure run, the
+operator key that signs impairments, the control key, the manifest, the scenario, the
+gains. ``socmon inject|watch|monitor --attach RUN_DIR`` read it with
+:func:`read_run_info`; a flag given on the command line wins over the folder's value.
+
+Examples
+--------
+>>> import tempfile, pathlib
+>>> d = pathlib.Path(tempfile.mkdtemp())
+>>> write_run_json(d, run="demo", connect="tcp/127.0.0.1:7447", processes={},
+...                scenario="paper-14", scenario_arg="paper-14")
+>>> info = read_run_info(d)
+>>> info.run, info.connect, info.keys
+('demo', 'tcp/127.0.0.1:7447', None)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["RUN_JSON", "RunInfo", "InvalidRunFolder", "write_run_json", "read_run_info"]
+
+RUN_JSON = "run.json"
+RUN_JSON_VERSION = 1
+
+
+class InvalidRunFolder(ValueError):
+    """A run folder without a readable, well-formed ``run.json``."""
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """The contents of ``run.json``; paths are absolute, or None when the run has none."""
+
+    folder: Path
+    run: str
+    connect: str
+    processes: dict
+    scenario: str
+    scenario_arg: str
+    keys: Path | None = None
+    operator_key: Path | None = None
+    control_key: Path | None = None
+    manifest: Path | None = None
+    gains: Path | None = None
+    seed: int | None = None
+    delays: str | None = None
+    steps: int | None = None
+    step_ms: float | None = None
+
+
+_PATHS = ("keys", "operator_key", "control_key", "manifest", "gains")
+
+
+def write_run_json(folder, *, run: str, connect: str, processes: dict, scenario: str,
+                   scenario_arg: str, **extra) -> None:
+    """Write ``folder/run.json`` (atomically); ``extra``: the optional fields of
+    :class:`RunInfo`."""
+    folder = Path(folder)
+    unknown = set(extra) - set(RunInfo.__dataclass_fields__)
+    if unknown:
+        raise TypeError(f"write_run_json: unknown fields {sorted(unknown)}")
+    data = {"version": RUN_JSON_VERSION, "run": run, "connect": connect,
+            "scenario": scenario, "scenario_arg": scenario_arg, "out": str(folder.resolve()),
+            "processes": processes}
+    for name, value in extra.items():
+        data[name] = str(Path(value).resolve()) if name in _PATHS and value is not None \
+            else value
+    # atomically: a tool polling for run.json never reads it half-written
+    tmp = folder / f".{RUN_JSON}.tmp"
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, folder / RUN_JSON)
+
+
+def read_run_info(folder) -> RunInfo:
+    """The :class:`RunInfo` of a run folder; :class:`InvalidRunFolder` naming what is wrong."""
+    folder = Path(folder)
+    path = folder / RUN_JSON
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InvalidRunFolder(f"{str(folder)!r} has no {RUN_JSON} (is it the folder of a "
+                               f"running `socmon up`?)") from None
+    except OSError as exc:
+        raise InvalidRunFolder(f"cannot read {str(path)!r}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise InvalidRunFolder(f"{str(path)!r} is not JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise InvalidRunFolder(f"{str(path)!r}: expected a JSON object")
+    problems = [f"{k} missing or not a string" for k in ("run", "connect", "scenario",
+                                                         "scenario_arg")
+                if not isinstance(data.get(k), str)]
+    if not isinstance(data.get("processes", {}), dict):
+        problems.append("processes is not an object")
+    for k in _PATHS + ("delays",):
+        if data.get(k) is not None and not isinstance(data[k], str):
+            problems.append(f"{k} is not a string")
+    for k in ("seed", "steps"):
+        if data.get(k) is not None and (isinstance(data[k], bool) or
+                                         not isinstance(data[k], int)):
+            problems.append(f"{k} is not an integer")
+    if data.get("step_ms") is not None and not isinstance(data["step_ms"], (int, float)):
+        problems.append("step_ms is not a number")
+    if problems:
+        raise InvalidRunFolder(f"{str(path)!r}: " + "; ".join(problems))
+    fields = {k: data.get(k) for k in RunInfo.__dataclass_fields__ if k != "folder"}
+    fields["processes"] = data.get("processes", {})
+    for k in _PATHS:
+        if fields[k] is not None:
+            fields[k] = Path(fields[k])
+    return RunInfo(folder=folder, **fields)

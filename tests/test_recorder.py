@@ -1,0 +1,186 @@
+"""The recorder fed by hand, the live view, run.json and --attach (no process started)."""
+
+import io
+import json
+
+import numpy as np
+import pytest
+
+from agent import wire
+from agent.cli import main
+from agent.commands.up import check_run_endpoint
+from agent.commands._common import CommandError
+from agent.live_view import LiveView, format_lines
+from agent.local_run import RunConfig
+from agent.recorder import Recorder
+from agent.run_folder import InvalidRunFolder, read_run_info, write_run_json
+from agent.run_summary import mse_by_step, summarize
+from broker_free_net import keys
+from broker_free_net.ports import listen_port
+
+RUN = "t"
+
+
+def _status(agent, step, drops=0, late=0, active=True, epoch=0):
+    return wire.encode_status({
+        "agent": agent, "step": step, "active": active, "epoch": epoch, "measure": [],
+        "neighbours": {}, "delays": {}, "drops": drops, "late": late, "malformed": 0,
+        "malformed_reasons": {}, "impaired": 0, "sensor": {}, "heard": [], "ctl": {},
+        "links": {}, "overflows": 0})
+
+
+@pytest.fixture
+def fed():
+    """Two states, agents 1 and 2 active, 3 standby; steps 0..3, hand-computed errors."""
+    r = Recorder(RUN, n=2, N=2, M=3)
+    truth = {k: np.array([k, -k], float) for k in range(4)}
+    for k, x in truth.items():
+        r.feed(keys.truth_key(RUN), wire.encode_truth(k, x))
+    # agent 1 is off by (1, 1) at every step, agent 2 by (0, 2); agent 2 misses step 3
+    for k, x in truth.items():
+        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, x + [1, 1], epoch=0, t=0.0))
+        if k < 3:
+            r.feed(keys.est_key(RUN, 2), wire.encode_est(2, k, x + [0, 2], epoch=0, t=0.0))
+    r.feed(keys.status_key(RUN, 1), _status(1, 3, drops=2, late=1))
+    r.feed(keys.status_key(RUN, 2), _status(2, 2, drops=1))
+    return r
+
+
+def test_recorder_fed_by_hand_gives_the_mse_of_truth_and_estimates(fed):
+    rec = fed.recording
+    steps, mse = mse_by_step(rec, 3)
+    # agent 1: mean((1, 1)^2) = 1; agent 2: mean((0, 2)^2) = 2; step 3 only agent 1
+    assert steps == [0, 1, 2, 3]
+    np.testing.assert_allclose(mse, [1.5, 1.5, 1.5, 1.0])
+    view = fed.view()
+    assert (view["step"], view["mse_step"], view["mse"]) == (3, 3, 1.0)
+    assert view["mse_last100"] == pytest.approx((3 * 1.5 + 1.0) / 4)
+    assert (view["drops"], view["late"]) == (3, 1)
+    assert view["agents"][2]["mse"] == 2.0 and view["agents"][3]["step"] is None
+
+
+def test_recorder_rosters_assignments_and_monitor_events(fed):
+    fed.feed(keys.ctl_key(RUN, 0), wire.encode_roster(1, 2, [1, 3]))
+    fed.feed(keys.ctl_key(RUN, 0), wire.encode_roster(1, 2, [1, 2]))   # not newer: ignored
+    fed.feed(keys.ctl_key(RUN, 3), wire.encode_ctl(3, 1, 2, ["1"], {1: 0.5}, 0.5,
+                                                   np.ones((2, 1)), take_over=2))
+    fed.feed(keys.monitor_events_key(RUN), wire.encode_monitor_event(
+        {"kind": "verdict", "agent": 2, "cause": "crash", "evidence": "token", "step": 1}))
+    rec = fed.recording
+    assert rec.rosters == [(0, (1, 2), 0), (2, (1, 3), 1)]
+    assert rec.assigns[(3, 1)]["take_over"] == 2
+    assert fed.in_force(1) == (1, 2) and fed.in_force(2) == (1, 3)
+    view = fed.view()
+    assert view["roster"] == [1, 3] and view["epoch"] == 1
+    assert view["failures"] == [{"agent": 2, "cause": "crash", "step": 1}]
+    # from step 2 the roster is (1, 3): agent 3 sent nothing, so only agent 1 counts
+    np.testing.assert_allclose(mse_by_step(rec, 3)[1], [1.5, 1.5, 1.0, 1.0])
+
+
+def test_recorder_counts_and_drops_malformed_messages(fed):
+    before = fed.recording.recorder_malformed
+    fed.feed(keys.truth_key(RUN), b"\xc1 not msgpack")
+    fed.feed(keys.truth_key(RUN), wire.encode_truth(9, np.zeros(3)))          # wrong n
+    fed.feed(keys.est_key(RUN, 1), wire.encode_est(7, 9, np.zeros(2), 0, 0.0))  # unknown agent
+    fed.feed(keys.monitor_events_key(RUN), wire.encode({"kind": "monitor_event",
+                                                        "event": "[not a map]"}))
+    fed.feed(keys.monitor_events_key(RUN), wire.encode({"kind": "monitor_event",
+                                                        "event": "{bad json"}))
+    rec = fed.recording
+    assert rec.recorder_malformed == before + 5
+    assert 9 not in rec.truth and 7 not in rec.est and rec.monitor_events == []
+
+
+def test_summary_of_a_watched_recording(fed, tmp_path):
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14")
+    config = RunConfig(scenario=s, scenario_arg="paper-14", G=None, gains_path=None,
+                       delays=np.zeros((s.N, s.N), int), delays_spec="none", steps=3, seed=None,
+                       step_ms=None, deadline_ms=None, out=None)
+    summary, steps, mse = summarize(config, fed.recording, None, None)
+    assert summary["steps"] == 3 and summary["drops"] == 3 and summary["late"] == 1
+    assert summary["exit_status"] == {} and summary["orphans"] == []
+    # the last quarter of 3 steps is the last step
+    assert summary["mse_steady"] == 1.0
+
+
+def test_live_view_forms():
+    r = Recorder(RUN, n=1, N=1, M=1)
+    r.feed(keys.truth_key(RUN), wire.encode_truth(0, [2.0]))
+    r.feed(keys.est_key(RUN, 1), wire.encode_est(1, 0, [1.0], epoch=0, t=0.0))
+    out = io.StringIO()
+    view = LiveView(out, "json", interval=0)
+    view.show(r.view())
+    view.show(r.view())                  # unchanged: no second line
+    line = json.loads(out.getvalue())
+    assert line["kind"] == "view" and line["mse"] == 1.0 and line["step"] == 0
+    out = io.StringIO()
+    tty = LiveView(out, "tty", interval=0)
+    tty.show(r.view())
+    tty.show(r.view())
+    lines = format_lines(r.view())
+    # the second drawing goes back over the lines of the first
+    assert out.getvalue().count(f"\x1b[{len(lines)}F") == 1
+    with pytest.raises(ValueError, match="mode"):
+        LiveView(out, "fancy", 1)
+
+
+def test_run_json_round_trip_and_errors(tmp_path):
+    write_run_json(tmp_path, run="r1", connect="tcp/127.0.0.1:7447", processes={},
+                   scenario="paper-14", scenario_arg="paper-14", keys=tmp_path / "keys",
+                   operator_key=tmp_path / "operator.key", seed=3, steps=10, step_ms=20.0)
+    info = read_run_info(tmp_path)
+    assert info.keys == (tmp_path / "keys").resolve() and info.seed == 3
+    (tmp_path / "run.json").write_text('{"run": 5}')
+    with pytest.raises(InvalidRunFolder, match="run missing or not a string"):
+        read_run_info(tmp_path)
+    (tmp_path / "run.json").write_text("{")
+    with pytest.raises(InvalidRunFolder, match="is not JSON"):
+        read_run_info(tmp_path)
+
+
+def test_attach_errors_are_one_line_exit_2(tmp_path, capsys):
+    assert main(["inject", "clear-all", "--attach", str(tmp_path)]) == 2
+    assert main(["watch", "--attach", str(tmp_path)]) == 2
+    assert main(["monitor", "--attach", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all("--attach" in e and "has no run.json" in e for e in err)
+    assert main(["watch", "paper-14", "--run", "r"]) == 2
+    assert "--connect" in capsys.readouterr().err
+
+
+def test_up_run_and_listen_checked():
+    assert check_run_endpoint("demo", None, False) == ("demo", None)
+    with pytest.raises(CommandError, match="--run: invalid run id"):
+        check_run_endpoint("a/b", None, False)
+    with pytest.raises(CommandError, match="expected tls/HOST:PORT"):
+        check_run_endpoint(None, "tcp/127.0.0.1:7447", True)
+    port = listen_port()
+    assert check_run_endpoint(None, f"tcp/127.0.0.1:{port}", False)[1].endswith(str(port))
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen()
+        busy = sock.getsockname()[1]
+        with pytest.raises(CommandError, match="--listen: cannot listen"):
+            check_run_endpoint(None, f"tcp/127.0.0.1:{busy}", False)
+
+
+def test_recorder_keeps_the_newest_steps_only():
+    r = Recorder(RUN, n=1, N=1, M=1, keep_steps=5)
+    for k in range(20):
+        r.feed(keys.truth_key(RUN), wire.encode_truth(k, [float(k)]))
+        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
+    rec = r.recording
+    assert sorted(rec.truth) == list(range(15, 20)) and r.step == 19
+    assert sorted(rec.est[1]) == list(range(14, 20))   # one older estimate at most
+    assert r.view()["mse"] == 1.0 and mse_by_step(rec, 19)[0] == list(range(15, 20))
+
+
+def test_last_complete_step_ignores_agents_that_stopped(fed):
+    # agent 2 stopped at step 2: with its token up the record ends at 2, without it at 3
+    assert fed.last_complete_step(alive={1, 2}) == 2
+    assert fed.last_complete_step(alive={1}) == 3
+    assert fed.last_complete_step() == 3

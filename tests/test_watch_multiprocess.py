@@ -1,0 +1,165 @@
+"""``socmon watch`` on a run started by hand and on an ``up`` run; ``inject --attach``.
+
+Loopback only, ports from ``listen_port()``, waits on conditions with deadlines, children
+in their own process groups (``agent.launcher.Children``), always stopped.
+"""
+
+import csv
+import json
+import os
+import re
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from agent.launcher import Children
+from broker_free_net.ports import listen_port
+from design.closed_loop import closed_loop_for
+from design.gains import save_gains
+from design.scenario import load_scenario
+from design.simulate import simulate
+
+pytestmark = [pytest.mark.multiprocess]
+
+DEADLINE = 90.0   # a loaded 2-core machine
+
+
+@pytest.fixture
+def children(tmp_path):
+    ch = Children(tmp_path / "logs")
+    try:
+        yield ch
+    finally:
+        ch.stop_all(grace=5.0)
+
+
+@pytest.fixture(scope="module")
+def live_gains(tmp_path_factory):
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    path = tmp_path_factory.mktemp("gains") / "g.npz"
+    save_gains(path, G, {"method": "fixed"})
+    return s, G, path
+
+
+def _wait(predicate, what, children, timeout=DEADLINE, allowed_exit=()):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        dead = [c.name for c in children.reap()
+                if c.returncode is not None and c.name not in allowed_exit]
+        if dead:
+            raise AssertionError(f"{dead} exited while waiting for {what}:\n"
+                                 + "\n".join(children.tail(n, 20) for n in dead))
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+def _log(children, name):
+    return children.children[name].log_path.read_text(errors="replace")
+
+
+def _watched_step(children, name):
+    steps = re.findall(r"^run \S+  step (-?\d+)", _log(children, name), re.M)
+    return int(steps[-1]) if steps else None
+
+
+def _mse_csv(path):
+    rows = list(csv.reader(open(path)))[1:]
+    return np.array([int(r[0]) for r in rows]), np.array([float(r[1]) for r in rows])
+
+
+def test_watch_records_a_hand_started_run(tmp_path, children, live_gains):
+    """World (no --steps: it runs until stopped, like the compose file's) and agents started
+    by hand as docs/runtime.md says; ``watch --out`` ended by SIGTERM writes the run folder,
+    whose MSE is the one of the simulator (same seed and gains; nothing dropped) and the
+    one of the truth and estimates it saved."""
+    s, G, gains = live_gains
+    run = f"w{os.getpid()}"
+    ep = [f"tcp/127.0.0.1:{listen_port()}" for _ in range(s.N + s.standby + 1)]
+    common = ["--run", run, "--seed", "3"]
+    children.start("world", ["world", "paper-14-live", *common, "--listen", ep[0],
+                             "--step-ms", "20"])
+    out = tmp_path / "watched"
+    children.start("watch", ["watch", "paper-14-live", "--run", run, "--connect", ep[0],
+                             "--gains", str(gains), "--delays", "none", "--seed", "3",
+                             "--out", str(out), "--interval", "0.1"])
+    # the watcher's first view is shown once its subscriptions are declared
+    _wait(lambda: _watched_step(children, "watch") is not None, "the watcher", children)
+    for a in range(1, s.N + s.standby + 1):
+        argv = ["agent", "paper-14-live", "--id", str(a), *common, "--listen", ep[a],
+                "--connect", ep[0], "--delays", "none", "--deadline-ms", "30000"]
+        if a <= s.N:
+            argv += ["--gains", str(gains)]
+        children.start(f"agent-{a}", argv)
+    _wait(lambda: (_watched_step(children, "watch") or -1) >= 80, "step 80 watched", children)
+    os.killpg(children.children["watch"].proc.pid, signal.SIGTERM)
+    _wait(lambda: children.children["watch"].returncode is not None, "the watch to end",
+          children, allowed_exit=("watch",))   # mse.png: matplotlib is slow on a loaded machine
+    assert children.children["watch"].returncode == 130, _log(children, "watch")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ended"] == "interrupted" and summary["run"] == run
+    steps, mse = _mse_csv(out / "mse.csv")
+    assert steps[0] == 0 and np.array_equal(steps, np.arange(len(steps))) and steps[-1] >= 80
+    # the MSE the world's truth and the agents' estimates give (estimates.npz)...
+    saved = np.load(out / "estimates.npz")
+    assert list(saved["agents"]) == [1, 2, 3]       # the standby publishes no estimate
+    own = ((saved["estimates"] - saved["truth"][:, None, :]) ** 2).mean(axis=2).mean(axis=1)
+    np.testing.assert_allclose(mse, own[: len(mse)], rtol=1e-12)
+    # ... equals the simulator's with the same seed and gains, step by step
+    sim = simulate(s, G, steps=int(steps[-1]), trials=1, seed=3,
+                   delays=np.zeros((s.N, s.N), int)).mse_trials[0]
+    np.testing.assert_allclose(mse, sim[steps], rtol=1e-9)
+    loop = closed_loop_for(s, G, np.zeros((s.N, s.N), int))
+    assert summary["mse_steady_exact"] == pytest.approx(
+        loop.mse_steady(s.process_noise, s.measurement_noise), rel=1e-12)
+    assert summary["drops"] == 0 and summary["recorder_malformed"] == 0
+
+
+@pytest.mark.parametrize("secure", [False, True], ids=["tcp", "secure"])
+def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_gains, secure):
+    """``up --run --listen`` writes run.json; ``inject --attach`` reaches the run (signed
+    with the folder's operator key, as the agents require; with the run's keys when it is
+    secure); ``watch --attach`` records the same MSE and failure as ``up`` itself."""
+    s, G, gains = live_gains
+    up_dir, watch_dir = tmp_path / "up", tmp_path / "watched"
+    listen = f"{'tls' if secure else 'tcp'}/127.0.0.1:{listen_port()}"
+    children.start("up", ["up", "paper-14-live", "--steps", "300", "--step-ms", "20",
+                          "--gains", str(gains), "--run", "attachme", "--listen", listen,
+                          "--kill", "150:2", "--out", str(up_dir)]
+                   + (["--secure"] if secure else []))
+    _wait(lambda: (up_dir / "run.json").exists(), "run.json", children)
+    info = json.loads((up_dir / "run.json").read_text())
+    assert info["run"] == "attachme" and info["connect"] == listen
+    assert info["operator_key"] == str((up_dir / "operator.key").resolve())
+    assert info["keys"] == (str((up_dir / "keys").resolve()) if secure else None)
+    assert set(info["processes"]) >= {"recorder", "world", "agent-1", "monitor"}
+    assert all("pid" in p for n, p in info["processes"].items() if n != "recorder")
+    children.start("watch", ["watch", "--attach", str(up_dir), "--out", str(watch_dir),
+                             "--json"])
+    children.start("inject", ["inject", "delay", "3", "1", "--steps", "2",
+                              "--attach", str(up_dir)])
+    _wait(lambda: children.children["inject"].returncode is not None, "inject", children,
+          allowed_exit=("inject",))
+    assert children.children["inject"].returncode == 0, _log(children, "inject")
+    assert "delay applied on link 3 -> 1" in _log(children, "inject")
+    _wait(lambda: all(children.children[n].returncode is not None for n in ("up", "watch")),
+          "up and watch to end", children, timeout=180, allowed_exit=("up", "watch", "inject"))
+    assert children.children["up"].returncode == 0, _log(children, "up")
+    assert children.children["watch"].returncode == 0, _log(children, "watch")
+    up = json.loads((up_dir / "summary.json").read_text())
+    lines = [json.loads(x) for x in _log(children, "watch").splitlines() if x.startswith("{")]
+    assert lines[-1]["kind"] == "summary" and {x["kind"] for x in lines[:-1]} == {"view"}
+    watched = json.loads((watch_dir / "summary.json").read_text())
+    assert watched["ended"] == "world ended" and watched["steps"] == up["steps"] == 300
+    assert watched["mse_steady"] == up["mse_steady"]
+    assert watched["mse_steady_exact"] == up["mse_steady_exact"]
+    assert [(f["agent"], f["cause"]) for f in watched["failures"]] == \
+        [(f["agent"], f["cause"]) for f in up["failures"]] == [(2, "crash")]
+    assert watched["rosters"] == up["rosters"]
+    k_up, m_up = _mse_csv(up_dir / "mse.csv")
+    k_w, m_w = _mse_csv(watch_dir / "mse.csv")
+    common = np.intersect1d(k_up, k_w)
+    assert len(common) >= 250
+    np.testing.assert_array_equal(m_up[np.isin(k_up, common)], m_w[np.isin(k_w, common)])
