@@ -111,10 +111,11 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
                                  "measure": st.get("measure")}
                         for a, st in last.items() if st},
     }
-    summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec, c.scenario, c.delays, steps, mse,
-                             c.G))
-    summary["warnings"] = list(dict.fromkeys(
-        list(c.scenario.warnings) + log_warnings(c.out / "logs") + summary.get("warnings", [])))
+    summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec,
+                             c.scenario, c.delays, steps, mse, c.G))
+    logged = log_warnings(c.out / "logs") if c.out is not None else []
+    summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
+                                             + summary.get("warnings", [])))
     return summary, steps, mse
 
 

@@ -155,8 +155,11 @@ def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_gains, sec
     assert watched["ended"] == "world ended" and watched["steps"] == up["steps"] == 300
     assert watched["mse_steady"] == up["mse_steady"]
     assert watched["mse_steady_exact"] == up["mse_steady_exact"]
+    # the same conviction (a kill is usually `crash`; on a loaded machine the loop can be
+    # seen stalled for the hang timeout before the token goes: `hang`)
     assert [(f["agent"], f["cause"]) for f in watched["failures"]] == \
-        [(f["agent"], f["cause"]) for f in up["failures"]] == [(2, "crash")]
+        [(f["agent"], f["cause"]) for f in up["failures"]]
+    assert [(f["agent"], f["cause"] in ("crash", "hang")) for f in up["failures"]] == [(2, True)]
     assert watched["rosters"] == up["rosters"]
     k_up, m_up = _mse_csv(up_dir / "mse.csv")
     k_w, m_w = _mse_csv(watch_dir / "mse.csv")
