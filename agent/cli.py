@@ -37,6 +37,7 @@ COMMANDS = {
     "monitor": "monitor",
     "chaos": "chaos",
     "keys": "keys",
+    "router": "router",
 }
 
 

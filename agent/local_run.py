@@ -84,6 +84,8 @@ class RunConfig:
     faults: tuple = ()
     start_timeout: float = 60.0
     secure: bool = False
+    #: one ``socmon router`` process; every other process is its client (no peer mesh)
+    router: bool = False
 
     @property
     def M(self) -> int:
@@ -162,7 +164,7 @@ class LocalRun:
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
         rec = Recording(run_id=f"up{os.getpid()}x{random.randrange(10**6)}",
-                        ports=[listen_port() for _ in range(M + 3)])
+                        ports=[listen_port() for _ in range(M + 3 + c.router)])
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
         rec.rosters = [(0, tuple(range(1, N + 1)), 0)]
@@ -191,6 +193,10 @@ class LocalRun:
         est_schema, truth_schema = wire.est_schema(n), wire.truth_schema(n)
         roster_schema, ctl_schema = wire.roster_schema(), wire.ctl_schema(n)
         argv = self._argv(rec, ep)
+        router_ep = ep[M + 3] if c.router else None
+        if c.router:
+            argv = {name: _through_router(a, router_ep) for name, a in argv.items()}
+            net_extra = {"mode": "client", "connect": (router_ep,)}
         pending = sorted(c.faults)
         undo = []                      # (time, action) of faults that end after seconds
         restarts = 0
@@ -205,8 +211,10 @@ class LocalRun:
         old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         t_begin = time.monotonic()
         try:
-            with Peer(NetConfig(run=rec.run_id, listen=(ep[0],), **net_extra), "recorder",
-                      0) as peer:
+            if c.router:        # the clients (the recorder first) wait for it up to 10 s
+                children.start("router", ["router", "--listen", router_ep])
+            with Peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
+                      "recorder", 0) as peer:
                 truth_in = peer.subscribe(keys.truth_key(rec.run_id), maxlen=1 << 16)
                 ctl_in = peer.subscribe(keys.any_agent_pattern(rec.run_id, "ctl"),
                                         maxlen=1 << 12)
@@ -334,7 +342,8 @@ class LocalRun:
                     for child in children.reap():
                         if child.name == "world" and child.returncode == 0:
                             world_end = time.monotonic()
-                        elif child.name == "world" or (world_end is None and c.abort_on_exit):
+                        elif child.name in ("world", "router") or (world_end is None
+                                                                   and c.abort_on_exit):
                             raise RunFailed(f"{child.name} exited with status "
                                             f"{child.returncode} before the end of the run; "
                                             f"its log ends:\n{children.tail(child.name)}")
@@ -371,10 +380,14 @@ class LocalRun:
                     if f.kind != "monitor":
                         end(f, max(rec.truth) if rec.truth else -1)
                 # final statuses: ask the agents to stop, then read what they said last
-                children.signal_all(signal.SIGCONT)
-                children.signal_all(signal.SIGTERM)
+                # (the router last: the final statuses pass through it)
+                last = [ch.name for ch in children.running() if ch.name != "router"]
+                for sig in (signal.SIGCONT, signal.SIGTERM):
+                    for name in last:
+                        _signal(children, name, sig)
                 deadline = time.monotonic() + 5.0
-                while children.running() and time.monotonic() < deadline:
+                while ({ch.name for ch in children.running()} - {"router"}
+                       and time.monotonic() < deadline):
                     peer.wait(timeout=0.1)
                     drain()
                 drain()
@@ -395,12 +408,28 @@ class LocalRun:
     def _write_run_json(self, rec, ep):
         c = self.config
         names = ["recorder", "world"] + [f"agent-{a}" for a in range(1, c.M + 1)] + ["monitor"]
-        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)}
+        if c.router:
+            names.append("router")
+        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)
+                 if not c.router or name == "router"}     # clients do not listen
         for name, child in rec.children.children.items():
             procs.setdefault(name, {})["pid"] = child.proc.pid
         (c.out / "run.json").write_text(json.dumps({
             "run": rec.run_id, "scenario": c.scenario.name, "out": str(c.out.resolve()),
-            "connect": ep[0], "processes": procs}, indent=2) + "\n")
+            "connect": ep[-1] if c.router else ep[0], "processes": procs}, indent=2) + "\n")
+
+
+def _through_router(argv, router_ep):
+    """The argv of a child of a routed run: no --listen, one --connect (the router)."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("--listen", "--connect"):
+            skip = True
+        else:
+            out.append(arg)
+    return out + ["--mode", "client", "--connect", router_ep]
 
 
 def _signal(children, name, sig):

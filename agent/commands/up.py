@@ -52,6 +52,10 @@ def add_arguments(parser) -> None:
                         help="a fresh key set for this run (RUN_FOLDER/keys): mutual TLS between "
                              "every process and access control on every peer "
                              "(docs/security.md)")
+    parser.add_argument("--router", action="store_true",
+                        help="start a zenoh router (socmon router) and make every process its "
+                             "client: one link per process instead of the peer mesh's "
+                             "N(N-1)/2 (docs/transport.md)")
 
 
 def run(args) -> int:
@@ -93,6 +97,10 @@ def run_config(args, say, prog="up"):
         raise CommandError(f"--drop: must be a probability in [0, 1), got {args.drop}")
     if not args.hang_timeout > 0:
         raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
+    if getattr(args, "router", False) and getattr(args, "secure", False):
+        raise CommandError("--router: not with --secure (the access control of a secured run "
+                           "names the process at the other end of each link, which a router "
+                           "would hide)")
     faults = parse_faults(args, scenario) if prog == "up" else ()
     if args.gains:
         G = gains_for(scenario, args.gains, delays)
@@ -118,7 +126,8 @@ def run_config(args, say, prog="up"):
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
                      monitor=not args.no_monitor, hang_timeout=args.hang_timeout,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
-                     secure=getattr(args, "secure", False))
+                     secure=getattr(args, "secure", False),
+                     router=getattr(args, "router", False))
 
 
 def _up(args) -> int:
