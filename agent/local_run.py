@@ -414,6 +414,7 @@ class LocalRun:
                  if not c.router or name == "router"}     # clients do not listen
         for name, child in rec.children.children.items():
             procs.setdefault(name, {})["pid"] = child.proc.pid
+            procs[name]["argv"] = list(child.proc.args[3:])       # after python -m agent.cli
         (c.out / "run.json").write_text(json.dumps({
             "run": rec.run_id, "scenario": c.scenario.name, "out": str(c.out.resolve()),
             "connect": ep[-1] if c.router else ep[0], "processes": procs}, indent=2) + "\n")
