@@ -121,7 +121,7 @@ def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
                       and summary["sensor_missed"] == 0 and summary["steps"] == steps
                       and "error" not in summary),
         "steps": summary["steps"], "late": summary["late"], "drops": summary["drops"],
-        "late_share": summary["late"] / received,
+        "late_share": (summary["late"] + summary["drops"]) / received,
         "hop_median_ms": statistics.median(h["median"] for h in hops) if hops else None,
         "hop_p99_ms": max(h["p99"] for h in hops) if hops else None,
         "cpu_ms_per_step": 1e3 * statistics.mean(agent_cpu) / steps if agent_cpu else None,
@@ -137,6 +137,35 @@ def fmt(value, spec):
     return "-" if value is None else format(value, spec)
 
 
+def _share(row: dict, N: int) -> float:
+    """Late or dropped estimates over those the agents waited for (one neighbour a step)."""
+    return (row["late"] + row["drops"]) / max(1, N * row["steps"])
+
+
+def print_table(results: list, periods: list) -> None:
+    """The README's table: one row per N and transport."""
+    cols = " | ".join(f"{p:g} ms" for p in periods)
+    print(f"| N | transport | links | steps/s sustained | late or dropped at {cols} | "
+          f"hop median / p99 (ms) | agent CPU ms/step (% core) | router CPU (% core) |")
+    print("| --- | --- | --- | --- | " + " | ".join("---" for _ in periods)
+          + " | --- | --- | --- |")
+    for r in results:
+        by_period = {x["step_ms"]: x for x in r["runs"]}
+        best = next((x for x in r["runs"] if x["sustained"]), r["runs"][-1])
+        sps = r["sustained_steps_per_s"]
+        sustained = f"{sps:g}" if sps else f"< {1000 / periods[-1]:g}"
+        shares = " | ".join(f"{_share(by_period[p], r['N']):.2%}" if p in by_period else "-"
+                            for p in periods)
+        print(f"| {r['N']} | {'router' if r['transport'] == 'router' else 'peer mesh'} | "
+              f"{r['links']} | {sustained} | {shares} | "
+              f"{fmt(best['hop_median_ms'], '.2f')} / {fmt(best['hop_p99_ms'], '.1f')} | "
+              f"{fmt(best['cpu_ms_per_step'], '.2f')} "
+              f"({fmt(best['cpu_percent_per_agent'], '.0f')}) | "
+              f"{fmt(best['router_cpu_percent'], '.0f')} |")
+    print("(hop and CPU at the sustained period, else at the slowest tried; '-': not run, "
+          "a faster period was sustained)")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="4,16,32")
@@ -144,7 +173,13 @@ def main(argv=None) -> int:
     parser.add_argument("--step-ms", default="10,20,40")
     parser.add_argument("--transports", default="peer,router")
     parser.add_argument("--json", metavar="FILE", help="also write every run's figures here")
+    parser.add_argument("--table", metavar="FILE",
+                        help="only print the table of a --json FILE written before")
     args = parser.parse_args(argv)
+    if args.table:
+        results = json.loads(Path(args.table).read_text())
+        print_table(results, sorted({x["step_ms"] for r in results for x in r["runs"]}))
+        return 0
     sizes = [int(x) for x in args.sizes.split(",")]
     periods = sorted(float(x) for x in args.step_ms.split(","))
     transports = args.transports.split(",")
@@ -175,7 +210,8 @@ def main(argv=None) -> int:
                                N, args.steps, step_ms)
                 tried.append(row)
                 print(f"  {transport:6} {step_ms:4g} ms: sustained "
-                      f"{'yes' if row['sustained'] else 'no '}  late {row['late_share']:.1%}"
+                      f"{'yes' if row['sustained'] else 'no '}  late {row['late']} dropped "
+                      f"{row['drops']} ({row['late_share']:.2%})"
                       f"  hop {fmt(row['hop_median_ms'], '.2f')} / "
                       f"{fmt(row['hop_p99_ms'], '.1f')} ms  agent CPU "
                       f"{fmt(row['cpu_ms_per_step'], '.2f')} ms/step "
@@ -188,21 +224,7 @@ def main(argv=None) -> int:
             results.append({"N": N, "transport": transport, "links": links, "runs": tried,
                             "sustained_steps_per_s": 1000.0 / best["step_ms"] if best else None})
     print()
-    print(f"| N | transport | links | steps/s sustained | late at {periods[0]:g} ms | "
-          f"hop median / p99 (ms) | agent CPU ms/step (% core) | router CPU (% core) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in results:
-        best = next((x for x in r["runs"] if x["sustained"]), r["runs"][-1])
-        first = r["runs"][0]
-        sps = r["sustained_steps_per_s"]
-        sustained = (f"{sps:g}" if sps else f"< {1000 / periods[-1]:g}")
-        print(f"| {r['N']} | {'router' if r['transport'] == 'router' else 'peer mesh'} | "
-              f"{r['links']} | {sustained} | {first['late_share']:.1%} | "
-              f"{fmt(best['hop_median_ms'], '.2f')} / {fmt(best['hop_p99_ms'], '.1f')} | "
-              f"{fmt(best['cpu_ms_per_step'], '.2f')} "
-              f"({fmt(best['cpu_percent_per_agent'], '.0f')}) | "
-              f"{fmt(best['router_cpu_percent'], '.0f')} |")
-    print("(hop and CPU at the sustained period, else at the slowest tried)")
+    print_table(results, periods)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
     return 0
