@@ -42,9 +42,11 @@ KEEP_ALIVES_PER_LEASE = 4
 DEFAULT_LISTEN = ("tcp/127.0.0.1:0",)
 #: Default listen endpoint of a secured process (``keys`` given).
 DEFAULT_SECURE_LISTEN = ("tls/127.0.0.1:0",)
-#: How long a client keeps trying its routers before ``zenoh.open`` fails
-#: (``connect/timeout_ms`` of a client unless the config file sets it). zenoh's client
-#: default is to fail at once, so a client started before its router would die.
+#: How long a client of one router keeps trying it before ``zenoh.open`` fails
+#: (``connect/timeout_ms`` of a client with one connect endpoint, unless the config file
+#: sets it). zenoh's client default is to try once, so a client started before its router
+#: would die. A client of several routers keeps zenoh's default: while it waits, zenoh
+#: 1.10 retries the first endpoint only (measured), so the others would never be tried.
 CLIENT_CONNECT_TIMEOUT_MS = 10_000
 #: Largest message zenoh will reassemble (``transport/link/rx/max_message_size``).
 #: zenoh's default is 1 GiB; socmon messages are a few hundred bytes.
@@ -60,7 +62,7 @@ SOCMON_KEYS = {
     "scouting/gossip/enabled": "true",
     "transport/link/tx/keep_alive": str(KEEP_ALIVES_PER_LEASE),
     "transport/link/rx/max_message_size": str(MAX_MESSAGE_BYTES),
-    "connect/timeout_ms": f"{CLIENT_CONNECT_TIMEOUT_MS} (client mode only)",
+    "connect/timeout_ms": f"{CLIENT_CONNECT_TIMEOUT_MS} (client of one router only)",
 }
 _MODES = ("peer", "client")
 #: The modes a socmon process may run in (a router is ``socmon router``, not a mode flag).
@@ -312,7 +314,8 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     ``transport/link/tx/lease``. Unless the config file sets them:
     ``scouting/gossip/enabled`` = true; ``transport/link/tx/keep_alive`` = 4 (keep-alives
     per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`; in
-    client mode ``connect/timeout_ms`` = :data:`CLIENT_CONNECT_TIMEOUT_MS`.
+    client mode with one connect endpoint ``connect/timeout_ms`` =
+    :data:`CLIENT_CONNECT_TIMEOUT_MS`.
     With ``net.keys``, the process's secure fragment (TLS, mTLS, access control, connect
     timeout) is applied over the file. Everything else comes from ``net.zenoh_config`` or
     the zenoh defaults.
@@ -334,7 +337,7 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
         "transport/link/tx/keep_alive": KEEP_ALIVES_PER_LEASE,
         "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES,
     }
-    if net.mode == "client":
+    if net.mode == "client" and len(net.connect) == 1:
         fixed["connect/timeout_ms"] = CLIENT_CONNECT_TIMEOUT_MS
     overrides = {
         "mode": net.mode,

@@ -43,6 +43,8 @@ def test_client_mode_listens_nowhere_and_waits_for_its_router():
     conf = build_zenoh_config(net)
     assert _get(conf, "mode") == "client"
     assert _get(conf, "connect/timeout_ms") == CLIENT_CONNECT_TIMEOUT_MS
+    several = build_zenoh_config(NetConfig(mode="client", connect=("tcp/a:1", "tcp/b:2")))
+    assert _get(several, "connect/timeout_ms") != CLIENT_CONNECT_TIMEOUT_MS     # zenoh's
     peer = build_zenoh_config(NetConfig())
     assert _get(peer, "connect/timeout_ms") != CLIENT_CONNECT_TIMEOUT_MS   # zenoh's own
     assert NetConfig().listen == ("tcp/127.0.0.1:0",)
@@ -112,6 +114,23 @@ def test_two_clients_talk_and_see_liveliness_through_an_in_process_router():
         stop.set()
         thread.join(DEADLINE)
     assert not thread.is_alive()
+
+
+def test_two_routers_carry_samples_between_their_clients_and_a_client_skips_a_dead_one():
+    a, b, dead = (f"tcp/127.0.0.1:{listen_port()}" for _ in range(3))
+    with Router(NetConfig(listen=(a,))) as ra, \
+            Router(NetConfig(listen=(b,), connect=(a,))) as rb:
+        with Peer(NetConfig(run="rt", mode="client", connect=(a,)), "agent", 1) as p1, \
+                Peer(NetConfig(run="rt", mode="client", connect=(dead, b)), "agent", 2) as p2:
+            assert p2.watch_liveliness().wait_until(lambda s: ("agent", "1") in s, DEADLINE)
+            inbox = p2.subscribe(keys.est_key("rt", 1))
+            deadline = time.monotonic() + DEADLINE
+            item = None
+            while item is None and time.monotonic() < deadline:
+                p1.put(keys.est_key("rt", 1), b"across")
+                item = inbox.get(timeout=0.2)
+            assert item is not None and item.payload == b"across"
+            assert ra.sessions() == 2 and rb.sessions() == 2     # a client and the other router
 
 
 def test_router_reports_the_port_the_os_chose():
