@@ -211,8 +211,9 @@ class LocalRun:
         old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         t_begin = time.monotonic()
         try:
-            if c.router:        # the clients (the recorder first) wait for it up to 10 s
+            if c.router:        # up before its clients, which try it for 10 s only
                 children.start("router", ["router", "--listen", router_ep])
+                _wait_listening(children, "router", c.start_timeout)
             with Peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
                       "recorder", 0) as peer:
                 truth_in = peer.subscribe(keys.truth_key(rec.run_id), maxlen=1 << 16)
@@ -431,6 +432,22 @@ def _through_router(argv, router_ep):
         else:
             out.append(arg)
     return out + ["--mode", "client", "--connect", router_ep]
+
+
+def _wait_listening(children, name, timeout):
+    """Wait until child ``name`` logs that it listens (``socmon router`` prints it)."""
+    child = children.children[name]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        children.reap()
+        if "listening on" in child.log_path.read_text(errors="replace"):
+            return
+        if child.returncode is not None:
+            raise RunFailed(f"{name} exited with status {child.returncode} before it listened;"
+                            f" its log ends:\n{children.tail(name)}")
+        time.sleep(0.05)
+    raise RunFailed(f"{name} did not listen within {timeout:g} s; its log ends:\n"
+                    f"{children.tail(name)}")
 
 
 def _signal(children, name, sig):

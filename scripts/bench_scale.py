@@ -100,9 +100,11 @@ def run_up(scenario, gains, steps, step_ms, out, router) -> dict:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
-    if proc.returncode not in (0, 1):
-        raise RuntimeError(f"up failed ({proc.returncode}): {stderr[-2000:]}")
-    summary = json.loads(stdout)
+    try:
+        summary = json.loads(stdout)
+    except ValueError:
+        raise RuntimeError(f"up exited with {proc.returncode} and no summary: "
+                           f"{' '.join(stderr.split())[-400:]}") from None
     summary["cpu_at_clock_start"] = at_start
     return summary
 
@@ -150,6 +152,9 @@ def print_table(results: list, periods: list) -> None:
     print("| --- | --- | --- | --- | " + " | ".join("---" for _ in periods)
           + " | --- | --- | --- |")
     for r in results:
+        if not r["runs"]:
+            print(f"| {r['N']} | {r['transport']} | {r['links']} | every run failed |")
+            continue
         by_period = {x["step_ms"]: x for x in r["runs"]}
         best = next((x for x in r["runs"] if x["sustained"]), r["runs"][-1])
         sps = r["sustained_steps_per_s"]
@@ -162,8 +167,8 @@ def print_table(results: list, periods: list) -> None:
               f"{fmt(best['cpu_ms_per_step'], '.2f')} "
               f"({fmt(best['cpu_percent_per_agent'], '.0f')}) | "
               f"{fmt(best['router_cpu_percent'], '.0f')} |")
-    print("(hop and CPU at the sustained period, else at the slowest tried; '-': not run, "
-          "a faster period was sustained)")
+    print("(hop and CPU at the sustained period, else at the slowest tried; '-': not run "
+          "(a faster period was sustained) or failed)")
 
 
 def main(argv=None) -> int:
@@ -206,8 +211,14 @@ def main(argv=None) -> int:
             tried = []
             for step_ms in periods:
                 out = tmp / f"run-{N}-{transport}-{step_ms:g}"
-                row = describe(run_up(scenario, gains, args.steps, step_ms, out, router),
-                               N, args.steps, step_ms)
+                load = os.getloadavg()[0]
+                try:
+                    row = describe(run_up(scenario, gains, args.steps, step_ms, out, router),
+                                   N, args.steps, step_ms)
+                except RuntimeError as exc:
+                    print(f"  {transport:6} {step_ms:4g} ms: failed: {exc}", flush=True)
+                    continue
+                row["load_average"] = load
                 tried.append(row)
                 print(f"  {transport:6} {step_ms:4g} ms: sustained "
                       f"{'yes' if row['sustained'] else 'no '}  late {row['late']} dropped "
@@ -216,7 +227,8 @@ def main(argv=None) -> int:
                       f"{fmt(row['hop_p99_ms'], '.1f')} ms  agent CPU "
                       f"{fmt(row['cpu_ms_per_step'], '.2f')} ms/step "
                       f"({fmt(row['cpu_percent_per_agent'], '.0f')} %)  router "
-                      f"{fmt(row['router_cpu_percent'], '.0f')} %  wall {row['wall_s']:.0f} s",
+                      f"{fmt(row['router_cpu_percent'], '.0f')} %  wall {row['wall_s']:.0f} s"
+                      f"  load {load:.1f}",
                       flush=True)
                 if row["sustained"]:
                     break
