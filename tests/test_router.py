@@ -17,7 +17,8 @@ import pytest
 
 from agent.cli import main
 from agent.launcher import ROOT
-from agent.local_run import _through_router
+from agent.launcher import Children
+from agent.local_run import RunFailed, _through_router, _wait_listening
 from broker_free_net import keys
 from broker_free_net.config import (
     CLIENT_CONNECT_TIMEOUT_MS,
@@ -176,6 +177,18 @@ def test_socmon_router_prints_its_endpoint_and_stops_on_sigterm():
     with socket.socket() as sock:             # the port is free again
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(("127.0.0.1", port))
+
+
+@pytest.mark.multiprocess
+def test_a_router_that_cannot_start_fails_the_run_with_its_log(tmp_path):
+    children = Children(tmp_path / "logs")
+    try:
+        children.start("router", ["router", "--listen", "tcp/127.0.0.1:1", "--keys", "k"])
+        with pytest.raises(RunFailed, match="router exited with status 2 before it listened;"
+                                            "(.|\n)*--keys: a router cannot run with keys"):
+            _wait_listening(children, "router", DEADLINE)
+    finally:
+        children.stop_all()
 
 
 @pytest.mark.multiprocess
