@@ -153,6 +153,7 @@ def print_table(results: list, periods: list) -> None:
           f"hop median / p99 (ms) | agent CPU ms/step (% core) | router CPU (% core) |")
     print("| --- | --- | --- | --- | " + " | ".join("---" for _ in periods)
           + " | --- | --- | --- |")
+    steps = max(x["steps"] for r in results for x in r["runs"])
     for r in results:
         if not r["runs"]:
             print(f"| {r['N']} | {r['transport']} | {r['links']} | every run failed |")
@@ -161,8 +162,11 @@ def print_table(results: list, periods: list) -> None:
         best = next((x for x in r["runs"] if x["sustained"]), r["runs"][-1])
         sps = r["sustained_steps_per_s"]
         sustained = f"{sps:g}" if sps else f"< {1000 / periods[-1]:g}"
-        shares = " | ".join(f"{_share(by_period[p], r['N']):.2%}" if p in by_period else "-"
-                            for p in periods)
+        shares = " | ".join(
+            (f"{_share(by_period[p], r['N']):.1%}"
+             + (f" (to step {by_period[p]['steps']})"
+                if by_period[p]["steps"] < steps else "")) if p in by_period else "-"
+            for p in periods)
         print(f"| {r['N']} | {'router' if r['transport'] == 'router' else 'peer mesh'} | "
               f"{r['links']} | {sustained} | {shares} | "
               f"{fmt(best['hop_median_ms'], '.2f')} / {fmt(best['hop_p99_ms'], '.1f')} | "
@@ -170,7 +174,8 @@ def print_table(results: list, periods: list) -> None:
               f"({fmt(best['cpu_percent_per_agent'], '.0f')}) | "
               f"{fmt(best['router_cpu_percent'], '.0f')} |")
     print("(hop and CPU at the sustained period, else at the slowest tried; '-': not run "
-          "(a faster period was sustained) or failed)")
+          "(a faster period was sustained) or failed; 'to step S': the run was recorded only "
+          "to step S of the requested ones, see the README)")
 
 
 def main(argv=None) -> int:
