@@ -42,6 +42,7 @@ COMMANDS = {
     "monitor": "monitor",
     "chaos": "chaos",
     "keys": "keys",
+    "router": "router",
 }
 
 

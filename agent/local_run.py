@@ -92,6 +92,8 @@ class RunConfig:
     testbed: object = None
     run_id: str | None = None        # default: a fresh id
     listen: str | None = None        # the recorder's endpoint (every child connects to it)
+    #: one ``socmon router`` process; every other process is its client (no peer mesh)
+    router: bool = False
 
     @property
     def M(self) -> int:
@@ -164,11 +166,13 @@ class LocalRun:
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
         recorder = Recorder(c.run_id or f"up{os.getpid()}x{random.randrange(10**6)}",
-                            c.scenario.n, N, M, ports=[listen_port() for _ in range(M + 3)])
+                            c.scenario.n, N, M, ports=[listen_port() for _ in range(M + 3 + c.router)])
         rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
         ep = [f"{scheme}/{self._host_ip(name)}:{p}"
               for name, p in zip(host_names(M), rec.ports)]
+        if c.router:                   # the router listens on loopback (not with --netns)
+            ep.append(f"{scheme}/127.0.0.1:{rec.ports[-1]}")
         if c.listen:
             ep[0] = c.listen
         net_extra = {}
@@ -190,6 +194,10 @@ class LocalRun:
                        operator.public_bytes())
         children = rec.children = Children(c.out / "logs")
         argv = self._argv(rec, ep)
+        router_ep = ep[M + 3] if c.router else None
+        if c.router:
+            argv = {name: _through_router(a, router_ep) for name, a in argv.items()}
+            net_extra = {"mode": "client", "connect": (router_ep,)}
         pending = sorted(c.faults)
         undo = []                      # (time, action) of faults that end after seconds
         restarts = 0
@@ -204,8 +212,11 @@ class LocalRun:
         old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         t_begin = time.monotonic()
         try:
-            with Peer(NetConfig(run=rec.run_id, listen=(ep[0],), **net_extra), "recorder",
-                      0) as peer:
+            if c.router:        # up before its clients, which try it for 10 s only
+                children.start("router", ["router", "--listen", router_ep])
+                _wait_listening(children, "router", c.start_timeout)
+            with Peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
+                      "recorder", 0) as peer:
                 recorder.subscribe(peer)
                 impair_key = keys.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
@@ -314,7 +325,8 @@ class LocalRun:
                     for child in children.reap():
                         if child.name == "world" and child.returncode == 0:
                             world_end = time.monotonic()
-                        elif child.name == "world" or (world_end is None and c.abort_on_exit):
+                        elif child.name in ("world", "router") or (world_end is None
+                                                                   and c.abort_on_exit):
                             raise RunFailed(f"{child.name} exited with status "
                                             f"{child.returncode} before the end of the run; "
                                             f"its log ends:\n{children.tail(child.name)}")
@@ -351,10 +363,14 @@ class LocalRun:
                     if f.kind != "monitor":
                         end(f, max(rec.truth) if rec.truth else -1)
                 # final statuses: ask the agents to stop, then read what they said last
-                children.signal_all(signal.SIGCONT)
-                children.signal_all(signal.SIGTERM)
+                # (the router last: the final statuses pass through it)
+                last = [ch.name for ch in children.running() if ch.name != "router"]
+                for sig in (signal.SIGCONT, signal.SIGTERM):
+                    for name in last:
+                        _signal(children, name, sig)
                 deadline = time.monotonic() + 5.0
-                while children.running() and time.monotonic() < deadline:
+                while ({ch.name for ch in children.running()} - {"router"}
+                       and time.monotonic() < deadline):
                     peer.wait(timeout=0.1)
                     drain()
                 drain()
@@ -375,18 +391,52 @@ class LocalRun:
         from .run_folder import write_run_json
 
         c = self.config
-        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(host_names(c.M))}
+        names = host_names(c.M) + (["router"] if c.router else [])
+        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)
+                 if not c.router or name == "router"}     # clients do not listen
         for name, child in rec.children.children.items():
             procs.setdefault(name, {})["pid"] = child.proc.pid
+            args = list(child.proc.args)       # socmon's own argv: after ... -m agent.cli
+            procs[name]["argv"] = args[args.index("agent.cli") + 1:] if "agent.cli" in args \
+                else args
         if c.testbed is not None:         # attach with `ip netns exec NETNS socmon ...`
             for name in procs:
                 procs[name]["netns"] = c.testbed.namespace(host_of(name))
-        write_run_json(c.out, run=rec.run_id, connect=ep[0], processes=procs,
-                       scenario=c.scenario.name, scenario_arg=c.scenario_arg,
+        write_run_json(c.out, run=rec.run_id, connect=ep[-1] if c.router else ep[0],
+                       processes=procs, scenario=c.scenario.name, scenario_arg=c.scenario_arg,
                        keys=c.out / "keys" if c.secure else None,
                        operator_key=c.out / "operator.key", control_key=c.out / "control.key",
                        manifest=c.out / "manifest.json", gains=c.gains_path, seed=c.seed,
                        delays=c.delays_spec, steps=c.steps, step_ms=c.step_ms)
+
+
+def _through_router(argv, router_ep):
+    """The argv of a child of a routed run: no --listen, one --connect (the router)."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("--listen", "--connect"):
+            skip = True
+        else:
+            out.append(arg)
+    return out + ["--mode", "client", "--connect", router_ep]
+
+
+def _wait_listening(children, name, timeout):
+    """Wait until child ``name`` logs that it listens (``socmon router`` prints it)."""
+    child = children.children[name]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        children.reap()
+        if "listening on" in child.log_path.read_text(errors="replace"):
+            return
+        if child.returncode is not None:
+            raise RunFailed(f"{name} exited with status {child.returncode} before it listened;"
+                            f" its log ends:\n{children.tail(name)}")
+        time.sleep(0.05)
+    raise RunFailed(f"{name} did not listen within {timeout:g} s; its log ends:\n"
+                    f"{children.tail(name)}")
 
 
 def _signal(children, name, sig):

@@ -19,6 +19,7 @@ from pathlib import Path
 import zenoh
 
 __all__ = [
+    "CLIENT_CONNECT_TIMEOUT_MS",
     "DEFAULT_LEASE_MS",
     "DEFAULT_LISTEN",
     "DEFAULT_SECURE_LISTEN",
@@ -41,6 +42,12 @@ KEEP_ALIVES_PER_LEASE = 4
 DEFAULT_LISTEN = ("tcp/127.0.0.1:0",)
 #: Default listen endpoint of a secured process (``keys`` given).
 DEFAULT_SECURE_LISTEN = ("tls/127.0.0.1:0",)
+#: How long a client of one router keeps trying it before ``zenoh.open`` fails
+#: (``connect/timeout_ms`` of a client with one connect endpoint, unless the config file
+#: sets it). zenoh's client default is to try once, so a client started before its router
+#: would die. A client of several routers keeps zenoh's default: while it waits, zenoh
+#: 1.10 retries the first endpoint only (measured), so the others would never be tried.
+CLIENT_CONNECT_TIMEOUT_MS = 10_000
 #: Largest message zenoh will reassemble (``transport/link/rx/max_message_size``).
 #: zenoh's default is 1 GiB; socmon messages are a few hundred bytes.
 MAX_MESSAGE_BYTES = 1 << 20
@@ -55,8 +62,11 @@ SOCMON_KEYS = {
     "scouting/gossip/enabled": "true",
     "transport/link/tx/keep_alive": str(KEEP_ALIVES_PER_LEASE),
     "transport/link/rx/max_message_size": str(MAX_MESSAGE_BYTES),
+    "connect/timeout_ms": f"{CLIENT_CONNECT_TIMEOUT_MS} (client of one router only)",
 }
 _MODES = ("peer", "client")
+#: The modes a socmon process may run in (a router is ``socmon router``, not a mode flag).
+_PROCESS_MODES = _MODES
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # <protocol>/<address>[?<metadata>][#<config>]
 _ENDPOINT_RE = re.compile(r"^[a-z][a-z0-9+\-]*/\S+$")
@@ -166,7 +176,8 @@ class NetConfig:
         ``_``, ``.``, ``-``. Default: the run of `keys`, else ``"default"``.
     listen : sequence of str or None
         zenoh endpoints to listen on, e.g. ``("tcp/127.0.0.1:7447",)``. Default
-        :data:`DEFAULT_LISTEN` (:data:`DEFAULT_SECURE_LISTEN` with `keys`).
+        :data:`DEFAULT_LISTEN` (:data:`DEFAULT_SECURE_LISTEN` with `keys`); none in
+        client mode (a client only connects).
     connect : sequence of str or None
         Endpoints to connect to. One seed peer is enough: the rest of the mesh is found
         by gossip scouting. Default none.
@@ -185,7 +196,10 @@ class NetConfig:
         Process name whose credentials to use: ``"world"``, ``"agent-<i>"``,
         ``"monitor"``, ``"operator"`` or ``"recorder"``.
     mode : str or None
-        zenoh mode, ``"peer"`` (default) or ``"client"``.
+        zenoh mode, ``"peer"`` (default: every process links to every other) or
+        ``"client"`` (one link, to the first reachable router of `connect`; see
+        :mod:`broker_free_net.router`). Not with `keys`: the access control names the
+        process at the other end of each link, which a router would hide.
 
     Examples
     --------
@@ -247,6 +261,10 @@ class NetConfig:
                 raise InvalidNetConfig(src, f"mode {self.mode!r} is not one of {', '.join(_MODES)}")
         elif self.mode not in _MODES:
             raise InvalidNetConfig("mode", f"{self.mode!r} is not one of {', '.join(_MODES)}")
+        if self.mode == "client" and fragment is not None:
+            raise InvalidNetConfig("mode", "client mode cannot be used with keys: the access "
+                                           "control names the process at the other end of a "
+                                           "link, and through a router that is the router")
         for name, key in (("listen", "listen/endpoints"), ("connect", "connect/endpoints")):
             value = getattr(self, name)
             if value is None:
@@ -257,7 +275,8 @@ class NetConfig:
                     except InvalidNetConfig as exc:
                         raise InvalidNetConfig(src, f"{key}: {exc}") from None
                 else:
-                    default = (DEFAULT_SECURE_LISTEN if fragment else DEFAULT_LISTEN) if name == "listen" else ()
+                    default = (DEFAULT_SECURE_LISTEN if fragment else DEFAULT_LISTEN) \
+                        if name == "listen" and self.mode != "client" else ()
                     put(name, default)
             else:
                 put(name, _check_endpoints(name, value))
@@ -294,7 +313,9 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     ``mode``; ``listen/endpoints``; ``connect/endpoints``; ``scouting/multicast/enabled``;
     ``transport/link/tx/lease``. Unless the config file sets them:
     ``scouting/gossip/enabled`` = true; ``transport/link/tx/keep_alive`` = 4 (keep-alives
-    per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`.
+    per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`; in
+    client mode with one connect endpoint ``connect/timeout_ms`` =
+    :data:`CLIENT_CONNECT_TIMEOUT_MS`.
     With ``net.keys``, the process's secure fragment (TLS, mTLS, access control, connect
     timeout) is applied over the file. Everything else comes from ``net.zenoh_config`` or
     the zenoh defaults.
@@ -316,6 +337,8 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
         "transport/link/tx/keep_alive": KEEP_ALIVES_PER_LEASE,
         "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES,
     }
+    if net.mode == "client" and len(net.connect) == 1:
+        fixed["connect/timeout_ms"] = CLIENT_CONNECT_TIMEOUT_MS
     overrides = {
         "mode": net.mode,
         "listen/endpoints": list(net.listen),
@@ -346,7 +369,7 @@ def add_net_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
     """Add the transport flags to an argparse parser.
 
     Flags: ``--run``, ``--listen`` (repeatable), ``--connect`` (repeatable),
-    ``--multicast``, ``--zenoh-config``, ``--lease-ms``, ``--keys``. Every flag defaults to
+    ``--mode``, ``--multicast``, ``--zenoh-config``, ``--lease-ms``, ``--keys``. Every flag defaults to
     None (not given), so that a value of the ``--zenoh-config`` file is kept.
     """
     group = parser.add_argument_group("network", _NET_HELP)
@@ -356,7 +379,11 @@ def add_net_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParse
                        help=f"zenoh endpoint to listen on (repeatable; default {DEFAULT_LISTEN[0]}, "
                             f"{DEFAULT_SECURE_LISTEN[0]} with --keys)")
     group.add_argument("--connect", action="append", metavar="ENDPOINT",
-                       help="seed endpoint to connect to (repeatable)")
+                       help="seed endpoint to connect to (repeatable); in client mode, the "
+                            "routers to try in order")
+    group.add_argument("--mode", choices=_PROCESS_MODES, default=None,
+                       help="peer (default): link to every other process; client: one link, "
+                            "to a router (socmon router) given by --connect")
     group.add_argument("--multicast", action="store_true", default=None,
                        help="enable multicast scouting (LAN)")
     group.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config file applied first")
@@ -396,4 +423,5 @@ def net_config_from_args(args: argparse.Namespace, identity: str | None = None) 
         zenoh_config=args.zenoh_config,
         keys=keys,
         identity=identity if keys is not None else None,
+        mode=getattr(args, "mode", None),
     )

@@ -70,6 +70,10 @@ def add_arguments(parser) -> None:
                              "addresses; removed after the run (needs root; docs/runtime.md)")
     parser.add_argument("--netns-prefix", default=None, metavar="PREFIX",
                         help="namespace names PREFIX-<host> (default sm<pid>)")
+    parser.add_argument("--router", action="store_true",
+                        help="start a zenoh router (socmon router) and make every process its "
+                             "client: one link per process instead of the peer mesh's "
+                             "N(N-1)/2 (docs/transport.md)")
 
 
 def run(args) -> int:
@@ -111,6 +115,13 @@ def run_config(args, say, prog="up"):
         raise CommandError(f"--drop: must be a probability in [0, 1), got {args.drop}")
     if not args.hang_timeout > 0:
         raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
+    if getattr(args, "router", False) and getattr(args, "netns", False):
+        raise CommandError("--router: not with --netns (the router would need a host of its "
+                           "own on the testbed)")
+    if getattr(args, "router", False) and getattr(args, "secure", False):
+        raise CommandError("--router: not with --secure (the access control of a secured run "
+                           "names the process at the other end of each link, which a router "
+                           "would hide)")
     faults = parse_faults(args, scenario) if prog == "up" else ()
     if getattr(args, "netns_prefix", None) is not None:
         from ..netns import check_prefix
@@ -148,7 +159,8 @@ def run_config(args, say, prog="up"):
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
                      monitor=not args.no_monitor, hang_timeout=args.hang_timeout,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
-                     secure=getattr(args, "secure", False), run_id=run_id, listen=listen)
+                     secure=getattr(args, "secure", False), run_id=run_id, listen=listen,
+                     router=getattr(args, "router", False))
 
 
 def check_run_endpoint(run_id, listen, secure) -> tuple:

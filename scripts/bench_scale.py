@@ -1,0 +1,253 @@
+"""Scale of a live run on this machine: N agents as N processes, peer mesh vs one router.
+
+For each N of ``--sizes`` the scenario is ``communities-N`` (:mod:`design.generate`; the
+built-ins for 16 and 32, generated for other N), its gain designed once
+(``socmon design --target 0.97``). Then for each transport (the peer mesh, and
+``socmon up --router``) ``socmon up`` runs ``--steps`` steps at each period of
+``--step-ms`` in turn, fastest first, until one is *sustained*: every step reached, no
+estimate dropped or late (the agents wait one step for their neighbours), no sensor
+reading missed. The runs have no monitor (its precomputation for 32 agents would dominate
+the start-up) and no link delays.
+
+Figures per run: the sustained steps/s (1000 / the smallest sustained period), the share of
+neighbour estimates not there by the deadline (missed: dropped, or late) at each period, the agent-to-agent hop (publish -> decoded in
+the receiving agent; median of the agents' medians, worst p99), CPU per agent (ms of CPU a
+step, mean over agents, and % of one core) and the router's CPU (% of one core), both from
+the clock's start to the process's exit (the start-up, read from /proc when the world's
+clock starts, is left out), and the links
+the transport holds: (P-1)P/2 for P processes in the mesh (N agents, world, recorder), P
+through the router.
+
+Usage::
+
+    python scripts/bench_scale.py [--sizes 4,16,32] [--steps 1000] [--step-ms 10,20,40]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def socmon(*argv, timeout):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "agent.cli", *argv], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=timeout,
+                          start_new_session=True)
+
+
+def scenario_for(N: int, folder: Path) -> str:
+    from design.generate import communities_scenario
+    from design.scenario import builtin_scenarios, scenario_from_dict, scenario_to_toml
+
+    name = f"communities-{N}"
+    if name in builtin_scenarios():
+        return name
+    path = folder / f"{name}.toml"
+    path.write_text(scenario_to_toml(scenario_from_dict(communities_scenario(N, seed=N))))
+    return str(path)
+
+
+def _cpu_s(pid: int):
+    """CPU seconds (user + system) of a live process so far, None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_up(scenario, gains, steps, step_ms, out, router) -> dict:
+    """``socmon up``'s summary, with ``cpu_at_clock_start``: the CPU each agent and the
+    router had spent when the world's clock started (start-up: imports, session, gains),
+    read from /proc, so that the CPU of the steps alone can be told apart."""
+    argv = ["up", scenario, "--steps", str(steps), "--step-ms", str(step_ms), "--gains",
+            str(gains), "--out", str(out), "--no-monitor", "--delays", "none", "--json",
+            "--quiet", "--start-timeout", "300"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", *argv,
+                             *(["--router"] if router else [])], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    at_start = {}
+    try:
+        deadline = time.monotonic() + 900
+        world_log = out / "logs" / "world.log"
+        while proc.poll() is None and time.monotonic() < deadline:
+            try:
+                started = "clock starts" in world_log.read_text()
+                pids = json.loads((out / "run.json").read_text())["processes"]
+            except (OSError, ValueError, KeyError):
+                started = False
+            if started:
+                at_start = {name: _cpu_s(p["pid"]) for name, p in pids.items()
+                            if name.startswith("agent-") or name == "router"}
+                break
+            time.sleep(0.05)
+        stdout, stderr = proc.communicate(timeout=900 + steps * step_ms / 1000 * 5)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    try:
+        summary = json.loads(stdout)
+    except ValueError:
+        raise RuntimeError(f"up exited with {proc.returncode} and no summary: "
+                           f"{' '.join(stderr.split())[-400:]}") from None
+    summary["cpu_at_clock_start"] = at_start
+    return summary
+
+
+def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
+    span = steps * step_ms / 1000.0
+    hops = [h for h in summary.get("hop_ms", {}).values() if h]
+    start = summary["cpu_at_clock_start"]
+    stepping = {k: v - start[k] for k, v in summary["cpu_s"].items()
+                if v is not None and start.get(k) is not None}
+    agent_cpu = [v for k, v in stepping.items() if k.startswith("agent-")]
+    received = max(1, N * steps)           # each agent waits for one neighbour a step
+    return {
+        "step_ms": step_ms,
+        "sustained": (summary["drops"] == 0 and summary["late"] == 0
+                      and summary["sensor_missed"] == 0 and summary["steps"] == steps
+                      and "error" not in summary),
+        "steps": summary["steps"], "late": summary["late"], "drops": summary["drops"],
+        "late_share": summary["drops"] / received,
+        "hop_median_ms": statistics.median(h["median"] for h in hops) if hops else None,
+        "hop_p99_ms": max(h["p99"] for h in hops) if hops else None,
+        "cpu_ms_per_step": 1e3 * statistics.mean(agent_cpu) / steps if agent_cpu else None,
+        "cpu_percent_per_agent": 100.0 * statistics.mean(agent_cpu) / span if agent_cpu
+        else None,
+        "router_cpu_percent": (100.0 * stepping["router"] / span
+                               if "router" in stepping else None),
+        "wall_s": summary["wall_s"],
+    }
+
+
+def fmt(value, spec):
+    return "-" if value is None else format(value, spec)
+
+
+def _share(row: dict, N: int) -> float:
+    """Estimates not there by the deadline over those the agents waited for (one neighbour
+    a step). An agent counts such an estimate in ``drops``, and in ``late`` too if it came
+    after all, so ``drops`` is the count."""
+    return row["drops"] / max(1, N * row["steps"])
+
+
+def print_table(results: list, periods: list) -> None:
+    """The README's table: one row per N and transport."""
+    cols = " | ".join(f"{p:g} ms" for p in periods)
+    print(f"| N | transport | links | steps/s sustained | estimates missed at {cols} | "
+          f"hop median / p99 (ms) | agent CPU ms/step (% core) | router CPU (% core) |")
+    print("| --- | --- | --- | --- | " + " | ".join("---" for _ in periods)
+          + " | --- | --- | --- |")
+    steps = max(x["steps"] for r in results for x in r["runs"])
+    for r in results:
+        if not r["runs"]:
+            print(f"| {r['N']} | {r['transport']} | {r['links']} | every run failed |")
+            continue
+        by_period = {x["step_ms"]: x for x in r["runs"]}
+        best = next((x for x in r["runs"] if x["sustained"]), r["runs"][-1])
+        sps = r["sustained_steps_per_s"]
+        sustained = f"{sps:g}" if sps else f"< {1000 / periods[-1]:g}"
+        shares = " | ".join(
+            (f"{_share(by_period[p], r['N']):.1%}"
+             + (f" (to step {by_period[p]['steps']})"
+                if by_period[p]["steps"] < steps else "")) if p in by_period else "-"
+            for p in periods)
+        print(f"| {r['N']} | {'router' if r['transport'] == 'router' else 'peer mesh'} | "
+              f"{r['links']} | {sustained} | {shares} | "
+              f"{fmt(best['hop_median_ms'], '.2f')} / {fmt(best['hop_p99_ms'], '.1f')} | "
+              f"{fmt(best['cpu_ms_per_step'], '.2f')} "
+              f"({fmt(best['cpu_percent_per_agent'], '.0f')}) | "
+              f"{fmt(best['router_cpu_percent'], '.0f')} |")
+    print("(hop and CPU at the sustained period, else at the slowest tried; '-': not run "
+          "(a faster period was sustained) or failed; 'to step S': the run was recorded only "
+          "to step S of the requested ones, see the README)")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="4,16,32")
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--step-ms", default="10,20,40")
+    parser.add_argument("--transports", default="peer,router")
+    parser.add_argument("--json", metavar="FILE", help="also write every run's figures here")
+    parser.add_argument("--table", metavar="FILE",
+                        help="only print the table of a --json FILE written before")
+    args = parser.parse_args(argv)
+    if args.table:
+        results = json.loads(Path(args.table).read_text())
+        print_table(results, sorted({x["step_ms"] for r in results for x in r["runs"]}))
+        return 0
+    sizes = [int(x) for x in args.sizes.split(",")]
+    periods = sorted(float(x) for x in args.step_ms.split(","))
+    transports = args.transports.split(",")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
+    print(f"machine: {os.cpu_count()} cores, load average "
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (shared with other work)",
+          flush=True)
+    results = []
+    for N in sizes:
+        scenario = scenario_for(N, tmp)
+        gains = tmp / f"gains-{N}.npz"
+        t = time.monotonic()
+        proc = socmon("design", scenario, "--target", "0.97", "--out", str(gains), "--json",
+                      timeout=1800)
+        if proc.returncode != 0:
+            raise RuntimeError(f"design of {scenario} failed: {proc.stderr[-2000:]}")
+        rho = json.loads(proc.stdout)["rho"]
+        print(f"N = {N}: {scenario}, gain rho {rho:.3f} designed in "
+              f"{time.monotonic() - t:.1f} s", flush=True)
+        for transport in transports:
+            router = transport == "router"
+            P = N + 2
+            links = P if router else P * (P - 1) // 2
+            tried = []
+            for step_ms in periods:
+                out = tmp / f"run-{N}-{transport}-{step_ms:g}"
+                load = os.getloadavg()[0]
+                try:
+                    row = describe(run_up(scenario, gains, args.steps, step_ms, out, router),
+                                   N, args.steps, step_ms)
+                except RuntimeError as exc:
+                    print(f"  {transport:6} {step_ms:4g} ms: failed: {exc}", flush=True)
+                    continue
+                row["load_average"] = load
+                tried.append(row)
+                print(f"  {transport:6} {step_ms:4g} ms: sustained "
+                      f"{'yes' if row['sustained'] else 'no '}  missed {row['drops']} "
+                      f"({row['late_share']:.2%}, {row['late']} came late)"
+                      f"  hop {fmt(row['hop_median_ms'], '.2f')} / "
+                      f"{fmt(row['hop_p99_ms'], '.1f')} ms  agent CPU "
+                      f"{fmt(row['cpu_ms_per_step'], '.2f')} ms/step "
+                      f"({fmt(row['cpu_percent_per_agent'], '.0f')} %)  router "
+                      f"{fmt(row['router_cpu_percent'], '.0f')} %  wall {row['wall_s']:.0f} s"
+                      f"  load {load:.1f}",
+                      flush=True)
+                if row["sustained"]:
+                    break
+            best = next((r for r in tried if r["sustained"]), None)
+            results.append({"N": N, "transport": transport, "links": links, "runs": tried,
+                            "sustained_steps_per_s": 1000.0 / best["step_ms"] if best else None})
+    print()
+    print_table(results, periods)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
