@@ -192,8 +192,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         watch = peer.watch_liveliness()
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
-        # estimates: sent at once, not batched, ahead of statuses; a full queue drops
-        peer.publisher(est_key, express=True, priority="DATA_HIGH")
+        # not zenoh's express mode: with congestion control DROP every express message
+        # takes a whole batch of the transmit queue, and under load (a recovery on 2
+        # loaded cores) sensor readings and estimates were dropped by the sender
+        peer.publisher(est_key)
         peer.publisher(status_key)
         world_seen = world_alive = False
         world_gone_at = None

@@ -77,9 +77,8 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
         watch = peer.watch_liveliness()
         sensor_keys = [keys.sensor_key(run, label) for label in scenario.labels]
         truth_key = keys.truth_key(run)
-        for key in sensor_keys:   # the agents' clock: sent at once, not batched
-            peer.publisher(key, express=True, priority="DATA_HIGH")
-        peer.publisher(truth_key)
+        for key in sensor_keys + [truth_key]:
+            peer.publisher(key)
         ready: dict = {}
         last_step: dict = {}
 

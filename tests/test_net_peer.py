@@ -165,3 +165,24 @@ def test_payloads_over_the_limit_are_not_delivered():
             after += inbox.drain()
         assert [r.payload for r in after if r.payload != b"ready"] == [b"end"]
         assert 1 <= inbox.oversized <= 4 * len(sizes)  # zenoh passed them on; the inbox refused
+
+
+def test_publisher_latency_options_are_checked_and_delivered():
+    """An express, high-priority publisher delivers; an unknown priority is refused."""
+    run = f"prio{listen_port()}"
+    port = listen_port()
+    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        key = keys.est_key(run, 0)
+        with pytest.raises(ValueError, match="priority"):
+            a.publisher(keys.status_key(run, 0), priority="URGENT")
+        inbox = b.subscribe(key, include_local=False)
+        assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
+        a.publisher(key, express=True, priority="DATA_HIGH")
+        got = []
+        deadline = time.monotonic() + 20
+        while not got and time.monotonic() < deadline:
+            a.put(key, b"x")
+            b.wait(timeout=0.2)
+            got += inbox.drain()
+        assert got and got[0].payload == b"x" and got[0].key == key
