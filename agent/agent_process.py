@@ -267,21 +267,30 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     for item in items:
                         handle_sensor(label, item)
 
-        def handle_est(item, now):
+        est_key_agent: dict = {}                 # est key -> agent id (parsed once)
+
+        def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
                              now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
                 return
-            try:
-                if keys.parse_agent_key(run, "est", item.key) != msg["agent"]:
+            sender = est_key_agent.get(item.key)
+            if sender is None:
+                try:
+                    sender = keys.parse_agent_key(run, "est", item.key)
+                except keys.InvalidKey:
                     bad("key")
                     return
-            except keys.InvalidKey:
+                if sender in senders:           # bounded: the run's agents only
+                    est_key_agent[item.key] = sender
+            if sender != msg["agent"]:
                 bad("key")
                 return
             if msg["agent"] != me:
-                hops.append(time.time() - msg["t"])
-            core.on_estimate(msg["agent"], msg["step"], msg["x"], now)
+                # publish -> in this agent's inbox (the transport's share, as the raw
+                # round trip measures it; not the time the estimate waited to be used)
+                hops.append(time.time() - msg["t"] - (time.monotonic() - item.arrival))
+            core.on_estimate(msg["agent"], msg["step"], msg["x"], item.arrival)
 
         while not stop.flag:
             if hung:
@@ -338,7 +347,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 if len(inbox):
                     drain_sensors(label, inbox)
             for item in est_in.drain() if len(est_in) else ():
-                handle_est(item, now)
+                handle_est(item)
             before = core.step
             for step, x in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
@@ -364,6 +373,14 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             # wait for any message, a step deadline or the next status
             wake = core.next_wakeup(now)
             until = next_status if wake is None else min(wake, next_status)
+            # estimates wake the loop only while a step waits for them (an estimate that
+            # arrives while the agent waits for its readings is used at the next reading:
+            # one wake-up a step instead of one per message); statuses only before the
+            # start (the handshake)
+            est_in.wakes = core.ready_at is not None or bool(core.impair.held)
+            status_in.wakes = core.step < 0
+            if est_in.wakes and len(est_in):
+                busy = True                # arrived while it did not wake the loop
             peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0

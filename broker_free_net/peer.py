@@ -90,6 +90,11 @@ class Inbox:
         liveliness keys, internal errors).
     nbytes : int
         Payload bytes currently held.
+    wakes : bool
+        Whether an item arriving wakes :meth:`Peer.wait` (default True). The owner may
+        turn it off while it does not need the items at once; set it back *before*
+        checking ``len(inbox)``, so that an item that arrived in between is never
+        waited on.
     """
 
     def __init__(self, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None,
@@ -109,6 +114,7 @@ class Inbox:
         self.nbytes = 0
         self._subscriber = None
         self._wakeup = wakeup
+        self.wakes = True
 
     # called from zenoh threads -------------------------------------------------
     def _push(self, item) -> None:
@@ -125,7 +131,7 @@ class Inbox:
             self.nbytes += size
             self.received += 1
             self._cond.notify()
-        if self._wakeup is not None:
+        if self._wakeup is not None and self.wakes:
             self._wakeup.set()
 
     def _refuse_oversized(self) -> None:
