@@ -268,6 +268,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                         handle_sensor(label, item)
 
         est_key_agent: dict = {}                 # est key -> agent id (parsed once)
+        wake_labels = [None, frozenset()]        # wanted labels, their sensor keys
 
         def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
@@ -381,6 +382,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             status_in.wakes = core.step < 0
             if est_in.wakes and len(est_in):
                 busy = True                # arrived while it did not wake the loop
+            if "*" in sensor_in:           # every sensor key: only the wanted ones wake it
+                wanted = core.wanted_labels()
+                if wanted != wake_labels[0]:
+                    wake_labels[:] = [wanted, frozenset(sensor_prefix + m for m in wanted)]
+                sensor_in["*"].wakes = wake_labels[1]
+                if len(sensor_in["*"]):
+                    busy = True
             peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0

@@ -90,11 +90,11 @@ class Inbox:
         liveliness keys, internal errors).
     nbytes : int
         Payload bytes currently held.
-    wakes : bool
-        Whether an item arriving wakes :meth:`Peer.wait` (default True). The owner may
-        turn it off while it does not need the items at once; set it back *before*
-        checking ``len(inbox)``, so that an item that arrived in between is never
-        waited on.
+    wakes : bool or set of str
+        Whether an item arriving wakes :meth:`Peer.wait` (default True), or the keys whose
+        items do. The owner may narrow it while it does not need the other items at
+        once; it widens it *before* checking ``len(inbox)``, so that an item that
+        arrived in between is never waited on.
     """
 
     def __init__(self, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None,
@@ -131,7 +131,9 @@ class Inbox:
             self.nbytes += size
             self.received += 1
             self._cond.notify()
-        if self._wakeup is not None and self.wakes:
+        wakes = self.wakes
+        if self._wakeup is not None and (
+                wakes if isinstance(wakes, bool) else getattr(item, "key", None) in wakes):
             self._wakeup.set()
 
     def _refuse_oversized(self) -> None:

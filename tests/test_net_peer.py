@@ -186,3 +186,21 @@ def test_publisher_latency_options_are_checked_and_delivered():
             b.wait(timeout=0.2)
             got += inbox.drain()
         assert got and got[0].payload == b"x" and got[0].key == key
+
+
+def test_inbox_wakes_only_for_the_items_asked_for():
+    """Items are always queued; only those asked for set the wake-up event."""
+    event = threading.Event()
+    inbox = Inbox(wakeup=event)
+    inbox._push(Received(b"1", "k/a", 0.0))
+    assert event.is_set()
+    event.clear()
+    inbox.wakes = False
+    inbox._push(Received(b"2", "k/a", 0.0))
+    assert not event.is_set()
+    inbox.wakes = frozenset({"k/b"})
+    inbox._push(Received(b"3", "k/a", 0.0))
+    assert not event.is_set()
+    inbox._push(Received(b"4", "k/b", 0.0))
+    assert event.is_set()
+    assert [r.payload for r in inbox.drain()] == [b"1", b"2", b"3", b"4"]
