@@ -161,16 +161,40 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         ctl_in = peer.subscribe(keys.ctl_key(run, me))
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
         imp_in = peer.subscribe(keys.impair_key(run))
-        est_in = peer.subscribe(keys.any_agent_pattern(run, "est"))
-        # every sensor key, from the start: a role change never waits for a new
-        # subscription to reach the world (under load that took longer than the
-        # assignment's head start); readings of nodes not wanted are dropped by key
-        sensor_all = peer.subscribe(keys.any_agent_pattern(run, "sensor"), maxlen=1 << 14)
-        sensor_in = {"*": sensor_all}
+        # the agent's own estimates are not delivered back to it
+        est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), include_local=False)
+        # sensor readings: label -> inbox. An agent with a role subscribes to the keys of
+        # its nodes only (a reading of another node would cost a callback and a wake-up
+        # every step); one without a role (a standby, or an agent fenced out) subscribes
+        # to every sensor key, so that a new role never waits for a subscription to reach
+        # the world (under load that took longer than the assignment's head start).
+        sensor_in: dict = {}
         sensor_prefix = keys.sensor_key(run, core.labels[0]).rsplit("/", 1)[0] + "/"
+
+        def subscribe_sensors(labels):
+            if "*" not in sensor_in:
+                for label in labels:
+                    if label not in sensor_in:
+                        sensor_in[label] = peer.subscribe(keys.sensor_key(run, label),
+                                                          maxlen=1 << 12)
+
+        def subscribe_all_sensors():
+            sensor_in["*"] = peer.subscribe(keys.any_agent_pattern(run, "sensor"),
+                                            maxlen=1 << 14)
+            for label in [k for k in sensor_in if k != "*"]:
+                drain_sensors(label, sensor_in[label])   # what is queued is still used
+                sensor_in.pop(label).close()
+
+        if core.role is None:
+            subscribe_all_sensors()
+        else:
+            subscribe_sensors(core.wanted_labels())
         watch = peer.watch_liveliness()
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
+        # not zenoh's express mode: with congestion control DROP every express message
+        # takes a whole batch of the transmit queue, and under load (a recovery on 2
+        # loaded cores) sensor readings and estimates were dropped by the sender
         peer.publisher(est_key)
         peer.publisher(status_key)
         world_seen = world_alive = False
@@ -229,21 +253,45 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 return
             core.on_sensor(label, msg["step"], msg["x"])
 
-        def handle_est(item, now):
+        def drain_sensors(label, inbox):
+            wanted = core.wanted_labels()
+            if label == "*":
+                for item in inbox.drain():
+                    key_label = item.key[len(sensor_prefix):] \
+                        if item.key.startswith(sensor_prefix) else None
+                    if key_label in wanted:
+                        handle_sensor(key_label, item)
+            else:
+                items = inbox.drain()
+                if label in wanted:
+                    for item in items:
+                        handle_sensor(label, item)
+
+        est_key_agent: dict = {}                 # est key -> agent id (parsed once)
+        wake_labels = [None, frozenset()]        # wanted labels, their sensor keys
+
+        def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
                              now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
                 return
-            try:
-                if keys.parse_agent_key(run, "est", item.key) != msg["agent"]:
+            sender = est_key_agent.get(item.key)
+            if sender is None:
+                try:
+                    sender = keys.parse_agent_key(run, "est", item.key)
+                except keys.InvalidKey:
                     bad("key")
                     return
-            except keys.InvalidKey:
+                if sender in senders:           # bounded: the run's agents only
+                    est_key_agent[item.key] = sender
+            if sender != msg["agent"]:
                 bad("key")
                 return
             if msg["agent"] != me:
-                hops.append(time.time() - msg["t"])
-            core.on_estimate(msg["agent"], msg["step"], msg["x"], now)
+                # publish -> in this agent's inbox (the transport's share, as the raw
+                # round trip measures it; not the time the estimate waited to be used)
+                hops.append(time.time() - msg["t"] - (time.monotonic() - item.arrival))
+            core.on_estimate(msg["agent"], msg["step"], msg["x"], item.arrival)
 
         while not stop.flag:
             if hung:
@@ -253,31 +301,33 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 break
             now = time.monotonic()
             urgent_status = False
-            for ev in watch.drain():
+            # len() before drain(): most inboxes are empty at most wake-ups
+            for ev in watch.drain() if len(watch) else ():
                 if ev.role == "world":
                     world_alive = ev.alive
                     world_seen = world_seen or ev.alive
                     world_gone_at = None if ev.alive else now
                 elif ev.role == "agent" and ev.id in agent_ids:
                     core.set_alive(int(ev.id), ev.alive)
-            for item in ctl_in.drain():
+            for item in ctl_in.drain() if len(ctl_in) else ():
                 msg = try_decode(item.payload, ctl_schema, stats)
                 if msg is None or not signed(msg):
                     continue
                 try:
                     role = core.on_assignment(msg)
+                    subscribe_sensors(role.measure)
                     say(f"agent {me}: accepted epoch {role.epoch} "
                         f"(activate at step {role.activate_at})")
                 except AssignmentError as exc:
                     say(f"agent {me}: rejected assignment: {exc}")
                 urgent_status = True
-            for item in roster_in.drain():
+            for item in roster_in.drain() if len(roster_in) else ():
                 msg = try_decode(item.payload, roster_schema, stats)
                 if msg is not None and signed(msg) and core.on_roster(msg):
                     say(f"agent {me}: roster epoch {msg['epoch']} from step "
                         f"{msg['activate_at']}: {msg['ids']}")
                     urgent_status = True
-            for item in imp_in.drain():
+            for item in imp_in.drain() if len(imp_in) else ():
                 try:
                     msg = decode_impairment(item.payload)
                 except MalformedMessage as exc:
@@ -290,18 +340,15 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                         urgent_status = True
                 except InvalidImpairment:
                     bad("range")
-            for item in status_in.drain():
+            for item in status_in.drain() if len(status_in) else ():
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats, senders=senders)
                 if msg is not None:
                     core.note_heard(msg["agent"])
-            wanted = set(core.wanted_labels())
-            for item in sensor_all.drain():
-                label = item.key[len(sensor_prefix):] if item.key.startswith(sensor_prefix) \
-                    else None
-                if label in wanted:
-                    handle_sensor(label, item)
-            for item in est_in.drain():
-                handle_est(item, now)
+            for label, inbox in sensor_in.items():
+                if len(inbox):
+                    drain_sensors(label, inbox)
+            for item in est_in.drain() if len(est_in) else ():
+                handle_est(item)
             before = core.step
             for step, x in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
@@ -312,6 +359,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
                     os.kill(os.getpid(), signal.SIGKILL)
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
+            if core.role is None and "*" not in sensor_in:
+                subscribe_all_sensors()    # fenced out: a standby from now on
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()
@@ -325,6 +374,21 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             # wait for any message, a step deadline or the next status
             wake = core.next_wakeup(now)
             until = next_status if wake is None else min(wake, next_status)
+            # estimates wake the loop only while a step waits for them (an estimate that
+            # arrives while the agent waits for its readings is used at the next reading:
+            # one wake-up a step instead of one per message); statuses only before the
+            # start (the handshake)
+            est_in.wakes = core.ready_at is not None or bool(core.impair.held)
+            status_in.wakes = core.step < 0
+            if est_in.wakes and len(est_in):
+                busy = True                # arrived while it did not wake the loop
+            if "*" in sensor_in:           # every sensor key: only the wanted ones wake it
+                wanted = core.wanted_labels()
+                if wanted != wake_labels[0]:
+                    wake_labels[:] = [wanted, frozenset(sensor_prefix + m for m in wanted)]
+                sensor_in["*"].wakes = wake_labels[1]
+                if len(sensor_in["*"]):
+                    busy = True
             peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0

@@ -123,7 +123,11 @@ class LinkParams:
     @property
     def is_identity(self) -> bool:
         """True if the link is not impaired at all."""
-        return self == LinkParams()
+        return self == _IDENTITY
+
+
+#: the parameters of a link that is not impaired (frozen: shared, not built per message)
+_IDENTITY = LinkParams()
 
 
 class Decision(NamedTuple):
@@ -218,7 +222,7 @@ class LinkImpairments:
     def get(self, link: tuple) -> LinkParams:
         """Return the current parameters of `link` (identity if none)."""
         state = self._links.get(self._check_link(link))
-        return state.params if state else LinkParams()
+        return state.params if state else _IDENTITY
 
     def links(self) -> dict:
         """Return ``{link: LinkParams}`` of every impaired link."""

@@ -35,6 +35,9 @@ DEFAULT_INBOX_SIZE = 4096
 #: Payload bytes an inbox holds at most (the oldest items are dropped beyond it).
 DEFAULT_INBOX_BYTES = 4 << 20
 _log = logging.getLogger(__name__)
+#: zenoh priorities a publisher may be declared with (highest first)
+_PRIORITIES = ("REAL_TIME", "INTERACTIVE_HIGH", "INTERACTIVE_LOW", "DATA_HIGH", "DATA",
+               "DATA_LOW", "BACKGROUND")
 
 
 class Received(NamedTuple):
@@ -87,6 +90,11 @@ class Inbox:
         liveliness keys, internal errors).
     nbytes : int
         Payload bytes currently held.
+    wakes : bool or set of str
+        Whether an item arriving wakes :meth:`Peer.wait` (default True), or the keys whose
+        items do. The owner may narrow it while it does not need the other items at
+        once; it widens it *before* checking ``len(inbox)``, so that an item that
+        arrived in between is never waited on.
     """
 
     def __init__(self, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None,
@@ -106,6 +114,7 @@ class Inbox:
         self.nbytes = 0
         self._subscriber = None
         self._wakeup = wakeup
+        self.wakes = True
 
     # called from zenoh threads -------------------------------------------------
     def _push(self, item) -> None:
@@ -122,7 +131,9 @@ class Inbox:
             self.nbytes += size
             self.received += 1
             self._cond.notify()
-        if self._wakeup is not None:
+        wakes = self.wakes
+        if self._wakeup is not None and (
+                wakes if isinstance(wakes, bool) else getattr(item, "key", None) in wakes):
             self._wakeup.set()
 
     def _refuse_oversized(self) -> None:
@@ -337,7 +348,8 @@ class Peer:
 
     # -- publish -----------------------------------------------------------------
 
-    def publisher(self, key: str, *, block: bool | None = None) -> zenoh.Publisher:
+    def publisher(self, key: str, *, block: bool | None = None, express: bool = False,
+                  priority: str | None = None) -> zenoh.Publisher:
         """Return the publisher of `key`, declaring it on first use.
 
         Parameters
@@ -350,18 +362,34 @@ class Peer:
             estimates; ``True`` (``BLOCK``) makes ``put`` wait instead, for
             messages that must not be lost (control, impairments). ``None``
             reuses the existing publisher whatever its mode.
+        express : bool
+            Send each message at once instead of batching it with others (zenoh's
+            ``express``): lower latency for small periodic messages (estimates, sensor
+            readings). Used when the publisher is declared.
+        priority : str, optional
+            A :class:`zenoh.Priority` name (``"REAL_TIME"``, ``"INTERACTIVE_HIGH"``,
+            ``"DATA_HIGH"``, ...); default zenoh's ``DATA``. Used when the publisher is
+            declared.
 
         Raises
         ------
         ValueError
-            If `block` contradicts the mode of the already declared publisher.
+            If `block` contradicts the mode of the already declared publisher, or
+            `priority` is not a zenoh priority.
         """
         self._check_usable()
         entry = self._publishers.get(key)
         if entry is None:
             mode = bool(block)
             cc = zenoh.CongestionControl.BLOCK if mode else zenoh.CongestionControl.DROP
-            entry = (self._session.declare_publisher(key, congestion_control=cc), mode)
+            options = {"congestion_control": cc}
+            if express:
+                options["express"] = True
+            if priority is not None:
+                if priority not in _PRIORITIES:
+                    raise ValueError(f"priority: {priority!r} is not one of {_PRIORITIES}")
+                options["priority"] = getattr(zenoh.Priority, priority)
+            entry = (self._session.declare_publisher(key, **options), mode)
             self._publishers[key] = entry
         elif block is not None and block != entry[1]:
             raise ValueError(f"block: publisher of {key!r} already declared with block={entry[1]}")

@@ -1,17 +1,29 @@
 """Benchmark of the live runtime on this machine (prints figures; asserts nothing).
 
-1. Raw zenoh round trip between two processes (a put answered from the echo's callback):
-   median and p99.
-2. For paper-14 and a Sampson-like scenario (18 nodes, 4 agents + 1 standby + world):
-   ``socmon up`` for ``--steps`` steps at decreasing ``step_ms``; a step period is
-   *sustained* when no estimate was dropped or late and no sensor reading missed. For each
-   run: the agent-to-agent hop (publish -> decoded in the receiving agent, median / p99
-   over all agents), CPU per process (% of one core over the run) and the world's worst
-   lag behind its schedule.
+In one run, for each source tree given (this one, and ``--baseline`` trees for comparison):
+
+1. the raw zenoh round trip between two processes (a put answered from the echo's
+   callback), median and p99, measured once at the start of the benchmark;
+2. ``socmon up SCENARIO`` (default paper-14-live: 3 agents + 1 standby + world + monitor)
+   for ``--steps`` steps at each ``--step-ms``; a step period is *sustained* when no
+   estimate was dropped or late and no sensor reading missed. Per run: the agent-to-agent
+   hop (publish -> decoded in the receiving agent; median of the agents' medians, worst
+   p99) and its ratio to the raw round trip, the world's worst lag behind its schedule,
+   and the **CPU per step** of each process: the children's CPU time (user + system, from
+   ``wait4``) of the run minus that of a short run of ``--short-steps`` steps (start-up,
+   imports, handshake), divided by the difference in steps;
+3. a profile of one agent's main thread (cProfile with a thread-CPU clock, enabled by a
+   ``sitecustomize`` module this script puts on the children's ``PYTHONPATH``, so that it
+   works on any tree), over ``--profile-steps`` steps at the first step period: the
+   functions with the most CPU, and how the process's CPU splits between the main thread
+   and zenoh's threads.
+
+CPU seconds per step are much less disturbed by other work on a shared machine than
+wall-clock figures (hop, lag, sustained periods), which vary from run to run.
 
 Usage::
 
-    python scripts/bench_runtime.py [--steps 2000] [--step-ms 10,5,3,2,1] [--pings 2000]
+    python scripts/bench_runtime.py [--steps 10000] [--step-ms 10,4,2] [--baseline /work/main]
 """
 
 from __future__ import annotations
@@ -19,7 +31,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import pstats
 import re
+import resource
 import signal
 import statistics
 import subprocess
@@ -53,6 +67,47 @@ standby = 1
 topology = "cycle"
 self_weight = 0.5
 """
+
+#: imported by every child of a profiled run (``PYTHONPATH``); profiles ``agent`` processes
+PROFILE_HOOK = '''\
+import os, sys
+_out = os.environ.get("SOCMON_BENCH_PROFILE")
+if _out and len(sys.argv) > 1 and sys.argv[1] == "agent":
+    import cProfile, functools, importlib.abc, importlib.machinery, time
+
+    def _profiled(run_agent):
+        @functools.wraps(run_agent)
+        def wrapper(*args, **kwargs):
+            prof = cProfile.Profile(time.thread_time)
+            t0 = (time.thread_time(), time.process_time())
+            prof.enable()
+            try:
+                return run_agent(*args, **kwargs)
+            finally:
+                prof.disable()
+                ident = sys.argv[sys.argv.index("--id") + 1] if "--id" in sys.argv else "x"
+                prof.dump_stats(os.path.join(_out, f"agent-{ident}.prof"))
+                with open(os.path.join(_out, f"agent-{ident}.cpu"), "w") as f:
+                    f.write(f"{time.thread_time() - t0[0]} {time.process_time() - t0[1]}\\n")
+        return wrapper
+
+    class _Wrap(importlib.abc.MetaPathFinder):
+        """Wraps agent.agent_process.run_agent once the module is loaded."""
+
+        def find_spec(self, name, path, target=None):
+            if name != "agent.agent_process":
+                return None
+            spec = importlib.machinery.PathFinder.find_spec(name, path)
+            exec_module = spec.loader.exec_module
+
+            def exec_and_wrap(module):
+                exec_module(module)
+                module.run_agent = _profiled(module.run_agent)
+            spec.loader.exec_module = exec_and_wrap
+            return spec
+
+    sys.meta_path.insert(0, _Wrap())
+'''
 
 
 # ---------------------------------------------------------------------------------
@@ -120,62 +175,87 @@ def raw_rtt(pings: int) -> dict:
 # the runtime
 
 
-def run_up(scenario: str, gains: Path, steps: int, step_ms: float, out: Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+def run_up(tree: Path, scenario: str, gains: Path, steps: int, step_ms: float, out: Path,
+           profile_dir: Path | None = None) -> dict:
+    """``socmon up`` of ``tree``; its JSON summary plus the world's worst lag."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    if profile_dir is not None:
+        profile_dir.mkdir(parents=True, exist_ok=True)
+        (profile_dir / "sitecustomize.py").write_text(PROFILE_HOOK)
+        env["PYTHONPATH"] += os.pathsep + str(profile_dir)
+        env["SOCMON_BENCH_PROFILE"] = str(profile_dir)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run([sys.executable, "-m", "agent.cli", "up", scenario,
                            "--steps", str(steps), "--step-ms", str(step_ms), "--gains",
                            str(gains), "--out", str(out), "--json", "--quiet"],
-                          cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=120 + steps * step_ms / 1000 * 3, start_new_session=True)
+                          cwd=tree, env=env, capture_output=True, text=True,
+                          timeout=180 + steps * step_ms / 1000 * 3, start_new_session=True)
     if proc.returncode not in (0, 1):
         raise RuntimeError(f"up failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     summary = json.loads(proc.stdout)
+    # the `up` process itself (the recorder): every CPU second reaped below us, minus its
+    # children's
+    total = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    summary["cpu_s"]["recorder"] = total - sum(v or 0.0 for v in summary["cpu_s"].values())
     log = (out / "logs" / "world.log").read_text()
     m = re.search(r"worst lag ([0-9.]+) ms", log)
     summary["world_lag_ms"] = float(m.group(1)) if m else float("nan")
     return summary
 
 
-def describe(summary: dict, steps: int, step_ms: float) -> dict:
-    span = steps * step_ms / 1000.0
+def cpu_ms_per_step(long: dict, short: dict) -> dict:
+    """Marginal CPU ms per step of each process: (long run - short run) / extra steps."""
+    extra = long["steps"] - short["steps"]
+    out = {}
+    for name, s in long["cpu_s"].items():
+        base = short["cpu_s"].get(name)
+        out[name] = (1e3 * (s - base) / extra if s is not None and base is not None
+                     and extra > 0 else None)
+    return out
+
+
+def describe(summary: dict, steps: int, step_ms: float, rtt_ms: float) -> dict:
     hops = [h for h in summary.get("hop_ms", {}).values() if h]
-    cpu = {k: (100.0 * v / span if v is not None else None)
-           for k, v in summary["cpu_s"].items()}
     ok = (summary["drops"] == 0 and summary["late"] == 0 and summary["sensor_missed"] == 0
           and summary["steps"] == steps and "error" not in summary)
+    hop = statistics.median(h["median"] for h in hops) if hops else None
     return {
-        "step_ms": step_ms, "sustained": ok, "drops": summary["drops"],
-        "late": summary["late"], "sensor_missed": summary["sensor_missed"],
-        "hop_median_ms": statistics.median(h["median"] for h in hops) if hops else None,
-        "hop_p99_ms": max(h["p99"] for h in hops) if hops else None,
-        "cpu_percent": cpu, "world_lag_ms": summary["world_lag_ms"],
+        "step_ms": step_ms, "sustained": ok, "steps": summary["steps"],
+        "drops": summary["drops"], "late": summary["late"],
+        "sensor_missed": summary["sensor_missed"],
+        "hop_median_ms": hop, "hop_p99_ms": max(h["p99"] for h in hops) if hops else None,
+        "hop_over_rtt": hop / rtt_ms if hop else None,
+        "cpu_s": summary["cpu_s"], "world_lag_ms": summary["world_lag_ms"],
     }
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=2000)
-    parser.add_argument("--step-ms", default="10,5,3,2,1")
-    parser.add_argument("--pings", type=int, default=2000)
-    parser.add_argument("--scenarios", default="paper-14,sampson-like")
-    parser.add_argument("--echo", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if args.echo:
-        echo(args.echo)
-        return 0
+def profile_summary(profile_dir: Path, top: int) -> str:
+    """The top functions (own thread CPU) of agent 1's profile, and the thread split."""
+    prof = profile_dir / "agent-1.prof"
+    if not prof.is_file():
+        return "  (no profile written: did agent 1 exit normally?)"
+    lines = []
+    cpu = (profile_dir / "agent-1.cpu").read_text().split()
+    main_s, proc_s = float(cpu[0]), float(cpu[1])
+    lines.append(f"  agent 1 CPU in run_agent: main thread {main_s:.2f} s, zenoh's and other threads "
+                 f"{proc_s - main_s:.2f} s (process {proc_s:.2f} s)")
+    stats = pstats.Stats(str(prof))
+    rows = sorted(stats.stats.items(), key=lambda kv: kv[1][2], reverse=True)[:top]
+    total = sum(v[2] for v in stats.stats.values()) or 1.0
+    lines.append(f"  {'own s':>7} {'cum s':>7} {'calls':>8}  function (main thread, cProfile "
+                 "with thread CPU time; overhead included)")
+    for (file, line, func), (cc, nc, tt, ct, _) in rows:
+        where = f"{Path(file).name}:{line}" if line else file
+        lines.append(f"  {tt:7.2f} {ct:7.2f} {nc:8d}  {func} ({where}) {100 * tt / total:.0f}%")
+    return "\n".join(lines)
+
+
+def bench_tree(tree: Path, label: str, specs: dict, tmp: Path, args, rtt: dict) -> dict:
     from design.gains import save_gains
     from design.scenario import load_scenario
 
-    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()}")
-    rtt = raw_rtt(args.pings)
-    print(f"raw zenoh round trip (2 processes, loopback, {rtt['n']} pings): "
-          f"median {rtt['median_ms']:.3f} ms, p99 {rtt['p99_ms']:.3f} ms")
-    tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
-    specs = {"paper-14": "paper-14"}
-    if SAMPSON_EDGES.is_file():
-        (tmp / "sampson-like.toml").write_text(SAMPSON_TOML.format(edges=SAMPSON_EDGES))
-        specs["sampson-like"] = str(tmp / "sampson-like.toml")
-    results = {"raw_rtt": rtt, "runs": {}}
+    results = {}
     for name in args.scenarios.split(","):
         if name not in specs:
             print(f"{name}: skipped (data not found)")
@@ -185,26 +265,100 @@ def main(argv=None) -> int:
         gains = tmp / f"{name}.npz"
         save_gains(gains, [0.3 * rng.normal(size=(s.n, len(m))) for m in s.measure],
                    {"method": "benchmark (timing only)"})
-        print(f"\n{name}: n = {s.n}, {s.N} agents + {s.standby} standby + world, "
-              f"{args.steps} steps")
-        print(f"{'step_ms':>8} {'ok':>4} {'drops':>6} {'late':>5} {'hop med':>8} "
-              f"{'hop p99':>8} {'lag':>7}  cpu % (world, agents...)")
+        periods = [float(x) for x in args.step_ms.split(",")]
+        print(f"\n[{label}] {tree}\n{name}: n = {s.n}, {s.N} agents + {s.standby} standby "
+              f"+ world + monitor, {args.steps} steps (CPU per step: minus a "
+              f"{args.short_steps}-step run)", flush=True)
+        short = run_up(tree, specs[name], gains, args.short_steps, periods[0],
+                       tmp / f"{label}-{name}-short")
+        agents = [f"agent-{a}" for a in range(1, s.N + 1)]
+        standby = [f"agent-{a}" for a in range(s.N + 1, s.N + s.standby + 1)]
+        print(f"{'step_ms':>8} {'ok':>4} {'drops':>6} {'late':>5} {'missed':>6} {'hop med':>8} "
+              f"{'/rtt':>5} {'hop p99':>8} {'lag ms':>7}  CPU ms/step: agent (mean) standby "
+              "world monitor recorder")
         rows = []
-        for step_ms in [float(x) for x in args.step_ms.split(",")]:
-            summary = run_up(specs[name], gains, args.steps, step_ms, tmp / f"{name}-{step_ms}")
-            row = describe(summary, args.steps, step_ms)
+        for step_ms in periods:
+            summary = run_up(tree, specs[name], gains, args.steps, step_ms,
+                             tmp / f"{label}-{name}-{step_ms}")
+            row = describe(summary, args.steps, step_ms, rtt["median_ms"])
+            per = cpu_ms_per_step(summary, short)
+            row["cpu_ms_per_step"] = per
+
+            def mean(names):
+                vals = [per.get(n) for n in names if per.get(n) is not None]
+                return statistics.mean(vals) if vals else float("nan")
+
+            row["agent_cpu_ms_per_step"] = mean(agents)
             rows.append(row)
-            cpu = " ".join(f"{v:.0f}" if v is not None else "?"
-                           for v in row["cpu_percent"].values())
             print(f"{step_ms:8g} {'yes' if row['sustained'] else 'no':>4} {row['drops']:6d} "
-                  f"{row['late']:5d} {row['hop_median_ms'] or float('nan'):8.3f} "
-                  f"{row['hop_p99_ms'] or float('nan'):8.3f} {row['world_lag_ms']:7.1f}  {cpu}",
-                  flush=True)
-            if not row["sustained"]:
+                  f"{row['late']:5d} {row['sensor_missed']:6d} "
+                  f"{row['hop_median_ms'] or float('nan'):8.3f} "
+                  f"{row['hop_over_rtt'] or float('nan'):5.1f} "
+                  f"{row['hop_p99_ms'] or float('nan'):8.3f} {row['world_lag_ms']:7.1f}  "
+                  f"{mean(agents):.3f} {mean(standby):.3f} {mean(['world']):.3f} "
+                  f"{mean(['monitor']):.3f} {mean(['recorder']):.3f}", flush=True)
+            if not row["sustained"] and not args.keep_going:
+                print(f"{'':8} (shorter periods not tried)")
                 break
         best = [r["step_ms"] for r in rows if r["sustained"]]
         print(f"{name}: smallest sustained step_ms = {min(best) if best else 'none tried'}")
-        results["runs"][name] = rows
+        prof_dir = tmp / f"{label}-{name}-profile"
+        if args.profile_steps:
+            run_up(tree, specs[name], gains, args.profile_steps, periods[0],
+                   tmp / f"{label}-{name}-profiled", profile_dir=prof_dir)
+            print(f"profile of agent 1, {args.profile_steps} steps of {periods[0]:g} ms:")
+            print(profile_summary(prof_dir, args.profile_top), flush=True)
+        results[name] = {"short_run_cpu_s": short["cpu_s"], "short_steps": short["steps"],
+                         "rows": rows}
+    return results
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=10000)
+    parser.add_argument("--short-steps", type=int, default=300,
+                        help="steps of the run whose CPU is subtracted (start-up)")
+    parser.add_argument("--step-ms", default="10,4,2")
+    parser.add_argument("--pings", type=int, default=2000)
+    parser.add_argument("--scenarios", default="paper-14-live",
+                        help="comma-separated: paper-14-live, paper-14, sampson-like")
+    parser.add_argument("--tree", default=str(ROOT), help="source tree to run (default: this)")
+    parser.add_argument("--baseline", action="append", default=[], metavar="TREE",
+                        help="another source tree measured the same way, e.g. /work/main")
+    parser.add_argument("--profile-steps", type=int, default=2000,
+                        help="steps of the profiled run (0: no profile)")
+    parser.add_argument("--profile-top", type=int, default=15)
+    parser.add_argument("--keep-going", action="store_true",
+                        help="try every period even after one is not sustained")
+    parser.add_argument("--echo", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.echo:
+        echo(args.echo)
+        return 0
+    trees = [(Path(args.tree).resolve(), "this")] + [
+        (Path(b).resolve(), f"baseline{i + 1}" if len(args.baseline) > 1 else "baseline")
+        for i, b in enumerate(args.baseline)]
+    for tree, _ in trees:
+        if not (tree / "agent" / "cli.py").is_file():
+            print(f"bench_runtime: {tree}: not a socmon source tree (no agent/cli.py)",
+                  file=sys.stderr)
+            return 2
+
+    print(f"machine: {os.cpu_count()} cores, load average "
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (shared: wall-clock figures vary; "
+          "CPU ms per step much less)")
+    rtt = raw_rtt(args.pings)
+    print(f"raw zenoh round trip (2 processes, loopback, {rtt['n']} pings): "
+          f"median {rtt['median_ms']:.3f} ms, p99 {rtt['p99_ms']:.3f} ms")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
+    specs = {"paper-14": "paper-14", "paper-14-live": "paper-14-live"}
+    if SAMPSON_EDGES.is_file():
+        (tmp / "sampson-like.toml").write_text(SAMPSON_TOML.format(edges=SAMPSON_EDGES))
+        specs["sampson-like"] = str(tmp / "sampson-like.toml")
+    results = {"raw_rtt": rtt, "trees": {}}
+    for tree, label in trees:
+        results["trees"][label] = {"path": str(tree),
+                                   "runs": bench_tree(tree, label, specs, tmp, args, rtt)}
     (tmp / "bench_runtime.json").write_text(json.dumps(results, indent=2))
     print(f"\nfigures: {tmp / 'bench_runtime.json'}")
     return 0

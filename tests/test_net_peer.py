@@ -165,3 +165,42 @@ def test_payloads_over_the_limit_are_not_delivered():
             after += inbox.drain()
         assert [r.payload for r in after if r.payload != b"ready"] == [b"end"]
         assert 1 <= inbox.oversized <= 4 * len(sizes)  # zenoh passed them on; the inbox refused
+
+
+def test_publisher_latency_options_are_checked_and_delivered():
+    """An express, high-priority publisher delivers; an unknown priority is refused."""
+    run = f"prio{listen_port()}"
+    port = listen_port()
+    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        key = keys.est_key(run, 0)
+        with pytest.raises(ValueError, match="priority"):
+            a.publisher(keys.status_key(run, 0), priority="URGENT")
+        inbox = b.subscribe(key, include_local=False)
+        assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
+        a.publisher(key, express=True, priority="DATA_HIGH")
+        got = []
+        deadline = time.monotonic() + 20
+        while not got and time.monotonic() < deadline:
+            a.put(key, b"x")
+            b.wait(timeout=0.2)
+            got += inbox.drain()
+        assert got and got[0].payload == b"x" and got[0].key == key
+
+
+def test_inbox_wakes_only_for_the_items_asked_for():
+    """Items are always queued; only those asked for set the wake-up event."""
+    event = threading.Event()
+    inbox = Inbox(wakeup=event)
+    inbox._push(Received(b"1", "k/a", 0.0))
+    assert event.is_set()
+    event.clear()
+    inbox.wakes = False
+    inbox._push(Received(b"2", "k/a", 0.0))
+    assert not event.is_set()
+    inbox.wakes = frozenset({"k/b"})
+    inbox._push(Received(b"3", "k/a", 0.0))
+    assert not event.is_set()
+    inbox._push(Received(b"4", "k/b", 0.0))
+    assert event.is_set()
+    assert [r.payload for r in inbox.drain()] == [b"1", b"2", b"3", b"4"]
