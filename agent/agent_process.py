@@ -36,7 +36,7 @@ import numpy as np
 from broker_free_net import keys
 from broker_free_net.codec import MalformedMessage, MessageStats, shorten, try_decode
 from broker_free_net.impair import InvalidImpairment, decode_impairment
-from broker_free_net.peer import Peer
+from broker_free_net.peer import DEFAULT_INBOX_BYTES, DEFAULT_INBOX_SIZE, Peer
 
 from . import wire
 from .control_auth import SignatureError
@@ -97,6 +97,12 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         else None,
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
         drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age))
+
+
+def _inbox_bytes(max_payload: int, maxlen: int = DEFAULT_INBOX_SIZE) -> int:
+    """Byte bound of an inbox of messages of at most ``max_payload`` bytes: its count bound
+    times that, capped at the transport's default."""
+    return max(max_payload, min(DEFAULT_INBOX_BYTES, maxlen * max_payload))
 
 
 def _heap_trimmer():
@@ -162,7 +168,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
         imp_in = peer.subscribe(keys.impair_key(run))
         # the agent's own estimates are not delivered back to it
-        est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), include_local=False)
+        # junk on an estimate or sensor key is refused before it is copied out of zenoh
+        # when it is larger than any valid message (RSS stays flat under a flood)
+        est_max, sensor_max = wire.max_est_bytes(core.n), wire.max_sensor_bytes()
+        est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), include_local=False,
+                                max_payload=est_max, max_bytes=_inbox_bytes(est_max))
         # sensor readings: label -> inbox. An agent with a role subscribes to the keys of
         # its nodes only (a reading of another node would cost a callback and a wake-up
         # every step); one without a role (a standby, or an agent fenced out) subscribes
@@ -175,12 +185,14 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             if "*" not in sensor_in:
                 for label in labels:
                     if label not in sensor_in:
-                        sensor_in[label] = peer.subscribe(keys.sensor_key(run, label),
-                                                          maxlen=1 << 12)
+                        sensor_in[label] = peer.subscribe(
+                            keys.sensor_key(run, label), maxlen=1 << 12,
+                            max_payload=sensor_max, max_bytes=_inbox_bytes(sensor_max, 1 << 12))
 
         def subscribe_all_sensors():
-            sensor_in["*"] = peer.subscribe(keys.any_agent_pattern(run, "sensor"),
-                                            maxlen=1 << 14)
+            sensor_in["*"] = peer.subscribe(
+                keys.any_agent_pattern(run, "sensor"), maxlen=1 << 14,
+                max_payload=sensor_max, max_bytes=_inbox_bytes(sensor_max, 1 << 14))
             for label in [k for k in sensor_in if k != "*"]:
                 drain_sensors(label, sensor_in[label])   # what is queued is still used
                 sensor_in.pop(label).close()

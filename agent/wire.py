@@ -248,6 +248,25 @@ def _f(x) -> float:
     return float(x)
 
 
+def max_est_bytes(n: int) -> int:
+    """A bound on the size of a valid estimate message of an ``n``-state scenario.
+
+    The largest message :func:`est_schema` accepts (every field at its widest encoding),
+    doubled: an agent's estimate inbox refuses anything larger before copying it out of
+    zenoh, so junk on an estimate key never occupies more than this per message.
+
+    >>> max_est_bytes(14) < 1024 < max_est_bytes(100)
+    True
+    """
+    return 2 * len(encode_est(MAX_AGENT, MAX_STEP, np.full(n, -1.0e300), 2**62 - 1, 1e12 - 1))
+
+
+def max_sensor_bytes() -> int:
+    """A bound on the size of a valid sensor message (label of 256 four-byte characters),
+    doubled (see :func:`max_est_bytes`)."""
+    return 2 * len(encode_sensor(MAX_STEP, "\U0010ffff" * 256, -1.0e300))
+
+
 def encode_sensor(step: int, label: str, x: float) -> bytes:
     return encode({"kind": "sensor", "step": int(step), "label": str(label), "x": _f(x)})
 

@@ -142,7 +142,8 @@ def _check_taus(taus) -> list:
     return out
 
 
-def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> dict:
+def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP,
+            progress=None) -> dict:
     """All certificates of gain ``G`` on ``scenario`` (JSON-ready apart from numpy scalars).
 
     Parameters
@@ -153,6 +154,9 @@ def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> d
         Uniform inter-agent delays for the rows.
     tau_cap : int
         Upper end of the Theorem 1 tau_star search.
+    progress : callable or None
+        Called with a short text before each stage (the tau_star search, each row), for a
+        status line; the function prints nothing itself.
 
     Returns
     -------
@@ -167,6 +171,7 @@ def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> d
     s = scenario
     taus = _check_taus(taus)
     check_gains_fit(G, s)
+    say = progress or (lambda text: None)
     A, W, measure = s.A, s.W, s.measure
     q, r = s.process_noise, s.measurement_noise
     zero = np.zeros_like(s.delays)
@@ -175,9 +180,11 @@ def certify(scenario, G, taus=DEFAULT_TAUS, tau_cap: int = DEFAULT_TAU_CAP) -> d
     rho_free = spectral_radius(Ahat)
     own = ClosedLoop(A, W, s.delays, measure, G)
     rho_own = own.spectral_radius() if s.taubar else rho_free
+    say(f"Theorem 1 criterion for tau = 0..{tau_cap}")
     tau_star, capped = find_tau_star(A, W, measure, G, tau_cap)
     rows = []
-    for tau in taus:
+    for i, tau in enumerate(taus):
+        say(f"tau = {tau} ({i + 1} of {len(taus)}): exact radius and steady MSE")
         loop = ClosedLoop(A, W, uniform_delays(W, tau), measure, G)
         rho_exact = loop.spectral_radius() if tau else rho_free
         t1 = theorem1_radius(A, W, measure, G, tau)

@@ -74,6 +74,18 @@ def test_scalar_certificate_by_hand():
     assert c["phi"] == pytest.approx((0.25 * 2 * 0.1 + 0.25 * 0.1) / (2 * 0.6975))
 
 
+def test_certify_reports_each_stage_and_prints_nothing(capsys):
+    """The status line of ``socmon certify`` is fed stage by stage (design prints nothing)."""
+    stages = []
+    c = certify(two_agents(), G_HALF, taus=[0, 2, 5], tau_cap=10, progress=stages.append)
+    assert stages == ["Theorem 1 criterion for tau = 0..10",
+                      "tau = 0 (1 of 3): exact radius and steady MSE",
+                      "tau = 2 (2 of 3): exact radius and steady MSE",
+                      "tau = 5 (3 of 3): exact radius and steady MSE"]
+    assert [r["tau"] for r in c["rows"]] == [0, 2, 5]
+    assert capsys.readouterr() == ("", "")
+
+
 def test_mse_with_scenario_delays_is_the_exact_delayed_one():
     s = two_agents().replace(delays=np.array([[0, 2], [1, 0]]))
     c = certify(s, G_HALF, taus=[0])

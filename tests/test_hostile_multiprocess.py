@@ -30,6 +30,9 @@ def test_hostile_flood_leaves_the_agent_stepping_and_sigterm_stops_it(tmp_path):
         flood = [
             (keys.sensor_key(run, label), wire.encode_sensor(wire.MAX_STEP, label, 1e9), 20),
             (keys.sensor_key(run, label), wire.encode_sensor(dep.step_of(1) + 500, label, 1e9), 1),
+            # nested deeper than the codec's limit, small enough to reach the decoder
+            (keys.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 200 + b"\xc0", 50),
+            # larger than any estimate: refused by the inbox before it is copied
             (keys.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0", 50),
             (keys.sensor_key(run, label), bytes(250_000), 50),
             (keys.ctl_key(run, 1), bytes(MAX_PAYLOAD_BYTES + 1024), 20),

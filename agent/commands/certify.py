@@ -23,6 +23,7 @@ from ._common import (
     print_json,
     run_command,
 )
+from ._progress import ProgressLine
 
 HELP = "exact stability radius, Theorem 1 criterion, paper formula, steady MSE and Phi of a gain"
 
@@ -50,7 +51,8 @@ def _run(args) -> int:
     cap = DEFAULT_TAU_CAP if args.tau_cap is None else args.tau_cap
     scenario = load_scenario_arg(args.scenario)
     gains = load_gains_arg(args.gains, scenario, force=args.force_gains)
-    result = certify(scenario, gains.G, taus=taus, tau_cap=cap)
+    with ProgressLine("certify", enabled=not args.json, delay=0) as line:
+        result = certify(scenario, gains.G, taus=taus, tau_cap=cap, progress=line.update)
     result["gains_file"] = str(args.gains)
     result["gains_meta"] = gains.meta
     mismatch = gains_scenario_mismatch(gains.meta, scenario)   # only with --force-gains
