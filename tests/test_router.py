@@ -16,8 +16,7 @@ import time
 import pytest
 
 from agent.cli import main
-from agent.launcher import ROOT
-from agent.launcher import Children
+from agent.launcher import ROOT, Children
 from agent.local_run import RunFailed, _through_router, _wait_listening
 from broker_free_net import keys
 from broker_free_net.config import (
@@ -30,6 +29,7 @@ from broker_free_net.peer import Peer
 from broker_free_net.ports import listen_port
 from broker_free_net.router import Router, router_config, serve_router
 from broker_free_net.security import make_run_keys, run_identities
+from tests.test_runtime_multiprocess import _socmon
 
 DEADLINE = 60.0
 
@@ -139,20 +139,6 @@ def test_router_reports_the_port_the_os_chose():
         (endpoint,) = router.endpoints()
         assert endpoint.startswith("tcp/127.0.0.1:") and not endpoint.endswith(":0")
         assert router.sessions() == 0
-
-
-def _socmon(*argv, timeout=240.0):
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", *argv], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    return proc.returncode, out, err
 
 
 @pytest.mark.multiprocess
