@@ -28,12 +28,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from broker_free_net import keys
+from broker_free_net.keys import InvalidKey
 from broker_free_net.codec import MessageStats, try_decode
 
 from . import wire
 
 __all__ = ["Recording", "Recorder", "watch_run", "WatchEnd"]
 
+#: Stamp window of truth and estimates around the newest step (as an agent's).
+STAMP_WINDOW = 100_000
 #: Most events (the monitor's, heard on the wire, and role drops) a recording keeps.
 MAX_EVENTS = 100_000
 
@@ -118,21 +121,28 @@ class Recorder:
         rec = self.recording
         kind = str(key).split("/")[2] if str(key).count("/") >= 2 else ""
         if key == self._truth_key:
-            m = try_decode(payload, self._schemas["truth"], self.stats)
+            m = try_decode(payload, self._schemas["truth"], self.stats, **self._window())
             if m is not None:
                 rec.truth[m["step"]] = np.array(m["x"])
                 self._newest = max(self._newest, m["step"])
-                if self.keep_steps is not None and len(rec.truth) > self.keep_steps:
+                # trimmed in batches of keep_steps // 8 (one pass over the dicts each)
+                if self.keep_steps is not None and \
+                        len(rec.truth) > self.keep_steps + self.keep_steps // 8:
                     self._forget_oldest()
         elif kind == "est":
-            m = try_decode(payload, self._schemas["est"], self.stats, senders=set(rec.est))
-            if m is not None:
+            m = try_decode(payload, self._schemas["est"], self.stats, senders=set(rec.est),
+                           **self._window())
+            if m is not None and self._sender_of(key) != m["agent"]:
+                self.stats.count_dropped("sender")      # agent j's key, agent i's estimate
+            elif m is not None:
                 rec.est[m["agent"]][m["step"]] = np.array(m["x"])
                 rec.est_epoch[m["agent"]][m["step"]] = m["epoch"]
                 self.estimates_received += 1
         elif kind == "status":
             m = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
-            if m is not None and m["agent"] in rec.est:
+            if m is not None and self._sender_of(key, "status") != m["agent"]:
+                self.stats.count_dropped("sender")
+            elif m is not None and m["agent"] in rec.est:
                 was = rec.status.get(m["agent"])
                 if was is not None and was["active"] and not m["active"] and \
                         len(rec.events) < MAX_EVENTS:    # an agent dropped its role (fenced)
@@ -161,16 +171,24 @@ class Recorder:
                     self.stats.count_dropped("event")
         self.recording.recorder_malformed = self.stats.total_dropped
 
+    def _window(self) -> dict:
+        """The stamp window of truth and estimates: as an agent's, around the newest step."""
+        return {"now_step": self._newest, "window": STAMP_WINDOW} if self._newest >= 0 else {}
+
+    def _sender_of(self, key, kind: str = "est"):
+        try:
+            return keys.parse_agent_key(self.recording.run_id, kind, key)
+        except InvalidKey:
+            return None
+
     def _forget_oldest(self) -> None:
-        """Drop the oldest steps beyond ``keep_steps`` (the dicts hold steps in arrival
-        order, which is step order but for a few late ones)."""
+        """Drop every step more than ``keep_steps`` before the newest (by value: an entry
+        stamped ahead never holds older ones in place)."""
         rec = self.recording
-        while len(rec.truth) > self.keep_steps:
-            del rec.truth[next(iter(rec.truth))]
-        cutoff = min(next(iter(rec.truth)), self.step - self.keep_steps)
-        for by_step in (*rec.est.values(), *rec.est_epoch.values()):
-            while by_step and next(iter(by_step)) < cutoff:
-                del by_step[next(iter(by_step))]
+        cutoff = self.step - self.keep_steps
+        for by_step in (rec.truth, *rec.est.values(), *rec.est_epoch.values()):
+            for k in [k for k in by_step if k <= cutoff]:
+                del by_step[k]
 
     # -- what it shows ------------------------------------------------------------------
     @property
@@ -281,7 +299,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 now = time.monotonic()
                 alive = alive_watch.alive()
                 for ev in alive_watch.drain():
-                    if ev.role == "agent" and not ev.alive:
+                    if ev.role == "agent" and not ev.alive and len(rec.events) < MAX_EVENTS:
                         rec.events.append({"process": f"agent-{ev.id}", "liveliness": False,
                                            "step": recorder.step, "t": time.time()})
                 if ("world", "0") in alive:
@@ -296,7 +314,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 recorder.alive = agents_alive
                 in_force = [a for a in recorder.in_force(k) if a in agents_alive]
                 if steps is not None and k >= steps and all(
-                        steps in rec.est[a] for a in in_force):
+                        max(rec.est[a], default=-1) >= steps for a in in_force):
                     why = "steps"
                     break
                 if recorder.estimates_received != heard:

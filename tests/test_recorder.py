@@ -88,7 +88,8 @@ def test_recorder_counts_and_drops_malformed_messages(fed):
                                                         "event": "{bad json"}))
     rec = fed.recording
     assert rec.recorder_malformed == before + 5
-    assert 9 not in rec.truth and 7 not in rec.est and rec.monitor_events == []
+    assert 9 not in rec.truth and rec.monitor_events == []
+    assert all(9 not in by_step for by_step in rec.est.values())
 
 
 def test_summary_of_a_watched_recording(fed, tmp_path):
@@ -175,8 +176,20 @@ def test_recorder_keeps_the_newest_steps_only():
         r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
     rec = r.recording
     assert sorted(rec.truth) == list(range(15, 20)) and r.step == 19
-    assert sorted(rec.est[1]) == list(range(14, 20))   # one older estimate at most
+    assert sorted(rec.est[1]) == list(range(15, 20))
     assert r.view()["mse"] == 1.0 and mse_by_step(rec, 19)[0] == list(range(15, 20))
+
+
+def test_a_stamp_far_ahead_or_a_wrong_sender_is_dropped_and_trimming_goes_on():
+    r = Recorder(RUN, n=1, N=2, M=2, keep_steps=5)
+    r.feed(keys.truth_key(RUN), wire.encode_truth(0, [0.0]))
+    r.feed(keys.est_key(RUN, 1), wire.encode_est(1, 10**6, [1.0], epoch=0, t=0.0))  # future
+    r.feed(keys.est_key(RUN, 2), wire.encode_est(1, 0, [9.0], epoch=0, t=0.0))  # not agent 2's
+    assert r.recording.recorder_malformed == 2 and r.recording.est[1] == {}
+    for k in range(1, 40):
+        r.feed(keys.truth_key(RUN), wire.encode_truth(k, [float(k)]))
+        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
+    assert sorted(r.recording.est[1]) == list(range(35, 40))
 
 
 def test_last_complete_step_ignores_agents_that_stopped(fed):
