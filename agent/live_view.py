@@ -13,8 +13,8 @@ Examples
 ...                        "late": 0, "malformed": 0}}}
 >>> print(format_line(view))
 run demo  step 12  mse 0.5 (step 11; - over the last 100)  drops 1  late 0  malformed 0  roster 1,2 (epoch 0)
->>> out = io.StringIO(); LiveView(out, "json", interval=0).show(view); out.getvalue()[:31]
-'{"kind": "view", "run": "demo",'
+>>> out = io.StringIO(); LiveView(out, "json", interval=0).show(view); out.getvalue()[:51]
+'{"schema_version": 1, "kind": "view", "run": "demo"'
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import time
 
-from .jsonable import to_jsonable
+from .jsonable import to_jsonable, versioned
 
 __all__ = ["LiveView", "format_line", "format_lines"]
 
@@ -78,7 +78,7 @@ class LiveView:
             return
         self._next = now + self.interval
         if self.mode in ("json", "plain"):
-            text = (json.dumps(to_jsonable({"kind": "view", **view})) if self.mode == "json"
+            text = (json.dumps(to_jsonable(versioned({"kind": "view", **view}))) if self.mode == "json"
                     else format_line(view))
             if text == self._text:          # a line per change, not per tick
                 return

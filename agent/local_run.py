@@ -16,7 +16,6 @@ PID, keys) once they are up, so that other tools can attach (``--attach RUN_DIR`
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import signal
@@ -165,8 +164,14 @@ class LocalRun:
 
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
+        from agent.control_auth import ControlSigner
+
+        signer = ControlSigner.generate()       # the run's control key: the monitor's
+        # the recorder keeps only the rosters and assignments this key signed
         recorder = Recorder(c.run_id or f"up{os.getpid()}x{random.randrange(10**6)}",
-                            c.scenario.n, N, M, ports=[listen_port() for _ in range(M + 3 + c.router)])
+                            c.scenario.n, N, M,
+                            ports=[listen_port() for _ in range(M + 3 + c.router)],
+                            control_public=signer.public_bytes())
         rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
         ep = [f"{scheme}/{self._host_ip(name)}:{p}"
@@ -181,9 +186,6 @@ class LocalRun:
 
             make_run_keys(c.out / "keys", rec.run_id, run_identities(M))
             net_extra = {"keys": str((c.out / "keys").resolve()), "identity": "recorder"}
-        from agent.control_auth import ControlSigner
-
-        signer = ControlSigner.generate()       # the run's control key: the monitor's
         operator = ControlSigner.generate()     # the operator's (impairments): this run's
         for name, key in (("control.key", signer), ("operator.key", operator)):
             key_path = c.out / name
@@ -292,7 +294,9 @@ class LocalRun:
                         event(process=name, signal="SIGCONT", step=k_now)
                     elif f.kind == "monitor":
                         old = "monitor" if not restarts else f"monitor-{restarts + 1}"
-                        _wait_exit(children, old, 10.0)
+                        if not _wait_exit(children, old, 10.0):
+                            raise RunFailed(f"{old} did not exit within 10 s of SIGKILL; "
+                                            "not starting a second monitor beside it")
                         restarts += 1
                         children.start(f"monitor-{restarts + 1}", argv["monitor"],
                                        self._wrap("monitor"))

@@ -80,7 +80,7 @@ class Recorder:
     """
 
     def __init__(self, run_id: str, n: int, N: int, M: int, ports=(),
-                 keep_steps: int | None = None):
+                 keep_steps: int | None = None, control_public: bytes | None = None):
         rec = self.recording = Recording(run_id=run_id, ports=list(ports))
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
@@ -93,6 +93,11 @@ class Recorder:
         self._truth_key = keys.truth_key(run_id)
         self._inboxes = ()
         self.keep_steps = keep_steps
+        self._verifier = None            # with the run's control key: unsigned ctl dropped
+        if control_public is not None:
+            from .control_auth import ControlVerifier
+
+            self._verifier = ControlVerifier(control_public, run_id, not_before=0.0)
         self._newest = -1
         self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
         self.estimates_received = 0
@@ -150,12 +155,12 @@ class Recorder:
                                        "epoch": m["epoch"], "step": m["step"], "t": time.time()})
                 rec.status[m["agent"]] = m
         elif key == self._roster_key:
-            m = try_decode(payload, self._schemas["roster"], self.stats)
+            m = self._authentic(try_decode(payload, self._schemas["roster"], self.stats))
             if m is not None and m["epoch"] > rec.rosters[-1][2]:
                 rec.rosters.append((m["activate_at"], tuple(m["ids"]), m["epoch"]))
         elif kind == "ctl":
-            m = try_decode(payload, self._schemas["ctl"], self.stats)
-            if m is not None:
+            m = self._authentic(try_decode(payload, self._schemas["ctl"], self.stats))
+            if m is not None and len(rec.assigns) < MAX_EVENTS:
                 rec.assigns.setdefault((m["agent"], m["epoch"]), m)
         elif kind == "monitor":
             m = try_decode(payload, wire.MONITOR_EVENT_SCHEMA, self.stats)
@@ -170,6 +175,20 @@ class Recorder:
                 else:
                     self.stats.count_dropped("event")
         self.recording.recorder_malformed = self.stats.total_dropped
+
+    def _authentic(self, msg):
+        """``msg`` if it is not a control message or carries the run's control signature
+        (known when the recorder was given the key); else None, counted."""
+        if msg is None or self._verifier is None:
+            return msg
+        from .control_auth import SignatureError
+
+        try:
+            self._verifier.check(msg, replay=False)
+        except SignatureError:
+            self.stats.count_dropped("signature")
+            return None
+        return msg
 
     def _window(self) -> dict:
         """The stamp window of truth and estimates: as an agent's, around the newest step."""

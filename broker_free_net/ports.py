@@ -63,7 +63,7 @@ def listen_port(host: str = "127.0.0.1", attempts: int = 200) -> int:
     pool = [(LOWEST_PORT, lo)] if lo - LOWEST_PORT >= 1000 else []
     if hi < 65535:
         pool.append((hi + 1, 65536))
-    if not pool:               # the whole range is ephemeral: the OS's pick is all there is
+    if not pool:               # the whole range is ephemeral: any unprivileged port, checked
         pool = [(1024, 65536)]
     for _ in range(attempts):
         a, b = _draw.choice(pool)

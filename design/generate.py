@@ -66,6 +66,8 @@ def communities_scenario(N: int, *, size: int = 2, public: int = 4, seed: int = 
                             ("standby", standby, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < lo:
             raise ValueError(f"{name}: expected an int >= {lo}, got {value!r}")
+    if size > 26:                         # members are labelled a..z within a community
+        raise ValueError(f"size: at most 26 members a community, got {size}")
     if standby > N or (standby and size < 2):
         raise ValueError(f"standby: at most N = {N} standby agents, and only with size >= 2, "
                          f"got {standby} with size {size}")

@@ -197,3 +197,18 @@ def test_last_complete_step_ignores_agents_that_stopped(fed):
     assert fed.last_complete_step(alive={1, 2}) == 2
     assert fed.last_complete_step(alive={1}) == 3
     assert fed.last_complete_step() == 3
+
+
+def test_with_the_run_control_key_only_signed_rosters_are_recorded():
+    from agent.control_auth import ControlSigner
+
+    signer, other = ControlSigner.generate(), ControlSigner.generate()
+    r = Recorder(RUN, n=1, N=1, M=2, control_public=signer.public_bytes())
+    key = keys.ctl_key(RUN, 0)
+    r.feed(key, wire.encode_roster(2**40, 5, [2]))                          # unsigned
+    r.feed(key, wire.encode_roster(2**40, 5, [2], signer=other, run=RUN))   # another key
+    genuine = wire.encode_roster(1, 5, [2], signer=signer, run=RUN)
+    r.feed(key, genuine)
+    r.feed(key, genuine)                       # a re-send of the same roster is no forgery
+    assert r.recording.rosters[-1] == (5, (2,), 1)
+    assert r.recording.recorder_malformed == 2

@@ -142,3 +142,15 @@ def test_log_warnings_are_collected_and_bounded(tmp_path):
     assert len(found) == MAX_LOG_WARNINGS + 1
     assert found[-1] == f"4 more warnings in {tmp_path}"
     assert log_warnings(tmp_path / "absent") == []
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("drop:10:1:5:2", "drop VALUE is a probability in [0, 1]"),
+    ("delay:10:1:5:2.5", "delay VALUE is a whole number of steps"),
+    ("kill:10", "kill needs an agent"),
+])
+def test_up_fault_values_are_checked_before_anything_starts(tmp_path, capsys, fault, message):
+    """A fault value the impairment could not carry is a usage error, not a crash mid-run."""
+    assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), "--fault", fault]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run" / "run.json").exists()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 
 HELP = "run world + one process per agent on this machine, record, and write a run folder"
 
@@ -208,21 +209,25 @@ def testbed_for(args, config, say):
     if why is not None:
         raise CommandError(f"--netns: {why}", status=1)
     testbed = Testbed(host_names(config.M), prefix=args.netns_prefix)
-    try:
-        testbed.create()
-    except TestbedError as exc:
-        raise CommandError(f"--netns: {exc}", status=1) from None
-    say(f"testbed: {len(testbed.hosts)} hosts in namespaces {testbed.prefix}-*, switch "
-        f"{testbed.switch}")
 
     def on_term(*_):                  # SIGTERM outside the run itself: still clean up
         raise KeyboardInterrupt
 
-    old_term = signal.signal(signal.SIGTERM, on_term)
+    old_term = signal.signal(signal.SIGTERM, on_term)   # before the first namespace
     try:
+        try:
+            testbed.create()
+        except TestbedError as exc:
+            raise CommandError(f"--netns: {exc}", status=1) from None
+        say(f"testbed: {len(testbed.hosts)} hosts in namespaces {testbed.prefix}-*, switch "
+            f"{testbed.switch}")
         yield testbed
     finally:
-        testbed.close()
+        try:
+            testbed.close()
+        except TestbedError as exc:
+            print(f"socmon up: --netns: not every namespace could be deleted ({exc})",
+                  file=sys.stderr)
         signal.signal(signal.SIGTERM, old_term)
 
 
@@ -352,6 +357,10 @@ def parse_faults(args, scenario) -> list:
             raise CommandError(f"--fault: SECONDS and VALUE are numbers, got {spec!r}") from None
         if not (0 <= secs < 3600 and 0 <= value <= 1_000_000):
             raise CommandError(f"--fault: SECONDS in [0, 3600) and VALUE >= 0, got {spec!r}")
+        if kind == "drop" and not value <= 1:
+            raise CommandError(f"--fault: drop VALUE is a probability in [0, 1], got {spec!r}")
+        if kind == "delay" and value != int(value):
+            raise CommandError(f"--fault: delay VALUE is a whole number of steps, got {spec!r}")
         if kind == "linkdown" and not secs > 0:
             raise CommandError(f"--fault: linkdown needs SECONDS > 0 (how long the link is "
                                f"down), got {spec!r}")

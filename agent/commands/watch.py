@@ -74,7 +74,8 @@ def _watch(args) -> int:
     from ..live_view import LiveView
     from ..run_summary import failure_lines
     from ..watch import NoWorld, WatchConfig, watch
-    from ._common import CommandError, attach_run, load_gains_arg, load_scenario_arg, to_jsonable
+    from ._common import (CommandError, attach_run, load_gains_arg, load_scenario_arg,
+                          to_jsonable, versioned)
 
     info = attach_run(args)
     scenario_arg = args.scenario or (info.scenario_arg if info else None)
@@ -120,7 +121,7 @@ def _watch(args) -> int:
         raise CommandError(str(exc), status=1) from None
     summary = result.summary
     if args.json:
-        print(json.dumps(to_jsonable({"kind": "summary", **summary})), flush=True)
+        print(json.dumps(to_jsonable(versioned({"kind": "summary", **summary}))), flush=True)
     else:
         pred = summary.get("mse_steady_exact")
         print(f"{scenario.name}: run {net.run} {result.ended} at step {summary['steps']}: "
