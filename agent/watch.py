@@ -67,7 +67,7 @@ def watch(config: WatchConfig, view) -> WatchResult:
     recorder = Recorder(c.net.run, s.n, s.N, M, keep_steps=c.keep_steps)
     try:
         ended = watch_run(c.net, recorder, steps=c.steps, timeout=c.timeout,
-                          on_view=view.show)
+                          on_view=view.show, interval=getattr(view, "interval", 0.25))
     finally:
         view.close()
     rec = recorder.recording
