@@ -195,7 +195,7 @@ def test_a_terminated_run_removes_its_testbed_and_its_processes(tmp_path, live_g
     """SIGTERM to ``up --netns`` while it runs: exit 130, no child left, no namespace."""
     import signal
 
-    from tests.test_runtime_multiprocess import _processes_with, _start_long_up
+    from tests.test_runtime_multiprocess import _kill_long_up, _processes_with, _start_long_up
 
     gains = {"paper-14-live": (live_gains, None, None)}
     proc, marker = _start_long_up(tmp_path, gains, "--netns", "--netns-prefix", prefix)
@@ -205,10 +205,6 @@ def test_a_terminated_run_removes_its_testbed_and_its_processes(tmp_path, live_g
         _, err = proc.communicate(timeout=60)
         assert proc.returncode == 130, err
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-        for pid in _processes_with(marker):
-            os.kill(pid, signal.SIGKILL)
+        _kill_long_up(proc, marker)
     assert _processes_with(marker) == []
     assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]

@@ -126,11 +126,7 @@ def test_up_interrupted_leaves_no_process_and_no_bound_port(tmp_path, gains_file
         _, err = proc.communicate(timeout=DEADLINE)
         assert proc.returncode == 130, err
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-        for pid in _processes_with(marker):
-            os.kill(pid, signal.SIGKILL)
+        _kill_long_up(proc, marker)
     assert _processes_with(marker) == []
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert summary["error"] == "interrupted" and summary["orphans"] == []
@@ -139,6 +135,15 @@ def test_up_interrupted_leaves_no_process_and_no_bound_port(tmp_path, gains_file
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind(("127.0.0.1", port))
             sock.listen()
+
+
+def _kill_long_up(proc, marker) -> None:
+    """Whatever a test of a long ``up`` left: its process group and every child of its run."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+    for pid in _processes_with(marker):
+        os.kill(pid, signal.SIGKILL)
 
 
 def _start_long_up(tmp_path, gains_files, *extra):
@@ -328,11 +333,7 @@ def test_up_without_monitor_stops_everything_when_a_child_dies(tmp_path, gains_f
         assert proc.returncode == 1, err
         assert "agent-2 exited with status -9" in err
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-        for pid in _processes_with(marker):
-            os.kill(pid, signal.SIGKILL)
+        _kill_long_up(proc, marker)
     assert _processes_with(marker) == []
     summary = json.loads(stdout)
     assert summary["orphans"] == [] and summary["exit_status"]["agent-2"] == -9
