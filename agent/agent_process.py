@@ -173,34 +173,14 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         est_max, sensor_max = wire.max_est_bytes(core.n), wire.max_sensor_bytes()
         est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), include_local=False,
                                 max_payload=est_max, max_bytes=_inbox_bytes(est_max))
-        # sensor readings: label -> inbox. An agent with a role subscribes to the keys of
-        # its nodes only (a reading of another node would cost a callback and a wake-up
-        # every step); one without a role (a standby, or an agent fenced out) subscribes
-        # to every sensor key, so that a new role never waits for a subscription to reach
-        # the world (under load that took longer than the assignment's head start).
-        sensor_in: dict = {}
+        # sensor readings: every sensor key, from the start, active or not: a role that adds
+        # a node never waits for a new subscription to reach the world (on a loaded
+        # 2-core machine that took longer than the assignment's head start, and the
+        # activation step's reading was missed); only the wanted keys wake the loop
         sensor_prefix = keys.sensor_key(run, core.labels[0]).rsplit("/", 1)[0] + "/"
-
-        def subscribe_sensors(labels):
-            if "*" not in sensor_in:
-                for label in labels:
-                    if label not in sensor_in:
-                        sensor_in[label] = peer.subscribe(
-                            keys.sensor_key(run, label), maxlen=1 << 12,
-                            max_payload=sensor_max, max_bytes=_inbox_bytes(sensor_max, 1 << 12))
-
-        def subscribe_all_sensors():
-            sensor_in["*"] = peer.subscribe(
-                keys.any_agent_pattern(run, "sensor"), maxlen=1 << 14,
-                max_payload=sensor_max, max_bytes=_inbox_bytes(sensor_max, 1 << 14))
-            for label in [k for k in sensor_in if k != "*"]:
-                drain_sensors(label, sensor_in[label])   # what is queued is still used
-                sensor_in.pop(label).close()
-
-        if core.role is None:
-            subscribe_all_sensors()
-        else:
-            subscribe_sensors(core.wanted_labels())
+        sensor_all = peer.subscribe(
+            keys.any_agent_pattern(run, "sensor"), maxlen=1 << 14,
+            max_payload=sensor_max, max_bytes=_inbox_bytes(sensor_max, 1 << 14))
         watch = peer.watch_liveliness()
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
@@ -214,8 +194,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         next_status = 0.0
 
         def publish_status():
-            seen = sum(i.received + i.oversized for i in [ctl_in, imp_in, est_in, status_in,
-                                                          *sensor_in.values()])
+            seen = sum(i.received + i.oversized
+                       for i in [ctl_in, imp_in, est_in, status_in, sensor_all])
             if stats.total_dropped and seen - trimmed_at[1] > 1000 \
                     and time.monotonic() - trimmed_at[0] > TRIM_S:
                 trim_heap()  # after a burst of input: give its memory back
@@ -223,7 +203,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             st = core.status()
             st["malformed"] = stats.total_dropped
             st["malformed_reasons"] = dict(stats.dropped)
-            inboxes = [ctl_in, roster_in, imp_in, est_in, status_in, *sensor_in.values()]
+            inboxes = [ctl_in, roster_in, imp_in, est_in, status_in, sensor_all]
             st["overflows"] = sum(i.overflows for i in inboxes)
             too_large = sum(i.oversized for i in inboxes)  # refused by the inboxes
             if too_large:
@@ -265,19 +245,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 return
             core.on_sensor(label, msg["step"], msg["x"])
 
-        def drain_sensors(label, inbox):
+        def drain_sensors():
             wanted = core.wanted_labels()
-            if label == "*":
-                for item in inbox.drain():
-                    key_label = item.key[len(sensor_prefix):] \
-                        if item.key.startswith(sensor_prefix) else None
-                    if key_label in wanted:
-                        handle_sensor(key_label, item)
-            else:
-                items = inbox.drain()
-                if label in wanted:
-                    for item in items:
-                        handle_sensor(label, item)
+            for item in sensor_all.drain():
+                key_label = item.key[len(sensor_prefix):] \
+                    if item.key.startswith(sensor_prefix) else None
+                if key_label in wanted:
+                    handle_sensor(key_label, item)
 
         est_key_agent: dict = {}                 # est key -> agent id (parsed once)
         wake_labels = [None, frozenset()]        # wanted labels, their sensor keys
@@ -327,7 +301,6 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     continue
                 try:
                     role = core.on_assignment(msg)
-                    subscribe_sensors(role.measure)
                     say(f"agent {me}: accepted epoch {role.epoch} "
                         f"(activate at step {role.activate_at})")
                 except AssignmentError as exc:
@@ -356,9 +329,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats, senders=senders)
                 if msg is not None:
                     core.note_heard(msg["agent"])
-            for label, inbox in sensor_in.items():
-                if len(inbox):
-                    drain_sensors(label, inbox)
+            if len(sensor_all):
+                drain_sensors()
             for item in est_in.drain() if len(est_in) else ():
                 handle_est(item)
             before = core.step
@@ -371,8 +343,6 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
                     os.kill(os.getpid(), signal.SIGKILL)
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
-            if core.role is None and "*" not in sensor_in:
-                subscribe_all_sensors()    # fenced out: a standby from now on
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()
@@ -394,13 +364,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             status_in.wakes = core.step < 0
             if est_in.wakes and len(est_in):
                 busy = True                # arrived while it did not wake the loop
-            if "*" in sensor_in:           # every sensor key: only the wanted ones wake it
-                wanted = core.wanted_labels()
-                if wanted != wake_labels[0]:
-                    wake_labels[:] = [wanted, frozenset(sensor_prefix + m for m in wanted)]
-                sensor_in["*"].wakes = wake_labels[1]
-                if len(sensor_in["*"]):
-                    busy = True
+            wanted = core.wanted_labels()  # every sensor key: only the wanted ones wake it
+            if wanted != wake_labels[0]:
+                wake_labels[:] = [wanted, frozenset(sensor_prefix + m for m in wanted)]
+            sensor_all.wakes = wake_labels[1]
+            if len(sensor_all):
+                busy = True
             peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()
     return 0
