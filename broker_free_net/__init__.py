@@ -8,6 +8,10 @@ Knows nothing of estimation: never imports :mod:`design` nor :mod:`agent`
 - :mod:`broker_free_net.codec` -- msgpack wire format and validation
 - :mod:`broker_free_net.impair` -- receiver-side link impairments
 - :mod:`broker_free_net.peer` -- Peer: session, liveliness token, inboxes
+- :mod:`broker_free_net.linger` -- LingerGuard: zenoh links that do not linger on close
+- :mod:`broker_free_net.ports` -- listen ports below the ephemeral range
+- :mod:`broker_free_net.router` -- socmon router (zenoh router mode)
+- :mod:`broker_free_net.security` -- TLS, mutual TLS and access control configs
 """
 
 from .codec import MalformedMessage, MessageStats, Schema, decode, encode, try_decode

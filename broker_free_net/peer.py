@@ -28,6 +28,7 @@ import zenoh
 from . import keys
 from .codec import MAX_PAYLOAD_BYTES
 from .config import NetConfig, build_zenoh_config
+from .linger import LingerGuard
 
 __all__ = ["Inbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received"]
 
@@ -273,9 +274,13 @@ class Peer:
         self._closed = False
         self._activity = threading.Event()
         self._session = zenoh.open(build_zenoh_config(net))
+        # zenoh's links linger 10 s on close: a peer's host cut off would put this
+        # process's receive threads to sleep until it returns (see linger.py)
+        self._linger = LingerGuard()
         try:
             self._token = self._session.liveliness().declare_token(token_key)
         except BaseException:
+            self._linger.stop()
             self._session.close()
             raise
         atexit.register(self.close)
@@ -322,6 +327,7 @@ class Peer:
             self._token.undeclare()
         except zenoh.ZError:
             pass
+        self._linger.stop()
         try:
             self._session.close()
         except zenoh.ZError as exc:

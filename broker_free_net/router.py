@@ -32,6 +32,7 @@ import threading
 import zenoh
 
 from .config import InvalidNetConfig, NetConfig, build_zenoh_config
+from .linger import LingerGuard
 
 __all__ = ["DEFAULT_ROUTER_LISTEN", "Router", "router_config", "serve_router"]
 
@@ -87,6 +88,7 @@ class Router:
         self.net = net
         self._session = zenoh.open(router_config(net))
         self._closed = False
+        self._linger = LingerGuard()   # a cut-off client must not stall the router's rx
 
     def __enter__(self) -> Router:
         return self
@@ -118,6 +120,7 @@ class Router:
         if self._closed:
             return
         self._closed = True
+        self._linger.stop()
         try:
             self._session.close()
         except zenoh.ZError:

@@ -101,6 +101,74 @@ def test_two_peers_in_one_process_wait_and_drain():
     assert a.closed and b.closed
 
 
+def _linger_of_links(port):
+    """SO_LINGER on/off of this process's TCP sockets with `port` at either end."""
+    import os
+    import socket
+    import struct
+
+    found = []
+    for name in os.listdir("/proc/self/fd"):
+        try:
+            s = socket.socket(fileno=os.dup(int(name)))
+        except OSError:
+            continue
+        with s:
+            if s.family != socket.AF_INET or s.type != socket.SOCK_STREAM:
+                continue
+            try:
+                ends = {s.getsockname()[1], s.getpeername()[1]}
+            except OSError:                # the listener: no peer
+                continue
+            if port in ends:
+                found.append(struct.unpack("ii", s.getsockopt(
+                    socket.SOL_SOCKET, socket.SO_LINGER, 8))[0])
+    return found
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self/fd"), reason="needs /proc")
+def test_links_do_not_linger_on_close():
+    """zenoh opens its TCP links with SO_LINGER 10 s (a close() then sleeps until a cut-off
+    host acknowledges); the peer turns it off on its links, the one zenoh opened and the
+    one it accepted, within a scan period."""
+    run = f"linger{listen_port()}"
+    port = listen_port()
+    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0), \
+            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            states = _linger_of_links(port)
+            if len(states) >= 2 and not any(states):
+                break
+            time.sleep(0.05)
+        assert len(states) >= 2 and not any(states), states
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self/fd"), reason="needs /proc")
+def test_the_linger_guard_finds_sockets_opened_after_it_started():
+    import socket
+    import struct
+
+    from broker_free_net.linger import LingerGuard
+
+    guard = LingerGuard(period=0.02)
+    try:
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 10))
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and guard.cleared == 0:
+                time.sleep(0.02)
+            onoff, _ = struct.unpack("ii", s.getsockopt(socket.SOL_SOCKET, socket.SO_LINGER, 8))
+            assert onoff == 0
+        with socket.socket(socket.AF_UNIX) as u:    # not TCP: left alone
+            before = guard.cleared
+            guard.scan()
+            assert guard.cleared == before and u.fileno() >= 0
+    finally:
+        guard.stop()
+
+
 def test_start_order_does_not_matter():
     """A peer whose seed is not up yet keeps retrying and joins when it starts."""
     run = f"late{listen_port()}"

@@ -154,22 +154,20 @@ def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, l
     assert 0 < f["detection_ms"] < 1e3 * (up["t"] - down["t"])
     assert down["step"] <= f["detected_step"] < up["step"]
     assert f["replacement"]["agent"] == 4 and s["recovered"]
-    # Seen in 4 of 22 runs, cause not established (docs/runtime.md): a survivor's readings,
-    # or the monitor's view of it, stall from about one lease after the cut until the link
-    # returns, and the monitor convicts it too (`sensor` or `hang`). Agent 2 is convicted
-    # first, once, and never as anything but cut off.
-    assert all(o["agent"] != 2 and o["cause"] in {"sensor", "hang"} for o in others), others
+    # no healthy agent is convicted: before the linger guard (broker_free_net/linger.py)
+    # the receive threads of the other hosts slept in close() until the link returned,
+    # and the monitor convicted a survivor in 4 of 22 runs
+    assert others == [], others
     # the first reassignment hands agent 2's role to the standby
     assert 2 not in s["rosters"][1]["ids"] and 4 in s["rosters"][1]["ids"]
     verdicts = [json.loads(line) for line in
                 (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
     assert [v["agent"] for v in verdicts if v.get("kind") == "verdict"][0] == 2
     final = s["final_roles"]
-    if all(2 not in r["ids"] for r in s["rosters"][1:]):   # not given a role again later
-        assert final["2"]["active"] is False and final["2"]["epoch"] >= f["epoch"]
-    if not others:                        # then the standby still holds the role
-        assert 2 not in s["rosters"][-1]["ids"] and 4 in s["rosters"][-1]["ids"]
-        assert final["4"]["active"] is True
+    assert all(2 not in r["ids"] for r in s["rosters"][1:])
+    assert final["2"]["active"] is False and final["2"]["epoch"] >= f["epoch"]
+    assert 2 not in s["rosters"][-1]["ids"] and 4 in s["rosters"][-1]["ids"]
+    assert final["4"]["active"] is True
     assert f["fenced_ms"] >= 0            # dropped its role after the link came back
     assert s["fenced"] > 0                # its estimates were rejected meanwhile
     assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
