@@ -63,6 +63,7 @@ SOCMON_KEYS = {
     "transport/link/tx/keep_alive": str(KEEP_ALIVES_PER_LEASE),
     "transport/link/rx/max_message_size": str(MAX_MESSAGE_BYTES),
     "connect/timeout_ms": f"{CLIENT_CONNECT_TIMEOUT_MS} (client of one router only)",
+    "transport/shared_memory/enabled": "false",
 }
 _MODES = ("peer", "client")
 #: The modes a socmon process may run in (a router is ``socmon router``, not a mode flag).
@@ -313,7 +314,8 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     ``mode``; ``listen/endpoints``; ``connect/endpoints``; ``scouting/multicast/enabled``;
     ``transport/link/tx/lease``. Unless the config file sets them:
     ``scouting/gossip/enabled`` = true; ``transport/link/tx/keep_alive`` = 4 (keep-alives
-    per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`; in
+    per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`;
+    ``transport/shared_memory/enabled`` = false; in
     client mode with one connect endpoint ``connect/timeout_ms`` =
     :data:`CLIENT_CONNECT_TIMEOUT_MS`.
     With ``net.keys``, the process's secure fragment (TLS, mTLS, access control, connect
@@ -336,6 +338,10 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
         "scouting/gossip/enabled": True,
         "transport/link/tx/keep_alive": KEEP_ALIVES_PER_LEASE,
         "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES,
+        # socmon messages are far below zenoh's 3 kB shared-memory threshold; with shared
+        # memory on, any local process sending larger payloads made each receiver map its
+        # 16 MB pool (RSS +19 MB in scripts/bench_hostile.py)
+        "transport/shared_memory/enabled": False,
     }
     if net.mode == "client" and len(net.connect) == 1:
         fixed["connect/timeout_ms"] = CLIENT_CONNECT_TIMEOUT_MS
@@ -358,7 +364,8 @@ _NET_HELP = (
     "socmon sets these zenoh keys: mode (peer), listen/endpoints, connect/endpoints, "
     "scouting/multicast/enabled, transport/link/tx/lease, and, unless the --zenoh-config "
     f"file sets them, scouting/gossip/enabled (true), transport/link/tx/keep_alive "
-    f"({KEEP_ALIVES_PER_LEASE}) and transport/link/rx/max_message_size ({MAX_MESSAGE_BYTES}). "
+    f"({KEEP_ALIVES_PER_LEASE}), transport/link/rx/max_message_size ({MAX_MESSAGE_BYTES}) "
+    "and transport/shared_memory/enabled (false). "
     "A value in the --zenoh-config file is kept unless its flag is given; every other key "
     "of the file passes through. --keys adds TLS with mutual authentication and access "
     "control (see docs/security.md)."

@@ -65,6 +65,7 @@ def test_build_overrides():
     assert get(conf, "transport/link/tx/lease") == 1500
     assert get(conf, "transport/link/tx/keep_alive") == 4
     assert get(conf, "transport/link/rx/max_message_size") == 1 << 20
+    assert get(conf, "transport/shared_memory/enabled") is False
     assert get(build_zenoh_config(NetConfig(multicast=True)), "scouting/multicast/enabled") is True
 
 
