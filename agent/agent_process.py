@@ -3,9 +3,9 @@
 Subscriptions (in this order; the status subscription is declared last, so that a peer
 which receives this agent's status also knows all its other subscriptions: the start
 handshake relies on it): its control key, the roster key, the impairment key, every
-agent's estimates, every sensor key (it uses the readings of the nodes it measures, or of
-the first node as a clock while it has no role: a new role never waits for a
-subscription), then every agent's status. Publications: its estimate every step, its status
+agent's estimates, the world's sensor readings (one message a step with every node; it
+uses the readings of the nodes it measures, or of the first node as a clock while it has
+no role: a new role never waits for a subscription), then every agent's status. Publications: its estimate every step, its status
 every ``status_s`` (and at once after a control message). It never reads the truth key.
 
 It also subscribes to the roster key (``ctl/0``, the monitor's fence). The process ends
@@ -153,7 +153,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
     est_schema = wire.est_schema(core.n)
     ctl_schema = wire.ctl_schema(core.n)
     roster_schema = wire.roster_schema()
-    sensor_schema = wire.sensor_schema()
+    sensors_schema = wire.sensors_schema(core.n)
+    node_index = {label: i for i, label in enumerate(core.labels)}
     senders = set(config.agents)
     agent_ids = {str(a) for a in senders}
     hops = deque(maxlen=4000)
@@ -168,19 +169,18 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
         imp_in = peer.subscribe(keys.impair_key(run))
         # the agent's own estimates are not delivered back to it
-        # junk on an estimate or sensor key is refused before it is copied out of zenoh
+        # junk on the estimate or sensors keys is refused before it is copied out of zenoh
         # when it is larger than any valid message (RSS stays flat under a flood)
-        est_max, sensor_max = wire.max_est_bytes(core.n), wire.max_sensor_bytes()
+        est_max, sensors_max = wire.max_est_bytes(core.n), wire.max_sensors_bytes(core.n)
         est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), include_local=False,
                                 max_payload=est_max, max_bytes=_inbox_bytes(est_max))
-        # sensor readings: every sensor key, from the start, active or not: a role that adds
-        # a node never waits for a new subscription to reach the world (on a loaded
-        # 2-core machine that took longer than the assignment's head start, and the
-        # activation step's reading was missed); only the wanted keys wake the loop
-        sensor_prefix = keys.sensor_key(run, core.labels[0]).rsplit("/", 1)[0] + "/"
-        sensor_all = peer.subscribe(
-            keys.any_agent_pattern(run, "sensor"), maxlen=1 << 14,
-            max_payload=sensor_max, max_bytes=_inbox_bytes(sensor_max, 1 << 14))
+        # sensor readings: every node's in one message a step, from the start, active or
+        # not: a role that adds a node never waits for a new subscription to reach the
+        # world (on a loaded 2-core machine that took longer than the assignment's head
+        # start, and the activation step's reading was missed)
+        sensors_in = peer.subscribe(
+            keys.sensors_key(run), maxlen=1 << 10,
+            max_payload=sensors_max, max_bytes=_inbox_bytes(sensors_max, 1 << 10))
         watch = peer.watch_liveliness()
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
@@ -195,7 +195,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
 
         def publish_status():
             seen = sum(i.received + i.oversized
-                       for i in [ctl_in, imp_in, est_in, status_in, sensor_all])
+                       for i in [ctl_in, imp_in, est_in, status_in, sensors_in])
             if stats.total_dropped and seen - trimmed_at[1] > 1000 \
                     and time.monotonic() - trimmed_at[0] > TRIM_S:
                 trim_heap()  # after a burst of input: give its memory back
@@ -203,7 +203,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             st = core.status()
             st["malformed"] = stats.total_dropped
             st["malformed_reasons"] = dict(stats.dropped)
-            inboxes = [ctl_in, roster_in, imp_in, est_in, status_in, sensor_all]
+            inboxes = [ctl_in, roster_in, imp_in, est_in, status_in, sensors_in]
             st["overflows"] = sum(i.overflows for i in inboxes)
             too_large = sum(i.oversized for i in inboxes)  # refused by the inboxes
             if too_large:
@@ -232,29 +232,19 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 say(f"agent {me}: rejected control message: {exc}")
                 return False
 
-        def handle_sensor(label, item):
+        def handle_sensors(item):
             if core.impair.get((0, me)).partition:    # the world's link cut: a quiet sensor
                 core.impaired += 1
                 return
-            msg = try_decode(item.payload, sensor_schema, stats,
+            msg = try_decode(item.payload, sensors_schema, stats,
                              now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
                 return
-            if msg["label"] != label:
-                bad("key")
-                return
-            core.on_sensor(label, msg["step"], msg["x"])
-
-        def drain_sensors():
-            wanted = core.wanted_labels()
-            for item in sensor_all.drain():
-                key_label = item.key[len(sensor_prefix):] \
-                    if item.key.startswith(sensor_prefix) else None
-                if key_label in wanted:
-                    handle_sensor(key_label, item)
+            step, x = msg["step"], msg["x"]
+            for label in core.wanted_labels():
+                core.on_sensor(label, step, float(x[node_index[label]]))
 
         est_key_agent: dict = {}                 # est key -> agent id (parsed once)
-        wake_labels = [None, frozenset()]        # wanted labels, their sensor keys
 
         def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
@@ -329,8 +319,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats, senders=senders)
                 if msg is not None:
                     core.note_heard(msg["agent"])
-            if len(sensor_all):
-                drain_sensors()
+            for item in sensors_in.drain() if len(sensors_in) else ():
+                handle_sensors(item)
             for item in est_in.drain() if len(est_in) else ():
                 handle_est(item)
             before = core.step
@@ -364,11 +354,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             status_in.wakes = core.step < 0
             if est_in.wakes and len(est_in):
                 busy = True                # arrived while it did not wake the loop
-            wanted = core.wanted_labels()  # every sensor key: only the wanted ones wake it
-            if wanted != wake_labels[0]:
-                wake_labels[:] = [wanted, frozenset(sensor_prefix + m for m in wanted)]
-            sensor_all.wakes = wake_labels[1]
-            if len(sensor_all):
+            if len(sensors_in):
                 busy = True
             peer.wait(timeout=0.0 if busy else min(0.25, max(0.0, until - time.monotonic())))
         publish_status()

@@ -1,4 +1,4 @@
-"""The messages of a socmon run: schemas of the sensor, truth, estimate, status and control
+"""The messages of a socmon run: schemas of the sensors, truth, estimate, status and control
 messages, built on the msgpack codec of :mod:`broker_free_net.codec`.
 
 Every message is a msgpack map with str keys, ``"v": 1`` and a ``"kind"`` naming it.
@@ -42,7 +42,7 @@ __all__ = [
     "WeightMap",
     "IntMap",
     "Loose",
-    "sensor_schema",
+    "sensors_schema",
     "truth_schema",
     "est_schema",
     "ctl_schema",
@@ -50,7 +50,7 @@ __all__ = [
     "STATUS_SCHEMA",
     "MONITOR_EVENT_SCHEMA",
     "encode_monitor_event",
-    "encode_sensor",
+    "encode_sensors",
     "encode_truth",
     "encode_est",
     "encode_ctl",
@@ -171,10 +171,11 @@ _SIGNED = {"seq": Int(1, 2**62, required=False), "sig": Bytes(64, required=False
 _AGENT = Int(1, MAX_AGENT)
 
 
-def sensor_schema() -> Schema:
-    """``socmon/<run>/sensor/<label>``: the state of one node at one step (world -> agents)."""
-    return Schema({"kind": Str(choices=frozenset({"sensor"})), "step": _STEP,
-                   "label": Str(max_len=256), "x": Float()}, stamp="step")
+def sensors_schema(n: int) -> Schema:
+    """``socmon/<run>/sensors``: the state of every node at one step, in the scenario's node
+    order (world -> agents; each agent reads its own nodes' entries)."""
+    return Schema({"kind": Str(choices=frozenset({"sensors"})), "step": _STEP,
+                   "x": F64Array((n,))}, stamp="step")
 
 
 def truth_schema(n: int) -> Schema:
@@ -261,14 +262,14 @@ def max_est_bytes(n: int) -> int:
     return 2 * len(encode_est(MAX_AGENT, MAX_STEP, np.full(n, -1.0e300), 2**62 - 1, 1e12 - 1))
 
 
-def max_sensor_bytes() -> int:
-    """A bound on the size of a valid sensor message (label of 256 four-byte characters),
-    doubled (see :func:`max_est_bytes`)."""
-    return 2 * len(encode_sensor(MAX_STEP, "\U0010ffff" * 256, -1.0e300))
+def max_sensors_bytes(n: int) -> int:
+    """A bound on the size of a valid sensors message of an ``n``-state scenario, doubled
+    (see :func:`max_est_bytes`)."""
+    return 2 * len(encode_sensors(MAX_STEP, np.full(n, -1.0e300)))
 
 
-def encode_sensor(step: int, label: str, x: float) -> bytes:
-    return encode({"kind": "sensor", "step": int(step), "label": str(label), "x": _f(x)})
+def encode_sensors(step: int, x) -> bytes:
+    return encode({"kind": "sensors", "step": int(step), "x": np.asarray(x, dtype=float)})
 
 
 def encode_truth(step: int, x) -> bytes:

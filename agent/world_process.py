@@ -2,8 +2,8 @@
 
 It waits until every expected agent is ready (the start handshake: each agent's status
 says it has heard the status of every other expected agent, so every estimate route is
-declared), then every ``step_ms`` publishes each node's state on its sensor key and the
-whole state on the truth key, both stamped with the step, and advances the social system
+declared), then every ``step_ms`` publishes every node's state on the sensors key (one
+message; each agent reads its own nodes) and on the truth key, both stamped with the step, and advances the social system
 (:class:`agent.core.WorldCore`). After the last step it waits (bounded) until the live
 agents report that step, then leaves; agents exit when the world's liveliness token goes.
 """
@@ -75,9 +75,8 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
     with Peer(net, "world", 0) as peer:
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         watch = peer.watch_liveliness()
-        sensor_keys = [keys.sensor_key(run, label) for label in scenario.labels]
-        truth_key = keys.truth_key(run)
-        for key in sensor_keys + [truth_key]:
+        sensors_key, truth_key = keys.sensors_key(run), keys.truth_key(run)
+        for key in (sensors_key, truth_key):
             peer.publisher(key)
         ready: dict = {}
         last_step: dict = {}
@@ -110,8 +109,7 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
         while not stop.flag:
             k = world.step
             worst_lag = max(worst_lag, time.monotonic() - (t0 + k * step_s))
-            for key, value in zip(sensor_keys, world.x):
-                peer.put(key, wire.encode_sensor(k, key.rsplit("/", 1)[1], value))
+            peer.put(sensors_key, wire.encode_sensors(k, world.x))
             peer.put(truth_key, wire.encode_truth(k, world.x))
             if k_warn is not None and k >= k_warn and not warned:
                 warned = True

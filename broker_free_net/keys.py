@@ -3,7 +3,7 @@
 Every key lives under ``socmon/<run>/``::
 
     socmon/<run>/est/<agent>          estimate published by an agent
-    socmon/<run>/sensor/<label>       sensor reading published by the world
+    socmon/<run>/sensors              sensor readings of one step, every node (world -> agents)
     socmon/<run>/ctl/<agent>          control message to an agent
     socmon/<run>/status/<agent>       status of an agent
     socmon/<run>/truth                ground truth (world -> recorder; the monitor never reads it)
@@ -30,9 +30,8 @@ __all__ = [
     "monitor_events_key",
     "parse_agent_key",
     "parse_alive_key",
-    "parse_sensor_key",
     "run_prefix",
-    "sensor_key",
+    "sensors_key",
     "status_key",
     "truth_key",
     "validate_chunk",
@@ -117,14 +116,15 @@ def status_key(run: str, agent: int) -> str:
 
 def any_agent_pattern(run: str, kind: str) -> str:
     """Return the subscription pattern ``socmon/<run>/<kind>/*``."""
-    if kind not in AGENT_KINDS + ("sensor",):
-        raise InvalidKey("kind", f"{kind!r} not in {AGENT_KINDS + ('sensor',)}")
+    if kind not in AGENT_KINDS:
+        raise InvalidKey("kind", f"{kind!r} not in {AGENT_KINDS}")
     return f"{run_prefix(run)}/{kind}/*"
 
 
-def sensor_key(run: str, label: str) -> str:
-    """Return ``socmon/<run>/sensor/<label>``."""
-    return f"{run_prefix(run)}/sensor/{validate_chunk(label, 'label')}"
+def sensors_key(run: str) -> str:
+    """Return ``socmon/<run>/sensors``: the world's readings of every node, one message a
+    step (one message instead of one per node: the cost of a step is mostly per message)."""
+    return f"{run_prefix(run)}/sensors"
 
 
 def truth_key(run: str) -> str:
@@ -178,12 +178,6 @@ def parse_agent_key(run: str, kind: str, key) -> int:
     if not (chunk.isascii() and chunk.isdigit()) or (len(chunk) > 1 and chunk[0] == "0") or len(chunk) > 9:
         raise InvalidKey("agent", f"{chunk!r} in {key!s} is not a canonical agent id")
     return int(chunk)
-
-
-def parse_sensor_key(run: str, key) -> str:
-    """Extract the label from ``socmon/<run>/sensor/<label>``."""
-    (chunk,) = _split(run, key, 1, "sensor")
-    return validate_chunk(chunk, "label")
 
 
 def parse_alive_key(run: str, key) -> tuple[str, str]:

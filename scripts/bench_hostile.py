@@ -42,9 +42,9 @@ def rss_mb(pid: int) -> float:
     raise RuntimeError("no VmRSS")
 
 
-def classes(run: str, n: int, label: str, rng):
+def classes(run: str, n: int, rng):
     """(name, key, make_payload) of every hostile class."""
-    est, ctl, sensor = keys.est_key(run, 2), keys.ctl_key(run, 1), keys.sensor_key(run, label)
+    est, ctl, sensor = keys.est_key(run, 2), keys.ctl_key(run, 1), keys.sensors_key(run)
     good_est = wire.encode_est(2, 3, np.zeros(n), 0, 0.0)
     junk = rng.bytes(250_000)
     deep = b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0"
@@ -59,9 +59,9 @@ def classes(run: str, n: int, label: str, rng):
         ("nested 5000 deep", est, lambda: deep),
         ("65 536 empty lists", est, lambda: many),
         ("250 kB junk on sensor", sensor, lambda: junk),
-        ("sensor stamped 2^38", sensor, lambda: wire.encode_sensor(wire.MAX_STEP, label, 1.0)),
+        ("sensor stamped 2^38", sensor, lambda: wire.encode_sensors(wire.MAX_STEP, np.ones(n))),
         ("sensor stray stamps", sensor,
-         lambda: wire.encode_sensor(int(rng.integers(10**3, 10**5)), label, 1e9)),
+         lambda: wire.encode_sensors(int(rng.integers(10**3, 10**5)), np.full(n, 1e9))),
         ("rejected assignment (400 labels)", ctl, lambda: bad_ctl),
         ("over 1 MiB on ctl", ctl, lambda: b"\x00" * (MAX_PAYLOAD_BYTES + 1024)),
     ]
@@ -80,14 +80,13 @@ def main(count: int, step_ms: int, passes: int) -> int:
         try:
             dep.wait_for(lambda: all(dep.step_of(a) >= 20 for a in (1, 2, 3, 4)), "20 steps")
             pid = dep.children.children["agent-1"].proc.pid
-            label = dep.status[1]["measure"][0]
             rng = np.random.default_rng(0)
             rows = []
             start_rss = rss_mb(pid)
             print(f"agent 1 (pid {pid}) at step {dep.step_of(1)}: RSS {start_rss:.1f} MB; "
                   f"{count} messages per class, step {step_ms} ms")
             for pass_, (name, key, make) in [(p, c) for p in range(1, passes + 1)
-                                             for c in classes(dep.run, s.n, label, rng)]:
+                                             for c in classes(dep.run, s.n, rng)]:
                 dep.peer.publisher(key, block=True)
                 dep.read()
                 base, before, step0 = accounted(dep.status[1]), rss_mb(pid), dep.step_of(1)

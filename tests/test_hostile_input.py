@@ -203,7 +203,7 @@ HOSTILE = {
     "junk_250k": np.random.default_rng(1).bytes(250_000),
     "big_bin": msgpack.packb({"v": 1, "kind": "est", "x": b"\x00" * (MAX_PAYLOAD_BYTES - 100)}),
     "over_limit": b"\x00" * (MAX_PAYLOAD_BYTES + 1),
-    "future": wire.encode_sensor(wire.MAX_STEP, "7", 1.0),
+    "future": wire.encode_sensors(wire.MAX_STEP, np.ones(14)),
 }
 
 
@@ -211,7 +211,7 @@ HOSTILE = {
     ("deep", "too_deep"), ("deep_max", "too_deep"), ("wide", "too_many"),
     ("empty_lists", "too_many"), ("over_limit", "too_large"), ("future", "future")])
 def test_hostile_payloads_are_refused_with_their_reason(name, reason):
-    schema = wire.sensor_schema() if name == "future" else wire.est_schema(14)
+    schema = wire.sensors_schema(14) if name == "future" else wire.est_schema(14)
     with pytest.raises(MalformedMessage) as info:
         decode(HOSTILE[name], schema, now_step=10, window=100_000)
     assert info.value.reason == reason
@@ -253,9 +253,9 @@ def test_inbox_holds_bounded_bytes_under_a_flood_of_large_payloads():
 # ---------------------------------------------------------------------------------
 # property-based fuzz: only the codec's own error, on every wire schema
 
-SCHEMAS = [wire.sensor_schema(), wire.truth_schema(3), wire.est_schema(3), wire.ctl_schema(3),
+SCHEMAS = [wire.sensors_schema(3), wire.truth_schema(3), wire.est_schema(3), wire.ctl_schema(3),
            wire.STATUS_SCHEMA]
-GOOD = [wire.encode_sensor(5, "a", 1.5), wire.encode_truth(5, np.ones(3)),
+GOOD = [wire.encode_sensors(5, [1.5, 0.0, -2.0]), wire.encode_truth(5, np.ones(3)),
         wire.encode_est(2, 5, np.ones(3), 0, 1.0),
         wire.encode_ctl(1, 2, 9, ["a"], {2: 0.5}, 0.5, np.ones((3, 1)), take_over=3)]
 

@@ -23,18 +23,18 @@ def test_hostile_flood_leaves_the_agent_stepping_and_sigterm_stops_it(tmp_path):
     dep = Deployment(tmp_path, "paper-14-live", gains, n=s.n)
     try:
         dep.wait_for(lambda: dep.step_of(1) >= 5, "5 steps")
-        label = dep.status[1]["measure"][0]
         run = dep.run
         bad_ctl = wire.encode_ctl(1, 1, 10, [f"no-such-node-{i:0>60}" for i in range(400)],
                                   {2: 0.5}, 0.5, np.zeros((s.n, 400)))
         flood = [
-            (keys.sensor_key(run, label), wire.encode_sensor(wire.MAX_STEP, label, 1e9), 20),
-            (keys.sensor_key(run, label), wire.encode_sensor(dep.step_of(1) + 500, label, 1e9), 1),
+            (keys.sensors_key(run), wire.encode_sensors(wire.MAX_STEP, np.full(s.n, 1e9)), 20),
+            (keys.sensors_key(run), wire.encode_sensors(dep.step_of(1) + 500, np.full(s.n, 1e9)),
+             1),
             # nested deeper than the codec's limit, small enough to reach the decoder
             (keys.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 200 + b"\xc0", 50),
             # larger than any estimate: refused by the inbox before it is copied
             (keys.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0", 50),
-            (keys.sensor_key(run, label), bytes(250_000), 50),
+            (keys.sensors_key(run), bytes(250_000), 50),
             (keys.ctl_key(run, 1), bytes(MAX_PAYLOAD_BYTES + 1024), 20),
             (keys.ctl_key(run, 1), bad_ctl, 50),
         ]

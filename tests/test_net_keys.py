@@ -10,21 +10,22 @@ def test_builders():
     assert keys.est_key("r", 3) == "socmon/r/est/3"
     assert keys.ctl_key("r", 0) == "socmon/r/ctl/0"
     assert keys.status_key("r", 12) == "socmon/r/status/12"
-    assert keys.sensor_key("r", "poll_a") == "socmon/r/sensor/poll_a"
+    assert keys.sensors_key("r") == "socmon/r/sensors"
     assert keys.truth_key("r") == "socmon/r/truth"
     assert keys.impair_key("r") == "socmon/r/impair"
     assert keys.alive_key("r", "agent", 4) == "socmon/r/alive/agent/4"
     assert keys.alive_key("r", "world", "w") == "socmon/r/alive/world/w"
     assert keys.alive_pattern("r") == "socmon/r/alive/**"
     assert keys.any_agent_pattern("r", "est") == "socmon/r/est/*"
-    assert keys.any_agent_pattern("r", "sensor") == "socmon/r/sensor/*"
+    with pytest.raises(InvalidKey):
+        keys.any_agent_pattern("r", "sensor")
 
 
 @pytest.mark.parametrize("bad", ["", "a*", "a$b", "a/b", "#", "x?", "@x", "a b", "a\nb", 5, None])
 def test_bad_chunks(bad):
     with pytest.raises(InvalidKey) as info:
-        keys.sensor_key("r", bad)
-    assert info.value.field == "label"
+        keys.alive_key("r", bad, 1)
+    assert info.value.field == "role"
     with pytest.raises(InvalidKey) as info:
         keys.truth_key(bad)
     assert info.value.field == "run"
@@ -40,7 +41,6 @@ def test_bad_agent_ids(bad):
 def test_parsers():
     assert keys.parse_agent_key("r", "est", "socmon/r/est/7") == 7
     assert keys.parse_alive_key("r", "socmon/r/alive/agent/7") == ("agent", "7")
-    assert keys.parse_sensor_key("r", "socmon/r/sensor/s1") == "s1"
 
 
 @pytest.mark.parametrize("key", [

@@ -245,11 +245,11 @@ def test_malformed_flood_leaves_the_agent_running_and_counted(deployment):
         lambda: wire.encode_est(2, 3, np.full(n, np.nan), 0, 0.0),        # NaN
         lambda: wire.encode_est(77, 3, np.zeros(n), 0, 0.0),              # unknown sender
         lambda: wire.encode_est(2, 2**37, np.zeros(n), 0, 0.0),           # stamp far ahead
-        lambda: wire.encode_sensor(5, "7", float("inf")),                 # inf reading
+        lambda: wire.encode_sensors(5, np.full(n, np.inf)),               # inf readings
         lambda: wire.encode_ctl(1, 1, 10, ["7"], {2: 0.5}, 0.5, np.zeros((3, 1))),  # shape
     ]
     targets = [keys.est_key(dep.run, 2), keys.ctl_key(dep.run, 1), keys.impair_key(dep.run),
-               keys.sensor_key(dep.run, "7")]
+               keys.sensors_key(dep.run)]
     for t in targets:
         dep.peer.publisher(t, block=True)
     total = 1000

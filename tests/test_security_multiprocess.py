@@ -114,7 +114,7 @@ def test_insider_with_agent2_credentials_cannot_speak_for_others(child, keyset, 
     proc, ep = child
     p = f"socmon/{run_id}"
     forbidden = [f"{p}/est/1", f"{p}/status/1", f"{p}/ctl/1", f"{p}/ctl/0", f"{p}/ctl/2",
-                 f"{p}/sensor/0", f"{p}/truth", f"{p}/impair", f"{p}/monitor/1"]
+                 f"{p}/sensors", f"{p}/truth", f"{p}/impair", f"{p}/monitor/1"]
     allowed = [f"{p}/status/2", f"{p}/est/2"]  # est/2 last: the marker of a round
     with Peer(secure(keyset, run_id, "agent-2", ep), "agent", 2) as insider:
         mine = insider.subscribe(f"{p}/**", maxlen=1 << 16, include_local=False)
@@ -201,7 +201,7 @@ def test_outsiders_deliver_nothing_and_fail_loudly(child, keyset, run_id, tmp_pa
             continue  # refused at the handshake: zenoh.open fails instead of running disconnected
         opened.append(name)
         with session:
-            for key in (f"{p}/est/1", f"{p}/ctl/1", f"{p}/sensor/0", f"{p}/impair"):
+            for key in (f"{p}/est/1", f"{p}/ctl/1", f"{p}/sensors", f"{p}/impair"):
                 for _ in range(20):
                     session.put(key, b"666")
     # a legitimate peer joins after the outsiders and is heard
