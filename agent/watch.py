@@ -44,6 +44,7 @@ class WatchConfig:
     out: Path | None = None
     timeout: float = 60.0
     keep_steps: int | None = 100_000  # the recording keeps the newest steps only
+    control_public: bytes | None = None   # the run's control key: unsigned control dropped
 
 
 @dataclass
@@ -64,7 +65,8 @@ def watch(config: WatchConfig, view) -> WatchResult:
     c = config
     s = c.scenario
     M = s.N + s.standby
-    recorder = Recorder(c.net.run, s.n, s.N, M, keep_steps=c.keep_steps)
+    recorder = Recorder(c.net.run, s.n, s.N, M, keep_steps=c.keep_steps,
+                        control_public=c.control_public)
     try:
         ended = watch_run(c.net, recorder, steps=c.steps, timeout=c.timeout,
                           on_view=view.show, interval=getattr(view, "interval", 0.25))

@@ -212,3 +212,27 @@ def test_with_the_run_control_key_only_signed_rosters_are_recorded():
     r.feed(key, genuine)                       # a re-send of the same roster is no forgery
     assert r.recording.rosters[-1] == (5, (2,), 1)
     assert r.recording.recorder_malformed == 2
+
+
+def test_watch_takes_the_control_key_from_the_runs_manifest(tmp_path):
+    """``watch --manifest`` (or ``--attach``): the recorder drops rosters not signed with the
+    manifest's control key; a manifest of another scenario is refused by name."""
+    from agent.commands.watch import _control_key
+    from agent.control_auth import ControlSigner
+    from agent.manifest import write_manifest
+    from design.scenario import load_scenario
+
+    s, other = load_scenario("paper-14-live"), load_scenario("paper-14")
+    signer = ControlSigner.generate()
+    path = tmp_path / "manifest.json"
+    write_manifest(path, s, None, 0, "scenario", s.delays, "r1",
+                   control_public=signer.public_bytes())
+    public = _control_key(path, s, None)
+    assert public == signer.public_bytes() and _control_key(None, s, None) is None
+    with pytest.raises(CommandError, match="is not the run's scenario"):
+        _control_key(path, other, None)
+    rec = Recorder("r1", n=s.n, N=s.N, M=s.N + s.standby, control_public=public)
+    roster = {"kind": "roster", "epoch": 1, "activate_at": 5, "ids": [1, 3, 4]}
+    assert rec._authentic(dict(roster)) is None                       # unsigned: dropped
+    signed = signer.sign(dict(roster), "r1")
+    assert rec._authentic(signed) is signed

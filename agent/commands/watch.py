@@ -29,6 +29,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--delays", default=None,
                         help="the run's link delays, for the prediction: scenario, none or "
                              "uniform:T (default: the run's with --attach, else scenario)")
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="the run's manifest.json: rosters and assignments count only when "
+                             "signed with its control key, and the scenario and gains must be "
+                             "the run's (default with --attach: the run's)")
     parser.add_argument("--seed", type=int_flag(lo=0), default=None,
                         help="the run's seed, written in the summary (default: the run's "
                              "with --attach)")
@@ -89,6 +93,8 @@ def _watch(args) -> int:
         raise CommandError(f"--delays: {exc}") from None
     gains = args.gains or (str(info.gains) if info and info.gains else None)
     G = list(load_gains_arg(gains, scenario).G) if gains else None
+    control_public = _control_key(args.manifest or (info.manifest if info else None),
+                                  scenario, gains)
     for flag, value in (("--interval", args.interval), ("--timeout", args.timeout),
                         ("--step-ms", args.step_ms)):
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -107,7 +113,7 @@ def _watch(args) -> int:
         steps=args.steps,
         step_ms=args.step_ms if args.step_ms is not None else (info.step_ms if info else None),
         out=Path(args.out) if args.out else None, timeout=args.timeout,
-        keep_steps=args.keep_steps)
+        keep_steps=args.keep_steps, control_public=control_public)
     tty = sys.stdout.isatty()
     mode = "json" if args.json else ("tty" if tty else "plain")
     interval = args.interval if args.interval is not None else (0.25 if tty else 1.0)
@@ -135,3 +141,27 @@ def _watch(args) -> int:
         if args.out:
             print(f"run folder: {args.out}")
     return 130 if result.ended == "interrupted" else 0
+
+
+def _control_key(manifest, scenario, gains) -> bytes | None:
+    """The run's control public key from its manifest (None without one); the manifest's
+    scenario and gains must be the ones given."""
+    if manifest is None:
+        return None
+    from ..manifest import ManifestMismatch, check_manifest
+    from ._common import CommandError
+
+    try:
+        data = check_manifest(manifest, scenario, gains, None, None)
+    except ManifestMismatch as exc:
+        raise CommandError(str(exc)) from None
+    key = data.get("control_public_key")
+    if key is None:
+        return None
+    try:
+        public = bytes.fromhex(key)
+    except (TypeError, ValueError):
+        public = b""
+    if len(public) != 32:
+        raise CommandError(f"--manifest: control_public_key is not a 32-byte hex key: {key!r}")
+    return public
