@@ -85,9 +85,11 @@ def watch(config: WatchConfig, view) -> WatchResult:
     rho, predicted = predicted_mse(s, c.G, c.delays) if c.G is not None else (None, None)
     if c.out is not None:
         c.out.mkdir(parents=True, exist_ok=True)
+        events = c.out / "events.jsonl"
         if rec.monitor_events:
-            (c.out / "events.jsonl").write_text(
-                "".join(json.dumps(e) + "\n" for e in rec.monitor_events))
+            events.write_text("".join(json.dumps(e) + "\n" for e in rec.monitor_events))
+        elif events.exists():       # an earlier run's record, not this one's failures
+            events.unlink()
     run_config = RunConfig(
         scenario=s, scenario_arg=c.scenario_arg, G=c.G, gains_path=c.gains_path,
         delays=c.delays, delays_spec=c.delays_spec, steps=K, seed=c.seed, step_ms=c.step_ms,
