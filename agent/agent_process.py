@@ -5,8 +5,9 @@ which receives this agent's status also knows all its other subscriptions: the s
 handshake relies on it): its control key, the roster key, the impairment key, every
 agent's estimates, the world's sensor readings (one message a step with every node; it
 uses the readings of the nodes it measures, or of the first node as a clock while it has
-no role: a new role never waits for a subscription), then every agent's status. Publications: its estimate every step, its status
-every ``status_s`` (and at once after a control message). It never reads the truth key.
+no role: a new role never waits for a subscription), then every agent's status.
+Publications: its estimate every step, its status every ``status_s`` (and at once after a
+control message). It never reads the truth key.
 
 It also subscribes to the roster key (``ctl/0``, the monitor's fence). The process ends
 on SIGTERM/SIGINT (a second signal exits at once), or once the world has been gone for

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_manifest", "check_manifest", "ManifestMismatch", "file_digest"]
+__all__ = ["write_manifest", "check_manifest", "ManifestMismatch", "file_digest", "public_key"]
 
 
 class ManifestMismatch(ValueError):
@@ -90,3 +90,23 @@ def check_manifest(path, scenario, gains_path, seed, delays_spec: str | None) ->
     if problems:
         raise ManifestMismatch("--manifest: " + "; ".join(problems))
     return data
+
+
+def public_key(manifest: dict, field: str) -> bytes | None:
+    """The Ed25519 public key ``field`` (``control_public_key``, ``operator_public_key``)
+    of a manifest read by :func:`check_manifest`; None when the run has none.
+
+    >>> public_key({"control_public_key": "ab" * 32}, "control_public_key") == bytes([0xab]) * 32
+    True
+    """
+    value = manifest.get(field)
+    if not value:
+        return None
+    try:
+        key = bytes.fromhex(value)
+    except (TypeError, ValueError):
+        key = b""
+    if len(key) != 32:
+        raise ManifestMismatch(f"--manifest: {field} is not a 32-byte Ed25519 public key "
+                               "in hex")
+    return key

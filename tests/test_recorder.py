@@ -231,6 +231,11 @@ def test_watch_takes_the_control_key_from_the_runs_manifest(tmp_path):
     assert public == signer.public_bytes() and _control_key(None, s, None) is None
     with pytest.raises(CommandError, match="is not the run's scenario"):
         _control_key(path, other, None)
+    bad = json.loads(path.read_text())
+    bad["control_public_key"] = "ab" * 31
+    path.write_text(json.dumps(bad))
+    with pytest.raises(CommandError, match="control_public_key is not a 32-byte"):
+        _control_key(path, s, None)
     rec = Recorder("r1", n=s.n, N=s.N, M=s.N + s.standby, control_public=public)
     roster = {"kind": "roster", "epoch": 1, "activate_at": 5, "ids": [1, 3, 4]}
     assert rec._authentic(dict(roster)) is None                       # unsigned: dropped

@@ -69,31 +69,23 @@ def run(args) -> int:
         scenario = load_scenario_arg(args.scenario)
         verifier = operator_verifier = None
         if args.manifest:
-            from ..manifest import ManifestMismatch, check_manifest
+            from ..control_auth import ControlVerifier
+            from ..manifest import ManifestMismatch, check_manifest, public_key
 
             try:
                 manifest = check_manifest(args.manifest, scenario, args.gains, args.seed,
                                           args.delays)
+                control = public_key(manifest, "control_public_key")
+                operator = public_key(manifest, "operator_public_key")
             except ManifestMismatch as exc:
                 raise CommandError(str(exc)) from None
-            if manifest.get("control_public_key"):
-                from ..control_auth import ControlVerifier
-
-                try:
-                    verifier = ControlVerifier(bytes.fromhex(manifest["control_public_key"]),
-                                               manifest["run"])
-                except ValueError:
-                    raise CommandError("--manifest: control_public_key is not a 32-byte "
-                                       "Ed25519 public key in hex") from None
-            if manifest.get("operator_public_key"):
-                from ..control_auth import ControlVerifier
-
-                try:
-                    operator_verifier = ControlVerifier(
-                        bytes.fromhex(manifest["operator_public_key"]), manifest["run"])
-                except ValueError:
-                    raise CommandError("--manifest: operator_public_key is not a 32-byte "
-                                       "Ed25519 public key in hex") from None
+            try:
+                if control is not None:
+                    verifier = ControlVerifier(control, manifest["run"])
+                if operator is not None:
+                    operator_verifier = ControlVerifier(operator, manifest["run"])
+            except ValueError as exc:
+                raise CommandError(f"--manifest: not an Ed25519 public key: {exc}") from None
         M = scenario.N + scenario.standby
         if not 1 <= args.id <= M:
             raise CommandError(f"--id: no agent {args.id} (agents 1..{scenario.N}"

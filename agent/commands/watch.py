@@ -148,20 +148,11 @@ def _control_key(manifest, scenario, gains) -> bytes | None:
     scenario and gains must be the ones given."""
     if manifest is None:
         return None
-    from ..manifest import ManifestMismatch, check_manifest
+    from ..manifest import ManifestMismatch, check_manifest, public_key
     from ._common import CommandError
 
     try:
-        data = check_manifest(manifest, scenario, gains, None, None)
+        return public_key(check_manifest(manifest, scenario, gains, None, None),
+                          "control_public_key")
     except ManifestMismatch as exc:
         raise CommandError(str(exc)) from None
-    key = data.get("control_public_key")
-    if key is None:
-        return None
-    try:
-        public = bytes.fromhex(key)
-    except (TypeError, ValueError):
-        public = b""
-    if len(public) != 32:
-        raise CommandError(f"--manifest: control_public_key is not a 32-byte hex key: {key!r}")
-    return public
