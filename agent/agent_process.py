@@ -325,8 +325,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             for item in est_in.drain() if len(est_in) else ():
                 handle_est(item)
             before = core.step
-            for step, x in core.poll(time.monotonic()):
-                peer.put(est_key, wire.encode_est(me, step, x, core.epoch, time.time()))
+            for step, x, epoch in core.poll(time.monotonic()):
+                peer.put(est_key, wire.encode_est(me, step, x, epoch, time.time()))
                 if crash_at is not None and step >= crash_at - 1 and core.active:
                     publish_status()
                     print(f"agent {me}: scripted crash after step {step}", file=log, flush=True)

@@ -110,6 +110,9 @@ SENSOR_GAP = 64
 SENSOR_HELD = 4096
 #: Steps one :meth:`AgentCore.poll` computes at most; the caller polls again at once.
 MAX_POLL_STEPS = 256
+#: Rosters heard and not yet in force that an agent keeps (the newest): a genuine run has
+#: one or two at a time; the bound holds against a flood of unsigned ones.
+MAX_PENDING_ROSTERS = 16
 
 
 class AssignmentError(ValueError):
@@ -294,7 +297,10 @@ class AgentCore:
         self.ctl_last_error = ""
         self.heard: set = set()
         self.roster_epoch = 0
-        self.roster_pending = None        # (epoch, activate_at, frozenset ids)
+        # rosters heard, not yet in force: (epoch, activate_at, frozenset ids), epochs and
+        # activate_at both increasing (an agent behind the run, e.g. resumed after a pause,
+        # hears several at once, and each takes effect at its own step)
+        self.roster_pending: list = []
         self.fence = None                 # ids in force, or None before any roster
         self.fenced = 0
 
@@ -449,25 +455,31 @@ class AgentCore:
         return role
 
     def on_roster(self, msg: dict) -> bool:
-        """A decoded roster; True if it is newer than the one known (applied later)."""
+        """A decoded roster; True if it is newer than the one known (applied at its step).
+
+        A newer roster supersedes the pending ones that would start at or after its own
+        ``activate_at`` (they are never in force); an earlier one still takes effect at its
+        step, so an agent that hears two rosters at once still drops a role at the first.
+        """
         epoch = int(msg["epoch"])
         newest = max(self.roster_epoch,
-                     self.roster_pending[0] if self.roster_pending else 0)
+                     self.roster_pending[-1][0] if self.roster_pending else 0)
         if epoch <= newest:
             return False
-        self.roster_pending = (epoch, int(msg["activate_at"]), frozenset(msg["ids"]))
+        at = int(msg["activate_at"])
+        kept = [r for r in self.roster_pending if r[1] < at]
+        self.roster_pending = (kept + [(epoch, at, frozenset(msg["ids"]))])[-MAX_PENDING_ROSTERS:]
         return True
 
     def _apply_roster(self, k: int) -> None:
-        epoch, at, ids = self.roster_pending
-        if at > k:
-            return
-        self.roster_pending, self.roster_epoch, self.fence = None, epoch, ids
-        if self.id not in ids and self.role is not None and self.epoch < epoch:
-            # replaced while away (paused, cut off): fenced, back to standby
-            self.role, self.x, self.epoch = None, None, epoch
-            if self.pending is not None and self.pending.epoch <= epoch:
-                self.pending = None
+        while self.roster_pending and self.roster_pending[0][1] <= k:
+            epoch, _, ids = self.roster_pending.pop(0)
+            self.roster_epoch, self.fence = epoch, ids
+            if self.id not in ids and self.role is not None and self.epoch < epoch:
+                # replaced while away (paused, cut off): fenced, back to standby
+                self.role, self.x, self.epoch = None, None, epoch
+                if self.pending is not None and self.pending.epoch <= epoch:
+                    self.pending = None
 
     def set_alive(self, agent: int, alive: bool) -> None:
         self._nb(agent).alive = bool(alive)
@@ -511,7 +523,8 @@ class AgentCore:
 
     def poll(self, now: float) -> list:
         """Run the steps that can run at time ``now`` (at most ``MAX_POLL_STEPS``: call again
-        while it keeps moving); return ``[(step, x)]`` to publish."""
+        while it keeps moving); return ``[(step, x, epoch)]`` to publish: each estimate
+        under the epoch of the role that computed it (a batch may cross a role change)."""
         out = []
         for _ in range(MAX_POLL_STEPS):
             self._release(now)
@@ -523,7 +536,7 @@ class AgentCore:
                 out += self._start(got)
                 continue
             readings, complete = got
-            if self.roster_pending is not None:
+            if self.roster_pending:
                 self._apply_roster(k)
             if self.pending is not None and self.pending.activate_at <= k:
                 out += self._activate(self.pending, k)
@@ -537,7 +550,7 @@ class AgentCore:
                 return out
             if not complete:
                 self.sensor_missed += 1
-            out.append((k, self._compute(k, readings, plan)))
+            out.append((k, self._compute(k, readings, plan), self.epoch))
         return out
 
     def _first_readings(self):
@@ -553,7 +566,7 @@ class AgentCore:
         if self.role is None:
             return []
         self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
-        return [(k0, self.x)]
+        return [(k0, self.x, self.epoch)]
 
     def _activate(self, role: Role, k: int) -> list:
         """Apply ``role`` before step k; a new estimate is published stamped k - 1."""
@@ -566,7 +579,7 @@ class AgentCore:
                 self.x = np.linalg.matrix_power(self.A, k - 1 - s) @ nb.est[s]
             else:
                 self.x = noise.initial_estimate(self.config.seed, self.id, self.n)[0]
-            out.append((k - 1, self.x))
+            out.append((k - 1, self.x, role.epoch))     # published under the new epoch
         # a link new in this role carries, like the simulator's, only what is delivered on
         # it from step k on: the estimate stamped k - 1 - tau and later ones (what the
         # agent heard from that neighbour before is not held on this link)

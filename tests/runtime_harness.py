@@ -40,7 +40,7 @@ class Mesh:
         while moved:
             moved = False
             for a, core in self.agents.items():
-                for step, x in core.poll(self.now):
+                for step, x, _epoch in core.poll(self.now):
                     moved = True
                     self.estimates[(a, step)] = x.copy()
                     for b, other in self.agents.items():

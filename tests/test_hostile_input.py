@@ -92,7 +92,7 @@ def _drive(core, now=0.0):
     steps = []
     while True:
         out = core.poll(now)
-        steps += [k for k, _ in out]
+        steps += [k for k, *_ in out]
         if len(out) < MAX_POLL_STEPS:
             return steps
 
@@ -129,7 +129,7 @@ def test_poll_is_bounded_and_resumes():
     for k in range(1001):
         core.on_sensor("a", k, 1.0)
     first = core.poll(0.0)
-    assert [k for k, _ in first] == list(range(MAX_POLL_STEPS))
+    assert [k for k, *_ in first] == list(range(MAX_POLL_STEPS))
     assert _drive(core) == list(range(MAX_POLL_STEPS, 1001))
 
 
@@ -299,3 +299,30 @@ def test_fuzz_corrupted_messages_only_raise_malformed(schema, good, noise, pos, 
 def test_fuzz_nesting_only_raises_malformed(schema, depth, opener):
     # {"v": 1, "x": [[[... None]]]} or {"v": 1, "x": {"k": {"k": ... None}}}
     _only_malformed(b"\x82\xa1v\x01\xa1x" + opener * depth + b"\xc0", schema)
+
+
+def test_rosters_heard_together_each_take_effect_at_their_step():
+    """An agent far behind the run (resumed after a pause) hears two rosters at once: the
+    first removes it from step 10, the second (a later failure) from step 20. It drops its
+    role at step 10, not 20, and every estimate of the catch-up batch carries the epoch it
+    was computed under (seen in a chaos run: the batch went out stamped with the epoch of
+    the drop, and the later roster had replaced the earlier one)."""
+    core = _lone_agent()
+    core.on_roster({"epoch": 1, "activate_at": 10, "ids": [2]})
+    core.on_roster({"epoch": 2, "activate_at": 20, "ids": [3]})
+    assert not core.on_roster({"epoch": 2, "activate_at": 25, "ids": [3]})   # not newer
+    for k in range(31):
+        core.on_sensor("a", k, 1.0)
+    out = core.poll(0.0)                                # one batch: steps 0..30
+    assert [(k, e) for k, _, e in out] == [(k, 0) for k in range(10)]
+    assert not core.active and core.epoch == 1 and core.roster_epoch == 2 and core.step == 30
+
+
+def test_a_newer_roster_supersedes_pending_ones_that_start_later():
+    core = _lone_agent()
+    core.on_roster({"epoch": 1, "activate_at": 20, "ids": [2]})
+    core.on_roster({"epoch": 2, "activate_at": 10, "ids": [1]})   # in force first: keeps it
+    for k in range(31):
+        core.on_sensor("a", k, 1.0)
+    assert [k for k, *_ in core.poll(0.0)] == list(range(31))
+    assert core.active and core.roster_epoch == 2 and core.roster_pending == []
