@@ -230,11 +230,11 @@ class LivelinessWatch(Inbox):
 def _direct(callback):
     """`callback` run in zenoh's receive thread (``indirect=False``).
 
-    A plain Python callable is run by zenoh-python on a thread of its own, fed by a queue:
-    every message then costs a thread hop, and a burst waits in that queue (a flood of
-    3000 5 kB messages left the agent 15-19 MB larger). Run directly, the callback (a copy
-    into a bounded inbox) holds the receive thread, so the sender meets TCP's back-pressure
-    instead.
+    A plain Python callable is run by zenoh-python on a thread of its own, fed by a queue
+    of 256 samples: every message then costs a thread hop, and a burst waits in that queue
+    whatever the inbox's byte bound (a flood of 75 kB control payloads held about 19 MB
+    there). Run directly, the callback (a copy into a bounded inbox) holds the receive
+    thread, so the sender meets TCP's back-pressure instead.
     """
     return zenoh.handlers.Callback(callback, indirect=False)
 
