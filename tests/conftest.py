@@ -31,3 +31,23 @@ def sampson_edges():
     if not SAMPSON_EDGES.is_file():
         pytest.skip(f"shared data not found at {SAMPSON_EDGES}")
     return SAMPSON_EDGES
+
+
+@pytest.fixture(scope="session")
+def live_gains(tmp_path_factory):
+    """The gains file of fixed gains for paper-14-live (0.5 on each measured node), stable
+    with and without the scenario's link delays."""
+    import numpy as np
+
+    from design.closed_loop import closed_loop_for
+    from design.gains import save_gains
+    from design.scenario import load_scenario, resolve_delays
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    rho = {d: closed_loop_for(s, G, resolve_delays(s, d)).spectral_radius()
+           for d in ("none", "scenario")}
+    assert max(rho.values()) < 1, rho
+    path = tmp_path_factory.mktemp("gains") / "live.npz"
+    save_gains(path, G, {"method": "fixed", "rho": rho["scenario"]})
+    return path

@@ -10,23 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from design.closed_loop import closed_loop_for
-from design.gains import save_gains
-from design.scenario import load_scenario, resolve_delays
 from tests.test_runtime_multiprocess import _socmon
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
-
-
-@pytest.fixture(scope="module")
-def live_gains(tmp_path_factory):
-    s = load_scenario("paper-14-live")
-    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
-    rho = closed_loop_for(s, G, resolve_delays(s, "none")).spectral_radius()
-    assert rho < 1
-    path = tmp_path_factory.mktemp("gains") / "live.npz"
-    save_gains(path, G, {"method": "fixed", "rho": rho})
-    return path
 
 
 def _up(tmp_path, gains, *flags, steps=300):

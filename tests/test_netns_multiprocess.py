@@ -14,13 +14,9 @@ import os
 import socket
 import subprocess
 
-import numpy as np
 import pytest
 
 from agent import netns
-from design.closed_loop import closed_loop_for
-from design.gains import save_gains
-from design.scenario import load_scenario, resolve_delays
 from tests.test_runtime_multiprocess import _socmon
 
 _serial = itertools.count()
@@ -39,17 +35,6 @@ def prefix(can_make_namespaces):
     p = f"st{os.getpid()}x{next(_serial)}"
     yield p
     netns.remove_testbed(p)
-
-
-@pytest.fixture(scope="module")
-def live_gains(tmp_path_factory):
-    s = load_scenario("paper-14-live")
-    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
-    rho = closed_loop_for(s, G, resolve_delays(s, "scenario")).spectral_radius()
-    assert rho < 1
-    path = tmp_path_factory.mktemp("gains") / "live.npz"
-    save_gains(path, G, {"method": "fixed", "rho": rho})
-    return path
 
 
 def _root_addresses():

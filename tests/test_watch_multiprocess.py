@@ -17,7 +17,7 @@ import pytest
 from agent.launcher import Children
 from broker_free_net.ports import listen_port
 from design.closed_loop import closed_loop_for
-from design.gains import save_gains
+from design.gains import load_gains
 from design.scenario import load_scenario
 from design.simulate import simulate
 
@@ -36,12 +36,9 @@ def children(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def live_gains(tmp_path_factory):
-    s = load_scenario("paper-14-live")
-    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
-    path = tmp_path_factory.mktemp("gains") / "g.npz"
-    save_gains(path, G, {"method": "fixed"})
-    return s, G, path
+def live_run(live_gains):
+    """paper-14-live, its fixed gains and their file (tests/conftest.py)."""
+    return load_scenario("paper-14-live"), list(load_gains(live_gains).G), live_gains
 
 
 def _wait(predicate, what, children, timeout=DEADLINE, allowed_exit=()):
@@ -70,12 +67,12 @@ def _mse_csv(path):
     return np.array([int(r[0]) for r in rows]), np.array([float(r[1]) for r in rows])
 
 
-def test_watch_records_a_hand_started_run(tmp_path, children, live_gains):
+def test_watch_records_a_hand_started_run(tmp_path, children, live_run):
     """World (no --steps: it runs until stopped, like the compose file's) and agents started
     by hand as docs/runtime.md says; ``watch --out`` ended by SIGTERM writes the run folder,
     whose MSE is the one of the simulator (same seed and gains; nothing dropped) and the
     one of the truth and estimates it saved."""
-    s, G, gains = live_gains
+    s, G, gains = live_run
     run = f"w{os.getpid()}"
     ep = [f"tcp/127.0.0.1:{listen_port()}" for _ in range(s.N + s.standby + 1)]
     common = ["--run", run, "--seed", "3"]
@@ -118,11 +115,11 @@ def test_watch_records_a_hand_started_run(tmp_path, children, live_gains):
 
 
 @pytest.mark.parametrize("secure", [False, True], ids=["tcp", "secure"])
-def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_gains, secure):
+def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_run, secure):
     """``up --run --listen`` writes run.json; ``inject --attach`` reaches the run (signed
     with the folder's operator key, as the agents require; with the run's keys when it is
     secure); ``watch --attach`` records the same MSE and failure as ``up`` itself."""
-    s, G, gains = live_gains
+    s, G, gains = live_run
     up_dir, watch_dir = tmp_path / "up", tmp_path / "watched"
     listen = f"{'tls' if secure else 'tcp'}/127.0.0.1:{listen_port()}"
     children.start("up", ["up", "paper-14-live", "--steps", "300", "--step-ms", "20",
