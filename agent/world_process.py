@@ -5,7 +5,8 @@ says it has heard the status of every other expected agent, so every estimate ro
 declared), then every ``step_ms`` publishes every node's state on the sensors key (one
 message; each agent reads its own nodes) and on the truth key, both stamped with the
 step, and advances the social system (:class:`agent.core.WorldCore`). After the last
-step it waits (bounded) until the live agents report that step, then leaves; agents exit when the world's liveliness token goes.
+step it waits (bounded) until the live agents report that step, then leaves; agents exit
+when the world's liveliness token goes.
 """
 
 from __future__ import annotations
