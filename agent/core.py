@@ -273,6 +273,9 @@ class AgentCore:
         self.powers = PowerCache(self.A, max_power=max(int(config.max_age), 1))
         self.history = max(int(config.history), int(config.max_age) + 1)
         self._dropped: dict = {}          # (sender, stamp) -> lost by a keyed drop
+        self._measurement_noise = noise.StepDraws(
+            lambda k, p: noise.measurement_noise(config.seed, self.id, k, p,
+                                                 config.measurement_noise)[0])
         self.states = {FRESH: 0, HELD: 0, LOST: 0, NONE: 0}
         self.role: Role | None = config.role
         self.pending: Role | None = None
@@ -643,8 +646,7 @@ class AgentCore:
         role = self.role
         cols = [c for c, m in enumerate(role.measure) if m in readings]
         measured = tuple(self.labels.index(role.measure[c]) for c in cols)
-        z = noise.measurement_noise(self.config.seed, self.id, k, len(role.measure),
-                                    self.config.measurement_noise)[0]
+        z = self._measurement_noise(k, len(role.measure))
         y = np.array([readings[role.measure[c]] for c in cols]) + z[cols]
         est_role = AgentRole(measured=measured, self_weight=role.self_weight,
                              G=role.gain[:, cols])
@@ -718,10 +720,12 @@ class WorldCore:
         self.q = float(q)
         self.step = 0
         self.x = noise.initial_state(self.seed, self.n)[0]
+        self._process_noise = noise.StepDraws(
+            lambda k, n: noise.process_noise(self.seed, k, n, self.q)[0])
 
     def advance(self) -> None:
         """Go from step k to k + 1."""
-        nu = noise.process_noise(self.seed, self.step, self.n, self.q)[0]
+        nu = self._process_noise(self.step, self.n)
         self.x = self.A @ self.x + nu
         self.step += 1
 

@@ -67,6 +67,11 @@ MAX_DEPTH = 16
 MAX_OBJECTS = 1 << 14
 #: Error messages (and so logs and statuses that quote them) are cut to this many characters.
 MAX_ERROR_CHARS = 200
+#: A payload of a flat schema up to this size is unpacked without the header walk first:
+#: it builds at most this many objects, and what passes the schema nests 3 deep, so the
+#: walk cannot refuse it. Anything refused is decoded again with the walk, which names the
+#: reason: the result and the reason are the same either way.
+UNSCANNED_MAX_BYTES = 4096
 _MAX_CONTAINER = 4096
 _ARRAY_KEYS = frozenset({"dtype", "shape", "data"})
 
@@ -293,9 +298,14 @@ class Schema:
     fields: Mapping
     stamp: str | None = None
     sender: str | None = None
+    #: every field a scalar or a float64 array (set from `fields`): a message that
+    #: passes such a schema nests 3 deep at most (see :data:`UNSCANNED_MAX_BYTES`)
+    flat: bool = field(init=False, default=False)
 
     def __post_init__(self):
         object.__setattr__(self, "fields", dict(self.fields))
+        object.__setattr__(self, "flat", all(type(spec) in _FLAT_SPECS
+                                             for spec in self.fields.values()))
         if "v" in self.fields:
             raise ValueError("fields: 'v' is reserved for the version")
         for name, spec in self.fields.items():
@@ -306,6 +316,8 @@ class Schema:
             if name is not None and name not in self.fields:
                 raise ValueError(f"{role}: {name!r} is not a field of the schema")
 
+
+_FLAT_SPECS = (Int, Float, Bool, Str, Ident, Bytes, F64Array)
 
 # --------------------------------------------------------------------------
 # encode / decode
@@ -495,7 +507,26 @@ def decode(payload, schema: Schema, *, now_step: int | None = None, window: int 
     MalformedMessage
         On any problem; nothing else is raised for bad input.
     """
-    obj = _unpack(payload)
+    if schema.flat and isinstance(payload, bytes) and len(payload) <= UNSCANNED_MAX_BYTES:
+        try:
+            return _checked(_unpack_unscanned(payload), schema, now_step, window, senders)
+        except MalformedMessage:
+            pass                       # decoded again below, to name the reason
+    return _checked(_unpack(payload), schema, now_step, window, senders)
+
+
+def _unpack_unscanned(payload: bytes) -> object:
+    n = len(payload)
+    try:
+        return msgpack.unpackb(
+            payload, raw=False, strict_map_key=True, use_list=True, timestamp=0, ext_hook=_no_ext,
+            max_bin_len=n, max_str_len=n, max_array_len=n, max_map_len=n, max_ext_len=0)
+    except Exception as exc:
+        raise MalformedMessage("bad_msgpack", f"{type(exc).__name__}: {exc}") from None
+
+
+def _checked(obj, schema: Schema, now_step, window, senders) -> dict:
+    """The fields of the unpacked message `obj` checked against `schema` (see decode)."""
     if not isinstance(obj, dict):
         raise MalformedMessage("not_map", f"top level is {type(obj).__name__}, expected map")
     version = obj.pop("v", None)

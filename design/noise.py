@@ -30,6 +30,7 @@ __all__ = [
     "STREAM_PROCESS",
     "STREAM_MEASUREMENT",
     "STREAM_DROP",
+    "StepDraws",
 ]
 
 STREAM_INIT_STATE = 1
@@ -81,3 +82,39 @@ def message_dropped(seed: int, sender: int, receiver: int, stamp: int, p: float,
     """
     u = _rng(seed, STREAM_DROP, sender, receiver, stamp).random(trials)
     return u < p
+
+
+class StepDraws:
+    """A per-step draw of one process, computed ``block`` steps ahead.
+
+    ``draws(step, size)`` equals ``draw(step, size)`` (a 1-D array), which must be the
+    first ``size`` numbers of the step's own generator, so that a shorter draw is a prefix
+    of a longer one (numpy's generators fill in order). A live process draws one step at
+    a time; the one-off generator set-up then dominates its step (measured: about 120 us
+    of CPU a step in an agent, against about 15 us a draw in a loop). This keeps the
+    draws of the next ``block`` steps, computed together; a larger ``size`` than those
+    held, or a step outside them, computes a new block from that step (of the largest size
+asked so far).
+
+    >>> meas = StepDraws(lambda k, p: measurement_noise(7, 2, k, p, 0.5)[0], block=4)
+    >>> bool((meas(3, 2) == measurement_noise(7, 2, 3, 2, 0.5)[0]).all())
+    True
+    >>> bool((meas(4, 1) == measurement_noise(7, 2, 4, 1, 0.5)[0]).all())
+    True
+    """
+
+    def __init__(self, draw, block: int = 16):
+        if block < 1:
+            raise ValueError(f"block: expected >= 1, got {block}")
+        self._draw = draw
+        self.block = block
+        self._held: dict = {}
+        self._size = 0
+
+    def __call__(self, step: int, size: int) -> np.ndarray:
+        held = self._held.get(step)
+        if held is None or size > self._size:
+            self._size = max(size, self._size)
+            self._held = {k: self._draw(k, self._size) for k in range(step, step + self.block)}
+            held = self._held[step]
+        return held[:size]

@@ -41,6 +41,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -115,14 +116,12 @@ if _out and len(sys.argv) > 1 and sys.argv[1] == "agent":
 
 
 def _zconfig(listen=None, connect=None):
-    import zenoh
+    """A socmon peer's zenoh configuration (``build_zenoh_config``), on loopback."""
+    from broker_free_net.config import NetConfig, build_zenoh_config
 
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("listen/endpoints", json.dumps([listen] if listen else []))
-    conf.insert_json5("connect/endpoints", json.dumps([connect] if connect else []))
-    return conf
+    return build_zenoh_config(NetConfig(run="bench", listen=(listen,) if listen else (),
+                                        connect=(connect,) if connect else (),
+                                        multicast=False))
 
 
 def echo(endpoint: str) -> None:
@@ -169,6 +168,125 @@ def raw_rtt(pings: int) -> dict:
     rtts.sort()
     return {"n": len(rtts), "median_ms": 1e3 * statistics.median(rtts),
             "p99_ms": 1e3 * rtts[int(0.99 * (len(rtts) - 1))]}
+
+
+# ---------------------------------------------------------------------------------
+# the floor: bare zenoh-python processes with an agent's messages and no socmon code
+
+#: what an agent of paper-14-live receives a step (the sensors message, two estimates)
+#: and sends (its estimate), in bytes
+FLOOR_IN, FLOOR_OUT = (163, 184, 184), 184
+
+
+def floor_source(endpoint: str, steps: int, step_ms: float) -> None:
+    """Child: publish an agent's inputs of a step every `step_ms` for `steps` steps."""
+    import zenoh
+
+    session = zenoh.open(_zconfig(listen=endpoint))
+    pubs = [session.declare_publisher(f"bench/in/{i}") for i in range(len(FLOOR_IN))]
+    payloads = [bytes(size) for size in FLOOR_IN]
+    ready = session.declare_subscriber("bench/ready", zenoh.handlers.FifoChannel(4))
+    ready.recv()                                  # the sink's routes exist
+    start = time.monotonic()
+    for k in range(steps):
+        for pub, payload in zip(pubs, payloads):
+            pub.put(payload)
+        pause = start + (k + 1) * step_ms / 1e3 - time.monotonic()
+        if pause > 0:
+            time.sleep(pause)
+    session.close()
+
+
+def floor_sink(endpoint: str, steps: int, model: str) -> None:
+    """Child: receive ``steps`` steps of inputs, publish one estimate a step, print its CPU.
+
+    ``inbox``: the callback copies each sample into a queue and wakes the main thread,
+    which publishes (socmon's model); ``callback``: the callback itself publishes."""
+    import zenoh
+
+    session = zenoh.open(_zconfig(connect=endpoint))
+    out = session.declare_publisher("bench/out")
+    payload = bytes(FLOOR_OUT)
+    want = steps * len(FLOOR_IN)
+    got, queue, lock, wake, done = [0], deque(), threading.Lock(), threading.Event(), \
+        threading.Event()
+    if model == "callback":
+        def on_sample(sample):
+            sample.payload.to_bytes()
+            with lock:
+                got[0] += 1
+                n = got[0]
+            if n % len(FLOOR_IN) == 0:
+                out.put(payload)
+            if n >= want:
+                done.set()
+    else:
+        def on_sample(sample):
+            with lock:
+                queue.append(sample.payload.to_bytes())
+            wake.set()
+    session.declare_subscriber("bench/in/*", zenoh.handlers.Callback(on_sample, indirect=False))
+    ready = session.declare_publisher("bench/ready")
+    deadline = time.monotonic() + 60 + steps * 0.05
+    while not got[0] and not queue and time.monotonic() < deadline:
+        ready.put(b"")
+        time.sleep(0.05)
+    if model == "callback":
+        done.wait(max(0.0, deadline - time.monotonic()))
+    else:
+        while got[0] < want and time.monotonic() < deadline:
+            wake.wait(0.25)
+            wake.clear()
+            with lock:
+                items = list(queue)
+                queue.clear()
+            for _ in items:
+                got[0] += 1
+                if got[0] % len(FLOOR_IN) == 0:
+                    out.put(payload)
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    switches = 0
+    for status in Path("/proc/self/task").glob("*/status"):
+        for line in status.read_text().splitlines():
+            if "ctxt_switches" in line:
+                switches += int(line.split()[1])
+    print(json.dumps({"received": got[0], "cpu_s": usage.ru_utime + usage.ru_stime,
+                      "switches": switches}), flush=True)
+    os._exit(0)                                   # no session close: the source may be gone
+
+
+def floor_run(steps: int, step_ms: float, model: str) -> dict:
+    from broker_free_net.ports import listen_port
+
+    endpoint = f"tcp/127.0.0.1:{listen_port()}"
+    args = [str(steps), str(step_ms)]
+    source = subprocess.Popen([sys.executable, __file__, "--floor-source", endpoint, *args],
+                              start_new_session=True)
+    try:
+        sink = subprocess.run([sys.executable, __file__, "--floor-sink", endpoint, str(steps),
+                               model], capture_output=True, text=True, start_new_session=True,
+                              timeout=120 + steps * step_ms / 1e3 * 3)
+    finally:
+        try:
+            os.killpg(source.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        source.wait(10)
+    if sink.returncode != 0:
+        raise RuntimeError(f"floor sink failed: {sink.stderr[-2000:]}")
+    return json.loads(sink.stdout)
+
+
+def floor(steps: int, short_steps: int, step_ms: float) -> dict:
+    """Marginal CPU ms and context switches per step of a bare zenoh-python 'agent'."""
+    out = {}
+    for model in ("inbox", "callback"):
+        short, long = floor_run(short_steps, step_ms, model), floor_run(steps, step_ms, model)
+        extra = steps - short_steps
+        out[model] = {"cpu_ms_per_step": 1e3 * (long["cpu_s"] - short["cpu_s"]) / extra,
+                      "switches_per_step": (long["switches"] - short["switches"]) / extra,
+                      "received": long["received"]}
+    return out
 
 
 # ---------------------------------------------------------------------------------
@@ -330,10 +448,22 @@ def main(argv=None) -> int:
     parser.add_argument("--profile-top", type=int, default=15)
     parser.add_argument("--keep-going", action="store_true",
                         help="try every period even after one is not sustained")
+    parser.add_argument("--floor-steps", type=int, default=2000,
+                        help="steps of the bare zenoh-python floor at each period (0: none)")
     parser.add_argument("--echo", help=argparse.SUPPRESS)
+    parser.add_argument("--floor-source", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--floor-sink", nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.echo:
         echo(args.echo)
+        return 0
+    if args.floor_source:
+        endpoint, steps, step_ms = args.floor_source
+        floor_source(endpoint, int(steps), float(step_ms))
+        return 0
+    if args.floor_sink:
+        endpoint, steps, model = args.floor_sink
+        floor_sink(endpoint, int(steps), model)
         return 0
     trees = [(Path(args.tree).resolve(), "this")] + [
         (Path(b).resolve(), f"baseline{i + 1}" if len(args.baseline) > 1 else "baseline")
@@ -350,12 +480,23 @@ def main(argv=None) -> int:
     rtt = raw_rtt(args.pings)
     print(f"raw zenoh round trip (2 processes, loopback, {rtt['n']} pings): "
           f"median {rtt['median_ms']:.3f} ms, p99 {rtt['p99_ms']:.3f} ms")
+    results = {"raw_rtt": rtt, "trees": {}, "floor": {}}
+    if args.floor_steps:
+        print(f"floor: a bare zenoh-python process receiving an agent's {len(FLOOR_IN)} "
+              f"messages a step and sending its one ({args.floor_steps} steps minus "
+              f"{args.short_steps // 2}; no socmon code)")
+        for step_ms in [float(x) for x in args.step_ms.split(",")]:
+            fl = floor(args.floor_steps, args.short_steps // 2, step_ms)
+            results["floor"][str(step_ms)] = fl
+            print(f"  {step_ms:g} ms steps: " + "; ".join(
+                f"{model} model {f['cpu_ms_per_step']:.3f} CPU ms/step, "
+                f"{f['switches_per_step']:.1f} context switches/step"
+                for model, f in fl.items()), flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
     specs = {"paper-14": "paper-14", "paper-14-live": "paper-14-live"}
     if SAMPSON_EDGES.is_file():
         (tmp / "sampson-like.toml").write_text(SAMPSON_TOML.format(edges=SAMPSON_EDGES))
         specs["sampson-like"] = str(tmp / "sampson-like.toml")
-    results = {"raw_rtt": rtt, "trees": {}}
     for tree, label in trees:
         results["trees"][label] = {"path": str(tree),
                                    "runs": bench_tree(tree, label, specs, tmp, args, rtt)}

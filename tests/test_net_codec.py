@@ -296,3 +296,47 @@ def test_error_messages_are_short():
     assert info.value.reason == "range" and len(str(info.value)) <= MAX_ERROR_CHARS
     assert str(info.value).endswith("...")
     assert shorten("abcdef", 5) == "ab..." and shorten("abcde", 5) == "abcde"
+
+
+def _outcome(decoder):
+    try:
+        msg = decoder()
+    except MalformedMessage as exc:
+        return ("refused", exc.reason, str(exc))
+    return ("accepted", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                         for k, v in msg.items()})
+
+
+_EST = Schema({"kind": Str(choices=frozenset({"est"})), "agent": Int(1, 99),
+               "step": Int(0, 10**9), "t": Float(0.0, 1e12), "x": F64Array((3,))},
+              stamp="step", sender="agent")
+
+
+@given(st.data())
+@settings(max_examples=300, deadline=None)
+def test_small_flat_messages_decode_alike_with_and_without_the_header_walk(data):
+    """A small payload of a flat schema skips the header walk; whatever it holds (a valid
+    message, one with a byte changed, cut or extended, nested junk), the outcome (the
+    message, or the reason and text of the refusal) is the walk's."""
+    from broker_free_net import codec
+
+    valid = encode({"kind": "est", "agent": 2, "step": 40, "t": 1.5,
+                    "x": np.array([1.0, -2.0, 3.0])})
+    kind = data.draw(st.sampled_from(["flip", "cut", "extend", "nest"]))
+    if kind == "flip":
+        i = data.draw(st.integers(0, len(valid) - 1))
+        payload = valid[:i] + bytes([data.draw(st.integers(0, 255))]) + valid[i + 1:]
+    elif kind == "cut":
+        payload = valid[:data.draw(st.integers(0, len(valid) - 1))]
+    elif kind == "extend":
+        payload = valid + data.draw(st.binary(min_size=1, max_size=8))
+    else:
+        depth = data.draw(st.integers(1, 40))
+        payload = b"\x91" * depth + b"\xc0"
+    assert _EST.flat and len(payload) <= codec.UNSCANNED_MAX_BYTES
+    kwargs = {"now_step": 50, "window": 100, "senders": {1, 2, 3}}
+    fast = _outcome(lambda: decode(payload, _EST, **kwargs))
+    walked = _outcome(lambda: codec._checked(codec._unpack(payload), _EST,
+                                              kwargs["now_step"], kwargs["window"],
+                                              kwargs["senders"]))
+    assert fast == walked

@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from design import noise
 from design.closed_loop import ClosedLoop, closed_loop_for
@@ -319,3 +321,16 @@ def test_record_estimates_needs_absolute_coordinates(paper14):
     G = [np.zeros((paper14.n, 1))] * paper14.N
     with pytest.raises(SimulationError, match="record_estimates"):
         simulate(paper14, G, steps=2, trials=1, seed=0, record_estimates=True)
+
+
+@given(st.lists(st.tuples(st.integers(0, 60), st.integers(1, 5)), min_size=1, max_size=30),
+       st.integers(1, 8))
+@settings(max_examples=60, deadline=None)
+def test_draws_computed_ahead_equal_the_one_off_draws(queries, block):
+    """Whatever steps and sizes a process asks in whatever order (a role that measures
+    more nodes, a catch-up, a restart), the draws held ahead are the one-off draws."""
+    meas = noise.StepDraws(lambda k, p: noise.measurement_noise(5, 3, k, p, 0.2)[0], block)
+    proc = noise.StepDraws(lambda k, n: noise.process_noise(5, k, n, 0.05)[0], block)
+    for step, size in queries:
+        assert np.array_equal(meas(step, size), noise.measurement_noise(5, 3, step, size, 0.2)[0])
+        assert np.array_equal(proc(step, size), noise.process_noise(5, step, size, 0.05)[0])
