@@ -3,7 +3,12 @@
 In one run, for each source tree given (this one, and ``--baseline`` trees for comparison):
 
 1. the raw zenoh round trip between two processes (a put answered from the echo's
-   callback), median and p99, measured once at the start of the benchmark;
+   callback), median and p99, measured once at the start of the benchmark; then the
+   *floor*: the marginal CPU and context switches per step of a bare zenoh-python
+   process (socmon's zenoh configuration, no socmon code) that receives an agent's
+   messages of a step and sends its estimate, with the callback handing each sample to
+   the main thread (socmon's model) and with the callback publishing itself
+   (``--floor-steps`` steps at each period);
 2. ``socmon up SCENARIO`` (default paper-14-live: 3 agents + 1 standby + world + monitor)
    for ``--steps`` steps at each ``--step-ms``; a step period is *sustained* when no
    estimate was dropped or late and no sensor reading missed. Per run: the agent-to-agent
