@@ -87,14 +87,14 @@ def message_dropped(seed: int, sender: int, receiver: int, stamp: int, p: float,
 class StepDraws:
     """A per-step draw of one process, computed ``block`` steps ahead.
 
-    ``draws(step, size)`` equals ``draw(step, size)`` (a 1-D array), which must be the
-    first ``size`` numbers of the step's own generator, so that a shorter draw is a prefix
-    of a longer one (numpy's generators fill in order). A live process draws one step at
-    a time; the one-off generator set-up then dominates its step (measured: about 120 us
-    of CPU a step in an agent, against about 15 us a draw in a loop). This keeps the
-    draws of the next ``block`` steps, computed together; a larger ``size`` than those
-    held, or a step outside them, computes a new block from that step (of the largest size
-asked so far).
+    Called with ``(step, size)``, it returns ``draw(step, size)`` (a read-only 1-D
+    array); ``draw`` must give the first ``size`` numbers of the step's own generator, so
+    that a shorter draw is a prefix of a longer one (numpy's generators fill in order).
+    A live process draws one step at a time, and the one-off generator set-up then
+    dominates (measured: about 120 us of CPU a step in an agent, against about 15 us a
+    draw in a loop). This holds the draws of the next ``block`` steps, computed together;
+    a step outside them, or a larger ``size``, computes a new block from that step (of
+    the largest size asked so far).
 
     >>> meas = StepDraws(lambda k, p: measurement_noise(7, 2, k, p, 0.5)[0], block=4)
     >>> bool((meas(3, 2) == measurement_noise(7, 2, 3, 2, 0.5)[0]).all())
@@ -116,5 +116,7 @@ asked so far).
         if held is None or size > self._size:
             self._size = max(size, self._size)
             self._held = {k: self._draw(k, self._size) for k in range(step, step + self.block)}
+            for draws in self._held.values():
+                draws.setflags(write=False)
             held = self._held[step]
         return held[:size]
