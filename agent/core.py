@@ -273,6 +273,7 @@ class AgentCore:
         self.powers = PowerCache(self.A, max_power=max(int(config.max_age), 1))
         self.history = max(int(config.history), int(config.max_age) + 1)
         self._dropped: dict = {}          # (sender, stamp) -> lost by a keyed drop
+        self._est_role = None             # (role, columns read, AgentRole) last used
         self._measurement_noise = noise.StepDraws(
             lambda k, p: noise.measurement_noise(config.seed, self.id, k, p,
                                                  config.measurement_noise)[0])
@@ -645,11 +646,14 @@ class AgentCore:
     def _compute(self, k: int, readings: dict, plan: dict):
         role = self.role
         cols = [c for c, m in enumerate(role.measure) if m in readings]
-        measured = tuple(self.labels.index(role.measure[c]) for c in cols)
         z = self._measurement_noise(k, len(role.measure))
         y = np.array([readings[role.measure[c]] for c in cols]) + z[cols]
-        est_role = AgentRole(measured=measured, self_weight=role.self_weight,
-                             G=role.gain[:, cols])
+        held = self._est_role           # the estimator's role for this role and readings
+        if held is None or held[0] is not role or held[1] != cols:
+            measured = tuple(self.labels.index(role.measure[c]) for c in cols)
+            held = self._est_role = (role, cols, AgentRole(
+                measured=measured, self_weight=role.self_weight, G=role.gain[:, cols]))
+        est_role = held[2]
         nbs = []
         for j, (s, need) in plan.items():
             x = None if s is None else self.nbrs[j].est[s]

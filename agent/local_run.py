@@ -335,12 +335,12 @@ class LocalRun:
                                             f"{child.returncode} before the end of the run; "
                                             f"its log ends:\n{children.tail(child.name)}")
                         elif world_end is None:
-                            k_now = max(rec.truth) if rec.truth else -1
+                            k_now = recorder.step
                             event(process=child.name, exit_status=child.returncode, step=k_now)
                             self.say(f"{child.name} exited with status {child.returncode} "
                                      f"at step {k_now}; the run goes on")
                     now = time.monotonic()
-                    k_now = max(rec.truth) if rec.truth else -1
+                    k_now = recorder.step
                     while pending and k_now >= pending[0].step:
                         f = pending.pop(0)
                         if f.kind != "crash":
@@ -365,7 +365,7 @@ class LocalRun:
                                  f"late {sum(s['late'] for s in st)}")
                 for _, f in list(undo):           # faults still in force end with the run
                     if f.kind != "monitor":
-                        end(f, max(rec.truth) if rec.truth else -1)
+                        end(f, recorder.step)
                 # final statuses: ask the agents to stop, then read what they said last
                 # (the router last: the final statuses pass through it)
                 last = [ch.name for ch in children.running() if ch.name != "router"]
