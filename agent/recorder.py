@@ -113,6 +113,10 @@ class Recorder:
             peer.subscribe(keys.any_agent_pattern(run, "ctl"), maxlen=1 << 12),
             peer.subscribe(keys.monitor_events_key(run), maxlen=1 << 12),
         )
+        # estimates and statuses do not wake the owner's loop: they are drained at the
+        # next truth (one wake-up a step instead of one per message) or timeout
+        for inbox in self._inboxes[1:3]:
+            inbox.wakes = False
 
     def drain(self) -> None:
         """Feed everything received since the last call (truth first, then estimates)."""
