@@ -21,6 +21,7 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import dataclass, field
@@ -279,6 +280,16 @@ class WatchEnd(Exception):
     """Raised by the SIGTERM handler of :func:`watch_run` to end the watch."""
 
 
+@contextlib.contextmanager
+def _drained_at_exit(recorder):
+    """On the way out, even when interrupted, record what was received and not yet read
+    (estimates and statuses wait for the next truth to be drained)."""
+    try:
+        yield
+    finally:
+        recorder.drain()
+
+
 def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: float = 60.0,
               on_view=lambda view: None, interval: float = 0.25, grace: float = 5.0) -> str:
     """Attach to a run as a peer and record it until it ends; returns why it ended.
@@ -309,7 +320,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     t_begin = time.monotonic()
     why = "interrupted"
     try:
-        with Peer(net, "watch", f"p{os.getpid()}") as peer:
+        with Peer(net, "watch", f"p{os.getpid()}") as peer, _drained_at_exit(recorder):
             recorder.subscribe(peer)
             alive_watch = peer.watch_liveliness()
             world_seen = False
