@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
 
 # The commands multiply and decompose matrices of a few hundred rows; a multi-threaded BLAS
@@ -86,5 +87,21 @@ def main(argv=None) -> int:
         return EXIT_BROKEN_PIPE
 
 
+def run_program() -> None:
+    """The program (``socmon``, ``python -m agent.cli``): :func:`main`, then exit with its
+    status.
+
+    The interpreter's shutdown puts SIGTERM and SIGINT back to their default action, so
+    one that arrived then killed the process (status -15) instead of letting it exit with
+    its own: ``up`` stops its children at the end of a run, when the world may already be
+    shutting down (seen once in a chaos run). Once :func:`main` has returned the work is
+    done, and both signals are ignored while the process exits.
+    """
+    code = main()
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run_program()

@@ -2,6 +2,7 @@
 of another scenario refused, a closed pipe handled once, warnings carried to the summary."""
 
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -124,6 +125,41 @@ def test_closed_stdout_ends_quietly():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == EXIT_BROKEN_PIPE
     assert err == "", err
+
+
+# -- a stop signal while the process exits ---------------------------------------------------
+
+_SLOW_EXIT = """
+import signal, sys, time
+import agent.cli as cli
+signal.signal(signal.SIGTERM, lambda *_: None)   # as the world and the agents do
+cli.main = lambda: 3                               # the command's work is done
+
+class SlowToFinalize:                              # like zenoh's runtime, torn down last
+    def __del__(self):
+        print("exiting", flush=True)
+        time.sleep(2.0)
+
+keep = SlowToFinalize()
+cli.run_program()
+"""
+
+
+@pytest.mark.multiprocess
+def test_sigterm_while_exiting_keeps_the_exit_status():
+    """``up`` stops its children at the end of a run; a SIGTERM that reaches a process
+    already in the interpreter's shutdown must not turn its status into -15."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_EXIT], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, start_new_session=True)
+    try:
+        assert proc.stdout.readline() == b"exiting\n"
+        os.killpg(proc.pid, signal.SIGTERM)
+        assert proc.wait(timeout=60) == 3
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 # -- warnings of a run ------------------------------------------------------------------------
