@@ -107,17 +107,17 @@ class Recorder:
     def subscribe(self, peer) -> None:
         """Declare the subscriptions on ``peer`` (a :class:`broker_free_net.peer.Peer`)."""
         run = self.recording.run_id
+        truth = peer.subscribe(keys.truth_key(run), maxlen=1 << 16)
+        est = peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=1 << 16)
+        status = peer.subscribe(keys.any_agent_pattern(run, "status"))
+        # estimates and statuses do not wake the owner's loop: they are drained at the
+        # next truth (one wake-up a step instead of one per message) or timeout
+        est.wakes = status.wakes = False
         self._inboxes = (
-            peer.subscribe(keys.truth_key(run), maxlen=1 << 16),
-            peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=1 << 16),
-            peer.subscribe(keys.any_agent_pattern(run, "status")),
+            truth, est, status,
             peer.subscribe(keys.any_agent_pattern(run, "ctl"), maxlen=1 << 12),
             peer.subscribe(keys.monitor_events_key(run), maxlen=1 << 12),
         )
-        # estimates and statuses do not wake the owner's loop: they are drained at the
-        # next truth (one wake-up a step instead of one per message) or timeout
-        for inbox in self._inboxes[1:3]:
-            inbox.wakes = False
 
     def drain(self) -> None:
         """Feed everything received since the last call (truth first, then estimates)."""

@@ -464,13 +464,16 @@ def _no_ext(code, data):
     raise ValueError(f"msgpack ext type {code} not allowed")
 
 
-def _unpack(payload) -> object:
+def _unpack(payload, walk: bool = True) -> object:
+    """The unpacked payload; ``walk=False`` skips the header walk (see
+    :data:`UNSCANNED_MAX_BYTES`)."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise MalformedMessage("type", f"payload must be bytes, got {type(payload).__name__}")
     n = len(payload)
     if n > MAX_PAYLOAD_BYTES:
         raise MalformedMessage("too_large", f"{n} bytes > {MAX_PAYLOAD_BYTES}")
-    scan(payload)
+    if walk:
+        scan(payload)
     try:
         return msgpack.unpackb(
             payload, raw=False, strict_map_key=True, use_list=True, timestamp=0, ext_hook=_no_ext,
@@ -509,20 +512,10 @@ def decode(payload, schema: Schema, *, now_step: int | None = None, window: int 
     """
     if schema.flat and isinstance(payload, bytes) and len(payload) <= UNSCANNED_MAX_BYTES:
         try:
-            return _checked(_unpack_unscanned(payload), schema, now_step, window, senders)
+            return _checked(_unpack(payload, walk=False), schema, now_step, window, senders)
         except MalformedMessage:
             pass                       # decoded again below, to name the reason
     return _checked(_unpack(payload), schema, now_step, window, senders)
-
-
-def _unpack_unscanned(payload: bytes) -> object:
-    n = len(payload)
-    try:
-        return msgpack.unpackb(
-            payload, raw=False, strict_map_key=True, use_list=True, timestamp=0, ext_hook=_no_ext,
-            max_bin_len=n, max_str_len=n, max_array_len=n, max_map_len=n, max_ext_len=0)
-    except Exception as exc:
-        raise MalformedMessage("bad_msgpack", f"{type(exc).__name__}: {exc}") from None
 
 
 def _checked(obj, schema: Schema, now_step, window, senders) -> dict:
