@@ -8,7 +8,8 @@ In one run, for each source tree given (this one, and ``--baseline`` trees for c
    process (socmon's zenoh configuration, no socmon code) that receives an agent's
    messages of a step and sends its estimate, with the callback handing each sample to
    the main thread (socmon's model) and with the callback publishing itself
-   (``--floor-steps`` steps at each period);
+   (``--floor-steps`` steps at each period; ``--floor-zenoh KEY=JSON5`` changes a zenoh
+   setting of both, to try one of zenoh's options without socmon);
 2. ``socmon up SCENARIO`` (default paper-14-live: 3 agents + 1 standby + world + monitor)
    for ``--steps`` steps at each ``--step-ms``; a step period is *sustained* when no
    estimate was dropped or late and no sensor reading missed. Per run: the agent-to-agent
@@ -120,13 +121,42 @@ if _out and len(sys.argv) > 1 and sys.argv[1] == "agent":
 # raw zenoh round trip
 
 
+#: environment variable carrying ``--floor-zenoh`` to the children (a JSON list of
+#: [key, json5 value] pairs)
+ZENOH_SETTINGS_ENV = "SOCMON_BENCH_ZENOH"
+
+
 def _zconfig(listen=None, connect=None):
-    """A socmon peer's zenoh configuration (``build_zenoh_config``), on loopback."""
+    """A socmon peer's zenoh configuration (``build_zenoh_config``), on loopback, with the
+    ``--floor-zenoh`` settings on top."""
     from broker_free_net.config import NetConfig, build_zenoh_config
 
-    return build_zenoh_config(NetConfig(run="bench", listen=(listen,) if listen else (),
-                                        connect=(connect,) if connect else (),
-                                        multicast=False))
+    config = build_zenoh_config(NetConfig(run="bench", listen=(listen,) if listen else (),
+                                          connect=(connect,) if connect else (),
+                                          multicast=False))
+    for key, value in json.loads(os.environ.get(ZENOH_SETTINGS_ENV, "[]")):
+        config.insert_json5(key, value)
+    return config
+
+
+def zenoh_setting(text: str) -> list:
+    """``KEY=JSON5`` (a ``--floor-zenoh`` flag) -> ``[key, value]``, checked by zenoh.
+
+    >>> zenoh_setting("transport/unicast/lowlatency=true")
+    ['transport/unicast/lowlatency', 'true']
+    """
+    import zenoh
+
+    from broker_free_net.config import _zenoh_message
+
+    key, sep, value = text.partition("=")
+    if not sep or not key or not value:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    try:
+        zenoh.Config().insert_json5(key, value)
+    except Exception as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: zenoh refused it: {_zenoh_message(exc)}") from None
+    return [key, value]
 
 
 def echo(endpoint: str) -> None:
@@ -455,6 +485,12 @@ def main(argv=None) -> int:
                         help="try every period even after one is not sustained")
     parser.add_argument("--floor-steps", type=int, default=2000,
                         help="steps of the bare zenoh-python floor at each period (0: none)")
+    parser.add_argument("--floor-zenoh", type=zenoh_setting, action="append", default=[],
+                        metavar="KEY=JSON5",
+                        help="a zenoh setting for the raw round trip and the floor only "
+                             "(repeatable), e.g. transport/unicast/lowlatency=true")
+    parser.add_argument("--floor-only", action="store_true",
+                        help="measure the raw round trip and the floor, run no socmon tree")
     parser.add_argument("--echo", help=argparse.SUPPRESS)
     parser.add_argument("--floor-source", nargs=3, help=argparse.SUPPRESS)
     parser.add_argument("--floor-sink", nargs=3, help=argparse.SUPPRESS)
@@ -479,6 +515,10 @@ def main(argv=None) -> int:
                   file=sys.stderr)
             return 2
 
+    if args.floor_zenoh:
+        os.environ[ZENOH_SETTINGS_ENV] = json.dumps(args.floor_zenoh)
+        print("zenoh settings of the raw round trip and the floor: "
+              + ", ".join(f"{k}={v}" for k, v in args.floor_zenoh))
     print(f"machine: {os.cpu_count()} cores, load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (shared: wall-clock figures vary; "
           "CPU ms per step much less)")
@@ -498,6 +538,8 @@ def main(argv=None) -> int:
                 f"{f['switches_per_step']:.1f} context switches/step"
                 for model, f in fl.items()), flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="bench_runtime_"))
+    if args.floor_only:
+        trees = []
     specs = {"paper-14": "paper-14", "paper-14-live": "paper-14-live"}
     if SAMPSON_EDGES.is_file():
         (tmp / "sampson-like.toml").write_text(SAMPSON_TOML.format(edges=SAMPSON_EDGES))
