@@ -93,6 +93,10 @@ class MonitorConfig:
     step_s : float
         The run's step period: the current step is extrapolated from the newest status
         (statuses come every 0.2 s, ten steps at 20 ms).
+    world_gone_s : float
+        Once the world's token is gone, the agents leave with it (within 10 s) and nothing
+        is convicted; :meth:`MonitorCore.run_ended` says the run is over when no agent's
+        token is left, or this long after the world left.
     """
 
     hang_timeout_s: float = 1.0
@@ -106,6 +110,7 @@ class MonitorConfig:
     step_s: float = 0.02
     settle_s: float = 0.01
     rejoin_s: float = 5.0
+    world_gone_s: float = 15.0
 
 
 @dataclass(frozen=True)
@@ -257,9 +262,14 @@ class MonitorCore:
         self._silent_since: dict = {}     # agent -> when all its listeners first lost it
         self._delays_checked = None       # learned delays last certified
         self.rho_learned = None
+        self.world_seen = False
+        self.world_gone_at: float | None = None   # the world's token went (run ending)
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
+        if role == "world":
+            self._on_world(bool(alive), now)
+            return
         if role != "agent":
             return
         a = self._agent(agent)
@@ -268,6 +278,36 @@ class MonitorCore:
         a.alive = bool(alive)
         if alive and a.progress_at is None:
             a.progress_at = now
+
+    def _on_world(self, alive: bool, now: float) -> None:
+        """The world came or went. Without it the agents stop stepping and leave (their
+        tokens go one by one): that is the run ending, not failures, so no verdict is
+        made while it is gone; when it comes back, verdicts wait for fresh evidence."""
+        if alive:
+            if self.world_gone_at is not None:
+                self._fresh_evidence(now)
+                self.events.append("the world is back: verdicts resume after "
+                                   f"{self.config.hang_timeout_s:g} s of fresh evidence")
+            self.world_seen, self.world_gone_at = True, None
+        elif self.world_seen and self.world_gone_at is None:
+            self.world_gone_at = now
+            self.events.append(f"the world left after step {self.last_step_reported}: "
+                               "no verdicts while it is gone")
+
+    def run_ended(self, now: float) -> bool:
+        """True once the world has left and so have the agents (no agent token is alive),
+        or ``world_gone_s`` after the world left."""
+        if self.world_gone_at is None:
+            return False
+        return (not any(a.alive for a in self.agents.values())
+                or now - self.world_gone_at >= self.config.world_gone_s)
+
+    def _fresh_evidence(self, now: float) -> None:
+        """Forget the progress clocks: verdicts wait ``hang_timeout_s`` of new evidence."""
+        self._suspended_until = now + self.config.hang_timeout_s
+        for a in self.agents.values():
+            a.progress_at = now
+            a.others_at_progress = self.newest_step()
 
     def on_status(self, msg: dict, now: float) -> None:
         a = self._agent(msg.get("agent"))
@@ -306,6 +346,11 @@ class MonitorCore:
             return step
         return step + max(0, int((now - t) / self.config.step_s))
 
+    @property
+    def last_step_reported(self) -> int:
+        """The newest step any agent reported (-1 before the first)."""
+        return self._clock[0]
+
     def newest_step(self, exclude=None) -> int:
         steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
         return max(steps, default=-1)
@@ -315,15 +360,14 @@ class MonitorCore:
         """Verdicts and reassignment at time ``now``; returns messages to publish now."""
         cfg = self.config
         if self._last_tick is not None and now - self._last_tick > cfg.pause_guard_s:
-            self._suspended_until = now + cfg.hang_timeout_s
-            for a in self.agents.values():
-                a.progress_at = now
-                a.others_at_progress = self.newest_step()
+            self._fresh_evidence(now)
             self.events.append(f"monitor paused {now - self._last_tick:.2f} s: verdicts "
                                f"suspended for {cfg.hang_timeout_s:g} s")
         self._last_tick = now
         if self._started is None:
             self._started = now
+        if self.world_gone_at is not None:
+            return []                      # the run is ending: the agents leave with it
         out = []
         self._check_confirmations(now)
         if now >= self._suspended_until and self._clock[0] >= 0 and not self._unconfirmed:

@@ -8,6 +8,10 @@ background thread precomputes the plan and the gains of every single failure of 
 configuration in force (again after every reassignment), so that a foreseen failure is
 answered without designing anything.
 
+When the world's token goes, the run is ending: the agents leave with it, so nothing is
+convicted while it is gone, and the monitor exits once the agents' tokens are gone too
+(:meth:`MonitorCore.run_ended`).
+
 A monitor listens for ``LISTEN_S`` before it acts. Several monitors may run on one run:
 the one with the smallest id whose token is alive acts, the others stay passive and watch; when the active one's token goes, the next one
 adopts the configuration in force from the roster it heard and the agents' statuses
@@ -149,6 +153,11 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
                     if not ev.alive:
                         record("liveliness", agent=int(ev.id), alive=False)
+                elif ev.role == "world":
+                    core.on_liveliness("world", ev.id, ev.alive, ev.arrival)
+                    if not ev.alive:
+                        record("liveliness", process="world", alive=False,
+                               step=core.last_step_reported)
             for item in status_in.drain():
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                 if msg is not None:
@@ -217,6 +226,12 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     peer.put(keys.ctl_key(run, 0), wire.encode_roster(
                         m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                     next_roster = now + ROSTER_S
+            if core.run_ended(now):
+                for line in core.events:
+                    print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                print(f"monitor {monitor_id}: the world left after step {core.last_step_reported} "
+                      "and the agents with it; exiting", file=log, flush=True)
+                break
             peer.wait(timeout=TICK_S)
     if out_file is not None:
         out_file.close()

@@ -185,3 +185,40 @@ def test_a_quiet_sensor_is_told_from_a_hung_loop(core):
         t += 0.1
     assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "sensor")]
     assert "its loop still reports" in core.verdicts[0].evidence
+
+
+def test_agents_leaving_after_the_world_are_the_run_ending_not_failures(core):
+    core.on_liveliness("world", 0, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", 0, False, 2.05)
+    assert not core.run_ended(2.05)
+    assert any("world left after step 100" in e for e in core.events)
+    out = _advance(core, 2.1, 7.0, lambda t: 100)           # the agents stop stepping
+    for i, a in enumerate((1, 4, 3, 2)):                    # ... and leave one by one
+        assert not core.run_ended(7.0 + i)
+        core.on_liveliness("agent", a, False, 7.0 + i)
+        out += core.tick(7.0 + i + 0.01)
+    assert out == [] and core.verdicts == []
+    assert core.run_ended(10.1)
+
+
+def test_the_run_ends_world_gone_s_after_the_world_even_with_an_agent_left(core):
+    core.on_liveliness("world", 0, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", 0, False, 2.0)
+    assert not core.run_ended(2.0 + core.config.world_gone_s - 0.1)
+    assert core.run_ended(2.0 + core.config.world_gone_s)
+
+
+def test_verdicts_resume_when_the_world_comes_back(core):
+    core.on_liveliness("world", 0, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", 0, False, 2.0)
+    _advance(core, 2.1, 4.0, lambda t: 100)                 # nobody steps: no hang verdicts
+    core.on_liveliness("world", 0, True, 4.05)
+    assert not core.run_ended(30.0) and core.verdicts == []
+    _advance(core, 4.1, 6.0, lambda t: 100 + 50 * (t - 4.1))
+    assert core.verdicts == []
+    core.on_liveliness("agent", 1, False, 6.05)
+    core.tick(6.05)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "crash")]
