@@ -218,6 +218,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                                                          int(0.99 * len(ordered)))]}
             peer.put(status_key, wire.encode_status(st))
 
+        def scripted_crash(step):
+            publish_status()
+            print(f"agent {me}: scripted crash after step {step}", file=log, flush=True)
+            time.sleep(CRASH_FLUSH_S)        # the transport sends the last messages
+            print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+
         def signed(msg, check=None) -> bool:
             """True unless a verifier is set and the control signature fails."""
             check = check or verifier
@@ -328,11 +335,9 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             for step, x, epoch in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, epoch, time.time()))
                 if crash_at is not None and step >= crash_at - 1 and core.active:
-                    publish_status()
-                    print(f"agent {me}: scripted crash after step {step}", file=log, flush=True)
-                    time.sleep(CRASH_FLUSH_S)
-                    print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
-                    os.kill(os.getpid(), signal.SIGKILL)
+                    scripted_crash(step)
+            if crash_at is not None and core.step >= crash_at - 1:
+                scripted_crash(core.step)   # one that published nothing then (a standby)
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
             now = time.monotonic()
             if urgent_status or now >= next_status:

@@ -177,7 +177,9 @@ def test_forged_control_messages_are_rejected_and_the_monitor_still_commands(tmp
 
 def test_a_monitor_run_by_hand_ends_with_the_world_and_convicts_nobody(tmp_path, live_gains):
     """World (150 steps), four agents and a monitor started by hand: when the world ends,
-    the agents leave with it, and the monitor records no verdict and exits by itself."""
+    the agents leave with it, and the monitor records no verdict and exits by itself. The
+    standby's scripted crash (``--crash-at``) happens though it publishes no estimate; a
+    standby has no role to hand over."""
     run, ep = f"m{tmp_path.name[-12:]}", [f"tcp/127.0.0.1:{listen_port()}" for _ in range(6)]
     common = ["--run", run, "--connect", ep[0]]
     children = Children(tmp_path / "logs")
@@ -186,18 +188,21 @@ def test_a_monitor_run_by_hand_ends_with_the_world_and_convicts_nobody(tmp_path,
                                  "--steps", "150"])
         for a in (1, 2, 3, 4):
             children.start(f"agent-{a}", ["agent", "paper-14-live", "--id", str(a), *common,
-                                          "--listen", ep[a], "--gains", str(live_gains)])
+                                          "--listen", ep[a], "--gains", str(live_gains)]
+                           + (["--crash-at", "60"] if a == 4 else []))
         children.start("monitor", ["monitor", "paper-14-live", *common, "--listen", ep[5],
                                    "--gains", str(live_gains),
                                    "--events", str(tmp_path / "events.jsonl")])
         assert children.wait_all(UP_TIMEOUT), {c.name: children.tail(c.name)
                                                for c in children.running()}
         codes = {name: c.returncode for name, c in children.children.items()}
-        assert codes == dict.fromkeys(codes, 0), codes
+        assert codes == {**dict.fromkeys(codes, 0), "agent-4": -9}, codes
     finally:
         children.stop_all()
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
     assert [e for e in events if e["kind"] == "verdict"] == []
     assert any(e["kind"] == "liveliness" and e.get("process") == "world" and not e["alive"]
                for e in events)
+    assert any(e["kind"] == "liveliness" and e.get("agent") == 4 for e in events)
+    assert "scripted crash after step 59" in children.tail("agent-4", 3)
     assert "and the agents with it; exiting" in children.tail("monitor", 3)

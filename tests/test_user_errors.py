@@ -190,3 +190,17 @@ def test_up_fault_values_are_checked_before_anything_starts(tmp_path, capsys, fa
     assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), "--fault", fault]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run" / "run.json").exists()
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--kill", "100:1"], "--kill: step 100 is after the run's last step (50, --steps)"),
+    (["--stop", "51:2:1"], "--stop: step 51 is after the run's last step (50"),
+    (["--kill-monitor", "60"], "--kill-monitor: step 60 is after"),
+    (["--fault", "partition:70:1:2"], "--fault: step 70 is after"),
+])
+def test_up_faults_after_the_last_step_are_refused(tmp_path, capsys, flags, message):
+    """A fault scheduled after the run ends would never happen: said, not recorded."""
+    assert main(["up", "paper-14-live", "--steps", "50", "--out", str(tmp_path / "run"),
+                 *flags]) == 2
+    assert message in _one_line(capsys.readouterr().err)
+    assert not (tmp_path / "run" / "run.json").exists()

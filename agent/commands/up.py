@@ -365,4 +365,10 @@ def parse_faults(args, scenario) -> list:
             raise CommandError(f"--fault: linkdown needs SECONDS > 0 (how long the link is "
                                f"down), got {spec!r}")
         faults.append(Fault(k, kind, a, secs, value))
+    flags = {"crash": "--kill", "stop": "--stop", "monitor": "--kill-monitor"}
+    for f in faults:
+        if f.step > args.steps:
+            raise CommandError(f"{flags.get(f.kind, '--fault')}: step {f.step} is after the "
+                               f"run's last step ({args.steps}, --steps): the fault would "
+                               "never happen")
     return sorted(faults)
