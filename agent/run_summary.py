@@ -399,7 +399,7 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
         return
     ok = plottable(mse)
     mse = np.asarray(mse, dtype=float)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(8.5, 4))
     ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
     if predicted and predicted != float("inf"):
         ax.axhline(predicted, color="k", ls="--", lw=0.8, label="predicted steady MSE")
@@ -415,11 +415,13 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
                        label="reassigned" if i == 0 else None)
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
-                   label="fault injected" if i == 0 else None)
+                   label="fault scheduled" if i == 0 else None)
     ax.set_xlabel("step")
     ax.set_ylabel("MSE (mean over agents and states)")
     ax.set_title(f"{summary['scenario']}: {summary['agents']} agents, seed {summary['seed']}")
-    ax.legend()
+    # beside the axes: inside, it hid the fault and recovery lines of some runs
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0,
+              fontsize="small")
     try:
         fig.tight_layout()
         fig.savefig(out / "mse.png", dpi=110)
