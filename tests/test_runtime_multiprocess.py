@@ -227,6 +227,15 @@ def test_injected_delay_is_learned_while_running(deployment):
     assert r.returncode == 0, r.stderr
     dep.wait_for(lambda: dep.status[2]["delays"] == {3: 4}, "agent 2 learns delay 4 from 3")
     assert dep.status[1]["delays"] == {2: 0}
+    # a link the receiver does not listen on is applied, and said to change nothing now
+    r = dep.socmon("inject", "delay", "1", "2", "--steps", "1")
+    assert r.returncode == 0, r.stderr
+    assert "warning: agent 2 does not listen to agent 1 in its current role (it listens " \
+           "to 3)" in r.stderr
+    # an agent that is not there is said at once, with the ones that are
+    r = dep.socmon("inject", "drop", "1", "9", "0.5", "--timeout", "60", timeout=30)
+    assert r.returncode == 1
+    assert "agent 9 is not alive" in r.stderr and "the agents alive are 1, 2, 3, 4" in r.stderr
 
 
 def test_malformed_flood_leaves_the_agent_running_and_counted(deployment):

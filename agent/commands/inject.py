@@ -112,6 +112,32 @@ def _confirmed(op, src, dst, params, statuses, alive) -> bool:
     return all(got.get(k, defaults[k]) == v for k, v in params.items())
 
 
+#: an agent absent this long while others are alive is reported at once, not at --timeout
+ABSENT_S = 2.0
+
+
+def _unused_link(op, src, dst, statuses) -> str | None:
+    """Why a change on link ``src -> dst`` alters nothing now, or None: agent ``dst``'s
+    current role does not listen to ``src`` (it applies once roles change).
+
+    >>> _unused_link("set", 1, 2, {2: {"neighbours": {"3": 0.5}}})
+    'agent 2 does not listen to agent 1 in its current role (it listens to 3): the change takes effect only if the roles change'
+    >>> _unused_link("set", 3, 2, {2: {"neighbours": {"3": 0.5}}}) is None
+    True
+    """
+    if op == "clear_all" or src is None or dst not in statuses:
+        return None
+    if src == 0:
+        return None                         # the world's link: every agent reads it
+    listens = sorted(int(j) for j in statuses[dst].get("neighbours", {}))
+    if src in listens:
+        return None
+    what = f"it listens to {', '.join(map(str, listens))}" if listens else \
+        "it has no role: a standby"
+    return (f"agent {dst} does not listen to agent {src} in its current role ({what}): "
+            "the change takes effect only if the roles change")
+
+
 def run(args) -> int:
 
     def body():
@@ -156,6 +182,7 @@ def run(args) -> int:
             peer.publisher(key, block=True)
             statuses = {}
             deadline = time.monotonic() + args.timeout
+            absent_by = time.monotonic() + min(ABSENT_S, args.timeout)
             next_put = 0.0
             while True:
                 alive = {int(i) for r, i in watch.alive() if r == "agent" and i.isdigit()}
@@ -174,7 +201,14 @@ def run(args) -> int:
                 if next_put and _confirmed(op, src, dst, params, statuses, alive):
                     where = f"link {src} -> {dst}" if src is not None else "all links"
                     print(f"inject: {args.what} applied on {where}", file=sys.stderr)
+                    unused = _unused_link(op, src, dst, statuses)
+                    if unused:
+                        print(f"inject: warning: {unused}", file=sys.stderr)
                     return 0
+                if dst is not None and dst not in alive and alive and now > absent_by:
+                    raise CommandError(
+                        f"agent {dst} is not alive in run {net.run!r}; the agents alive are "
+                        f"{', '.join(map(str, sorted(alive)))}", status=1)
                 if now > deadline:
                     who = f"agent {dst}" if dst is not None else "the agents"
                     state = "not alive" if dst is not None and dst not in alive else \
