@@ -276,7 +276,8 @@ class LocalRun:
                             impair_links(f.agent, False, delay_steps=int(f.value))
                         else:
                             impair_links(f.agent, False, drop=float(f.value))
-                        event(process=name, impair=f"{f.kind} {f.value:g}", step=k_now)
+                        event(process=name, step=k_now, impair=f.kind if f.kind == "partition"
+                              else f"{f.kind} {f.value:g}")
                         undo.append((now + f.seconds, f))
                     elif f.kind == "linkdown":
                         c.testbed.set_link(name, up=False)

@@ -158,6 +158,12 @@ class Recorder:
                         len(rec.events) < MAX_EVENTS:    # an agent dropped its role (fenced)
                     rec.events.append({"process": f"agent-{m['agent']}", "role": "dropped",
                                        "epoch": m["epoch"], "step": m["step"], "t": time.time()})
+                links = m.get("links", {})
+                if links != (was or {}).get("links", {}) and len(rec.events) < MAX_EVENTS:
+                    # the impairments in force on the links into it changed: by this run's
+                    # faults, `socmon inject` or anyone with the operator key
+                    rec.events.append({"process": f"agent-{m['agent']}", "links": links,
+                                       "step": m["step"], "t": time.time()})
                 rec.status[m["agent"]] = m
         elif key == self._roster_key:
             m = self._authentic(try_decode(payload, self._schemas["roster"], self.stats))

@@ -416,6 +416,11 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
+    changed = sorted({e["step"] for e in summary.get("events", [])
+                      if "links" in e and isinstance(e.get("step"), int) and e["step"] >= 0})
+    for i, k in enumerate(changed):
+        ax.axvline(k, color="tab:purple", lw=0.6, ls=":",
+                   label="link impairments changed" if i == 0 else None)
     ax.set_xlabel("step")
     ax.set_ylabel("MSE (mean over agents and states)")
     ax.set_title(f"{summary['scenario']}: {summary['agents']} agents, seed {summary['seed']}")

@@ -21,12 +21,12 @@ from broker_free_net.ports import listen_port
 RUN = "t"
 
 
-def _status(agent, step, drops=0, late=0, active=True, epoch=0):
+def _status(agent, step, drops=0, late=0, active=True, epoch=0, links=None):
     return wire.encode_status({
         "agent": agent, "step": step, "active": active, "epoch": epoch, "measure": [],
         "neighbours": {}, "delays": {}, "drops": drops, "late": late, "malformed": 0,
         "malformed_reasons": {}, "impaired": 0, "sensor": {}, "heard": [], "ctl": {},
-        "links": {}, "overflows": 0})
+        "links": links or {}, "overflows": 0})
 
 
 @pytest.fixture
@@ -241,3 +241,15 @@ def test_watch_takes_the_control_key_from_the_runs_manifest(tmp_path):
     assert rec._authentic(dict(roster)) is None                       # unsigned: dropped
     signed = signer.sign(dict(roster), "r1")
     assert rec._authentic(signed) is signed
+
+
+def test_link_impairments_taking_effect_are_recorded_as_events(fed):
+    """Whatever set them (the run's faults, `socmon inject`), the impairments in force on
+    an agent's links are recorded when its status shows them changed, and when lifted."""
+    fed.feed(keys.status_key(RUN, 1), _status(1, 4))                       # unchanged
+    fed.feed(keys.status_key(RUN, 1), _status(1, 5, links={"2": {"partition": True}}))
+    fed.feed(keys.status_key(RUN, 1), _status(1, 6, links={"2": {"partition": True}}))
+    fed.feed(keys.status_key(RUN, 1), _status(1, 9))
+    changes = [(e["process"], e["step"], e["links"]) for e in fed.recording.events
+               if "links" in e]
+    assert changes == [("agent-1", 5, {"2": {"partition": True}}), ("agent-1", 9, {})]
