@@ -371,34 +371,50 @@ _NET_HELP = (
     "control (see docs/security.md)."
 )
 
+_ROUTER_NET_HELP = (_NET_HELP.replace("mode (peer)", "mode (router)")
+                    .split(" --keys adds")[0])
 
-def add_net_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+
+def add_net_arguments(parser: argparse.ArgumentParser,
+                      router_listen: str | None = None) -> argparse.ArgumentParser:
     """Add the transport flags to an argparse parser.
 
     Flags: ``--run``, ``--listen`` (repeatable), ``--connect`` (repeatable),
     ``--mode``, ``--multicast``, ``--zenoh-config``, ``--lease-ms``, ``--keys``. Every flag defaults to
     None (not given), so that a value of the ``--zenoh-config`` file is kept.
+
+    With ``router_listen`` (a router's default endpoint) the help is a router's: it does
+    not show ``--run`` (a router routes every run), ``--mode`` (it is a router) or
+    ``--keys`` (secured runs use the peer mesh), which stay accepted so that the command
+    can say why they do not apply.
     """
-    group = parser.add_argument_group("network", _NET_HELP)
+    router = router_listen is not None
+    group = parser.add_argument_group("network", _ROUTER_NET_HELP if router else _NET_HELP)
+    hidden = argparse.SUPPRESS
     group.add_argument("--run", default=None,
-                       help="run id (key prefix socmon/<run>/; default: the run of --keys, else 'default')")
+                       help=hidden if router else "run id (key prefix socmon/<run>/; default: "
+                       "the run of --keys, else 'default')")
     group.add_argument("--listen", action="append", metavar="ENDPOINT",
-                       help=f"zenoh endpoint to listen on (repeatable; default {DEFAULT_LISTEN[0]}, "
-                            f"{DEFAULT_SECURE_LISTEN[0]} with --keys)")
+                       help=f"zenoh endpoint to listen on (repeatable; default {router_listen})"
+                       if router else
+                       f"zenoh endpoint to listen on (repeatable; default {DEFAULT_LISTEN[0]}, "
+                       f"{DEFAULT_SECURE_LISTEN[0]} with --keys)")
     group.add_argument("--connect", action="append", metavar="ENDPOINT",
-                       help="seed endpoint to connect to (repeatable); in client mode, the "
-                            "routers to try in order")
+                       help="another router to join (repeatable)" if router else
+                       "seed endpoint to connect to (repeatable); in client mode, the "
+                       "routers to try in order")
     group.add_argument("--mode", choices=_PROCESS_MODES, default=None,
-                       help="peer (default): link to every other process; client: one link, "
-                            "to a router (socmon router) given by --connect")
+                       help=hidden if router else "peer (default): link to every other "
+                       "process; client: one link, to a router (socmon router) given by "
+                       "--connect")
     group.add_argument("--multicast", action="store_true", default=None,
                        help="enable multicast scouting (LAN)")
     group.add_argument("--zenoh-config", metavar="FILE", help="zenoh json5 config file applied first")
     group.add_argument("--lease-ms", type=int, default=None,
                        help=f"link lease in ms (default {DEFAULT_LEASE_MS})")
     group.add_argument("--keys", metavar="DIR",
-                       help="key directory of the run (socmon keys init): TLS, mutual "
-                            "authentication and access control")
+                       help=hidden if router else "key directory of the run (socmon keys "
+                       "init): TLS, mutual authentication and access control")
     return parser
 
 

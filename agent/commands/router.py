@@ -22,11 +22,11 @@ def add_arguments(parser) -> None:
 
     parser.description = (f"{HELP}. It listens on --listen (default {DEFAULT_ROUTER_LISTEN[0]}"
                           f"; port 0: chosen by the OS) and prints its endpoints; --connect "
-                          f"joins other routers. It routes every run (--run is not used) and "
-                          f"stops on SIGTERM or Ctrl-C.")
+                          f"joins other routers. It routes every run and stops on SIGTERM or "
+                          f"Ctrl-C. Secured runs (--keys) use the peer mesh, not a router.")
     parser.add_argument("--json", action="store_true",
                         help="print the endpoints as one JSON line")
-    add_net_arguments(parser)
+    add_net_arguments(parser, router_listen=DEFAULT_ROUTER_LISTEN[0])
 
 
 def run(args) -> int:
