@@ -365,7 +365,9 @@ def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Sce
         problems.append("name: must be a non-empty string")
         name = "scenario"
 
+    before = len(problems)
     A, labels = _parse_social(social, base_dir, problems)
+    social_ok = len(problems) == before   # else its labels are a placeholder: not checked
     q = _positive_number(social, "process_noise", "social.process_noise", problems,
                          _default("social", "process_noise"))
     r = _positive_number(agents, "measurement_noise", "agents.measurement_noise", problems,
@@ -376,7 +378,7 @@ def scenario_from_dict(data: dict, base_dir=None, source: str = "<dict>") -> Sce
             f"agents.standby: must be a non-negative integer (at most {MAX_STANDBY}), "
             f"got {standby!r}")
         standby = 0
-    measure = _parse_measure(agents, labels, problems)
+    measure = _parse_measure(agents, labels if social_ok else None, problems)
     N = len(measure) if measure is not None else 0
     W = _parse_weights(network, N, problems) if N else None
     delays = _parse_delays(network, W, problems) if W is not None else None
@@ -660,7 +662,7 @@ def _parse_measure(agents, labels, problems):
     if not isinstance(measure, list) or not measure:
         problems.append("agents.measure: must be a non-empty list of lists of node labels")
         return None
-    index = {lab: i for i, lab in enumerate(labels)}
+    index = {lab: i for i, lab in enumerate(labels)} if labels is not None else None
     out = []
     for a, group in enumerate(measure, start=1):
         if not isinstance(group, list) or not group:
@@ -669,7 +671,9 @@ def _parse_measure(agents, labels, problems):
             continue
         idx = []
         for lab in group:
-            if str(lab) not in index:
+            if index is None:
+                idx.append(str(lab))      # the graph's labels are unknown: only the shape
+            elif str(lab) not in index:
                 problems.append(f"agents.measure[{a}]: unknown node label {lab!r}")
             else:
                 idx.append(index[str(lab)])

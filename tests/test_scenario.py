@@ -237,3 +237,12 @@ def test_scenario_to_toml_loads_back_equal(tmp_path, make):
     assert_same_scenario(back, s)
     assert back.digest() == s.digest()
 
+
+
+def test_a_broken_matrix_is_not_followed_by_label_problems_it_caused():
+    """Until A is read, the node labels are unknown: measured labels are not called unknown."""
+    bad = {"social": {"A": [[0.5, 0.1, 0.0], [0.0, 0.5], [0.1, 0.0, 0.5]]},
+           "agents": {"measure": [["2"], ["3"]]}}
+    with pytest.raises(ScenarioError) as info:
+        scenario_from_dict(bad)
+    assert info.value.problems == ["social.A: rows have different lengths [2, 3]"]
