@@ -47,11 +47,22 @@ COMMANDS = {
 }
 
 
+def _version() -> str:
+    """The installed distribution's version (a source tree not installed: unknown)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("socmon")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="socmon",
         description="Resilient distributed monitoring of social dynamics by collaborating agents.",
     )
+    parser.add_argument("--version", action="version", version=f"socmon {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, module_name in COMMANDS.items():

@@ -64,6 +64,28 @@ class Fault:
         return {"step": self.step, "kind": self.kind, "agent": self.agent,
                 "seconds": self.seconds, "value": self.value}
 
+    def describe(self) -> str:
+        """What a scheduled fault does, for the progress lines.
+
+        >>> Fault(500, "monitor").describe()
+        'monitor killed (SIGKILL), started again'
+        >>> Fault(300, "delay", 2, 5.0, 3.0).describe()
+        'links into agent 2 delayed by 3 steps for 5 s'
+        """
+        what = {
+            "crash": "agent {a} crashes (scripted)",
+            "kill": "agent {a} killed (SIGKILL)",
+            "hang": "agent {a} loop hung (SIGUSR1)",
+            "stop": "agent {a} stopped (SIGSTOP)",
+            "sensor": "agent {a} sensor readings cut",
+            "monitor": "monitor killed (SIGKILL), started again",
+            "partition": "agent {a} partitioned (its outgoing links cut)",
+            "delay": "links into agent {a} delayed by {v:g} steps",
+            "drop": "links into agent {a} drop a fraction {v:g}",
+            "linkdown": "agent {a} host link down",
+        }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
+        return what + (f" for {self.seconds:g} s" if self.seconds else "")
+
 
 @dataclass(frozen=True, eq=False)
 class RunConfig:
@@ -283,9 +305,7 @@ class LocalRun:
                         c.testbed.set_link(name, up=False)
                         event(process=name, link="down", step=k_now)
                         undo.append((now + f.seconds, f))
-                    self.say(f"step {k_now}: {f.kind}"
-                             + (f" agent {f.agent}" if f.agent else "")
-                             + (f" for {f.seconds:g} s" if f.seconds else ""))
+                    self.say(f"step {k_now}: {f.describe()}")
 
                 def end(f, k_now):
                     nonlocal restarts

@@ -204,3 +204,12 @@ def test_up_faults_after_the_last_step_are_refused(tmp_path, capsys, flags, mess
                  *flags]) == 2
     assert message in _one_line(capsys.readouterr().err)
     assert not (tmp_path / "run" / "run.json").exists()
+
+
+def test_version_is_printed(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out == f"socmon {version('socmon')}\n"

@@ -130,7 +130,9 @@ def _watch(args) -> int:
         print(json.dumps(to_jsonable(versioned({"kind": "summary", **summary}))), flush=True)
     else:
         pred = summary.get("mse_steady_exact")
-        print(f"{scenario.name}: run {net.run} {result.ended} at step {summary['steps']}: "
+        how = {"steps": "recorded up to --steps", "world ended": "ended with its world",
+               "interrupted": "watched until interrupted"}.get(result.ended, result.ended)
+        print(f"{scenario.name}: run {net.run} {how}, last step {summary['steps']}: "
               f"mse_steady {summary['mse_steady']:.4g}"
               + (f" (predicted {pred:.4g})" if pred is not None else " (no --gains: no "
                  "prediction)")
