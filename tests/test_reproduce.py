@@ -109,3 +109,46 @@ def test_sampson_scenario_follows_the_papers_settings(sampson_edges):
 def test_bad_input_exits_2(tmp_path, capsys, flags, message):
     assert main(["reproduce", "--out", str(tmp_path / "o")] + flags) == 2
     assert message in capsys.readouterr().err
+
+
+def test_links_empty_after_a_recovery_and_their_receivers_local_loops(paper14):
+    """Standbys 4 and 5 replace the agents measuring 7 and 9: each link from a new agent
+    is empty for its delay, and its receiver's local loop is (I - G_i H_i) A."""
+    from design.recovery import plan_recovery
+
+    s = paper14.replace(standby=2)
+    s3 = s.replace(delays=uniform_delays(s.W, 3))
+    plan = plan_recovery(s3, [0, 1])
+    new = plan.scenario_after
+    G = [0.5 * np.eye(new.n)[:, list(m)] for m in new.measure]
+    D = uniform_delays(new.W, 3)
+    got = rep.refill_windows(plan, G, D, s.A)
+    ids = list(plan.agent_ids)
+    expected = {(ids[i], ids[j]) for i in range(new.N) for j in range(new.N)
+                if i != j and new.W[i, j] != 0 and ids[j] in (4, 5)}
+    assert {(r["agent"], r["from"]) for r in got} == expected and expected
+    assert all(r["steps"] == 3 for r in got)
+    for r in got:
+        i = ids.index(r["agent"])
+        H = np.eye(new.n)[list(new.measure[i])]
+        local = (np.eye(new.n) - G[i] @ H) @ s.A
+        assert r["rho_alone"] == pytest.approx(max(abs(np.linalg.eigvals(local))), rel=1e-9)
+
+
+def test_a_peak_after_the_recovery_is_explained_by_its_empty_links():
+    sims = [{"tau": 15, "mse_steady_exact": 7.0, "mse_steady": 7.5, "peak_mse": 1.9e5,
+             "peak_step": 164, "refill": [
+                 {"agent": 4, "from": 5, "steps": 15, "rho_alone": 1.557},
+                 {"agent": 3, "from": 4, "steps": 15, "rho_alone": 0.85}]},
+            {"tau": 3, "mse_steady_exact": 1.0, "mse_steady": 1.0, "peak_mse": 1.8,
+             "peak_step": 152, "refill": [
+                 {"agent": 4, "from": 5, "steps": 3, "rho_alone": 1.08}]}]
+    results = {"objective": "mse", "paper-14": {"N": 3, "failure": {
+        "failed_agents": [1, 2], "agents_after": [4, 5, 3], "standby_declared": 2,
+        "standby_added": 0, "unmeasured_parent_radius": 0.4, "simulations": sims,
+        "no_recovery": {"tau": 15, "mse_steady": 0.38}}}}
+    text = "\n".join(rep.explain_failure(results))
+    assert "The peak at tau = 15 (MSE 1.9e+05 at step 164, against 7.5 steady)" in text
+    assert "from agent 5 to agent 4 carries nothing for 15 steps" in text
+    assert "spectral radius 1.557 > 1" in text
+    assert "The peak at tau = 3" not in text
