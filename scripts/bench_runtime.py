@@ -7,9 +7,10 @@ In one run, for each source tree given (this one, and ``--baseline`` trees for c
    *floor*: the marginal CPU and context switches per step of a bare zenoh-python
    process (socmon's zenoh configuration, no socmon code) that receives an agent's
    messages of a step and sends its estimate, with the callback handing each sample to
-   the main thread (socmon's model) and with the callback publishing itself
-   (``--floor-steps`` steps at each period; ``--floor-zenoh KEY=JSON5`` changes a zenoh
-   setting of both, to try one of zenoh's options without socmon);
+   the main thread (socmon's model), with the callback publishing itself, and with the
+   estimates left in zenoh's own ring buffer (``--floor-steps`` steps at each period;
+   ``--floor-zenoh KEY=JSON5`` changes a zenoh setting of the round trip and the floor,
+   to try one of zenoh's options without socmon);
 2. ``socmon up SCENARIO`` (default paper-14-live: 3 agents + 1 standby + world + monitor)
    for ``--steps`` steps at each ``--step-ms``; a step period is *sustained* when no
    estimate was dropped or late and no sensor reading missed. Per run: the agent-to-agent
@@ -224,7 +225,9 @@ def floor_source(endpoint: str, steps: int, step_ms: float) -> None:
     ready.recv()                                  # the sink's routes exist
     start = time.monotonic()
     for k in range(steps):
-        for pub, payload in zip(pubs, payloads):
+        # the estimates first, then the readings: in a live step the neighbours' estimates
+        # of step k - 1 arrive before the world's readings of step k
+        for pub, payload in reversed(list(zip(pubs, payloads))):
             pub.put(payload)
         pause = start + (k + 1) * step_ms / 1e3 - time.monotonic()
         if pause > 0:
@@ -236,7 +239,10 @@ def floor_sink(endpoint: str, steps: int, model: str) -> None:
     """Child: receive ``steps`` steps of inputs, publish one estimate a step, print its CPU.
 
     ``inbox``: the callback copies each sample into a queue and wakes the main thread,
-    which publishes (socmon's model); ``callback``: the callback itself publishes."""
+    which publishes (socmon's model); ``callback``: the callback itself publishes;
+    ``channel``: the estimates wait in zenoh's own ring buffer (``RingChannel``: the
+    receive thread never takes the GIL for them) and the readings' callback wakes the main
+    thread, which drains the rings and publishes."""
     import zenoh
 
     session = zenoh.open(_zconfig(connect=endpoint))
@@ -245,7 +251,16 @@ def floor_sink(endpoint: str, steps: int, model: str) -> None:
     want = steps * len(FLOOR_IN)
     got, queue, lock, wake, done = [0], deque(), threading.Lock(), threading.Event(), \
         threading.Event()
-    if model == "callback":
+    rings = []
+    if model == "channel":
+        rings = [session.declare_subscriber(f"bench/in/{i}", zenoh.handlers.RingChannel(64))
+                 for i in range(1, len(FLOOR_IN))]
+
+        def on_sample(sample):
+            with lock:
+                queue.append(sample.payload.to_bytes())
+            wake.set()
+    elif model == "callback":
         def on_sample(sample):
             sample.payload.to_bytes()
             with lock:
@@ -260,7 +275,8 @@ def floor_sink(endpoint: str, steps: int, model: str) -> None:
             with lock:
                 queue.append(sample.payload.to_bytes())
             wake.set()
-    session.declare_subscriber("bench/in/*", zenoh.handlers.Callback(on_sample, indirect=False))
+    session.declare_subscriber("bench/in/0" if rings else "bench/in/*",
+                               zenoh.handlers.Callback(on_sample, indirect=False))
     ready = session.declare_publisher("bench/ready")
     deadline = time.monotonic() + 60 + steps * 0.05
     while not got[0] and not queue and time.monotonic() < deadline:
@@ -277,7 +293,13 @@ def floor_sink(endpoint: str, steps: int, model: str) -> None:
                 queue.clear()
             for _ in items:
                 got[0] += 1
-                if got[0] % len(FLOOR_IN) == 0:
+                for ring in rings:               # channel: the estimates, without a wake-up
+                    sample = ring.try_recv()
+                    while sample is not None:
+                        sample.payload.to_bytes()
+                        got[0] += 1
+                        sample = ring.try_recv()
+                if rings or got[0] % len(FLOOR_IN) == 0:
                     out.put(payload)
     usage = resource.getrusage(resource.RUSAGE_SELF)
     switches = 0
@@ -315,7 +337,7 @@ def floor_run(steps: int, step_ms: float, model: str) -> dict:
 def floor(steps: int, short_steps: int, step_ms: float) -> dict:
     """Marginal CPU ms and context switches per step of a bare zenoh-python 'agent'."""
     out = {}
-    for model in ("inbox", "callback"):
+    for model in ("inbox", "callback", "channel"):
         short, long = floor_run(short_steps, step_ms, model), floor_run(steps, step_ms, model)
         extra = steps - short_steps
         out[model] = {"cpu_ms_per_step": 1e3 * (long["cpu_s"] - short["cpu_s"]) / extra,
