@@ -127,8 +127,6 @@ def _unused_link(op, src, dst, statuses) -> str | None:
     """
     if op == "clear_all" or src is None or dst not in statuses:
         return None
-    if src == 0:
-        return None                         # the world's link: every agent reads it
     listens = sorted(int(j) for j in statuses[dst].get("neighbours", {}))
     if src in listens:
         return None
