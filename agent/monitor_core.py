@@ -275,6 +275,12 @@ class MonitorCore:
         a = self._agent(agent)
         if a is None:
             return
+        if a.alive and not alive and agent not in self.roster.ids \
+                and self.world_gone_at is None:
+            # no role to hand over, but one failure fewer can be answered
+            left = len(self.standby_pool(now, exclude=(agent,)))
+            self.events.append(f"standby agent {agent} gone (its token went): {left} "
+                               f"standby left to replace a failed agent")
         a.alive = bool(alive)
         if alive and a.progress_at is None:
             a.progress_at = now

@@ -222,3 +222,11 @@ def test_verdicts_resume_when_the_world_comes_back(core):
     core.on_liveliness("agent", 1, False, 6.05)
     core.tick(6.05)
     assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "crash")]
+
+
+def test_a_standby_that_goes_is_said_with_the_standbys_left(core):
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 4, False, 2.05)
+    assert core.tick(2.05) == [] and core.verdicts == []
+    assert "standby agent 4 gone (its token went): 0 standby left to replace a failed " \
+           "agent" in core.events
