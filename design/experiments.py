@@ -258,11 +258,12 @@ def refill_windows(plan, G, D, A) -> list:
     loop = closed_loop_for(new, G, D)
     out = []
     for i, a in enumerate(plan.agent_ids):
-        for j, b in enumerate(plan.agent_ids):
-            if b in fresh and j != i and new.W[i, j] != 0 and D[i, j] > 0:
-                rho = float(np.max(np.abs(np.linalg.eigvals(loop.L[i] @ A))))
-                out.append({"agent": int(a), "from": int(b), "steps": int(D[i, j]),
-                            "rho_alone": rho})
+        empty = [j for j, b in enumerate(plan.agent_ids)
+                 if b in fresh and j != i and new.W[i, j] != 0 and D[i, j] > 0]
+        if empty:
+            rho = float(np.max(np.abs(np.linalg.eigvals(loop.L[i] @ A))))
+            out += [{"agent": int(a), "from": int(plan.agent_ids[j]), "steps": int(D[i, j]),
+                     "rho_alone": rho} for j in empty]
     return out
 
 
