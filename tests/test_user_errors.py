@@ -211,3 +211,13 @@ def test_version_is_printed(capsys):
 
     assert main(["--version"]) == 0
     assert capsys.readouterr().out == f"socmon {version('socmon')}\n"
+
+
+def test_plan_without_new_links_says_and_exits_as_planned(capsys):
+    """paper-14 losing agents 1 and 2 needs a new link: without it, not recoverable."""
+    assert main(["plan", "paper-14", "--fail", "1,2", "--no-new-links"]) == 1
+    out = capsys.readouterr().out
+    assert "recoverable without new links: no (yes if plan may add links" in out
+    assert "\nrecoverable: yes" not in out
+    assert main(["plan", "paper-14", "--fail", "1,2"]) == 0
+    assert "recoverable: yes" in capsys.readouterr().out

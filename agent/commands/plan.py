@@ -49,6 +49,8 @@ def _run(args) -> int:
     failed = parse_agent_list(args.fail, scenario, flag="--fail")
     plan = plan_recovery(scenario, failed, add_links=not args.no_new_links)
     data = {"scenario": scenario.name, **plan.to_dict(scenario)}
+    if args.no_new_links:
+        data["no_new_links"] = True
     if args.write_scenario:
         if plan.scenario_after is None:
             raise CommandError(
@@ -64,8 +66,13 @@ def _run(args) -> int:
         print_json(data)
     else:
         print(format_text(data))
-    ok = data["recoverable"] and data.get("distributed_detectable_after", False)
+    ok = _recoverable_as_planned(data) and data.get("distributed_detectable_after", False)
     return EXIT_OK if ok else EXIT_NEGATIVE
+
+
+def _recoverable_as_planned(d: dict) -> bool:
+    """Recoverable with the links this plan may add (none with ``--no-new-links``)."""
+    return d["recoverable_without_new_links"] if d.get("no_new_links") else d["recoverable"]
 
 
 def format_text(d: dict) -> str:
@@ -112,7 +119,13 @@ def format_text(d: dict) -> str:
     if d["unmeasured_parent_sccs_after"]:
         lines.append("parent SCCs left without sensor: " + "; ".join(
             "{" + ", ".join(c) + "}" for c in d["unmeasured_parent_sccs_after"]))
-    lines.append("recoverable: " + ("yes" if d["recoverable"] else "no"))
+    if d.get("no_new_links"):
+        lines.append("recoverable without new links: "
+                     + ("yes" if d["recoverable_without_new_links"] else "no")
+                     + ("" if d["recoverable_without_new_links"] or not d["recoverable"]
+                        else " (yes if plan may add links: drop --no-new-links)"))
+    else:
+        lines.append("recoverable: " + ("yes" if d["recoverable"] else "no"))
     if "scenario_written" in d:
         lines.append(f"recovered scenario written to {d['scenario_written']}")
     return "\n".join(lines)
