@@ -221,3 +221,22 @@ def test_plan_without_new_links_says_and_exits_as_planned(capsys):
     assert "\nrecoverable: yes" not in out
     assert main(["plan", "paper-14", "--fail", "1,2"]) == 0
     assert "recoverable: yes" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("plot, message", [
+    ("mse.txt", "--plot: cannot write a '.txt' figure; use one of .png"),
+    ("nowhere/mse.png", "--plot: folder 'nowhere' does not exist"),
+])
+def test_simulate_plot_path_is_checked_before_simulating(paper14_gains, tmp_path,
+                                                           monkeypatch, capsys, plot, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "paper-14", "--gains", paper14_gains, "--steps", "5",
+                 "--trials", "1", "--plot", plot]) == 2
+    assert message in _one_line(capsys.readouterr().err)
+
+
+def test_simulate_plot_without_suffix_writes_and_names_a_png(paper14_gains, tmp_path, capsys):
+    assert main(["simulate", "paper-14", "--gains", paper14_gains, "--steps", "5",
+                 "--trials", "1", "--plot", str(tmp_path / "mse")]) == 0
+    assert f"figure: {tmp_path / 'mse.png'}" in capsys.readouterr().out
+    assert (tmp_path / "mse.png").is_file()

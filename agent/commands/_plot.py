@@ -2,7 +2,34 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+#: what matplotlib's Agg backend writes, by file suffix
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".ps", ".eps", ".jpg", ".jpeg", ".tif",
+                   ".tiff", ".webp", ".pgf")
+
+
+def figure_path(text: str, flag: str = "--plot") -> Path:
+    """The figure file a ``--plot`` value names, checked before any work is done: no
+    suffix -> ``.png``; a suffix matplotlib cannot write, or a folder that does not
+    exist, is an error naming the flag.
+
+    >>> figure_path("mse"), figure_path("fig.pdf")
+    (PosixPath('mse.png'), PosixPath('fig.pdf'))
+    """
+    from ._common import CommandError
+
+    path = Path(text)
+    if not path.suffix:
+        path = path.with_name(path.name + ".png")
+    if path.suffix.lower() not in FIGURE_SUFFIXES:
+        raise CommandError(f"{flag}: cannot write a {path.suffix!r} figure; use one of "
+                           f"{', '.join(FIGURE_SUFFIXES)}")
+    if not path.parent.is_dir():
+        raise CommandError(f"{flag}: folder {str(path.parent)!r} does not exist")
+    return path
 
 
 def plot_mse(path, curves, title=None, events=(), band=(10.0, 90.0), reference=()) -> None:

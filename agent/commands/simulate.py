@@ -174,6 +174,10 @@ def _run(args) -> int:
     steps = parse_int(args.steps, "--steps", lo=1)
     seed = parse_int(args.seed, "--seed", lo=0)
     drop = parse_drop(args.drop)
+    if args.plot:
+        from ._plot import figure_path
+
+        args.plot = figure_path(args.plot)
     scenario = load_scenario_arg(args.scenario)
     gains = load_gains_arg(args.gains, scenario, force=args.force_gains)
     delays = resolve_delays_arg(scenario, args.delays)
