@@ -110,7 +110,9 @@ def format_text(d: dict) -> str:
         f"failure tolerance (standby agents replace, no new links): {tol('failure_tolerance')}",
         f"failure tolerance with new links allowed: {tol('failure_tolerance_with_new_links')}",
         "failure tolerance without replacement (paper's Remark 5): "
-        f"{d['failure_tolerance_without_replacement']}",
+        + ("none (not recoverable even without failures)"
+           if d["failure_tolerance_without_replacement"] is None
+           else str(d["failure_tolerance_without_replacement"])),
     ]
     for w in d["warnings"]:
         lines.append(f"warning: {w}")
