@@ -218,3 +218,22 @@ def test_cli_certify_bad_gains_files(tmp_path, capsys):
     save_gains(few, [np.zeros((14, 1))] * 2, {"method": "few"})
     assert main(["certify", "paper-14", "--gains", str(few)]) == 2
     assert "2 gain arrays for 3 agents" in capsys.readouterr().err
+
+
+def test_the_sparse_spectral_radius_is_the_dense_one_on_clustered_spectra(monkeypatch):
+    """Long uniform delays give many eigenvalues of nearly equal modulus, where one
+    Arnoldi run can settle just inside the radius: the answer must still be exact and
+    the same on every call."""
+    import scipy.linalg as sla
+
+    import design.closed_loop as cl
+    from design.scenario import load_scenario, uniform_delays
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    M = cl.closed_loop_for(s, G, uniform_delays(s.W, 12)).companion(sparse=True)
+    dense = float(np.max(np.abs(sla.eigvals(M.toarray()))))
+    monkeypatch.setattr(cl, "DENSE_EIG_MAX_ORDER", 10)     # the sparse path at order 546
+    got = [cl.spectral_radius(M) for _ in range(3)]
+    assert got == [got[0]] * 3
+    assert got[0] == pytest.approx(dense, rel=1e-10)
