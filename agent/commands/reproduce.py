@@ -214,9 +214,9 @@ def differences(results) -> list:
             f"delayed closed loop for our delay-free gain is "
             f"{worst['exact_delay_free_gain']:.4f} at tau = {worst['tau']}"
             + (" (UNSTABLE)" if worst["exact_delay_free_gain"] >= 1 else "")
-            + ": with rho(A) > 1, delays do destabilise a delay-free design (NOTES "
-            "section 3), contrary to the claim that the gain works irrespective of the "
-            f"delays. A gain designed for the delay gives {worst['exact_designed_gain']:.4f}.")
+            + ": delays can destabilise a delay-free design (NOTES section 3; with "
+            "rho(A) > 1 as here, and with a stable A too), contrary to the claim that "
+            f"the gain works irrespective of the delays. A gain designed for the delay gives {worst['exact_designed_gain']:.4f}.")
         unstable = [r["tau"] for r in p["rho_table"] if r["exact_delay_free_gain"] >= 1]
         if unstable:
             out.append(f"- Our delay-free gain is unstable under delays tau = {unstable}; "
