@@ -410,9 +410,13 @@ def reproduce_section5(steps: int = 300, seed: int = 0, trials=None, objective: 
         results["sampson"]["weights_seed"] = 0
     keys = [k for k in ("paper-14", "sampson") if k in results]
     results["problems"] = [p for k in keys for p in results[k]["problems"]]
-    results["diverged"] = any(
-        s["diverged"] for k in keys
-        for s in results[k]["simulations"] + results[k].get("failure", {}).get("simulations", []))
+    results["diverged_runs"] = [
+        f"{k}{' with the failure' if part == 'failure' else ''} at tau = {s['tau']}"
+        for k in keys for part in ("delays", "failure")
+        for s in (results[k]["simulations"] if part == "delays"
+                  else results[k].get("failure", {}).get("simulations", []))
+        if s["diverged"]]
+    results["diverged"] = bool(results["diverged_runs"])
     results["seconds"] = time.perf_counter() - t0
     return results
 

@@ -73,6 +73,7 @@ def test_reproduce_writes_report_tables_and_figures(fast, tmp_path, sampson_edge
     assert 0 < rad < 1 and f"radius {rad:.4f} < 1" in report and "stays detectable" in report
     assert "Gains chosen for the steady MSE" in report and res["objective"] == "mse"
     assert "No wall-clock limit" in report
+    assert res["diverged_runs"] == [] and res["diverged"] is False
 
 
 def test_failure_explanations_follow_the_objective_and_budget():

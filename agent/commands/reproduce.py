@@ -320,6 +320,9 @@ def _run(args) -> int:
     print(f"report: {report}")
     for p in results["problems"]:
         print(f"problem: {p}")
+    for run in results["diverged_runs"]:
+        print(f"diverged: the simulation of {run} (its MSE still growing at the end: "
+              "see the report; a short --steps can end inside a transient)")
     return EXIT_NEGATIVE if results["problems"] or results["diverged"] else EXIT_OK
 
 
