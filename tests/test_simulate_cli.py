@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from agent.cli import main
+from agent.commands.simulate import format_text
 from design.gains import gains_meta, save_gains
 
 from design.gain_design import design_gains
@@ -109,3 +110,6 @@ def test_recover_designs_gains_for_the_new_configuration(gains_file, capsys):
     assert out["recovered"] is True and out["recovery"]["rho_exact_after_recovery"] < 1
     assert out["recovery"]["replacements"][0]["from"] == "7"
     assert not out["diverged"]
+    text = format_text(out)
+    exact = out["recovery"]["mse_steady_exact_after_recovery"]
+    assert exact > 0 and f"exact steady MSE after recovery (Lyapunov): {exact:.5g}" in text

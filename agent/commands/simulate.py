@@ -235,6 +235,10 @@ def _run(args) -> int:
             what = "failure + recovery" if recover is not None else "failure"
             events.append((fail[0], f"{what} (agents {', '.join(str(a + 1) for a in fail[1])})"))
         ref = [(out["mse_steady_exact"], "exact steady MSE (Lyapunov)")]
+        after = (recovery_info or {}).get("mse_steady_exact_after_recovery")
+        if after is not None and drop == 0:
+            ref = [(exact_steady_mse(scenario, gains.G, delays), "exact steady MSE before the "
+                    "failure"), (after, "exact steady MSE after recovery")]
         try:
             plot_mse(args.plot, [(f"{scenario.name}, {trials} trials", result)],
                      title=f"{scenario.name} (delays: {args.delays})"
@@ -286,6 +290,10 @@ def format_text(d: dict) -> str:
             lines.append("  added links: " + ", ".join(
                 f"{x['from']} -> {x['to']}" for x in r["added_links"]))
         lines.append(f"  exact radius after recovery: {r['rho_exact_after_recovery']:.6g}")
+        if r.get("mse_steady_exact_after_recovery") is not None:
+            lines.append("  exact steady MSE after recovery (Lyapunov): "
+                         f"{_f(r['mse_steady_exact_after_recovery'])}"
+                         + (" (without the drops)" if d["drop"] else ""))
     lines.append(f"MSE at step 0: {_f(mse[0] if isinstance(mse[0], float) else mse[0])}, "
                  f"at step {d['steps']}: {_f(mse[-1] if isinstance(mse[-1], float) else mse[-1])}")
     lines.append(f"steady MSE (mean over the last quarter): {_f(d['mse_steady'])}")
