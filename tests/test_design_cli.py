@@ -146,3 +146,24 @@ def test_design_help_shows_every_budget(capsys):
                  "--max-iter N", "(default 200)", "--window N", "(default 20)",
                  "--rel-tol X", "(default 1e-3)", "--starts K"):
         assert text in out, text
+
+
+def test_a_radius_design_worse_than_no_correction_is_warned(capsys, tmp_path):
+    """The starter scenario (stable A): the smallest radius costs more error than zero
+    gains; the warning gives both exact steady MSEs, and --objective mse does not warn."""
+    start = tmp_path / "s.toml"
+    assert main(["init", str(start)]) == 0
+    capsys.readouterr()
+    assert main(["design", str(start), "--out", str(tmp_path / "g.npz"), "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    s = load_scenario(str(start))
+    D = resolve_delays(s, "scenario")
+    zero = ClosedLoop(s.A, s.W, D, s.measure, [np.zeros((s.n, len(m))) for m in s.measure])
+    none = zero.mse_steady(s.process_noise, s.measurement_noise)
+    assert record["mse_steady_exact"] > none
+    (w,) = record["warnings"]
+    assert f"above that of no correction at all (zero gains: {none:.6g})" in w
+    assert main(["design", str(start), "--out", str(tmp_path / "m.npz"), "--objective", "mse",
+                 "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["warnings"] == [] and record["mse_steady_exact"] <= none

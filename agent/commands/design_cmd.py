@@ -10,6 +10,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from design.ccl import SolverError
 from design.closed_loop import ClosedLoop
 from design.errors import NotObservableError, ScenarioError
@@ -162,16 +164,40 @@ def _run(args) -> int:
         record["rho_exact"] = loop.spectral_radius()
         record["stable"] = bool(record["rho_exact"] < 1)
         record["written"] = str(out)
+        record["warnings"] = _worse_than_no_correction(scenario, D, record)
     status = EXIT_OK if record["stable"] else EXIT_NEGATIVE
     if args.json:
         print_json(record)
     else:
         _print_text(record, res)
+    if not args.json:
+        for w in record.get("warnings", []):
+            print(f"socmon: warning: {w}", file=sys.stderr)
     if not record["stable"]:
         where = f"written to {out} (--force)" if record["written"] else "no file written"
         print(f"socmon: no stabilising gain found for these delays (rho = {record['rho_exact']:.6g}); "
               f"{where}", file=sys.stderr)
     return status
+
+
+def _worse_than_no_correction(scenario, D, record) -> list:
+    """A warning when a radius-designed gain's exact steady MSE is above that of no
+    correction at all (zero gains: each agent predicts, the loop is W (x) A), which is
+    possible when A is stable: the radius objective does not design for the error."""
+    mse = record.get("mse_steady_exact")
+    if record.get("objective") != "rho" or mse is None or not np.isfinite(mse) \
+            or not record["stable"]:
+        return []
+    zero = ClosedLoop(scenario.A, scenario.W, D, scenario.measure,
+                      [np.zeros((scenario.n, len(m))) for m in scenario.measure])
+    if not zero.spectral_radius() < 1:
+        return []
+    none = zero.mse_steady(scenario.process_noise, scenario.measurement_noise)
+    if not mse > none:
+        return []
+    return [f"this gain's exact steady MSE ({mse:.6g}) is above that of no correction at "
+            f"all (zero gains: {none:.6g}): the radius objective does not design for the "
+            "error; --objective mse does"]
 
 
 def _print_text(record, res) -> None:
