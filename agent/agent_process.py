@@ -11,7 +11,8 @@ control message). It never reads the truth key.
 
 It also subscribes to the roster key (``ctl/0``, the monitor's fence). The process ends
 on SIGTERM/SIGINT (a second signal exits at once), or once the world has been gone for
-``WORLD_GRACE_S`` and every reading received has been used (or ``WORLD_GONE_S`` after the
+``Timing.world_grace_s`` and every reading received has been used (or
+``Timing.agent_world_gone_s`` after the
 world left, whatever keeps arriving): an agent paused for a few seconds (SIGSTOP) that
 finds the world's token gone when it resumes waits for the mesh to come back instead of
 leaving a live run.
@@ -43,19 +44,13 @@ from . import wire
 from .control_auth import SignatureError
 from .core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role
 from .ratelimit import LogLimiter
+from .timing import DEFAULT as TIMING
+from .timing import Timing
 
 __all__ = ["agent_config", "run_agent", "initial_role"]
 
-STATUS_S = 0.2
-PRESTART_STATUS_S = 0.1
 #: stamps farther than this from the agent's step are rejected as malformed ("stale"/"future")
 STAMP_WINDOW = 100_000
-#: the world must stay gone this long before the agent leaves
-WORLD_GRACE_S = 5.0
-#: once the world has left, the agent exits after this long even if messages keep arriving
-WORLD_GONE_S = 10.0
-#: a scripted crash waits this long after its last put so that the transport sends it
-CRASH_FLUSH_S = 0.3
 #: after a burst of messages, freed heap memory is returned to the OS at most this often
 TRIM_S = 2.0
 
@@ -134,8 +129,11 @@ class _Stop:
 
 
 def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None,
-              verifier=None, operator_verifier=None) -> int:
+              verifier=None, operator_verifier=None, timing: Timing = TIMING) -> int:
     """Run one agent until stopped or the world leaves. Returns the exit status.
+
+    Its status period, the waits for a world that left and a scripted crash's flush come
+    from ``timing`` (:class:`agent.timing.Timing`).
 
     ``verifier`` (:class:`agent.control_auth.ControlVerifier`): assignments and rosters
     must carry the run's control signature; what fails is dropped and counted.
@@ -221,7 +219,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         def scripted_crash(step):
             publish_status()
             print(f"agent {me}: scripted crash after step {step}", file=log, flush=True)
-            time.sleep(CRASH_FLUSH_S)        # the transport sends the last messages
+            time.sleep(timing.crash_flush_s)        # the transport sends the last messages
             print(f"agent {me}: SIGKILL at t={time.time():.6f}", file=log, flush=True)
             os.kill(os.getpid(), signal.SIGKILL)
 
@@ -342,10 +340,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()
-                next_status = now + (STATUS_S if core.step >= 0 else PRESTART_STATUS_S)
+                next_status = now + (timing.status_s if core.step >= 0
+                                     else timing.prestart_status_s)
             if world_seen and not world_alive and world_gone_at is not None and (
-                    (not core.sensor and not len(est_in) and now - world_gone_at >= WORLD_GRACE_S)
-                    or now - world_gone_at > WORLD_GONE_S):
+                    (not core.sensor and not len(est_in)
+                     and now - world_gone_at >= timing.world_grace_s)
+                    or now - world_gone_at > timing.agent_world_gone_s):
                 publish_status()
                 print(f"agent {me}: world left after step {core.step}; exiting", file=log)
                 return 0

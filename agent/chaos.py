@@ -42,6 +42,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .local_run import Fault
+from .monitor_core import MonitorConfig
+from .timing import DEFAULT as TIMING
+
+#: Scheduling slack (s) beyond a fault's verdict time before the checker requires a verdict.
+VERDICT_SLACK_S = 0.3
 
 __all__ = ["CHAOS_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
 
@@ -159,12 +164,14 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     last = steps[-1] if steps else -1
     taken_out = []
     for f in c.faults:
-        # a stop is convicted after the hang timeout (from its last status, 0.2 s apart);
-        # a partition after its listeners' ages pass 25 steps and then the hang timeout
+        # a stop is convicted after the hang timeout (from its last status, a status period
+        # before the stop); a partition after its listeners' ages pass the silent bound and
+        # then the hang timeout
         if f.kind in ("kill", "crash", "hang") or (
-                f.kind == "stop" and f.seconds > c.hang_timeout + 0.5) or (
-                f.kind in ("partition", "sensor") and f.seconds > c.hang_timeout
-                + 25 * step_s + 1.0):
+                f.kind == "stop" and f.seconds > c.hang_timeout + TIMING.status_s
+                + VERDICT_SLACK_S) or (
+                f.kind in ("partition", "sensor") and f.seconds > 2 * c.hang_timeout
+                + MonitorConfig.silent_steps * step_s):
             taken_out.append(f)
     for f in taken_out:
         in_force = _roster_at(rec.rosters, f.step)

@@ -35,6 +35,7 @@ from broker_free_net.ports import listen_port
 from .launcher import Children
 from .netns import host_names, host_of
 from .recorder import Recorder, Recording
+from .timing import DEFAULT as TIMING
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS"]
 
@@ -103,10 +104,10 @@ class RunConfig:
     deadline_ms: float
     out: Path
     monitor: bool = True
-    hang_timeout: float = 1.0
+    hang_timeout: float = TIMING.hang_timeout_s
     drop: float = 0.0
     faults: tuple = ()
-    start_timeout: float = 60.0
+    start_timeout: float = TIMING.start_timeout_s
     secure: bool = False
     #: an :class:`agent.netns.Testbed` (made and removed by the caller) with the hosts of
     #: :func:`agent.netns.host_names`: each process, the recorder included, on its own host

@@ -55,6 +55,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .timing import DEFAULT as TIMING
+from .timing import Timing
+
 __all__ = ["MonitorConfig", "MonitorCore", "Verdict", "Assignment", "RosterUpdate",
            "GainSource"]
 
@@ -92,25 +95,34 @@ class MonitorConfig:
         tokens go within a few ms) so that one reassignment answers them all.
     step_s : float
         The run's step period: the current step is extrapolated from the newest status
-        (statuses come every 0.2 s, ten steps at 20 ms).
+        (statuses come every ``Timing.status_s``, ten steps at 20 ms).
     world_gone_s : float
-        Once the world's token is gone, the agents leave with it (within 10 s) and nothing
+        Once the world's token is gone, the agents leave with it (within
+        ``Timing.agent_world_gone_s``) and nothing
         is convicted; :meth:`MonitorCore.run_ended` says the run is over when no agent's
         token is left, or this long after the world left.
     """
 
-    hang_timeout_s: float = 1.0
+    hang_timeout_s: float = TIMING.hang_timeout_s
     hang_lag_steps: int = 10
     sensor_lag_steps: int = 25
     silent_steps: int = 25
     lead_steps: int = 10
-    resend_s: float = 0.25
-    confirm_timeout_s: float = 3.0
-    pause_guard_s: float = 0.5
+    resend_s: float = TIMING.resend_s
+    confirm_timeout_s: float = TIMING.confirm_timeout_s
+    pause_guard_s: float = TIMING.pause_guard_s
     step_s: float = 0.02
     settle_s: float = 0.01
-    rejoin_s: float = 5.0
-    world_gone_s: float = 15.0
+    rejoin_s: float = TIMING.rejoin_s
+    world_gone_s: float = TIMING.monitor_world_gone_s
+
+    @classmethod
+    def from_timing(cls, timing: Timing, **fields) -> "MonitorConfig":
+        """The monitor's thresholds with the periods and timeouts of ``timing``."""
+        return cls(hang_timeout_s=timing.hang_timeout_s, resend_s=timing.resend_s,
+                   confirm_timeout_s=timing.confirm_timeout_s,
+                   pause_guard_s=timing.pause_guard_s, rejoin_s=timing.rejoin_s,
+                   world_gone_s=timing.monitor_world_gone_s, **fields)
 
 
 @dataclass(frozen=True)

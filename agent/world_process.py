@@ -24,6 +24,7 @@ from broker_free_net.peer import Peer
 
 from . import wire
 from .core import WorldCore, resolution_step
+from .timing import DEFAULT as TIMING
 
 __all__ = ["run_world", "StartTimeout"]
 
@@ -59,7 +60,8 @@ def _warn_resolution(scenario, world, steps, log) -> int | None:
 
 
 def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=None,
-              start_timeout: float = 60.0, end_timeout: float = 5.0, log=sys.stderr,
+              start_timeout: float = TIMING.start_timeout_s,
+              end_timeout: float = TIMING.end_timeout_s, log=sys.stderr,
               stop=None) -> int:
     """Run the world. ``steps=None`` runs until stopped; ``wait_agents`` = ids to wait for."""
     stop = stop or _Stop()

@@ -106,6 +106,35 @@ def net_config_arg(args, identity: str):
         raise CommandError(f"--{exc.field.replace('_', '-')}: {message}") from None
 
 
+def timing_arg(step_s: float | None = None, lead_steps: int | None = None, **fields):
+    """The run's :class:`agent.timing.Timing` from flag values; CommandError naming the flag
+    and the broken relation otherwise (``fields``: Timing field -> value, None = default).
+
+    >>> timing_arg(hang_timeout_s=2.0).hang_timeout_s
+    2.0
+    >>> timing_arg(hang_timeout_s=0.4)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    agent.commands._common.CommandError: --hang-timeout: 0.4 s must exceed 2 x status_s = 0.4 s (...); pause_guard_s: 0.5 s must be below hang_timeout_s = 0.4 s (...)
+    """
+    from ..timing import DEFAULT
+
+    timing = DEFAULT.replace(**{k: v for k, v in fields.items() if v is not None})
+    problems = timing.problems(step_s=step_s, lead_steps=lead_steps)
+    if problems:
+        lines = []
+        for line in problems:
+            field, _, reason = line.partition(": ")
+            flag = _TIMING_FLAGS.get(field)
+            lines.append(f"{flag}: {reason}" if flag and field in fields else line)
+        raise CommandError("; ".join(lines))
+    return timing
+
+
+#: Timing fields set by a flag of some command (the rest are the runtime's constants).
+_TIMING_FLAGS = {"hang_timeout_s": "--hang-timeout", "start_timeout_s": "--start-timeout"}
+
+
 def _int_or_reason(text, lo: int, hi: int | None):
     """``(value, None)`` for an ASCII decimal integer in ``lo..hi``, else ``(None, reason)``.
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..timing import DEFAULT as TIMING
+
 HELP = "run the monitor: detect failed agents and reassign their roles to equivalent agents"
 
 
@@ -28,10 +30,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--id", type=int, default=1,
                         help="monitor id; with several monitors the smallest live id acts "
                              "(default 1)")
-    parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
+    parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
+                        metavar="S",
                         help="no progress of an agent for S seconds while the others advance "
-                             "is a hang (default 1.0; lower is faster and risks convicting a "
-                             "slow agent)")
+                             f"is a hang (default {TIMING.hang_timeout_s:g}; lower is faster "
+                             "and risks convicting a slow agent; above twice the status "
+                             f"period {TIMING.status_s:g} s)")
     parser.add_argument("--lead-steps", type=int, default=10,
                         help="activate a reassignment this many steps after the newest step "
                              "reported (default 10)")
@@ -49,7 +53,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from ._common import CommandError, run_command
+    from ._common import CommandError, run_command, timing_arg
 
     def body():
         import math
@@ -91,16 +95,16 @@ def run(args) -> int:
         G = load_gains_arg(args.gains, scenario, force=args.force_gains).G
         if args.id < 1:
             raise CommandError(f"--id: must be >= 1, got {args.id}")
-        if not (math.isfinite(args.hang_timeout) and args.hang_timeout > 0):
-            raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
         if args.lead_steps < 1:
             raise CommandError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
         net = net_config_arg(args, identity="monitor")
         step_ms = args.step_ms if args.step_ms is not None else scenario.step_ms
         if not (math.isfinite(step_ms) and step_ms > 0):
             raise CommandError(f"--step-ms: must be > 0, got {step_ms}")
-        config = MonitorConfig(hang_timeout_s=args.hang_timeout, lead_steps=args.lead_steps,
-                               step_s=step_ms / 1000.0)
+        timing = timing_arg(step_s=step_ms / 1000.0, lead_steps=args.lead_steps,
+                            hang_timeout_s=args.hang_timeout)
+        config = MonitorConfig.from_timing(timing, lead_steps=args.lead_steps,
+                                           step_s=step_ms / 1000.0)
         from ._common import load_signer
 
         signer = load_signer(args.control_key) if args.control_key else None

@@ -6,6 +6,8 @@ import contextlib
 import signal
 import sys
 
+from ..timing import DEFAULT as TIMING
+
 HELP = "run world + one process per agent on this machine, record, and write a run folder"
 
 
@@ -29,8 +31,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--deadline-ms", type=float, default=None,
                         help="agents' wait for late estimates (default: one step; "
                              "30000 with --check-simulator, so that nothing is dropped)")
-    parser.add_argument("--start-timeout", type=float, default=60.0,
-                        help="seconds allowed for every process to be up (default 60)")
+    parser.add_argument("--start-timeout", type=float, default=TIMING.start_timeout_s,
+                        help="seconds allowed for every process to be up "
+                             f"(default {TIMING.start_timeout_s:g})")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     parser.add_argument("--no-monitor", action="store_true",
                         help="run without the monitor (a failed agent is then never replaced)")
@@ -52,8 +55,10 @@ def add_arguments(parser) -> None:
                              "SECONDS), partition, delay (VALUE steps), drop (VALUE "
                              "probability), monitor, linkdown (the agent's host's link down "
                              "for SECONDS; with --netns); see docs/monitor.md")
-    parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
-                        help="the monitor's hang timeout (default 1.0 s)")
+    parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
+                        metavar="S", help="the monitor's hang timeout (default "
+                        f"{TIMING.hang_timeout_s:g} s; above twice the status period "
+                        f"{TIMING.status_s:g} s)")
     parser.add_argument("--run", default=None, metavar="ID",
                         help="run id (key prefix socmon/<ID>/; default a fresh one); printed "
                              "and written in RUN_FOLDER/run.json")
@@ -94,7 +99,8 @@ def run_config(args, say, prog="up"):
     from design.scenario import resolve_delays
 
     from ..local_run import RunConfig
-    from ._common import CommandError, check_run_flags, load_scenario_arg
+    from ..monitor_core import MonitorConfig
+    from ._common import CommandError, check_run_flags, load_scenario_arg, timing_arg
     from .agent_cmd import gains_for
 
     scenario = load_scenario_arg(args.scenario)
@@ -114,8 +120,8 @@ def run_config(args, say, prog="up"):
         raise CommandError(f"--deadline-ms: must be > 0, got {deadline_ms}")
     if not 0 <= args.drop < 1:
         raise CommandError(f"--drop: must be a probability in [0, 1), got {args.drop}")
-    if not args.hang_timeout > 0:
-        raise CommandError(f"--hang-timeout: must be > 0 seconds, got {args.hang_timeout}")
+    timing_arg(step_s=step_ms / 1000.0, lead_steps=MonitorConfig.lead_steps,
+               hang_timeout_s=args.hang_timeout, start_timeout_s=args.start_timeout)
     if getattr(args, "router", False) and getattr(args, "netns", False):
         raise CommandError("--router: not with --netns (the router would need a host of its "
                            "own on the testbed)")

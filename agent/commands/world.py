@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..timing import DEFAULT as TIMING
+
 HELP = "run the world: simulate the social system and publish sensor readings (the clock)"
 
 
@@ -19,8 +21,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--wait-agents", default=None, metavar="IDS",
                         help="agent ids to wait for before the clock starts, e.g. 1,2,3 "
                              "(default: every active and standby agent of the scenario)")
-    parser.add_argument("--start-timeout", type=float, default=60.0,
-                        help="seconds to wait for the agents (default 60)")
+    parser.add_argument("--start-timeout", type=float, default=TIMING.start_timeout_s,
+                        help="seconds to wait for the agents "
+                             f"(default {TIMING.start_timeout_s:g})")
     add_manifest_argument(parser)
     add_net_arguments(parser)
 

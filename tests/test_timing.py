@@ -1,0 +1,78 @@
+"""The runtime's periods and timeouts: one object, every relation refused with its name."""
+
+import math
+
+import pytest
+
+from agent.commands._common import CommandError, timing_arg
+from agent.monitor_core import MonitorConfig
+from agent.timing import DEFAULT, Timing, TimingError
+
+
+def test_the_defaults_are_consistent_and_are_what_the_monitor_uses():
+    assert DEFAULT.problems(step_s=0.02, lead_steps=MonitorConfig.lead_steps) == []
+    cfg = MonitorConfig()
+    assert cfg.hang_timeout_s == DEFAULT.hang_timeout_s
+    assert cfg.pause_guard_s == DEFAULT.pause_guard_s
+    assert cfg.world_gone_s == DEFAULT.monitor_world_gone_s
+    assert MonitorConfig.from_timing(DEFAULT) == cfg
+
+
+# one case per relation: the change that breaks it and the field the refusal names
+BROKEN = [
+    ({"status_s": 0.6}, "hang_timeout_s", "2 x status_s"),
+    ({"status_s": 0.05}, "prestart_status_s", "status_s"),
+    ({"pause_guard_s": 1.0}, "pause_guard_s", "hang_timeout_s"),
+    ({"resend_s": 3.0}, "resend_s", "confirm_timeout_s"),
+    ({"rejoin_s": 1.0}, "rejoin_s", "hang_timeout_s"),
+    ({"agent_world_gone_s": 5.0}, "agent_world_gone_s", "world_grace_s"),
+    ({"monitor_world_gone_s": 10.0}, "monitor_world_gone_s", "agent_world_gone_s"),
+    ({"crash_flush_s": 1.0}, "crash_flush_s", "hang_timeout_s"),
+]
+
+
+@pytest.mark.parametrize("change,field,relation", BROKEN, ids=[b[1] for b in BROKEN])
+def test_each_broken_relation_is_refused_naming_it(change, field, relation):
+    timing = DEFAULT.replace(**change)
+    problems = timing.problems()
+    assert len(problems) == 1, problems
+    assert problems[0].startswith(f"{field}: ") and relation in problems[0]
+    with pytest.raises(TimingError, match=field):
+        timing.validate()
+
+
+def test_the_assignment_lead_must_fit_in_the_confirm_timeout():
+    assert DEFAULT.problems(step_s=0.02, lead_steps=10) == []
+    problems = DEFAULT.problems(step_s=0.3, lead_steps=10)
+    assert len(problems) == 1 and problems[0].startswith("confirm_timeout_s: ")
+    assert "lead_steps x step_s + status_s" in problems[0]
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, math.nan, math.inf, True])
+def test_values_that_are_not_positive_finite_numbers_are_refused(value):
+    problems = Timing(hang_timeout_s=value).problems()
+    assert problems == [f"hang_timeout_s: must be a finite number > 0, got {value!r}"]
+
+
+def test_a_flag_that_breaks_a_relation_is_named_by_its_flag():
+    with pytest.raises(CommandError, match=r"^--hang-timeout: 0.3 s must exceed 2 x status_s"):
+        timing_arg(hang_timeout_s=0.3)
+    assert timing_arg(hang_timeout_s=2.0).hang_timeout_s == 2.0
+    assert timing_arg(hang_timeout_s=None) == DEFAULT
+
+
+def test_up_refuses_a_hang_timeout_below_twice_the_status_period(capsys):
+    from agent.cli import main
+
+    assert main(["up", "paper-14-live", "--steps", "5", "--hang-timeout", "0.3"]) == 2
+    err = capsys.readouterr().err
+    assert "--hang-timeout: 0.3 s must exceed 2 x status_s = 0.4 s" in err
+
+
+def test_monitor_refuses_a_hang_timeout_below_twice_the_status_period(capsys, live_gains):
+    from agent.cli import main
+
+    assert main(["monitor", "paper-14-live", "--run", "t", "--gains", str(live_gains),
+                 "--hang-timeout", "0.3"]) == 2
+    err = capsys.readouterr().err
+    assert "--hang-timeout: 0.3 s must exceed 2 x status_s = 0.4 s" in err
