@@ -14,11 +14,35 @@ Knows nothing of estimation: never imports :mod:`design` nor :mod:`agent`
 - :mod:`broker_free_net.security` -- TLS, mutual TLS and access control configs
 """
 
-from .codec import MalformedMessage, MessageStats, Schema, decode, encode, try_decode
-from .config import InvalidNetConfig, NetConfig, add_net_arguments, build_zenoh_config, net_config_from_args
-from .impair import LinkImpairments, apply_impairment_message, decode_impairment, encode_impairment
-from .keys import InvalidKey
-from .peer import Inbox, LivelinessEvent, LivelinessWatch, Peer, Received
+import importlib
+
+#: Where each name of the package lives; imported on first use (PEP 562), so that the pure
+#: parts (codec, impair, keys) do not load zenoh's native library: only a session does.
+_WHERE = {
+    "MalformedMessage": "codec", "MessageStats": "codec", "Schema": "codec",
+    "decode": "codec", "encode": "codec", "try_decode": "codec",
+    "InvalidNetConfig": "config", "NetConfig": "config", "add_net_arguments": "config",
+    "build_zenoh_config": "config", "net_config_from_args": "config",
+    "LinkImpairments": "impair", "apply_impairment_message": "impair",
+    "decode_impairment": "impair", "encode_impairment": "impair",
+    "InvalidKey": "keys",
+    "Inbox": "peer", "LivelinessEvent": "peer", "LivelinessWatch": "peer", "Peer": "peer",
+    "Received": "peer",
+}
+
+
+def __getattr__(name):
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_WHERE))
+
 
 __all__ = [
     "Inbox",

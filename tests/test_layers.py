@@ -113,3 +113,17 @@ def test_no_import_cycle_between_project_modules():
     for m in graph:
         if m not in state:
             visit(m, [])
+
+
+@pytest.mark.parametrize("module", ["agent.core", "agent.monitor_core", "agent.timing",
+                                    "broker_free_net.codec", "broker_free_net.impair"])
+def test_the_pure_side_does_not_load_the_native_transport(module):
+    """The state machines and the codec run without zenoh: only a session loads it."""
+    import subprocess
+    import sys
+
+    code = f"import sys, {module}; print('zenoh' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
