@@ -42,6 +42,7 @@ def test_json_record_and_gains_file_round_trip(capsys, tmp_path):
     assert rec["mse_steady_exact"] == pytest.approx(g.meta["mse_steady_exact"])
 
 
+@pytest.mark.slow
 def test_delay_free_ccl_design_is_unstable_at_uniform7_and_writes_nothing(capsys, tmp_path):
     path = tmp_path / "g.npz"
     status, out, err = _run(capsys, "paper-14", "--method", "ccl", "--solver", "scs",

@@ -103,7 +103,8 @@ def test_delay_free_design_is_reported_unstable_at_uniform7(paper14, ccl_paper14
 # -- the default method --------------------------------------------------------------
 
 
-@pytest.mark.parametrize("spec", ["none", "uniform:3", "uniform:7", "uniform:15"])
+@pytest.mark.parametrize("spec", ["none", "uniform:3", "uniform:7",
+                                  pytest.param("uniform:15", marks=pytest.mark.slow)])
 def test_default_stabilises_paper14_with_delays(paper14, spec, tmp_path):
     opts = {"starts": 1, "max_iter": 60, "target": 0.995}
     res = design_gains(paper14, delays=spec, **opts)
@@ -159,7 +160,7 @@ def test_radius_gradient_matches_finite_differences(paper14, tau):
     np.testing.assert_allclose(grad, fd, atol=1e-6 * max(1.0, np.abs(fd).max()))
 
 
-@pytest.mark.parametrize("tau", [0, 2])
+@pytest.mark.parametrize("tau", [0, pytest.param(2, marks=pytest.mark.slow)])
 def test_mse_gradient_matches_finite_differences(paper14, tau):
     s = paper14
     D = resolve_delays(s, f"uniform:{tau}")

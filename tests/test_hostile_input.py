@@ -275,6 +275,7 @@ def _only_malformed(payload, schema):
         assert len(str(exc)) <= MAX_ERROR_CHARS
 
 
+@pytest.mark.slow
 @given(st.sampled_from(SCHEMAS), st.dictionaries(field_names, values, max_size=8))
 @settings(max_examples=300, deadline=None)
 def test_fuzz_structures_only_raise_malformed(schema, obj):

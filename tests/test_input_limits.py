@@ -25,6 +25,7 @@ def gains_file(tmp_path, paper14):
     return path
 
 
+@pytest.mark.slow
 def test_radius_of_a_large_companion_matches_dense_eigenvalues(paper14):
     """Order 2058 > the dense threshold: ARPACK (or its dense fallback) must be exact."""
     loop = ClosedLoop(paper14.A, paper14.W, resolve_delays(paper14, "uniform:48"),

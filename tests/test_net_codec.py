@@ -228,6 +228,7 @@ msgpack_values = st.recursive(
 )
 
 
+@pytest.mark.slow
 @given(st.dictionaries(st.sampled_from(["v", "step", "sender", "x", "P", "gain", "ok", "note", "zz"]),
                        msgpack_values | st.builds(lambda a: arr_map(a), st.lists(st.floats(), max_size=10))))
 @settings(max_examples=500, deadline=None)
