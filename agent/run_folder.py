@@ -1,4 +1,11 @@
-"""``run.json``: what another tool needs to attach to a run, and ``--attach RUN_DIR``.
+"""The run folder: ``run.json`` (what another tool needs to attach to a run, and
+``--attach RUN_DIR``), a clean folder for each run, and atomic writes.
+
+A run never writes into a folder that holds an earlier run's files (:data:`RUN_ENTRIES`):
+:func:`prepare_run_folder` refuses it, naming the folder and what it holds, unless told to
+overwrite, which removes exactly those entries first (an appended ``events.jsonl`` made a
+clean second run report the first run's failure). :func:`write_atomic` writes a file so
+that a reader never sees it half-written and a full disk leaves the old version intact.
 
 ``socmon up`` writes ``run.json`` in its run folder once its processes are started: the
 run id, the endpoint to connect to (the recorder's), every process's endpoint and PID,
@@ -20,19 +27,94 @@ Examples
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["RUN_JSON", "RunInfo", "InvalidRunFolder", "write_run_json", "read_run_info"]
+__all__ = ["RUN_JSON", "RUN_ENTRIES", "RunInfo", "InvalidRunFolder", "write_run_json",
+           "read_run_info", "prepare_run_folder", "write_atomic"]
 
 RUN_JSON = "run.json"
 RUN_JSON_VERSION = 1
 
 
+#: What a run (``up``, ``watch --out``, ``chaos``) writes in its folder.
+RUN_ENTRIES = ("run.json", "summary.json", "events.jsonl", "mse.json", "mse.csv", "mse.png",
+               "estimates.npz", "assignments.json", "gains.npz", "manifest.json",
+               "control.key", "operator.key", "keys", "logs", "schedule.json",
+               "invariants.json", "timeline.json", "timeline.png")
+
+
 class InvalidRunFolder(ValueError):
-    """A run folder without a readable, well-formed ``run.json``."""
+    """A run folder without a readable, well-formed ``run.json``, or one that cannot hold a
+    new run; the message names the folder and why."""
+
+
+def prepare_run_folder(folder, overwrite: bool = False) -> Path:
+    """Make ``folder`` ready for a new run and return it.
+
+    Made if missing; refused (:class:`InvalidRunFolder`) when it is not a folder, or when
+    it holds an earlier run's entries and ``overwrite`` is false; with ``overwrite`` those
+    entries (and nothing else) are removed first.
+
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp()) / "run"
+    >>> _ = prepare_run_folder(d); (d / "summary.json").write_text("{}")
+    2
+    >>> prepare_run_folder(d)
+    Traceback (most recent call last):
+    ...
+    agent.run_folder.InvalidRunFolder: ... holds an earlier run (summary.json): choose another folder, or --overwrite to replace that run
+    >>> sorted(p.name for p in prepare_run_folder(d, overwrite=True).iterdir())
+    []
+    """
+    import shutil
+
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InvalidRunFolder(f"{str(folder)!r} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InvalidRunFolder(f"cannot make the run folder {str(folder)!r}: "
+                               f"{exc.strerror}") from None
+    held = [name for name in RUN_ENTRIES if (folder / name).exists()
+            or (folder / name).is_symlink()]
+    if held and not overwrite:
+        raise InvalidRunFolder(f"{str(folder)!r} holds an earlier run ({', '.join(held)}): "
+                               "choose another folder, or --overwrite to replace that run")
+    for name in held:
+        path = folder / name
+        try:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+        except OSError as exc:
+            raise InvalidRunFolder(f"cannot remove the earlier run's {str(path)!r}: "
+                                   f"{exc.strerror}") from None
+    return folder
+
+
+def write_atomic(path, data) -> None:
+    """Write ``data`` (str or bytes) to ``path`` through a temporary file in the same
+    folder, flushed and renamed over it: a reader sees the old file or the whole new one,
+    and a write that fails (a full disk) leaves the old one and no temporary behind."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    raw = data.encode() if isinstance(data, str) else bytes(data)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(raw)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 @dataclass(frozen=True)
@@ -74,9 +156,7 @@ def write_run_json(folder, *, run: str, connect: str, processes: dict, scenario:
         data[name] = str(Path(value).resolve()) if name in _PATHS and value is not None \
             else value
     # atomically: a tool polling for run.json never reads it half-written
-    tmp = folder / f".{RUN_JSON}.tmp"
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, folder / RUN_JSON)
+    write_atomic(folder / RUN_JSON, json.dumps(data, indent=2) + "\n")
 
 
 def read_run_info(folder) -> RunInfo:

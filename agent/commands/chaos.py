@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ..timing import DEFAULT as TIMING
+
 HELP = "run live under a random fault schedule drawn from a seed and check the invariants"
 
 
@@ -24,9 +26,13 @@ def add_arguments(parser) -> None:
                         help="link delays: scenario, none or uniform:T (default scenario)")
     parser.add_argument("--step-ms", type=float, default=None,
                         help="period of one step (default: the scenario's step_ms)")
-    parser.add_argument("--hang-timeout", type=float, default=1.0, metavar="S",
-                        help="the monitor's hang timeout (default 1.0 s)")
-    parser.add_argument("--out", help="run folder (default runs/chaos-<scenario>-s<seed>-<time>)")
+    parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
+                        metavar="S",
+                        help=f"the monitor's hang timeout (default {TIMING.hang_timeout_s:g} s)")
+    parser.add_argument("--out", help="run folder (default runs/chaos-<scenario>-s<seed>-<time>); "
+                             "a folder holding an earlier run is refused")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the earlier run in --out (its files only)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
@@ -70,8 +76,9 @@ def _chaos(args) -> int:
     up_args = argparse.Namespace(
         scenario=args.scenario, steps=args.duration, gains=args.gains, seed=args.seed,
         out=out, delays=args.delays, step_ms=args.step_ms, deadline_ms=None,
-        start_timeout=60.0, quiet=args.quiet, no_monitor=False, drop=0.0, kill=[], stop=[],
-        kill_monitor=None, hang_timeout=args.hang_timeout, check_simulator=False)
+        start_timeout=TIMING.start_timeout_s, quiet=args.quiet, no_monitor=False, drop=0.0, kill=[], stop=[],
+        kill_monitor=None, hang_timeout=args.hang_timeout, check_simulator=False,
+        overwrite=args.overwrite)
     config = run_config(up_args, say, prog="chaos")
     schedule = draw_schedule(config.scenario, args.seed, args.duration, kinds, args.rate,
                              config.step_ms)

@@ -20,7 +20,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--gains", help="gains file (.npz); default: design with the default method")
     add_force_gains_argument(parser)
     parser.add_argument("--seed", type=int, default=0, help="run seed (default 0)")
-    parser.add_argument("--out", help="run folder (default runs/<scenario>-<time>)")
+    parser.add_argument("--out", help="run folder (default runs/<scenario>-<time>-s<seed>); "
+                             "a folder holding an earlier run is refused")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the earlier run in --out (its files only)")
     parser.add_argument("--check-simulator", action="store_true",
                         help="compare with design.simulate (same seed); exit 1 if they differ")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -100,6 +103,7 @@ def run_config(args, say, prog="up"):
 
     from ..local_run import RunConfig
     from ..monitor_core import MonitorConfig
+    from ..run_folder import InvalidRunFolder, prepare_run_folder
     from ._common import CommandError, check_run_flags, load_scenario_arg, timing_arg
     from .agent_cmd import gains_for
 
@@ -142,6 +146,12 @@ def run_config(args, say, prog="up"):
     run_id, listen = check_run_endpoint(getattr(args, "run", None),
                                         getattr(args, "listen", None),
                                         getattr(args, "secure", False))
+    out = Path(args.out) if args.out else Path("runs") / (
+        f"{scenario.name}-{time.strftime('%Y%m%d-%H%M%S')}-s{args.seed}")
+    try:
+        prepare_run_folder(out, overwrite=getattr(args, "overwrite", False))
+    except InvalidRunFolder as exc:
+        raise CommandError(f"--out: {exc}") from None
     if args.gains:
         G = gains_for(scenario, args.gains, delays, getattr(args, "force_gains", False))
         method = "file"
@@ -149,13 +159,6 @@ def run_config(args, say, prog="up"):
         say("designing gains with the default method ...")
         G = gains_for(scenario, None, delays)
         method = "default"
-    out = Path(args.out) if args.out else Path("runs") / (
-        f"{scenario.name}-{time.strftime('%Y%m%d-%H%M%S')}-s{args.seed}")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CommandError(f"--out: cannot make the run folder {str(out)!r}: {exc.strerror}") \
-            from None
     gains_path = (out / "gains.npz").resolve()
     rho = closed_loop_for(scenario, G, delays).spectral_radius()
     save_gains(gains_path, G, gains_meta(scenario, method, delays, rho))
