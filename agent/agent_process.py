@@ -167,6 +167,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         ctl_in = peer.subscribe(keys.ctl_key(run, me))
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
         imp_in = peer.subscribe(keys.impair_key(run))
+        end_in = peer.subscribe(keys.end_key(run), maxlen=16)
         # the agent's own estimates are not delivered back to it
         # junk on the estimate or sensors keys is refused before it is copied out of zenoh
         # when it is larger than any valid message (RSS stays flat under a flood)
@@ -190,6 +191,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         peer.publisher(status_key)
         world_seen = world_alive = False
         world_gone_at = None
+        world_end = None                   # the world's last step, once its end is heard
         next_status = 0.0
 
         def publish_status():
@@ -286,6 +288,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             # len() before drain(): most inboxes are empty at most wake-ups
             for ev in watch.drain() if len(watch) else ():
                 if ev.role == "world":
+                    if ev.alive and world_gone_at is not None and world_end is None:
+                        say(f"agent {me}: the world is back after "
+                            f"{now - world_gone_at:.1f} s")
+                    elif not ev.alive and world_alive and world_end is None:
+                        say(f"agent {me}: the world went silent after step {core.step} "
+                            f"without its end (paused or cut off?); waiting up to "
+                            f"{timing.world_silent_s:g} s for it")
                     world_alive = ev.alive
                     world_seen = world_seen or ev.alive
                     world_gone_at = None if ev.alive else now
@@ -321,6 +330,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                         urgent_status = True
                 except InvalidImpairment:
                     bad("range")
+            for item in end_in.drain() if len(end_in) else ():
+                msg = try_decode(item.payload, wire.END_SCHEMA, stats)
+                if msg is not None and world_end is None:
+                    world_end = msg["step"]
+                    say(f"agent {me}: the world ended after step {world_end} "
+                        f"({msg['reason']})")
             for item in status_in.drain() if len(status_in) else ():
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats, senders=senders)
                 if msg is not None:
@@ -342,13 +357,19 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 publish_status()
                 next_status = now + (timing.status_s if core.step >= 0
                                      else timing.prestart_status_s)
-            if world_seen and not world_alive and world_gone_at is not None and (
-                    (not core.sensor and not len(est_in)
-                     and now - world_gone_at >= timing.world_grace_s)
-                    or now - world_gone_at > timing.agent_world_gone_s):
-                publish_status()
-                print(f"agent {me}: world left after step {core.step}; exiting", file=log)
-                return 0
+            if world_seen and not world_alive and world_gone_at is not None:
+                gone = now - world_gone_at
+                if world_end is not None and (
+                        (not core.sensor and not len(est_in) and gone >= timing.world_grace_s)
+                        or gone > timing.agent_world_gone_s):
+                    publish_status()
+                    print(f"agent {me}: world left after step {core.step}; exiting", file=log)
+                    return 0
+                if world_end is None and gone > timing.world_silent_s:
+                    publish_status()
+                    print(f"agent {me}: the world has been silent for {gone:.0f} s since step "
+                          f"{core.step} without its end; giving up", file=log)
+                    return 1
             # wait for any message, a step deadline or the next status
             wake = core.next_wakeup(now)
             until = next_status if wake is None else min(wake, next_status)

@@ -37,7 +37,8 @@ from .netns import host_names, host_of
 from .recorder import Recorder, Recording
 from .timing import DEFAULT as TIMING
 
-__all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS"]
+__all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS",
+           "PROCESS_FAULTS"]
 
 #: crash: the agent SIGKILLs itself after publishing step STEP-1 (reproducible);
 #: kill: SIGKILL from outside at STEP; stop: SIGSTOP for ``seconds`` then SIGCONT;
@@ -50,7 +51,9 @@ __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KI
 #: linkdown: the agent's host's link brought down for ``seconds`` (a real partition; a run
 #: on a testbed of network namespaces only, :mod:`agent.netns`).
 FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
-               "drop", "linkdown")
+               "drop", "linkdown", "worldstop", "monitorstop")
+#: The kinds that act on a process other than an agent (no AGENT in ``--fault``).
+PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop")
 
 
 @dataclass(frozen=True, order=True)
@@ -84,6 +87,8 @@ class Fault:
             "delay": "links into agent {a} delayed by {v:g} steps",
             "drop": "links into agent {a} drop a fraction {v:g}",
             "linkdown": "agent {a} host link down",
+            "worldstop": "world stopped (SIGSTOP)",
+            "monitorstop": "monitor stopped (SIGSTOP)",
         }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
         return what + (f" for {self.seconds:g} s" if self.seconds else "")
 
@@ -287,6 +292,12 @@ class LocalRun:
                         _signal(children, name, signal.SIGSTOP)
                         event(process=name, signal="SIGSTOP", step=k_now)
                         undo.append((now + f.seconds, f))
+                    elif f.kind in ("worldstop", "monitorstop"):
+                        proc = "world" if f.kind == "worldstop" else (
+                            "monitor" if not restarts else f"monitor-{restarts + 1}")
+                        _signal(children, proc, signal.SIGSTOP)
+                        event(process=proc, signal="SIGSTOP", step=k_now)
+                        undo.append((now + f.seconds, f))
                     elif f.kind == "monitor" and c.monitor:
                         _signal(children, "monitor" if not restarts else
                                 f"monitor-{restarts + 1}", signal.SIGKILL)
@@ -314,6 +325,11 @@ class LocalRun:
                     if f.kind == "stop":
                         _signal(children, name, signal.SIGCONT)
                         event(process=name, signal="SIGCONT", step=k_now)
+                    elif f.kind in ("worldstop", "monitorstop"):
+                        proc = "world" if f.kind == "worldstop" else (
+                            "monitor" if not restarts else f"monitor-{restarts + 1}")
+                        _signal(children, proc, signal.SIGCONT)
+                        event(process=proc, signal="SIGCONT", step=k_now)
                     elif f.kind == "monitor":
                         old = "monitor" if not restarts else f"monitor-{restarts + 1}"
                         if not _wait_exit(children, old, 10.0):
@@ -352,9 +368,13 @@ class LocalRun:
                         if child.name == "world" and child.returncode == 0:
                             world_end = time.monotonic()
                         elif child.name in ("world", "router") or (world_end is None
-                                                                   and c.abort_on_exit):
+                                                                   and c.abort_on_exit) \
+                                or not rec.truth:
+                            # before the clock starts every child is needed: the world
+                            # would wait its whole start timeout for this one
+                            when = "the end of the run" if rec.truth else "the clock started"
                             raise RunFailed(f"{child.name} exited with status "
-                                            f"{child.returncode} before the end of the run; "
+                                            f"{child.returncode} before {when}; "
                                             f"its log ends:\n{children.tail(child.name)}")
                         elif world_end is None:
                             k_now = recorder.step

@@ -99,8 +99,11 @@ class MonitorConfig:
     world_gone_s : float
         Once the world's token is gone, the agents leave with it (within
         ``Timing.agent_world_gone_s``) and nothing
-        is convicted; :meth:`MonitorCore.run_ended` says the run is over when no agent's
-        token is left, or this long after the world left.
+        is convicted; once the world's end was heard, :meth:`MonitorCore.run_ended` says
+        the run is over when no agent's token is left, or this long after the world left.
+    world_silent_s : float
+        A world whose token went without its end (paused, cut off; or this monitor was)
+        is waited for this long before the run counts as over.
     """
 
     hang_timeout_s: float = TIMING.hang_timeout_s
@@ -115,6 +118,7 @@ class MonitorConfig:
     settle_s: float = 0.01
     rejoin_s: float = TIMING.rejoin_s
     world_gone_s: float = TIMING.monitor_world_gone_s
+    world_silent_s: float = TIMING.monitor_world_silent_s
 
     @classmethod
     def from_timing(cls, timing: Timing, **fields) -> "MonitorConfig":
@@ -122,7 +126,8 @@ class MonitorConfig:
         return cls(hang_timeout_s=timing.hang_timeout_s, resend_s=timing.resend_s,
                    confirm_timeout_s=timing.confirm_timeout_s,
                    pause_guard_s=timing.pause_guard_s, rejoin_s=timing.rejoin_s,
-                   world_gone_s=timing.monitor_world_gone_s, **fields)
+                   world_gone_s=timing.monitor_world_gone_s,
+                   world_silent_s=timing.monitor_world_silent_s, **fields)
 
 
 @dataclass(frozen=True)
@@ -275,7 +280,8 @@ class MonitorCore:
         self._delays_checked = None       # learned delays last certified
         self.rho_learned = None
         self.world_seen = False
-        self.world_gone_at: float | None = None   # the world's token went (run ending)
+        self.world_gone_at: float | None = None   # the world's token went
+        self.world_end: int | None = None          # its last step, once its end is heard
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
@@ -298,9 +304,9 @@ class MonitorCore:
             a.progress_at = now
 
     def _on_world(self, alive: bool, now: float) -> None:
-        """The world came or went. Without it the agents stop stepping and leave (their
-        tokens go one by one): that is the run ending, not failures, so no verdict is
-        made while it is gone; when it comes back, verdicts wait for fresh evidence."""
+        """The world came or went. Without it the agents stop stepping: no verdict is made
+        while it is gone (whether it ended, or was paused or cut off: the agents wait for
+        it); when it comes back, verdicts wait for fresh evidence."""
         if alive:
             if self.world_gone_at is not None:
                 self._fresh_evidence(now)
@@ -309,16 +315,36 @@ class MonitorCore:
             self.world_seen, self.world_gone_at = True, None
         elif self.world_seen and self.world_gone_at is None:
             self.world_gone_at = now
-            self.events.append(f"the world left after step {self.last_step_reported}: "
-                               "no verdicts while it is gone")
+            if self.world_end is None:
+                self.events.append(
+                    f"the world went silent after step {self.last_step_reported} without "
+                    f"its end (paused or cut off, or this monitor was): no verdicts while "
+                    f"it is gone; waiting up to {self.config.world_silent_s:g} s")
+            else:
+                self.events.append(f"the world left after step {self.world_end}: no "
+                                   "verdicts while it is gone")
+
+    def on_world_end(self, step: int) -> None:
+        """The world's end message: the run is over after ``step``."""
+        if self.world_end is None:
+            self.world_end = int(step)
+            self.events.append(f"the world ended after step {self.world_end}")
 
     def run_ended(self, now: float) -> bool:
-        """True once the world has left and so have the agents (no agent token is alive),
-        or ``world_gone_s`` after the world left."""
+        """True once the world has ended (its end heard) and its token gone, and the agents
+        have left too (no agent token is alive) or ``world_gone_s`` has passed; or once a
+        world whose token went *without* its end has stayed silent ``world_silent_s``.
+
+        A monitor that was itself paused or cut off sees every token go at once, the
+        world's included, but heard no end: it waits for the network to come back instead
+        of leaving a live run.
+        """
         if self.world_gone_at is None:
             return False
-        return (not any(a.alive for a in self.agents.values())
-                or now - self.world_gone_at >= self.config.world_gone_s)
+        gone = now - self.world_gone_at
+        if self.world_end is None:
+            return gone >= self.config.world_silent_s
+        return not any(a.alive for a in self.agents.values()) or gone >= self.config.world_gone_s
 
     def _fresh_evidence(self, now: float) -> None:
         """Forget the progress clocks: verdicts wait ``hang_timeout_s`` of new evidence."""

@@ -140,6 +140,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         publish.append(peer.put)
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         roster_in = peer.subscribe(keys.ctl_key(run, 0))
+        end_in = peer.subscribe(keys.end_key(run), maxlen=16)
         watch = peer.watch_liveliness()
         heard_roster = None
         active = False
@@ -162,6 +163,10 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                 if msg is not None:
                     core.on_status(msg, now)
+            for item in end_in.drain():
+                msg = try_decode(item.payload, wire.END_SCHEMA, stats)
+                if msg is not None:
+                    core.on_world_end(msg["step"])
             for item in roster_in.drain():
                 msg = try_decode(item.payload, ctl_schema, stats)
                 if msg is not None and (heard_roster is None or msg["epoch"] > heard_roster["epoch"]):

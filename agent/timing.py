@@ -65,6 +65,14 @@ class Timing:
     #: Once the world has left, the monitor says the run is over after this long (it must
     #: outlast the agents' own wait, or it would convict agents that are leaving).
     monitor_world_gone_s: float = 15.0
+    #: A world whose token went *without* its end message (paused, cut off, crashed) is
+    #: waited for this long by the agents, which say so; then they leave with status 1.
+    world_silent_s: float = 60.0
+    #: ... and by the monitor, which convicts nobody meanwhile (it outlasts the agents).
+    monitor_world_silent_s: float = 75.0
+    #: A world this far behind its schedule (it was paused or starved) re-bases its clock
+    #: and goes on one step a period, instead of publishing every missed step at once.
+    world_rebase_s: float = 0.5
     #: A scripted crash waits this long after its last put so that the transport sends it.
     crash_flush_s: float = 0.3
     #: The world waits this long for every agent's first status before the clock starts.
@@ -115,6 +123,14 @@ class Timing:
             out.append(f"monitor_world_gone_s: {t.monitor_world_gone_s:g} s must exceed "
                        f"agent_world_gone_s = {t.agent_world_gone_s:g} s (the monitor outlasts "
                        "the agents' own wait for a world that left)")
+        if t.world_silent_s <= t.agent_world_gone_s:
+            out.append(f"world_silent_s: {t.world_silent_s:g} s must exceed agent_world_gone_s "
+                       f"= {t.agent_world_gone_s:g} s (a world that went silent is waited "
+                       "for longer than one that ended)")
+        if t.monitor_world_silent_s <= t.world_silent_s:
+            out.append(f"monitor_world_silent_s: {t.monitor_world_silent_s:g} s must exceed "
+                       f"world_silent_s = {t.world_silent_s:g} s (the monitor outlasts the "
+                       "agents' wait for a silent world)")
         if t.crash_flush_s >= t.hang_timeout_s:
             out.append(f"crash_flush_s: {t.crash_flush_s:g} s must be below hang_timeout_s = "
                        f"{t.hang_timeout_s:g} s (a scripted crash must not look like a hang "

@@ -48,6 +48,9 @@ __all__ = [
     "ctl_schema",
     "roster_schema",
     "STATUS_SCHEMA",
+    "END_SCHEMA",
+    "END_REASONS",
+    "encode_end",
     "MONITOR_EVENT_SCHEMA",
     "encode_monitor_event",
     "encode_sensors",
@@ -191,6 +194,15 @@ def est_schema(n: int) -> Schema:
                   stamp="step", sender="agent")
 
 
+#: Why the world ended: its last step was done, or it was stopped (SIGTERM/SIGINT), or its
+#: state overflowed float64.
+END_REASONS = ("steps", "stopped", "overflow")
+#: ``socmon/<run>/end``: the world's last step, published once when it ends. Without it a
+#: world whose token went was paused or cut off, not finished.
+END_SCHEMA = Schema({"kind": Str(choices=frozenset({"end"})), "step": Int(-1, MAX_STEP),
+                     "reason": Str(choices=frozenset(END_REASONS))})
+
+
 def ctl_schema(n: int) -> Schema:
     """``socmon/<run>/ctl/<agent>``: a role assignment."""
     return Schema({
@@ -304,6 +316,10 @@ def encode_roster(epoch: int, activate_at: int, ids, signer=None, run: str | Non
     msg = {"kind": "roster", "epoch": int(epoch), "activate_at": int(activate_at),
            "ids": [int(a) for a in ids]}
     return encode(msg if signer is None else signer.sign(msg, run))
+
+
+def encode_end(step: int, reason: str) -> bytes:
+    return encode({"kind": "end", "step": int(step), "reason": str(reason)})
 
 
 def encode_status(status: dict) -> bytes:

@@ -5,8 +5,12 @@ says it has heard the status of every other expected agent, so every estimate ro
 declared), then every ``step_ms`` publishes every node's state on the sensors key (one
 message; each agent reads its own nodes) and on the truth key, both stamped with the
 step, and advances the social system (:class:`agent.core.WorldCore`). After the last
-step it waits (bounded) until the live agents report that step, then leaves; agents exit
-when the world's liveliness token goes.
+step it publishes its end (``socmon/<run>/end``: the last step and why), waits (bounded)
+until the live agents report that step, then leaves; agents leave once its token goes
+*after* its end. A token that goes without an end is a world paused or cut off: agents and
+monitor wait for it (``Timing.world_silent_s``). A world that finds itself more than
+``Timing.world_rebase_s`` behind its schedule (it was paused, or starved of CPU) says so and
+re-bases its clock: the next step comes one period later, not every missed step at once.
 """
 
 from __future__ import annotations
@@ -62,7 +66,7 @@ def _warn_resolution(scenario, world, steps, log) -> int | None:
 def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=None,
               start_timeout: float = TIMING.start_timeout_s,
               end_timeout: float = TIMING.end_timeout_s, log=sys.stderr,
-              stop=None) -> int:
+              stop=None, rebase_s: float = TIMING.world_rebase_s) -> int:
     """Run the world. ``steps=None`` runs until stopped; ``wait_agents`` = ids to wait for."""
     stop = stop or _Stop()
     if isinstance(stop, _Stop):
@@ -79,8 +83,12 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
         status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
         watch = peer.watch_liveliness()
         sensors_key, truth_key = keys.sensors_key(run), keys.truth_key(run)
-        for key in (sensors_key, truth_key):
+        end_key = keys.end_key(run)
+        for key in (sensors_key, truth_key, end_key):
             peer.publisher(key)
+
+        def publish_end(reason):
+            peer.put(end_key, wire.encode_end(world.step, reason))
         ready: dict = {}
         last_step: dict = {}
 
@@ -97,6 +105,7 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
         deadline = time.monotonic() + start_timeout
         while not all(ready.get(a) for a in expected):
             if stop.flag:
+                publish_end("stopped")
                 return 130
             if time.monotonic() > deadline:
                 missing = sorted(a for a in expected if not ready.get(a))
@@ -123,6 +132,13 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 break
             world.advance()
             due = t0 + world.step * step_s
+            behind = time.monotonic() - due
+            if behind > rebase_s:
+                # paused (SIGSTOP) or starved: go on one step a period from now
+                print(f"world: {behind:.2f} s behind the schedule at step {world.step} "
+                      "(paused or starved); the clock is re-based", file=log, flush=True)
+                t0 += behind
+                due += behind
             while not stop.flag:
                 left = due - time.monotonic()
                 if left <= 0:
@@ -130,9 +146,12 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 read_statuses(timeout=min(left, 0.05))
             if not math.isfinite(float(np.abs(world.x).max())):
                 print(f"world: the state overflowed float64 at step {world.step}", file=log)
+                publish_end("overflow")
                 return 1
         if stop.flag:
+            publish_end("stopped")
             return 0
+        publish_end("steps")
         # wait (bounded) until the live agents have used the last readings
         deadline = time.monotonic() + end_timeout
         while time.monotonic() < deadline and not stop.flag:

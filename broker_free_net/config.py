@@ -48,6 +48,8 @@ DEFAULT_SECURE_LISTEN = ("tls/127.0.0.1:0",)
 #: would die. A client of several routers keeps zenoh's default: while it waits, zenoh
 #: 1.10 retries the first endpoint only (measured), so the others would never be tried.
 CLIENT_CONNECT_TIMEOUT_MS = 10_000
+#: How a lost link is tried again (``connect/retry``): every 250 ms, backing off to 500 ms.
+CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}
 #: Largest message zenoh will reassemble (``transport/link/rx/max_message_size``).
 #: zenoh's default is 1 GiB; socmon messages are a few hundred bytes.
 MAX_MESSAGE_BYTES = 1 << 20
@@ -64,6 +66,7 @@ SOCMON_KEYS = {
     "transport/link/rx/max_message_size": str(MAX_MESSAGE_BYTES),
     "connect/timeout_ms": f"{CLIENT_CONNECT_TIMEOUT_MS} (client of one router only)",
     "transport/shared_memory/enabled": "false",
+    "connect/retry": "period 250 ms backing off to 500 ms",
 }
 _MODES = ("peer", "client")
 #: The modes a socmon process may run in (a router is ``socmon router``, not a mode flag).
@@ -315,7 +318,7 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     ``transport/link/tx/lease``. Unless the config file sets them:
     ``scouting/gossip/enabled`` = true; ``transport/link/tx/keep_alive`` = 4 (keep-alives
     per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`;
-    ``transport/shared_memory/enabled`` = false; in
+    ``transport/shared_memory/enabled`` = false; ``connect/retry`` = :data:`CONNECT_RETRY`; in
     client mode with one connect endpoint ``connect/timeout_ms`` =
     :data:`CLIENT_CONNECT_TIMEOUT_MS`.
     With ``net.keys``, the process's secure fragment (TLS, mTLS, access control, connect
@@ -342,6 +345,10 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
         # memory on, any local process sending larger payloads made each receiver map its
         # 16 MB pool (RSS +19 MB in scripts/bench_hostile.py)
         "transport/shared_memory/enabled": False,
+        # a link lost to a pause or a partition is tried again every 250-500 ms (zenoh's
+        # default backs off to 4 s: an agent cut off by a 3 s pause of the world came back
+        # only after the monitor had convicted it)
+        "connect/retry": CONNECT_RETRY,
     }
     if net.mode == "client" and len(net.connect) == 1:
         fixed["connect/timeout_ms"] = CLIENT_CONNECT_TIMEOUT_MS
@@ -365,7 +372,8 @@ _NET_HELP = (
     "scouting/multicast/enabled, transport/link/tx/lease, and, unless the --zenoh-config "
     f"file sets them, scouting/gossip/enabled (true), transport/link/tx/keep_alive "
     f"({KEEP_ALIVES_PER_LEASE}), transport/link/rx/max_message_size ({MAX_MESSAGE_BYTES}) "
-    "and transport/shared_memory/enabled (false). "
+    "transport/shared_memory/enabled (false) and connect/retry (250 ms, backing off to "
+    "500 ms). "
     "A value in the --zenoh-config file is kept unless its flag is given; every other key "
     "of the file passes through. --keys adds TLS with mutual authentication and access "
     "control (see docs/security.md)."

@@ -7,6 +7,7 @@ Every key lives under ``socmon/<run>/``::
     socmon/<run>/ctl/<agent>          control message to an agent
     socmon/<run>/status/<agent>       status of an agent
     socmon/<run>/truth                ground truth (world -> recorder; the monitor never reads it)
+    socmon/<run>/end                  the world's last step, once it ends (world -> everyone)
     socmon/<run>/impair               impairment changes (socmon inject)
     socmon/<run>/alive/<role>/<id>    liveliness token of a process
 
@@ -25,6 +26,7 @@ __all__ = [
     "alive_pattern",
     "any_agent_pattern",
     "ctl_key",
+    "end_key",
     "est_key",
     "impair_key",
     "monitor_events_key",
@@ -135,6 +137,12 @@ def truth_key(run: str) -> str:
 def impair_key(run: str) -> str:
     """Return ``socmon/<run>/impair``."""
     return f"{run_prefix(run)}/impair"
+
+
+def end_key(run: str) -> str:
+    """``socmon/<run>/end``: the world's word that the run is over (its token alone may go
+    because it was paused or cut off)."""
+    return f"{run_prefix(run)}/end"
 
 
 def monitor_events_key(run: str) -> str:

@@ -8,7 +8,7 @@ over the link holds the credentials of a role allowed to publish that key.
 
 Processes and their names (the CN of their certificate)::
 
-    world        puts socmon/<run>/sensors, socmon/<run>/truth
+    world        puts socmon/<run>/sensors, socmon/<run>/truth, socmon/<run>/end
     agent-<i>    puts socmon/<run>/est/<i>, socmon/<run>/status/<i>
     monitor      puts socmon/<run>/ctl/*, socmon/<run>/monitor/**
     operator     puts socmon/<run>/impair          (socmon inject)
@@ -154,7 +154,7 @@ def put_keys(run: str, name: str) -> list[str]:
     role, i = parse_identity(name)
     p = f"socmon/{run}"
     return {
-        "world": [f"{p}/sensors", f"{p}/truth"],
+        "world": [f"{p}/sensors", f"{p}/truth", f"{p}/end"],
         "agent": [f"{p}/est/{i}", f"{p}/status/{i}"],
         "monitor": [f"{p}/ctl/*", f"{p}/monitor/**"],
         "operator": [f"{p}/impair"],

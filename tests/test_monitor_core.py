@@ -190,6 +190,7 @@ def test_a_quiet_sensor_is_told_from_a_hung_loop(core):
 def test_agents_leaving_after_the_world_are_the_run_ending_not_failures(core):
     core.on_liveliness("world", 0, True, 0.0)
     _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_world_end(100)
     core.on_liveliness("world", 0, False, 2.05)
     assert not core.run_ended(2.05)
     assert any("world left after step 100" in e for e in core.events)
@@ -205,9 +206,38 @@ def test_agents_leaving_after_the_world_are_the_run_ending_not_failures(core):
 def test_the_run_ends_world_gone_s_after_the_world_even_with_an_agent_left(core):
     core.on_liveliness("world", 0, True, 0.0)
     _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_world_end(100)
     core.on_liveliness("world", 0, False, 2.0)
     assert not core.run_ended(2.0 + core.config.world_gone_s - 0.1)
     assert core.run_ended(2.0 + core.config.world_gone_s)
+
+
+def test_every_token_gone_at_once_without_the_worlds_end_is_not_the_run_ending(core):
+    """What a monitor paused for a second sees when it resumes: its links lapsed, so the
+    world's token and every agent's go together, and no end was heard. It waits for the
+    network to come back (it used to exit and leave the run without a monitor)."""
+    core.on_liveliness("world", 0, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", 0, False, 3.2)
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, False, 3.2)
+    assert any("went silent after step 100 without its end" in e for e in core.events)
+    assert not core.run_ended(3.3)
+    assert not core.run_ended(3.2 + core.config.world_silent_s - 0.1)
+    core.on_liveliness("world", 0, True, 3.5)               # the links come back
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 3.5)
+    assert not core.run_ended(3.2 + core.config.world_silent_s + 1.0)
+    _advance(core, 3.6, 6.0, lambda t: 100 + 50 * (t - 3.6))
+    assert core.verdicts == []
+
+
+def test_a_world_silent_for_world_silent_s_ends_the_run(core):
+    core.on_liveliness("world", 0, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", 0, False, 2.0)
+    assert not core.run_ended(2.0 + core.config.world_silent_s - 0.1)
+    assert core.run_ended(2.0 + core.config.world_silent_s)
 
 
 def test_verdicts_resume_when_the_world_comes_back(core):

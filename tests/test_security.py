@@ -54,7 +54,7 @@ def test_identities():
 
 def test_put_rights_table():
     p = "socmon/r"
-    assert put_keys("r", "world") == [f"{p}/sensors", f"{p}/truth"]
+    assert put_keys("r", "world") == [f"{p}/sensors", f"{p}/truth", f"{p}/end"]
     assert put_keys("r", "agent-7") == [f"{p}/est/7", f"{p}/status/7"]
     assert put_keys("r", "monitor") == [f"{p}/ctl/*", f"{p}/monitor/**"]
     assert put_keys("r", "operator") == [f"{p}/impair"]
@@ -85,7 +85,8 @@ def test_access_control_denies_by_default_and_grants_each_its_own():
         ids = [x["id"] for x in acl[kind]]
         assert len(ids) == len(set(ids)), kind
     assert _allowed(acl, "agent-2", "put", "ingress") == ["socmon/r/est/2", "socmon/r/status/2"]
-    assert _allowed(acl, "world", "put", "ingress") == ["socmon/r/sensors", "socmon/r/truth"]
+    assert _allowed(acl, "world", "put", "ingress") == ["socmon/r/end", "socmon/r/sensors",
+                                                         "socmon/r/truth"]
     assert _allowed(acl, "recorder", "put", "ingress") == []
     assert _allowed(acl, "agent-1", "liveliness_token", "ingress") == ["socmon/r/alive/agent/1"]
     for name in names:  # subscriptions in both directions, own puts and tokens out

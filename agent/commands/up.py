@@ -57,7 +57,9 @@ def add_arguments(parser) -> None:
                              "loop stops, its token stays), sensor (its readings stop for "
                              "SECONDS), partition, delay (VALUE steps), drop (VALUE "
                              "probability), monitor, linkdown (the agent's host's link down "
-                             "for SECONDS; with --netns); see docs/monitor.md")
+                             "for SECONDS; with --netns), worldstop and monitorstop (the "
+                             "world or the monitor SIGSTOPped for SECONDS: "
+                             "worldstop:STEP::SECONDS); see docs/monitor.md")
     parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
                         metavar="S", help="the monitor's hang timeout (default "
                         f"{TIMING.hang_timeout_s:g} s; above twice the status period "
@@ -343,7 +345,7 @@ def parse_faults(args, scenario) -> list:
     faults += [Fault(k, "stop", a, secs) for a, (k, secs) in out["stop"].items()]
     if args.kill_monitor is not None:
         faults.append(Fault(args.kill_monitor, "monitor"))
-    from ..local_run import FAULT_KINDS
+    from ..local_run import FAULT_KINDS, PROCESS_FAULTS
 
     for spec in getattr(args, "fault", []):
         parts = spec.split(":")
@@ -353,9 +355,17 @@ def parse_faults(args, scenario) -> list:
                                f"KIND one of {', '.join(k for k in FAULT_KINDS if k != 'crash')}"
                                f", got {spec!r}")
         k = step(parts[1], "--fault")
-        a = agent_id(parts[2], "--fault") if len(parts) > 2 else 0
-        if kind != "monitor" and not a:
+        if kind in PROCESS_FAULTS:
+            if len(parts) > 2 and parts[2] not in ("", "0"):
+                proc = {"worldstop": "world"}.get(kind, "monitor")
+                raise CommandError(f"--fault: {kind} acts on the {proc} and takes no agent, "
+                                   f"got {spec!r}")
+            a = 0
+        else:
+            a = agent_id(parts[2], "--fault") if len(parts) > 2 else 0
+        if kind not in PROCESS_FAULTS and not a:
             raise CommandError(f"--fault: {kind} needs an agent, got {spec!r}")
+
         if kind == "linkdown" and not getattr(args, "netns", False):
             raise CommandError(f"--fault: linkdown brings a host's link down and needs "
                                f"--netns, got {spec!r}")
@@ -370,6 +380,9 @@ def parse_faults(args, scenario) -> list:
             raise CommandError(f"--fault: drop VALUE is a probability in [0, 1], got {spec!r}")
         if kind == "delay" and value != int(value):
             raise CommandError(f"--fault: delay VALUE is a whole number of steps, got {spec!r}")
+        if kind in ("worldstop", "monitorstop") and not secs > 0:
+            raise CommandError(f"--fault: {kind} needs SECONDS > 0 (how long the process is "
+                               f"stopped), got {spec!r}")
         if kind == "linkdown" and not secs > 0:
             raise CommandError(f"--fault: linkdown needs SECONDS > 0 (how long the link is "
                                f"down), got {spec!r}")

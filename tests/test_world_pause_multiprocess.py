@@ -1,0 +1,91 @@
+"""A paused world is a fault, not an end; a child that dies before the clock starts ends
+the start at once. Loopback only, deadlines, children in their own process groups."""
+
+import argparse
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from agent.launcher import ROOT
+from agent.local_run import LocalRun
+
+pytestmark = [pytest.mark.multiprocess]
+
+
+def _config(tmp_path, gains, steps, **extra):
+    from agent.commands.up import run_config
+
+    args = argparse.Namespace(
+        scenario="paper-14-live", steps=steps, gains=str(gains), seed=0, out=str(tmp_path),
+        delays="scenario", step_ms=None, deadline_ms=None, start_timeout=60.0, quiet=True,
+        no_monitor=False, drop=0.0, kill=[], stop=[], kill_monitor=None, hang_timeout=1.0,
+        check_simulator=False, **extra)
+    return run_config(args, lambda text: None)
+
+
+def test_a_child_that_dies_before_the_clock_starts_ends_the_start(tmp_path, live_gains):
+    class BadAgent(LocalRun):
+        def _argv(self, rec, ep):
+            argv = super()._argv(rec, ep)
+            argv["agent-2"] = ["agent", "no-such-scenario", "--id", "2"]   # exits 2 at once
+            return argv
+
+    rec = BadAgent(_config(tmp_path, live_gains, 50)).run()
+    assert re.match(r"agent-2 exited with status 2 before the clock started; its log "
+                    r"ends:\n.*no-such-scenario", rec.failure or "", re.S), rec.failure
+    assert not rec.truth
+
+
+def _up(tmp_path, gains, *argv, timeout=300.0):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "up", "paper-14-live",
+                             "--gains", str(gains), "--out", str(tmp_path), "--json",
+                             "--quiet", *argv], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    return proc.returncode, out, err
+
+
+def test_a_world_paused_past_the_lease_is_waited_for_and_the_run_completes(tmp_path,
+                                                                          live_gains):
+    """SIGSTOP of the world for 3 s (three link leases): its token goes without its end.
+    The agents and the monitor wait for it, nobody is convicted, the world re-bases its
+    clock instead of publishing the missed steps at once, and the run completes."""
+    code, out, err = _up(tmp_path, live_gains, "--steps", "300",
+                         "--fault", "worldstop:100::3")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["failures"] == []
+    logs = tmp_path / "logs"
+    assert "the clock is re-based" in (logs / "world.log").read_text()
+    monitor = (logs / "monitor.log").read_text()
+    assert "without its end" in monitor and "the world is back" in monitor
+    assert "verdict:" not in monitor
+    for a in (1, 2, 3, 4):
+        log = (logs / f"agent-{a}.log").read_text()
+        assert "the world went silent" in log and "giving up" not in log
+
+
+@pytest.mark.parametrize("seconds", [1, 5])
+def test_a_paused_monitor_stays_and_recovers_a_crash_after_it(tmp_path, live_gains, seconds):
+    """SIGSTOP of the monitor (its links lapse: every token seems to go at once): it
+    resumes, rebuilds from the network and still answers a crash that comes after."""
+    code, out, err = _up(tmp_path, live_gains, "--steps", "600",
+                         "--fault", f"monitorstop:100::{seconds}", "--kill", "400:1")
+    assert code == 0, err
+    summary = json.loads(out)
+    failures = summary["failures"]
+    assert [(f["agent"], f["cause"]) for f in failures] == [(1, "crash")], failures
+    assert failures[0]["replacement"]["agent"] == 4 and summary["recovered"] is True
+    monitor = (tmp_path / "logs" / "monitor.log").read_text()
+    assert "monitor paused" in monitor and "exiting" not in monitor.split("verdict")[0]
