@@ -192,6 +192,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         world_seen = world_alive = False
         world_gone_at = None
         world_end = None                   # the world's last step, once its end is heard
+        others = set(config.agents) - {me}
+        started_at = time.monotonic()
+        next_word = started_at           # the start: say whom it waits for, then every 5 s
+        said_ready = said_clock = False
         next_status = 0.0
 
         def publish_status():
@@ -344,6 +348,19 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 handle_sensors(item)
             for item in est_in.drain() if len(est_in) else ():
                 handle_est(item)
+            if core.step < 0 and (now >= next_word or (not said_ready
+                                                        and others <= core.heard)):
+                if others <= core.heard and world_alive:
+                    if not said_ready:
+                        say(f"agent {me}: ready (every agent heard); waiting for the clock")
+                        said_ready = True
+                else:
+                    missing = sorted(others - core.heard)
+                    say(f"agent {me}: waiting for "
+                        + ("the world and " if not world_alive else "")
+                        + (f"agents {missing} (no status heard yet)" if missing
+                           else "nothing else") + f" after {now - started_at:.0f} s")
+                next_word = now + 5.0
             before = core.step
             for step, x, epoch in core.poll(time.monotonic()):
                 peer.put(est_key, wire.encode_est(me, step, x, epoch, time.time()))
@@ -352,6 +369,12 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             if crash_at is not None and core.step >= crash_at - 1:
                 scripted_crash(core.step)   # one that published nothing then (a standby)
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
+            if not said_clock and core.step >= 0:
+                said_clock = True
+                role = core.role
+                say(f"agent {me}: clock started at step {core.step}; "
+                    + (f"measures {list(role.measure)} (epoch {core.epoch})" if role
+                       else "standby (no role until the monitor assigns one)"))
             now = time.monotonic()
             if urgent_status or now >= next_status:
                 publish_status()

@@ -63,6 +63,31 @@ def _warn_resolution(scenario, world, steps, log) -> int | None:
     return k6
 
 
+#: While the start handshake lasts, the world says whom it waits for this often.
+START_WORD_S = 5.0
+
+
+def start_wait(expected, heard) -> str:
+    """Whom the start waits for, in words: the agents not heard at all, and for each agent
+    heard, the agents it has not heard yet (a route that does not exist yet).
+
+    >>> start_wait({1, 2, 3, 4}, {1: {2}, 2: {1}})
+    'waiting for agents [3, 4] (no status heard: not started, or cannot reach the world); agent 1 has not heard [3, 4]; agent 2 has not heard [3, 4]'
+    >>> start_wait({1, 2}, {1: {2}, 2: {1}})
+    'every agent ready'
+    """
+    parts = []
+    silent = sorted(a for a in expected if a not in heard)
+    if silent:
+        parts.append(f"waiting for agents {silent} (no status heard: not started, or cannot "
+                     "reach the world)")
+    for a in sorted(a for a in expected if a in heard):
+        lacking = sorted(expected - {a} - set(heard[a]))
+        if lacking:
+            parts.append(f"agent {a} has not heard {lacking}")
+    return "; ".join(parts) or "every agent ready"
+
+
 def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=None,
               start_timeout: float = TIMING.start_timeout_s,
               end_timeout: float = TIMING.end_timeout_s, log=sys.stderr,
@@ -90,6 +115,7 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
         def publish_end(reason):
             peer.put(end_key, wire.encode_end(world.step, reason))
         ready: dict = {}
+        heard: dict = {}                   # agent -> the agents its last status heard
         last_step: dict = {}
 
         def read_statuses(timeout=0.0):
@@ -99,19 +125,27 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 msg = try_decode(it.payload, wire.STATUS_SCHEMA, stats)
                 if msg is None:
                     continue
+                heard[msg["agent"]] = set(msg["heard"])
                 ready[msg["agent"]] = set(msg["heard"]) >= (expected - {msg["agent"]})
                 last_step[msg["agent"]] = msg["step"]
 
-        deadline = time.monotonic() + start_timeout
+        print(f"world: waiting for agents {sorted(expected)} (each must hear every other "
+              f"one); up to {start_timeout:g} s", file=log, flush=True)
+        started = time.monotonic()
+        deadline = started + start_timeout
+        next_word = started + START_WORD_S
         while not all(ready.get(a) for a in expected):
             if stop.flag:
                 publish_end("stopped")
                 return 130
-            if time.monotonic() > deadline:
-                missing = sorted(a for a in expected if not ready.get(a))
-                print(f"world: agents {missing} not ready after {start_timeout:g} s "
-                      "(not started, or cannot reach every other agent)", file=log)
-                return 1
+            now = time.monotonic()
+            if now > deadline or now >= next_word:
+                wait = start_wait(expected, heard)
+                if now > deadline:
+                    print(f"world: not ready after {start_timeout:g} s: {wait}", file=log)
+                    return 1
+                print(f"world: after {now - started:.0f} s, {wait}", file=log, flush=True)
+                next_word = now + START_WORD_S
             read_statuses(timeout=0.05)
         print(f"world: {len(expected)} agents ready; clock starts, step {step_s * 1e3:g} ms",
               file=log)
