@@ -109,6 +109,9 @@ class RunConfig:
     deadline_ms: float
     out: Path
     monitor: bool = True
+    #: monitors started (ids 1..monitors; the smallest live id acts, the others stand by
+    #: and take over when it dies or is paused past the link lease)
+    monitors: int = 2
     hang_timeout: float = TIMING.hang_timeout_s
     drop: float = 0.0
     faults: tuple = ()
@@ -198,14 +201,18 @@ class LocalRun:
         # the recorder keeps only the rosters and assignments this key signed
         recorder = Recorder(c.run_id or f"up{os.getpid()}x{random.randrange(10**6)}",
                             c.scenario.n, N, M,
-                            ports=[listen_port() for _ in range(M + 3 + c.router)],
+                            ports=[listen_port() for _ in range(
+                                M + 3 + c.router + max(c.monitors - 1, 0))],
                             control_public=signer.public_bytes())
         rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
         ep = [f"{scheme}/{self._host_ip(name)}:{p}"
               for name, p in zip(host_names(M), rec.ports)]
         if c.router:                   # the router listens on loopback (not with --netns)
-            ep.append(f"{scheme}/127.0.0.1:{rec.ports[-1]}")
+            ep.append(f"{scheme}/127.0.0.1:{rec.ports[M + 3]}")
+        # standby monitors: on the monitor's host, after the router's endpoint
+        standby_ep = [f"{scheme}/{self._host_ip('monitor')}:{p}"
+                      for p in rec.ports[M + 3 + c.router:]]
         if c.listen:
             ep[0] = c.listen
         net_extra = {}
@@ -255,10 +262,17 @@ class LocalRun:
                     children.start(f"agent-{a}", argv[f"agent-{a}"], self._wrap(f"agent-{a}"))
                 if c.monitor:
                     children.start("monitor", argv["monitor"], self._wrap("monitor"))
+                    for i, sep in enumerate(standby_ep, start=2):
+                        children.start(f"monitor.{i}", _standby_monitor(argv["monitor"], i,
+                                                                        sep),
+                                       self._wrap("monitor"))
                 self._write_run_json(rec, ep)
                 self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}): "
                          f"world + {N} agents + {c.scenario.standby} standby"
-                         f"{' + monitor' if c.monitor else ''} started; waiting for all to be "
+                         + (f" + {c.monitors} monitors (1 active, {c.monitors - 1} standing "
+                            "by)" if c.monitor and c.monitors > 1
+                            else " + monitor" if c.monitor else "")
+                         + " started; waiting for all to be "
                          f"ready (clock starts then), {K} steps of {c.step_ms:g} ms")
 
                 drain = recorder.drain
@@ -483,6 +497,15 @@ def _wait_listening(children, name, timeout):
         time.sleep(0.05)
     raise RunFailed(f"{name} did not listen within {timeout:g} s; its log ends:\n"
                     f"{children.tail(name)}")
+
+
+def _standby_monitor(argv, monitor_id: int, listen: str) -> list:
+    """The argv of standby monitor ``monitor_id``: the monitor's, with its own id and
+    listen endpoint (a router run rewrites it like every other child's)."""
+    out = list(argv)
+    if "--listen" in out:
+        out[out.index("--listen") + 1] = listen
+    return out + ["--id", str(monitor_id)]
 
 
 def _signal(children, name, sig):

@@ -282,6 +282,9 @@ class MonitorCore:
         self.world_seen = False
         self.world_gone_at: float | None = None   # the world's token went
         self.world_end: int | None = None          # its last step, once its end is heard
+        #: the agents report an epoch this monitor did not issue: :meth:`adopt` before acting
+        self.behind = False
+        self._adopt_wait = None            # the last reason an adoption had to wait
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
@@ -374,7 +377,10 @@ class MonitorCore:
         a.sensor_last = int(last) if isinstance(last, int) else -1
         a.status = msg
         if self.epoch < a.epoch:          # a restarted monitor continues above every epoch
+            # ... and the configuration it holds is not the one in force: another monitor
+            # acted while this one was away (restarted, paused, cut off)
             self.epoch = a.epoch
+            self.behind = True
 
     def _agent(self, agent):
         try:
@@ -401,7 +407,10 @@ class MonitorCore:
 
     # -- the clock -----------------------------------------------------------------
     def tick(self, now: float) -> list:
-        """Verdicts and reassignment at time ``now``; returns messages to publish now."""
+        """Verdicts and reassignment at time ``now``; returns messages to publish now.
+
+        Nothing while :attr:`behind` (the configuration held is not the one in force:
+        the caller rebuilds it with :meth:`adopt` first)."""
         cfg = self.config
         if self._last_tick is not None and now - self._last_tick > cfg.pause_guard_s:
             self._fresh_evidence(now)
@@ -410,8 +419,8 @@ class MonitorCore:
         self._last_tick = now
         if self._started is None:
             self._started = now
-        if self.world_gone_at is not None:
-            return []                      # the run is ending: the agents leave with it
+        if self.world_gone_at is not None or self.behind:
+            return []                      # the world is gone, or the roster is stale
         out = []
         self._check_confirmations(now)
         if now >= self._suspended_until and self._clock[0] >= 0 and not self._unconfirmed:
@@ -697,6 +706,7 @@ class MonitorCore:
         are the standbys. Epochs continue above every epoch seen. Returns False while a
         status is missing.
         """
+        from design.errors import SocmonError
         from design.roster import Roster
 
         s = self.scenario
@@ -721,11 +731,22 @@ class MonitorCore:
         table = self.roster.table
         D = table[np.ix_([a - 1 for a in rows], [a - 1 for a in rows])]
         D = np.where((W > 0) & ~np.eye(len(rows), dtype=bool), D, 0)
-        scen = s.replace(W=W, measure=tuple(measure), delays=D, standby=len(standby))
+        try:
+            scen = s.replace(W=W, measure=tuple(measure), delays=D, standby=len(standby))
+        except SocmonError as exc:
+            # statuses from before and after a change, or a token not yet seen again:
+            # wait for a consistent picture rather than act on this one
+            line = (f"adoption waits: the statuses of {rows} do not form a configuration "
+                    f"yet ({str(exc)[:120]})")
+            if line != self._adopt_wait:          # said once per distinct reason
+                self.events.append(line)
+                self._adopt_wait = line
+            return False
         self.roster = Roster(scen, tuple(rows), standby, table, D)
         self.failed |= {a for a in range(1, s.N + 1) if a not in rows}
         self.G, self.specs = None, {}
         self.epoch = max([self.epoch, int(epoch)] + [st.epoch for st in self.agents.values()])
+        self.behind = False
         self.events.append(f"adopted the configuration in force: ids {rows}, standby "
                            f"{list(standby)}, epoch {self.epoch}")
         return True

@@ -152,11 +152,11 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             for ev in watch.drain():
                 if ev.role == "agent" and ev.id.isdigit():
                     core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
-                    if not ev.alive:
+                    if not ev.alive and active:
                         record("liveliness", agent=int(ev.id), alive=False)
                 elif ev.role == "world":
                     core.on_liveliness("world", ev.id, ev.alive, ev.arrival)
-                    if not ev.alive:
+                    if not ev.alive and active:
                         record("liveliness", process="world", alive=False,
                                step=core.last_step_reported)
             for item in status_in.drain():
@@ -177,8 +177,17 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             if should and not active:
                 seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
                            + [st.epoch for st in core.agents.values()])
-                if core.history:
-                    pass                     # it acted before: its own view is current
+                if core.history and not core.behind:
+                    pass                     # it acted before and nobody acted since
+                elif core.history:
+                    # another monitor acted while this one was away (paused, cut off):
+                    # the configuration in force is the agents'
+                    if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
+                            if heard_roster is not None
+                            and heard_roster["epoch"] >= core.epoch
+                            else core.adopt(None, core.epoch)):
+                        peer.wait(timeout=0.05)
+                        continue
                 elif heard_roster is not None:
                     if not core.adopt(heard_roster["ids"], heard_roster["epoch"]):
                         peer.wait(timeout=0.05)
@@ -196,6 +205,16 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 print(f"monitor {monitor_id}: another monitor ({others[0]}) is active; passive",
                       file=log, flush=True)
                 active = False
+            if active and core.behind:
+                # the agents run an epoch this monitor never issued: another monitor acted
+                # while this one was paused or cut off; rebuild from the network first
+                if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
+                        if heard_roster is not None and heard_roster["epoch"] >= core.epoch
+                        else core.adopt(None, core.epoch)):
+                    peer.wait(timeout=0.05)
+                    continue
+                record("adopted", monitor=monitor_id, epoch=core.epoch)
+                precompute_for(core.roster)
             if active:
                 for m in core.tick(now):
                     if isinstance(m, Assignment):

@@ -260,3 +260,28 @@ def test_a_standby_that_goes_is_said_with_the_standbys_left(core):
     assert core.tick(2.05) == [] and core.verdicts == []
     assert "standby agent 4 gone (its token went): 0 standby left to replace a failed " \
            "agent" in core.events
+
+
+def test_a_monitor_that_missed_another_monitors_epoch_acts_only_after_adopting_it(core,
+                                                                                paper14):
+    """A monitor paused while a standby monitor replaced agent 1 resumes with the old
+    roster: the agents' statuses report an epoch it never issued, so it must not act on
+    its stale view (it convicted agent 1 a second time and took the standby's new role
+    away) until it has rebuilt the configuration in force from them."""
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    W = paper14.W
+    statuses = {  # the configuration of epoch 1: agent 4 measures 8 in agent 1's place
+        4: {"measure": ["8"], "neighbours": {2: float(W[0, 1])}},
+        2: {"measure": ["9"], "neighbours": {3: float(W[1, 2])}},
+        3: {"measure": ["12"], "neighbours": {4: float(W[2, 0])}},
+    }
+    core.on_liveliness("agent", 1, False, 2.5)          # its death, seen late
+    for a, extra in statuses.items():
+        core.on_status({**_status(a, 130, epoch=1), **extra}, 2.6)
+    assert core.behind
+    assert core.tick(2.7) == [] and core.verdicts == []
+    assert core.adopt(None, core.epoch)
+    assert not core.behind and core.roster.ids == (2, 3, 4) and core.epoch == 1
+    for a, extra in statuses.items():
+        core.on_status({**_status(a, 140, epoch=1), **extra}, 2.9)
+    assert core.tick(3.0) == [] and core.verdicts == []

@@ -85,9 +85,10 @@ def test_a_killed_monitor_is_started_again_and_carries_on(tmp_path, live_gains,
     100 plus its flush time), or after it reassigned agent 1's role (step 160). Started
     again, it rebuilds its view from the network: it convicts agent 1 from its missing
     token, or adopts the configuration in force from the roster and the statuses; the
-    run recovers either way and epochs only grow."""
+    run recovers either way and epochs only grow. (One monitor: with a standby monitor the
+    standby answers the crash, see test_world_pause_multiprocess.)"""
     s = _up(tmp_path, live_gains, "--kill", "100:1", "--kill-monitor", str(kill_monitor_at),
-            steps=450)
+            "--monitors", "1", steps=450)
     log = (tmp_path / "run" / "logs" / "monitor-2.log").read_text()
     assert any(f"adopted the configuration in force: ids {ids}" in log
                for ids in ("[2, 3, 4]", "[4, 2, 3]")) == adopts, log

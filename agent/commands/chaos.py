@@ -76,7 +76,8 @@ def _chaos(args) -> int:
     up_args = argparse.Namespace(
         scenario=args.scenario, steps=args.duration, gains=args.gains, seed=args.seed,
         out=out, delays=args.delays, step_ms=args.step_ms, deadline_ms=None,
-        start_timeout=TIMING.start_timeout_s, quiet=args.quiet, no_monitor=False, drop=0.0, kill=[], stop=[],
+        start_timeout=TIMING.start_timeout_s, quiet=args.quiet, no_monitor=False, monitors=2, drop=0.0,
+        kill=[], stop=[],
         kill_monitor=None, hang_timeout=args.hang_timeout, check_simulator=False,
         overwrite=args.overwrite)
     config = run_config(up_args, say, prog="chaos")

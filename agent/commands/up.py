@@ -13,7 +13,7 @@ HELP = "run world + one process per agent on this machine, record, and write a r
 
 
 def add_arguments(parser) -> None:
-    from ._common import add_force_gains_argument, add_scenario_argument
+    from ._common import add_force_gains_argument, add_scenario_argument, int_flag
 
     add_scenario_argument(parser)
     parser.add_argument("--steps", type=int, default=200, help="steps to run (default 200)")
@@ -40,6 +40,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     parser.add_argument("--no-monitor", action="store_true",
                         help="run without the monitor (a failed agent is then never replaced)")
+    parser.add_argument("--monitors", type=int_flag(lo=1, hi=9), default=2, metavar="N",
+                        help="monitors started (default 2): the first acts, the others stand "
+                             "by and take over when it dies or is paused")
     parser.add_argument("--drop", type=float, default=0.0,
                         help="probability that an estimate is lost on a link, drawn from the "
                              "seed as the simulator draws it (default 0)")
@@ -169,7 +172,8 @@ def run_config(args, say, prog="up"):
     return RunConfig(scenario=scenario, scenario_arg=scen_arg, G=list(G), gains_path=gains_path,
                      delays=delays, delays_spec=args.delays, steps=args.steps, seed=args.seed,
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
-                     monitor=not args.no_monitor, hang_timeout=args.hang_timeout,
+                     monitor=not args.no_monitor, monitors=getattr(args, "monitors", 2),
+                     hang_timeout=args.hang_timeout,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
                      secure=getattr(args, "secure", False), run_id=run_id, listen=listen,
                      router=getattr(args, "router", False))
