@@ -62,6 +62,11 @@ __all__ = ["MonitorConfig", "MonitorCore", "Verdict", "Assignment", "RosterUpdat
            "GainSource"]
 
 
+#: While the monitor's own pause suspends its verdicts, a deleted token is believed once
+#: it has been gone this long (seconds) without the other tokens going with it.
+CRASH_SETTLE_S = 0.1
+
+
 @dataclass(frozen=True)
 class MonitorConfig:
     """Thresholds of the monitor (defaults and the trade-off: docs/monitor.md).
@@ -167,27 +172,33 @@ class _Agent:
     active: bool = False
     progress_at: float | None = None     # when its step last moved
     status_at: float | None = None       # when its last status arrived
+    gone_at: float | None = None         # when its token was last deleted
     others_at_progress: int = -1         # the others' newest step then
     sensor_last: int = -1
     status: dict = field(default_factory=dict)
 
 
 class GainSource:
-    """Gains for a configuration: precomputed ones first, else a fast design.
+    """The gains known for each configuration, and how to get the ones missing.
 
-    ``fast(roster)`` / ``refined(roster)`` -> list of G_i (by row) or None when no
-    stabilising gain is found. Defaults: :func:`design.reconfigure.fast_recovery_gains`
-    (a first stabilising gain: a target radius, few iterations) for a configuration
-    nobody foresaw, and :func:`design.reconfigure.refined_recovery_gains` (least steady
-    MSE, certified stable by the exact radius) for the ones precomputed in the
-    background. Both are designed against the configuration's delays and bounded by
-    iterations, not by the clock.
+    Each entry is ``(G, info)``: ``G`` the list of G_i by row, ``info`` what
+    :func:`design_gains_for` says of it (``kind``: ``"fast"`` a first certified gain,
+    ``"refined"`` the gain of least steady MSE, ``"initial"`` the run's own; ``rho``, the
+    exact radius of the delayed loop; ``mse``, its exact steady MSE). A refined entry is
+    never replaced by a fast one.
+
+    With a ``worker`` (:class:`agent.gain_worker.GainWorker`, the monitor process) nothing
+    is designed here: :meth:`ready` asks the worker once and says False until its answer
+    has been :meth:`put`; without one (unit tests, tools) :meth:`ready` designs a fast
+    gain at once with ``design``.
     """
 
-    def __init__(self, fast=None, refined=None):
-        self._cache: dict = {}
-        self._fast = fast or _fast_design
-        self._refined = refined or _refined_design
+    def __init__(self, design=None, worker=None):
+        self._cache: dict = {}            # key -> (G, info)
+        self._none: set = set()           # keys for which no stabilising gain was found
+        self._requested: set = set()
+        self._design = design or design_gains_for
+        self.worker = worker
 
     @staticmethod
     def key(roster) -> tuple:
@@ -195,47 +206,96 @@ class GainSource:
         return (tuple(roster.ids), s.W.tobytes(), tuple(tuple(m) for m in s.measure),
                 np.asarray(roster.delays).tobytes())
 
-    def put(self, roster, G) -> None:
-        self._cache[self.key(roster)] = G
+    def put(self, roster, G, info=None) -> None:
+        """A design's answer for ``roster`` (``G`` None: no stabilising gain)."""
+        k = self.key(roster)
+        info = dict(info or {})
+        if G is None:
+            if k not in self._cache:
+                self._none.add(k)
+            return
+        old = self._cache.get(k)
+        if old is not None and old[1].get("kind") == "refined" and info.get("kind") == "fast":
+            return
+        self._cache[k] = ([np.asarray(g, dtype=float) for g in G], info)
+        self._none.discard(k)
 
     def has(self, roster) -> bool:
         return self.key(roster) in self._cache
 
-    def design(self, roster, refined: bool = False):
-        """Design gains for ``roster`` now (no cache): list of G_i or None."""
-        return (self._refined if refined else self._fast)(roster)
+    def info(self, roster) -> dict:
+        entry = self._cache.get(self.key(roster))
+        return dict(entry[1]) if entry is not None else {}
 
-    def get(self, roster, refined: bool = False):
-        """(G, precomputed?)"""
+    def ready(self, roster) -> bool:
+        """True once gains for ``roster`` are known, or known not to exist."""
         k = self.key(roster)
-        if k in self._cache:
-            return self._cache[k], True
-        G = (self._refined if refined else self._fast)(roster)
-        if G is not None:
-            self._cache[k] = G
-        return G, False
+        if k in self._cache or k in self._none:
+            return True
+        if self.worker is None:
+            self.put(roster, *self._design(roster, "fast"))
+            return True
+        if k not in self._requested:
+            self._requested.add(k)
+            self.worker.request(roster)
+        return False
+
+    def refine(self, roster) -> None:
+        """Ask the worker (once) for the refined gain of ``roster``, in force on a fast one."""
+        k = ("refine",) + self.key(roster)
+        if self.worker is not None and k not in self._requested:
+            self._requested.add(k)
+            self.worker.request(roster, kinds=("refined",))
+
+    def get(self, roster):
+        """``(G, info)``, or ``(None, {})`` when none is known (see :meth:`ready`)."""
+        entry = self._cache.get(self.key(roster))
+        return (entry[0], dict(entry[1])) if entry is not None else (None, {})
+
+    def design(self, roster, refined: bool = False):
+        """Design gains for ``roster`` now (no cache): ``(G or None, info)``."""
+        return self._design(roster, "refined" if refined else "fast")
 
 
-def _fast_design(roster):
+def _gain_record(info: dict) -> dict:
+    """The keys a history record (and the monitor's events) keep of a gain's ``info``."""
+    return {"gains": info.get("kind", "unknown"), "gains_rho": info.get("rho"),
+            "gains_mse": info.get("mse")}
+
+
+def _gain_words(info: dict) -> str:
+    """``fast gains, exact radius 0.8123, steady MSE 0.4567`` (what is known)."""
+    words = f"{info.get('kind', 'unknown')} gains"
+    if info.get("rho") is not None:
+        words += f", exact radius {info['rho']:.4f}"
+    if info.get("mse") is not None:
+        words += f", steady MSE {info['mse']:.4g}"
+    return words
+
+
+def design_gains_for(roster, kind: str = "fast"):
+    """``(G, info)`` for the configuration ``roster``, designed against its delays.
+
+    ``kind="fast"``: :func:`design.reconfigure.fast_recovery_gains`, a first stabilising
+    gain (a target radius, few iterations); ``"refined"``:
+    :func:`design.reconfigure.refined_recovery_gains` (least steady MSE), falling back to
+    the fast one when it is not stable. Bounded by iterations, not by the clock. ``G`` is
+    None when no stabilising gain was found; ``info`` holds ``kind``, the exact radius
+    ``rho``, the exact steady MSE ``mse`` and the design's ``seconds``.
+    """
     from design.errors import SocmonError
-    from design.reconfigure import fast_recovery_gains
+    from design.reconfigure import fast_recovery_gains, refined_recovery_gains
 
+    design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
     try:
-        res = fast_recovery_gains(roster.scenario, roster.delays)
+        res = design(roster.scenario, roster.delays)
     except SocmonError:
-        return None
-    return list(res.G) if res.stable else None
-
-
-def _refined_design(roster):
-    from design.errors import SocmonError
-    from design.reconfigure import refined_recovery_gains
-
-    try:
-        res = refined_recovery_gains(roster.scenario, roster.delays)
-    except SocmonError:
-        return None
-    return list(res.G) if res.stable else _fast_design(roster)
+        res = None
+    if res is None or not res.stable:
+        return design_gains_for(roster, "fast") if kind == "refined" else (None, {})
+    return list(res.G), {"kind": kind, "rho": float(res.rho),
+                         "mse": None if res.mse_steady is None else float(res.mse_steady),
+                         "seconds": float(res.seconds)}
 
 
 class MonitorCore:
@@ -255,7 +315,10 @@ class MonitorCore:
         self.G = [np.asarray(g, dtype=float) for g in G]
         self.specs = role_specs(self.roster, self.G)
         self.gains = gains or GainSource()
-        self.gains.put(self.roster, self.G)
+        self.gain_info = {"kind": "initial"}   # what the gains in force are
+        self.gains.put(self.roster, self.G, self.gain_info)
+        self._pending: dict | None = None     # a reassignment waiting for its gains
+        self._delay_pending: dict | None = None   # a delay verdict waiting for its gains
         self.epoch = int(epoch)
         self.agents: dict = {a: _Agent() for a in
                              range(1, scenario.N + scenario.standby + 1)}
@@ -272,6 +335,7 @@ class MonitorCore:
         self._last_tick: float | None = None
         self._suspended_until = -math.inf
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
+        self.reissues: list = []          # [{epoch, activate_at, unconfirmed, reason}]
         self._clock = (-1, 0.0)           # (newest step reported, when)
         self._started = None              # the first tick
         self._first_verdict_at = None     # the settle window of simultaneous failures
@@ -302,6 +366,8 @@ class MonitorCore:
             left = len(self.standby_pool(now, exclude=(agent,)))
             self.events.append(f"standby agent {agent} gone (its token went): {left} "
                                f"standby left to replace a failed agent")
+        if a.alive and not alive:
+            a.gone_at = now
         a.alive = bool(alive)
         if alive and a.progress_at is None:
             a.progress_at = now
@@ -423,10 +489,18 @@ class MonitorCore:
             return []                      # the world is gone, or the roster is stale
         out = []
         self._check_confirmations(now)
-        if now >= self._suspended_until and self._clock[0] >= 0 and not self._unconfirmed:
+        suspended = now < self._suspended_until
+        if self._pending is not None:
+            out += self._emit_reassign(now)     # its gains came back from the worker
+        if not suspended and self._clock[0] >= 0 and not self._unconfirmed \
+                and self._pending is None:
             out += self.check_delays(now)
-        if now >= self._suspended_until and self._clock[0] >= 0:
-            found = self._detect(now)
+            if not out:
+                out += self._upgrade_gains(now)
+        if self._clock[0] >= 0:
+            # a deleted token is evidence of its own: even while the monitor's own pause
+            # suspends the verdicts that read clocks, a crash is answered
+            found = self._crash_verdicts(now) if suspended else self._detect(now)
             for v in found:
                 self._first_seen.setdefault(v.agent, now)
             found = [dataclasses.replace(v, at=self._first_seen[v.agent]) for v in found]
@@ -448,6 +522,7 @@ class MonitorCore:
     def _reissue(self, now: float) -> list:
         """``activate_at`` passed before every agent confirmed: the same roles again under
         a new epoch, every agent of the configuration, a later ``activate_at``."""
+        late = sorted(self._unconfirmed)
         self.epoch += 1
         at = self.current_step(now) + self.config.lead_steps
         out = []
@@ -462,9 +537,25 @@ class MonitorCore:
         if self.history:
             self.history[-1] = {**self.history[-1], "epoch": self.epoch, "activate_at": at,
                                 "reissued": self.history[-1].get("reissued", 0) + 1}
-        self.events.append(f"epoch {self.epoch}: activate_at passed before confirmation; "
-                           f"re-issued from step {at}")
+        self.reissues.append({"epoch": self.epoch, "activate_at": at, "unconfirmed": late,
+                              "reason": f"activate_at passed before agents {late} confirmed"})
+        self.events.append(f"epoch {self.epoch}: activate_at passed before agents {late} "
+                           f"confirmed; re-issued from step {at}")
         return out
+
+    def _crash_verdicts(self, now: float) -> list:
+        """The ``crash`` verdicts that hold while verdicts are suspended: a token deleted
+        :data:`CRASH_SETTLE_S` ago or more, while fewer than half of the configuration's
+        tokens are gone (when this monitor was paused or cut off, its links lapse and every
+        token seems to go at once: that is no crash)."""
+        gone = [i for i in self.roster.ids if not self.agents[i].alive]
+        if 2 * len(gone) >= len(self.roster.ids):
+            return []
+        return [Verdict(i, "crash", "liveliness token deleted", now, self._clock[0])
+                for i in gone if i not in self.failed
+                and self.agents[i].progress_at is not None
+                and self.agents[i].gone_at is not None
+                and now - self.agents[i].gone_at >= CRASH_SETTLE_S]
 
     def _detect(self, now: float) -> list:
         cfg = self.config
@@ -537,10 +628,22 @@ class MonitorCore:
 
     def check_delays(self, now: float) -> list:
         """The ``delay`` verdict: learned delays above the design and the exact loop with
-        them unstable -> gains designed for the learned delays, same roles, new epoch."""
+        them unstable -> gains designed for the learned delays, same roles, new epoch
+        (sent when the gains are known: the gain worker designs them)."""
         from design.closed_loop import closed_loop_for
-        from design.roster import role_specs
 
+        if self._delay_pending is not None:
+            p = self._delay_pending
+            if not self.gains.ready(p["roster"]):
+                return []
+            self._delay_pending = None
+            G, info = self.gains.get(p["roster"])
+            if G is None:
+                self.events.append("no stabilising gain for the learned delays: keeping the "
+                                   "gains in force")
+                return []
+            return self._assign_all(p["roster"], G, info, now, p["record"],
+                                    "gains for the learned delays")
         learned = self.learned_delays()
         # links whose learned delay differs from the one the gains were designed for
         # (stability is not monotone in the delays: shorter ones are checked too)
@@ -564,27 +667,10 @@ class MonitorCore:
                     self._clock[0])
         self.verdicts.append(v)
         self.events.append(f"verdict: delay ({v.evidence})")
-        G, _ = self.gains.get(new)
-        if G is None:
-            self.events.append("no stabilising gain for the learned delays: keeping the "
-                               "gains in force")
-            return []
-        self.roster, self.G = new, G
-        self.specs = role_specs(new, G)
-        self.epoch += 1
-        at = max(self.current_step(now), 0) + self.config.lead_steps
-        out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
-        self._unconfirmed = {m.agent: m for m in out}
-        self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
-        out.append(self._roster_msg)
-        self._sent_at = self._assigned_at = now
-        self.history.append({"epoch": self.epoch, "activate_at": at, "failed": [],
-                             "causes": {"0": "delay"}, "ids": list(new.ids),
-                             "replacements": [], "added_links": [], "precomputed": False,
-                             "decided_at": now, "delays": {f"{b}->{a}": t for (a, b), t
-                                                           in sorted(above.items())}})
-        self.events.append(f"epoch {self.epoch}: gains for the learned delays from step {at}")
-        return out
+        self._delay_pending = {"roster": new, "record": {
+            "causes": {"0": "delay"}, "delays": {f"{b}->{a}": t for (a, b), t
+                                                in sorted(above.items())}}}
+        return self.check_delays(now)
 
     def _check_confirmations(self, now: float) -> None:
         for agent, asg in list(self._unconfirmed.items()):
@@ -606,8 +692,11 @@ class MonitorCore:
 
     # -- reassignment ----------------------------------------------------------------
     def _reassign(self, verdicts: list, now: float) -> list:
+        """Record the verdicts, plan the failure on the configuration in force and emit
+        the new roles as soon as their gains are known (:meth:`_emit_reassign`). Verdicts
+        found while an earlier plan still waits for its gains join that plan."""
         from design.errors import SocmonError
-        from design.roster import replan, role_specs
+        from design.roster import replan
 
         self.verdicts += verdicts
         failed = sorted({v.agent for v in verdicts})
@@ -616,6 +705,9 @@ class MonitorCore:
             self.convicted_at[a] = now
         for v in verdicts:
             self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
+        if self._pending is not None:
+            verdicts = self._pending["verdicts"] + verdicts
+            failed = sorted(set(self._pending["failed"]) | set(failed))
         roster = dataclasses.replace(self.roster, standby_ids=self.standby_pool(now, failed))
         try:
             plan, nxt = replan(roster, failed)
@@ -623,18 +715,38 @@ class MonitorCore:
             nxt, plan = None, None
             self.events.append(f"no recovery plan: {exc}")
         if nxt is None or not plan.structurally_observable_after:
+            self._pending = None
             self.unrecoverable = True
             self.events.append(
                 f"RECOVERY IMPOSSIBLE after the failure of {failed}: no equivalent agent or "
                 "connected network left; keeping the configuration in force and monitoring")
             return []
         self.failed -= set(nxt.ids)       # a returned agent taken again is healthy
-        G, precomputed = self.gains.get(nxt)
+        self._pending = {"verdicts": verdicts, "failed": failed, "roster": roster,
+                         "plan": plan, "nxt": nxt, "at": now, "asked": False}
+        return self._emit_reassign(now)
+
+    def _emit_reassign(self, now: float) -> list:
+        """The pending reassignment, once its gains are known; ``activate_at`` counts from
+        now (not from the verdict), so it is never already past when it is sent."""
+        from design.roster import role_specs
+
+        p = self._pending
+        nxt, plan, roster = p["nxt"], p["plan"], p["roster"]
+        if not self.gains.ready(nxt):
+            if not p["asked"]:
+                p["asked"] = True
+                self.events.append(f"gains for ids {list(nxt.ids)} not precomputed: designing "
+                                   "them in the gain worker; detection goes on meanwhile")
+            return []
+        self._pending = None
+        G, info = self.gains.get(nxt)
         if G is None:
             self.unrecoverable = True
             self.events.append("no stabilising gain for the new configuration; keeping the "
                                "configuration in force")
             return []
+        precomputed = not p["asked"]
         take_over = {r.by: roster.ids[r.failed] for r in plan.replacements if r.by_standby}
         specs = role_specs(nxt, G, take_over=take_over)
         self.epoch += 1
@@ -657,21 +769,58 @@ class MonitorCore:
         out.append(roster_msg)
         self._roster_msg = roster_msg
         self._sent_at = self._assigned_at = now
+        verdicts = p["verdicts"]
         self.history.append({
-            "epoch": self.epoch, "activate_at": activate_at, "failed": failed,
+            "epoch": self.epoch, "activate_at": activate_at, "failed": p["failed"],
             "causes": {v.agent: v.cause for v in verdicts}, "ids": list(nxt.ids),
             "replacements": [{"failed": roster.ids[r.failed], "by": r.by,
                               "from": self.scenario.labels[r.node_from],
                               "to": self.scenario.labels[r.node_to]} for r in plan.replacements],
             "added_links": [list(x) for x in plan.added_links],
-            "precomputed": precomputed, "decided_at": now,
+            "precomputed": precomputed, "decided_at": p["at"], "sent_at": now,
+            **_gain_record(info),
         })
         self.events.append(
             f"epoch {self.epoch}: {', '.join(f'{r.by} measures {self.scenario.labels[r.node_to]}' for r in plan.replacements) or 'no replacement needed'}"
             f"; ids {list(nxt.ids)} from step {activate_at}"
-            + (" (precomputed gains)" if precomputed else " (gains designed now)"))
-        self.roster, self.G, self.specs = nxt, G, specs
+            + (" (precomputed gains" if precomputed else
+               f" (gains designed in {now - p['at']:.2f} s") + f", {_gain_words(info)})")
+        self.roster, self.G, self.specs, self.gain_info = nxt, G, specs, info
+        if info.get("kind") == "fast":
+            self.gains.refine(nxt)             # replaced under a new epoch when it is ready
         return out
+
+    def _assign_all(self, new, G, info, now: float, record: dict, why: str) -> list:
+        """The same roles with new gains (or delays) under a new epoch: every agent of
+        ``new`` gets an assignment."""
+        from design.roster import role_specs
+
+        self.roster, self.G, self.gain_info = new, G, info
+        self.specs = role_specs(new, G)
+        self.epoch += 1
+        at = max(self.current_step(now), 0) + self.config.lead_steps
+        out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
+        self._unconfirmed = {m.agent: m for m in out}
+        self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
+        out.append(self._roster_msg)
+        self._sent_at = self._assigned_at = now
+        self.history.append({"epoch": self.epoch, "activate_at": at, "failed": [],
+                             "ids": list(new.ids), "replacements": [], "added_links": [],
+                             "precomputed": False, "decided_at": now, "sent_at": now,
+                             **record, **_gain_record(info)})
+        self.events.append(f"epoch {self.epoch}: {why} from step {at} ({_gain_words(info)})")
+        return out
+
+    def _upgrade_gains(self, now: float) -> list:
+        """The configuration in force runs a fast gain and its refined gain has come back:
+        the same roles with the refined gain, under a new epoch."""
+        if self.gain_info.get("kind") != "fast" or self.G is None:
+            return []
+        G, info = self.gains.get(self.roster)
+        if G is None or info.get("kind") != "refined":
+            return []
+        return self._assign_all(self.roster, G, info, now, {"causes": {"0": "refined"}},
+                                "refined gains for the configuration in force")
 
     def standby_pool(self, now: float, exclude=()) -> tuple:
         """Ids that can take a role now: alive, advancing as standbys (no role), and not

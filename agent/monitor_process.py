@@ -4,9 +4,12 @@ It joins the run as the peer ``monitor/<id>``, reads every agent's liveliness an
 ticks the core every ``TICK_S``, and publishes what the core decides: assignments on
 ``ctl/<agent>`` and the roster (the fence) on ``ctl/0``, the roster again every
 ``ROSTER_S`` so that an agent coming back learns it was replaced. At start-up a
-background thread precomputes the plan and the gains of every single failure of the
+background process precomputes the plan and the gains of every single failure of the
 configuration in force (again after every reassignment), so that a foreseen failure is
-answered without designing anything.
+answered without designing anything. Designs run in the processes of an
+:class:`agent.gain_worker.GainWorker`, never in this loop: a configuration nobody foresaw
+waits for its gains while detection goes on, and a fast gain in force is replaced by the
+refined one under a new epoch when it comes back.
 
 When the world's token goes, the run is ending: the agents leave with it, so nothing is
 convicted while it is gone, and the monitor exits once the agents' tokens are gone too
@@ -23,7 +26,6 @@ from __future__ import annotations
 import json
 import signal
 import sys
-import threading
 import time
 
 from broker_free_net import keys
@@ -31,9 +33,10 @@ from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.peer import Peer
 
 from . import wire
+from .gain_worker import GainWorker
 from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
 
-__all__ = ["run_monitor", "precompute_single_failures", "TICK_S", "ROSTER_S"]
+__all__ = ["run_monitor", "TICK_S", "ROSTER_S"]
 
 TICK_S = 0.01
 ROSTER_S = 1.0
@@ -50,49 +53,6 @@ class _Stop:
         self.flag = True
 
 
-#: pairs of failures are precomputed too when the configuration has at most this many agents
-PAIRS_UP_TO = 4
-
-
-def precompute_single_failures(roster, gains: GainSource, stop=lambda: False, log=None) -> int:
-    """Plan and design gains for the failure of each single agent of ``roster`` (and of
-    each pair when it has at most :data:`PAIRS_UP_TO` agents).
-
-    Two passes: a fast stabilising gain for every set first (tenths of a second each, so
-    that a failure soon after start-up is already foreseen on a loaded machine), then the
-    MSE-refined gain for every set, which replaces it."""
-    import itertools
-
-    from design.errors import SocmonError
-    from design.roster import replan
-
-    sets = [[a] for a in roster.ids]
-    if len(roster.ids) <= PAIRS_UP_TO:
-        sets += [list(p) for p in itertools.combinations(roster.ids, 2)]
-    planned = []
-    for a in sets:
-        try:
-            _, nxt = replan(roster, a)
-        except SocmonError:
-            continue
-        if nxt is not None:
-            planned.append((a, nxt))
-    done = 0
-    for refined in (False, True):
-        for a, nxt in planned:
-            if stop():
-                return done
-            if not refined and gains.has(nxt):
-                continue
-            G = gains.design(nxt, refined=refined)
-            if G is not None:
-                gains.put(nxt, G)
-                done += refined
-            if log is not None and (refined or G is None):
-                print(f"monitor: precomputed the failure of agents {a}: "
-                      f"{'refined gains ready' if G is not None else 'no stabilising gain'}",
-                      file=log, flush=True)
-    return done
 
 
 def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorConfig = None,
@@ -106,7 +66,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     if isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
         signal.signal(signal.SIGINT, stop)
-    gains = GainSource()
+    worker = GainWorker()
+    gains = GainSource(worker=worker)
     core = MonitorCore(config or MonitorConfig(), scenario, G, delays, gains=gains)
     stats = MessageStats()
     run = net.run
@@ -122,141 +83,146 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         for put in publish:
             put(keys.monitor_events_key(run), wire.encode_monitor_event(event))
 
-    worker = {"thread": None, "roster": None}
-    recorded = {"verdicts": 0, "history": 0, "waiting": None}   # what events_out holds
+    recorded = {"verdicts": 0, "history": 0, "reissues": 0, "waiting": None}  # in events_out
+    precomputing = [None]
 
     def precompute_for(roster):
-        if not precompute or worker["roster"] is roster:
-            return
-        worker["roster"] = roster
-        t = threading.Thread(target=precompute_single_failures,
-                             args=(roster, gains, lambda: stop.flag or core.roster is not roster,
-                                   log), daemon=True)
-        worker["thread"] = t
-        t.start()
+        if precompute and precomputing[0] is not roster:
+            precomputing[0] = roster
+            worker.precompute(roster)
 
-    with Peer(net, "monitor", monitor_id) as peer:
-        peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
-        publish.append(peer.put)
-        status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
-        roster_in = peer.subscribe(keys.ctl_key(run, 0))
-        end_in = peer.subscribe(keys.end_key(run), maxlen=16)
-        watch = peer.watch_liveliness()
-        heard_roster = None
-        active = False
-        listen_until = time.monotonic() + LISTEN_S
-        next_roster = 0.0
-        print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
-        while not stop.flag:
-            now = time.monotonic()
-            for ev in watch.drain():
-                if ev.role == "agent" and ev.id.isdigit():
-                    core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
-                    if not ev.alive and active:
-                        record("liveliness", agent=int(ev.id), alive=False)
-                elif ev.role == "world":
-                    core.on_liveliness("world", ev.id, ev.alive, ev.arrival)
-                    if not ev.alive and active:
-                        record("liveliness", process="world", alive=False,
-                               step=core.last_step_reported)
-            for item in status_in.drain():
-                msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
-                if msg is not None:
-                    core.on_status(msg, now)
-            for item in end_in.drain():
-                msg = try_decode(item.payload, wire.END_SCHEMA, stats)
-                if msg is not None:
-                    core.on_world_end(msg["step"])
-            for item in roster_in.drain():
-                msg = try_decode(item.payload, ctl_schema, stats)
-                if msg is not None and (heard_roster is None or msg["epoch"] > heard_roster["epoch"]):
-                    heard_roster = msg
-            others = sorted(int(i) for role, i in watch.alive() if role == "monitor"
-                            and i.isdigit() and int(i) != monitor_id)
-            should = (not others or monitor_id < others[0]) and now >= listen_until
-            if should and not active:
-                seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
-                           + [st.epoch for st in core.agents.values()])
-                if core.history and not core.behind:
-                    pass                     # it acted before and nobody acted since
-                elif core.history:
-                    # another monitor acted while this one was away (paused, cut off):
-                    # the configuration in force is the agents'
+    try:
+        with Peer(net, "monitor", monitor_id) as peer:
+            peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
+            publish.append(peer.put)
+            status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+            roster_in = peer.subscribe(keys.ctl_key(run, 0))
+            end_in = peer.subscribe(keys.end_key(run), maxlen=16)
+            watch = peer.watch_liveliness()
+            heard_roster = None
+            active = False
+            listen_until = time.monotonic() + LISTEN_S
+            next_roster = 0.0
+            print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
+            while not stop.flag:
+                for roster, G_new, info in worker.poll():
+                    gains.put(roster, G_new, info)
+                now = time.monotonic()
+                for ev in watch.drain():
+                    if ev.role == "agent" and ev.id.isdigit():
+                        core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
+                        if not ev.alive and active:
+                            record("liveliness", agent=int(ev.id), alive=False)
+                    elif ev.role == "world":
+                        core.on_liveliness("world", ev.id, ev.alive, ev.arrival)
+                        if not ev.alive and active:
+                            record("liveliness", process="world", alive=False,
+                                   step=core.last_step_reported)
+                for item in status_in.drain():
+                    msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
+                    if msg is not None:
+                        core.on_status(msg, now)
+                for item in end_in.drain():
+                    msg = try_decode(item.payload, wire.END_SCHEMA, stats)
+                    if msg is not None:
+                        core.on_world_end(msg["step"])
+                for item in roster_in.drain():
+                    msg = try_decode(item.payload, ctl_schema, stats)
+                    if msg is not None and (heard_roster is None or msg["epoch"] > heard_roster["epoch"]):
+                        heard_roster = msg
+                others = sorted(int(i) for role, i in watch.alive() if role == "monitor"
+                                and i.isdigit() and int(i) != monitor_id)
+                should = (not others or monitor_id < others[0]) and now >= listen_until
+                if should and not active:
+                    seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
+                               + [st.epoch for st in core.agents.values()])
+                    if core.history and not core.behind:
+                        pass                     # it acted before and nobody acted since
+                    elif core.history:
+                        # another monitor acted while this one was away (paused, cut off):
+                        # the configuration in force is the agents'
+                        if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
+                                if heard_roster is not None
+                                and heard_roster["epoch"] >= core.epoch
+                                else core.adopt(None, core.epoch)):
+                            peer.wait(timeout=0.05)
+                            continue
+                    elif heard_roster is not None:
+                        if not core.adopt(heard_roster["ids"], heard_roster["epoch"]):
+                            peer.wait(timeout=0.05)
+                            continue
+                    elif seen > 0 and not core.adopt(None, seen):
+                        # roles were reassigned before this monitor started: the agents'
+                        # statuses say which; wait until every active one has reported
+                        peer.wait(timeout=0.05)
+                        continue
+                    print(f"monitor {monitor_id}: active", file=log, flush=True)
+                    record("active", monitor=monitor_id, epoch=core.epoch)
+                    active = True
+                    precompute_for(core.roster)
+                elif not should and active:
+                    print(f"monitor {monitor_id}: another monitor ({others[0]}) is active; passive",
+                          file=log, flush=True)
+                    active = False
+                if active and core.behind:
+                    # the agents run an epoch this monitor never issued: another monitor acted
+                    # while this one was paused or cut off; rebuild from the network first
                     if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
-                            if heard_roster is not None
-                            and heard_roster["epoch"] >= core.epoch
+                            if heard_roster is not None and heard_roster["epoch"] >= core.epoch
                             else core.adopt(None, core.epoch)):
                         peer.wait(timeout=0.05)
                         continue
-                elif heard_roster is not None:
-                    if not core.adopt(heard_roster["ids"], heard_roster["epoch"]):
-                        peer.wait(timeout=0.05)
-                        continue
-                elif seen > 0 and not core.adopt(None, seen):
-                    # roles were reassigned before this monitor started: the agents'
-                    # statuses say which; wait until every active one has reported
-                    peer.wait(timeout=0.05)
-                    continue
-                print(f"monitor {monitor_id}: active", file=log, flush=True)
-                record("active", monitor=monitor_id, epoch=core.epoch)
-                active = True
-                precompute_for(core.roster)
-            elif not should and active:
-                print(f"monitor {monitor_id}: another monitor ({others[0]}) is active; passive",
-                      file=log, flush=True)
-                active = False
-            if active and core.behind:
-                # the agents run an epoch this monitor never issued: another monitor acted
-                # while this one was paused or cut off; rebuild from the network first
-                if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
-                        if heard_roster is not None and heard_roster["epoch"] >= core.epoch
-                        else core.adopt(None, core.epoch)):
-                    peer.wait(timeout=0.05)
-                    continue
-                record("adopted", monitor=monitor_id, epoch=core.epoch)
-                precompute_for(core.roster)
-            if active:
-                for m in core.tick(now):
-                    if isinstance(m, Assignment):
-                        sp = m.spec
-                        peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
-                            m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
-                            sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
-                            run=run))
-                    elif isinstance(m, RosterUpdate):
+                    record("adopted", monitor=monitor_id, epoch=core.epoch)
+                    precompute_for(core.roster)
+                if active:
+                    for m in core.tick(now):
+                        if isinstance(m, Assignment):
+                            sp = m.spec
+                            peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
+                                m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
+                                sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
+                                run=run))
+                        elif isinstance(m, RosterUpdate):
+                            peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                                m.epoch, m.activate_at, m.ids, signer=signer, run=run))
+                            next_roster = now + ROSTER_S
+                    for line in core.events:
+                        print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                    core.events.clear()
+                    for v in core.verdicts[recorded["verdicts"]:]:
+                        record("verdict", agent=v.agent, cause=v.cause, evidence=v.evidence,
+                               step=v.step, mono=v.at,
+                               detected_t=time.time() - (time.monotonic() - v.at))
+                    recorded["verdicts"] = len(core.verdicts)
+                    for h in core.history[recorded["history"]:]:
+                        record("reassign", **{k: v for k, v in h.items()
+                                              if k not in ("decided_at", "sent_at")},
+                               mono=h["decided_at"], mono_sent=h["sent_at"])
+                        precompute_for(core.roster)
+                    recorded["history"] = len(core.history)
+                    for r in core.reissues[recorded["reissues"]:]:
+                        record("reissue", **r)
+                    recorded["reissues"] = len(core.reissues)
+                    if core.history and not core.confirmed():
+                        recorded["waiting"] = core.epoch
+                    elif recorded["waiting"] is not None and core.confirmed():
+                        record("confirmed", epoch=core.epoch, waited_for=recorded["waiting"])
+                        recorded["waiting"] = None
+                    if core._roster_msg is not None and now >= next_roster:
+                        m = core._roster_msg
                         peer.put(keys.ctl_key(run, 0), wire.encode_roster(
                             m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                         next_roster = now + ROSTER_S
-                for line in core.events:
-                    print(f"monitor {monitor_id}: {line}", file=log, flush=True)
-                core.events.clear()
-                for v in core.verdicts[recorded["verdicts"]:]:
-                    record("verdict", agent=v.agent, cause=v.cause, evidence=v.evidence,
-                           step=v.step, mono=v.at,
-                           detected_t=time.time() - (time.monotonic() - v.at))
-                recorded["verdicts"] = len(core.verdicts)
-                for h in core.history[recorded["history"]:]:
-                    record("reassign", **{k: v for k, v in h.items() if k != "decided_at"},
-                           mono=h["decided_at"])
-                    precompute_for(core.roster)
-                recorded["history"] = len(core.history)
-                if core.history and not core.confirmed():
-                    recorded["waiting"] = core.epoch
-                elif recorded["waiting"] is not None and core.confirmed():
-                    record("confirmed", epoch=core.epoch, waited_for=recorded["waiting"])
-                    recorded["waiting"] = None
-                if core._roster_msg is not None and now >= next_roster:
-                    m = core._roster_msg
-                    peer.put(keys.ctl_key(run, 0), wire.encode_roster(
-                        m.epoch, m.activate_at, m.ids, signer=signer, run=run))
-                    next_roster = now + ROSTER_S
-            if core.run_ended(now):
-                for line in core.events:
-                    print(f"monitor {monitor_id}: {line}", file=log, flush=True)
-                print(f"monitor {monitor_id}: the world left after step {core.last_step_reported} "
-                      "and the agents with it; exiting", file=log, flush=True)
-                break
-            peer.wait(timeout=TICK_S)
-    if out_file is not None:
-        out_file.close()
+                if core.run_ended(now):
+                    for line in core.events:
+                        print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                    print(f"monitor {monitor_id}: the world left after step {core.last_step_reported} "
+                          "and the agents with it; exiting", file=log, flush=True)
+                    break
+                peer.wait(timeout=TICK_S)
+    finally:
+        worker.close()
+        if out_file is not None:
+            out_file.close()
     return 0
+

@@ -12,19 +12,60 @@ import math
 
 import numpy as np
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "summarize", "mse_by_step", "specs_in_force", "effective_rosters", "compare_simulator",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
 CHECK_TOL = 1e-9
+#: A run recovered when the steady MSE after its last switch is within this factor of the
+#: exact prediction for the configuration in force.
+RECOVERED_FACTOR = 3.0
+#: A run diverged at the first step whose MSE is not finite or above this factor times
+#: the larger exact prediction (the configuration started with, the one in force at the
+#: end); with no finite prediction, only a non-finite MSE counts.
+DIVERGED_FACTOR = 1e3
 
 
-def mse_by_step(rec, K):
-    """``(steps, mse)``: mean over the agents in force at each step (the roster)."""
+def steady_mse(values) -> float:
+    """The steady MSE of a window of per-step MSEs: their mean, steps without an estimate
+    left out (NaN for an empty window, inf when one is infinite). The one definition used by the summary and the headline.
+
+    >>> steady_mse([1.0, 3.0]), steady_mse([])
+    (2.0, nan)
+    """
+    values = np.asarray(list(values), dtype=float)
+    values = values[~np.isnan(values)]            # steps no agent estimate reached
+    if not len(values):
+        return float("nan")
+    return float(np.mean(values)) if np.isfinite(values).all() else float("inf")
+
+
+def diverged_at(steps, mse, predictions) -> int | None:
+    """The first step whose MSE is not finite or exceeds :data:`DIVERGED_FACTOR` times the
+    largest finite value of ``predictions``; None when there is none.
+
+    >>> diverged_at([0, 1, 2, 3], [0.3, 0.5, 500.0, float("inf")], [0.27, 0.4])
+    2
+    >>> diverged_at([0, 1], [0.3, 0.5], [float("inf")]) is None
+    True
+    """
+    finite = [p for p in predictions if p is not None and math.isfinite(p)]
+    bound = DIVERGED_FACTOR * max(finite) if finite else math.inf
+    for k, m in zip(steps, mse):
+        if not math.isfinite(m) or m > bound:
+            return int(k)
+    return None
+
+
+def mse_by_step(rec, K, rosters=None):
+    """``(steps, mse)``: mean over the agents in force at each step (``rosters``, default
+    :func:`rosters_in_force` of the recording)."""
     steps = sorted(k for k in rec.truth if k <= K)
+    if rosters is None:
+        rosters = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)[0]
 
     def in_force(k):
-        return [ids for at, ids, _ in rec.rosters if at <= k][-1]
+        return [ids for at, ids, _ in rosters if at <= k][-1]
 
     mse = []
     for k in steps:
@@ -70,7 +111,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
     tail = max(1, K // 4)
-    mse_steady = float(np.mean(mse[-tail:])) if len(mse) else float("nan")
+    mse_steady = steady_mse(mse[-tail:])
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
     children = rec.children.children.values() if rec.children is not None else ()
     summary = {
@@ -113,6 +154,28 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     }
     summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec,
                              c.scenario, c.delays, steps, mse, c.G))
+    warnings = []
+    # the prediction for what was in force over the steady window (the last quarter)
+    window_from = steps[-tail] if len(steps) >= tail else (steps[0] if steps else 0)
+    last_switch = summary["rosters"][-1]["activate_at"] if len(summary["rosters"]) > 1 else 0
+    summary["mse_steady_exact_in_force"] = (
+        summary.get("mse_steady_exact_after_recovery") if last_switch
+        and last_switch <= window_from else predicted if not last_switch else None)
+    if last_switch and last_switch > window_from:
+        warnings.append(f"the steady window (from step {window_from}) begins before the last "
+                        f"switch (step {last_switch}): no single exact prediction covers it")
+    summary["diverged_at"] = diverged_at(
+        steps, mse, [predicted, summary.get("mse_steady_exact_after_recovery")])
+    if summary["diverged_at"] is not None:
+        warnings.append(f"the estimates DIVERGED: the MSE at step {summary['diverged_at']} "
+                        f"is above {DIVERGED_FACTOR:g}x every exact prediction (or not finite)")
+    needed = sum(sum((s.get("inputs") or {}).values()) for s in last.values())
+    missed = summary["drops"] + summary["late"]
+    if needed and missed > 0.01 * needed:
+        warnings.append(f"period not sustained: {missed} of {needed} neighbour estimates "
+                        f"({100 * missed / needed:.1f} %) were late or dropped (the machine "
+                        "is too loaded for this step period, or links are impaired)")
+    summary["warnings"] = summary.get("warnings", []) + warnings
     logged = log_warnings(c.out / "logs") if c.out is not None else []
     summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
                                              + summary.get("warnings", [])))
@@ -173,19 +236,74 @@ def log_warnings(logs_dir) -> list:
     return found
 
 
-def effective_rosters(rosters):
-    """The configurations that were actually in force: a roster superseded at the same
-    ``activate_at`` by a newer epoch never ran, and a re-issue of the same ids under a
-    new epoch changes nothing."""
-    by_step = {}
-    for at, ids, epoch in rosters:
-        if at not in by_step or epoch > by_step[at][2]:
-            by_step[at] = (at, ids, epoch)
-    out = []
-    for r in sorted(by_step.values()):
-        if not out or r[1] != out[-1][1]:
-            out.append(r)
-    return out
+def switch_steps(est_epoch_of_agent: dict, epoch: int):
+    """The first step an agent computed under ``epoch``, from the epochs its estimates
+    carried; None if it never did (it rejected that assignment, or ran a newer one first).
+
+    An agent that takes a role without an estimate of its own (a standby) first publishes
+    the estimate it starts from, stamped ``activate_at - 1`` under the new epoch: its
+    switch is the step after.
+
+    >>> switch_steps({9: 0, 10: 1, 11: 1}, 1), switch_steps({9: 1, 10: 1}, 1)
+    (10, 10)
+    >>> switch_steps({9: 0, 10: 0}, 1) is None, switch_steps({9: 0, 10: 2}, 1) is None
+    (True, True)
+    """
+    steps = sorted(k for k, e in est_epoch_of_agent.items() if e == epoch)
+    if not steps:
+        return None
+    first = steps[0]
+    return first if (first - 1) in est_epoch_of_agent else first + 1
+
+
+def rosters_in_force(rosters, est_epoch, assigns):
+    """The configurations that were really in force, read from what the agents published.
+
+    ``rosters``: ``[(activate_at, ids, epoch)]`` heard from the monitor (the first the
+    initial configuration); ``est_epoch``: agent -> {step: epoch of its estimate};
+    ``assigns``: ``{(agent, epoch): assignment}`` heard. A roster was in force from the
+    step at which the last of the agents it assigned a role switched to its epoch (at its
+    ``activate_at`` when all went together). A roster that an assigned agent never ran
+    (its ``activate_at`` passed before it heard it; a newer epoch came first) never was in
+    force: the re-issue that follows is. A roster whose agents switched at different
+    steps is kept from the last switch, and reported as mixed.
+
+    Returns ``(in_force, mixed)``: ``[(step, ids, epoch)]`` and
+    ``[{"epoch", "activate_at", "switched": {agent: step or None}}]`` for every roster
+    that was not run by all its agents at its ``activate_at``.
+
+    >>> rosters = [(0, (1, 2, 3), 0), (175, (1, 2, 4), 1), (184, (1, 2, 4), 2)]
+    >>> est = {a: {174: 0, 175: 1, 183: 1, 184: 2} for a in (1, 2)}
+    >>> est[4] = {183: 2, 184: 2}      # rejected epoch 1 (too late), took epoch 2's role
+    >>> assigns = {(a, e): {} for a in (1, 2, 4) for e in (1, 2)}
+    >>> in_force, mixed = rosters_in_force(rosters, est, assigns)
+    >>> in_force
+    [(0, (1, 2, 3), 0), (184, (1, 2, 4), 2)]
+    >>> mixed[0]["switched"]
+    {1: 175, 2: 175, 4: None}
+    """
+    out, mixed = [rosters[0]], []
+    newest_at: dict = {}
+    for at, ids, epoch in rosters[1:]:
+        newest_at[at] = max(newest_at.get(at, epoch), epoch)
+    for at, ids, epoch in sorted(rosters[1:], key=lambda r: r[2]):
+        if newest_at[at] != epoch:
+            continue                       # superseded at the same step before it ran
+        assigned = sorted(a for (a, e) in assigns if e == epoch and a in ids) or list(ids)
+        switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
+        if all(k is None for k in switched.values()):
+            if any(est_epoch.get(a) for a in assigned):
+                mixed.append({"epoch": epoch, "activate_at": at, "switched": switched})
+                continue                   # nobody ran it
+            out.append((at, tuple(ids), epoch))    # no estimate recorded: as sent
+            continue
+        if any(k != at for k in switched.values()):
+            mixed.append({"epoch": epoch, "activate_at": at, "switched": switched})
+        if any(k is None for k in switched.values()):
+            continue
+        out.append((max(switched.values()), tuple(ids), epoch))
+    out = [out[0]] + sorted(out[1:], key=lambda r: (r[0], r[2]))
+    return out, mixed
 
 
 def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
@@ -212,7 +330,8 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     """``failures``, ``recovered``, MSE after recovery (live and exact) for the summary."""
     import json
 
-    events, rosters, assigns = rec.events, rec.rosters, rec.assigns
+    events, assigns = rec.events, rec.assigns
+    rosters, mixed = rosters_in_force(rec.rosters, rec.est_epoch, assigns)
     records = []
     try:
         with open(events_path) as f:
@@ -253,14 +372,30 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             entry["fenced_ms"] = 1e3 * (gone["t"] - back["t"])
         r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
         if r is not None:
-            entry.update(epoch=r["epoch"], activate_at=r["activate_at"],
-                         precomputed=r.get("precomputed"))
+            # the roles in force: this epoch's roster, or the re-issue that replaced it
+            took = next(((at, ep) for at, _, ep in rosters[1:] if ep >= r["epoch"]), None)
+            entry.update(epoch=took[1] if took else r["epoch"],
+                         activate_at=took[0] if took else None,
+                         activate_at_sent=r["activate_at"], precomputed=r.get("precomputed"),
+                         gains=r.get("gains"))
             rep = [x for x in r["replacements"] if x["failed"] == v["agent"]]
             entry["replacement"] = ({"agent": rep[0]["by"], "node": rep[0]["to"]} if rep
                                     else None)
         failures.append(entry)
     out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
-                                               "epoch": ep} for at, ids, ep in rosters]}
+                                               "epoch": ep} for at, ids, ep in rosters],
+           "rosters_not_in_force": [{**m, "switched": {str(a): k for a, k
+                                                        in m["switched"].items()}}
+                                    for m in mixed],
+           "reissues": [{"epoch": r.get("epoch"), "activate_at": r.get("activate_at"),
+                         "reason": r.get("reason", "")}
+                        for r in records if r.get("kind") == "reissue"]}
+    for m in mixed:
+        out.setdefault("warnings", []).append(
+            f"epoch {m['epoch']} (activate_at {m['activate_at']}) was not run by all its "
+            "agents at that step: " + ", ".join(
+                f"agent {a} {'from step ' + str(k) if k is not None else 'never'}"
+                for a, k in sorted(m["switched"].items())))
     if len(rosters) > 1 and G0 is None:           # a watcher given no gains
         out["recovered"] = None
         out.setdefault("warnings", []).append("no gains given: recovery not evaluated")
@@ -268,10 +403,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         at = rosters[-1][0]
         ids, specs = specs_in_force(rosters, assigns, scenario, G0)
         recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
-        out["recovered"] = bool(recovered)
         after = [m for k, m in zip(steps_done, mse) if k >= at]
         tail = after[-max(1, len(after) // 4):] if after else []
-        out["mse_steady_after_recovery"] = float(np.mean(tail)) if tail else float("nan")
+        out["mse_steady_after_recovery"] = steady_mse(tail)
         try:
             from design.closed_loop import closed_loop_for
             from design.roster import link_delay_table, roster_from_specs
@@ -287,6 +421,16 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
             out["mse_steady_exact_after_recovery"] = None
             out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")
+        # recovered: the roles in force, and the error after them near its exact level
+        exact = out.get("mse_steady_exact_after_recovery")
+        measured = out["mse_steady_after_recovery"]
+        out["recovered"] = bool(recovered) and exact is not None and math.isfinite(exact) \
+            and math.isfinite(measured) and measured <= RECOVERED_FACTOR * exact
+        if recovered and not out["recovered"]:
+            out.setdefault("warnings", []).append(
+                f"not recovered: the roles are in force from step {at}, but the steady MSE "
+                f"after them, {measured:.4g}, is not within {RECOVERED_FACTOR:g}x of their "
+                f"exact prediction {exact if exact is not None else float('nan'):.4g}")
     elif failures:
         out["recovered"] = False
     return out
@@ -315,7 +459,14 @@ def compare_simulator(config, rec, steps_done):
             return float("inf"), "the simulator replays one scripted crash step only"
         f = next(iter(kills.values()))
         fail = (f, sorted(a - 1 for a in kills))
-        rosters = effective_rosters(rec.rosters)
+        rosters, mixed = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)
+        if mixed:
+            m = mixed[0]
+            return float("inf"), (
+                f"the agents of epoch {m['epoch']} did not switch together (" + ", ".join(
+                    f"agent {a} {'at step ' + str(k) if k is not None else 'never'}"
+                    for a, k in sorted(m["switched"].items()))
+                + "): the simulator replays whole configurations only")
         table = link_delay_table(c.scenario, c.delays)
         chain = []
         for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
@@ -416,6 +567,18 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
+    for i, r in enumerate(summary.get("reissues", [])):
+        if isinstance(r.get("activate_at"), int):
+            ax.axvline(r["activate_at"], color="tab:orange", lw=0.8, ls="-.",
+                       label="roles re-issued (activate_at had passed)" if i == 0 else None)
+    for i, r in enumerate(summary.get("rosters", [])[1:]):
+        if not any(f.get("activate_at") == r["activate_at"]
+                   for f in summary.get("failures", [])):
+            ax.axvline(r["activate_at"], color="tab:green", lw=0.8, ls="--",
+                       label="new gains in force (same roles)" if i == 0 else None)
+    if summary.get("diverged_at") is not None:
+        ax.axvline(summary["diverged_at"], color="tab:red", lw=1.5,
+                   label="DIVERGED")
     changed = sorted({e["step"] for e in summary.get("events", [])
                       if "links" in e and isinstance(e.get("step"), int) and e["step"] >= 0})
     for i, k in enumerate(changed):

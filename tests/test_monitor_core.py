@@ -285,3 +285,61 @@ def test_a_monitor_that_missed_another_monitors_epoch_acts_only_after_adopting_i
     for a, extra in statuses.items():
         core.on_status({**_status(a, 140, epoch=1), **extra}, 2.9)
     assert core.tick(3.0) == [] and core.verdicts == []
+
+
+class _FakeWorker:
+    """A gain worker stepped by hand: requests are kept, answers given by the test."""
+
+    def __init__(self):
+        self.requests = []
+
+    def request(self, roster, kinds=("fast", "refined")):
+        self.requests.append((roster, tuple(kinds)))
+
+
+def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_them(paper14):
+    """The loop never designs: a configuration without gains is requested from the worker;
+    detection goes on meanwhile; ``activate_at`` counts from when the gains came back (it
+    used to be fixed before a design of seconds, and was past when sent); a fast gain in
+    force is replaced by the refined one under a later epoch."""
+    from agent.monitor_core import GainSource, design_gains_for
+
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    worker = _FakeWorker()
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), s, G,
+                       s.delays, gains=GainSource(worker=worker))
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    assert core.tick(2.05) == []                            # no gains yet: nothing sent
+    assert [v.agent for v in core.verdicts] == [1]
+    (roster, kinds), = worker.requests
+    assert roster.ids == (4, 2, 3) and kinds == ("fast", "refined")
+    assert any("designing them in the gain worker" in e for e in core.events)
+    # the loop goes on ticking and detecting while the worker designs
+    _advance(core, 2.1, 4.0, lambda t: 50 * t, skip=(1,))
+    assert core.history == []
+    fast = design_gains_for(roster, "fast")
+    assert fast[0] is not None and fast[1]["kind"] == "fast" and fast[1]["rho"] < 1
+    core.gains.put(roster, *fast)
+    out = core.tick(4.05)
+    (msg,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert msg.ids == (4, 2, 3) and msg.activate_at >= 200 + core.config.lead_steps
+    h = core.history[-1]
+    assert h["precomputed"] is False and h["gains"] == "fast" and h["gains_rho"] < 1
+    assert (roster, ("refined",)) in worker.requests or worker.requests[0][1] == (
+        "fast", "refined")
+    for a in (2, 3, 4):
+        core.on_status(_status(a, 215, epoch=1), 4.3)
+    assert core.tick(4.3) == []                              # confirmed, no refined yet
+    refined = design_gains_for(roster, "refined")
+    core.gains.put(roster, *refined)
+    out = core.tick(4.4)
+    assert {m.epoch for m in out} == {2}
+    assert core.history[-1]["gains"] == "refined" and core.history[-1]["causes"] == {
+        "0": "refined"}
+    assert core.roster.ids == (4, 2, 3)

@@ -275,6 +275,8 @@ def _up(args) -> int:
     if rec.failure:
         summary["error"] = rec.failure
         status_code = 130 if rec.interrupted else 1
+    if summary.get("diverged_at") is not None:
+        status_code = status_code or 1       # a negative result: said in the warnings
     if args.check_simulator and not rec.failure:
         diff, how = compare_simulator(config, rec, steps_done)
         summary["max_rel_diff_vs_simulator"] = diff
@@ -290,8 +292,13 @@ def _up(args) -> int:
     if args.json:
         print(json.dumps(to_jsonable(summary), indent=2))
     else:
+        exact = summary.get("mse_steady_exact_in_force")
         print(f"{s.name}: {summary['steps']} steps, {s.N} agents, mse_steady "
-              f"{summary['mse_steady']:.4g} (predicted {predicted:.4g}), drops "
+              f"{summary['mse_steady']:.4g} (predicted "
+              + (f"{exact:.4g} for the configuration in force" if exact is not None
+                 else "n/a: the window spans a switch")
+              + (f"; DIVERGED at step {summary['diverged_at']}"
+                 if summary.get("diverged_at") is not None else "") + "), drops "
               f"{summary['drops']}, late {summary['late']}, malformed {summary['malformed']}"
               + (f", max_rel_diff_vs_simulator {summary['max_rel_diff_vs_simulator']:.3g}"
                  if "max_rel_diff_vs_simulator" in summary else ""))

@@ -1,0 +1,216 @@
+"""Gain design for the monitor, in processes of its own: the monitor's loop never designs.
+
+A design takes from a tenth of a second (a first stabilising gain) to seconds (the gain of
+least steady MSE); under the GIL a design thread starved the monitor's loop, whose pause
+guard then suspended its verdicts, and a design made inside the loop left every agent
+waiting (1.9-10 s measured). :class:`GainWorker` runs two processes:
+
+- the *urgent* one designs, on request, the gains of a configuration nobody foresaw: a
+  first certified gain (stable for the configuration's delays, exact radius < 1), sent at
+  once, then the refined one for the same configuration, sent when ready;
+- the *background* one precomputes every single failure (and pairs, for small networks)
+  of the configuration in force: fast gains for all first, then refined ones; a newer
+  configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
+  that on a loaded machine the monitor's loop and the urgent designs go first.
+
+Results come back as ``(roster, G, info)``, ``info`` as
+:func:`agent.monitor_core.design_gains_for` gives it (``kind`` ``"fast"`` or ``"refined"``,
+the exact radius and steady MSE; G is None when no stabilising gain was found); the monitor's loop drains them with
+:meth:`GainWorker.poll` between ticks and hands them to its
+:class:`agent.monitor_core.GainSource`. The processes are started with ``spawn`` (the
+monitor's zenoh session and its threads are not forked) and import only ``design``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import queue
+import sys
+
+__all__ = ["GainWorker", "BACKGROUND_NICE", "precompute_single_failures"]
+
+#: Niceness of the background (precompute) process.
+BACKGROUND_NICE = 10
+#: pairs of failures are precomputed too when the configuration has at most this many agents
+PAIRS_UP_TO = 4
+
+
+class GainWorker:
+    """Two design processes and their queues; :meth:`close` ends them."""
+
+    def __init__(self):
+        self._ctx = multiprocessing.get_context("spawn")
+        self._procs: list = []           # started at the first request (a standby monitor
+        self._generation = 0             # that never acts never starts them)
+
+    def _start(self) -> None:
+        if self._procs:
+            return
+        ctx = self._ctx
+        self._urgent, self._background, self._results = ctx.Queue(), ctx.Queue(), ctx.Queue()
+        self._procs = [
+            ctx.Process(target=_serve_urgent, args=(self._urgent, self._results),
+                        name="socmon-gains-urgent", daemon=True),
+            ctx.Process(target=_serve_background, args=(self._background, self._results),
+                        name="socmon-gains-background", daemon=True),
+        ]
+        for p in self._procs:
+            p.start()
+
+    def request(self, roster, kinds=("fast", "refined")) -> None:
+        """Design the gains of ``roster`` now: a fast certified gain, then a refined one
+        (``kinds``: only the refined one, for a configuration in force on a fast gain)."""
+        self._start()
+        self._urgent.put((roster, tuple(kinds)))
+
+    def precompute(self, roster) -> None:
+        """Precompute the failures of ``roster`` (the configuration now in force); any
+        earlier precompute still running is abandoned."""
+        self._start()
+        self._generation += 1
+        self._background.put((self._generation, roster))
+
+    def poll(self) -> list:
+        """Every result ready now: ``[(roster, G or None, info)]``."""
+        out = []
+        if not self._procs:
+            return out
+        while True:
+            try:
+                out.append(self._results.get_nowait())
+            except (queue.Empty, EOFError, OSError):
+                return out
+
+    def alive(self) -> bool:
+        return all(p.is_alive() for p in self._procs)
+
+    def close(self) -> None:
+        if not self._procs:
+            return
+        for q in (self._urgent, self._background):
+            try:
+                q.put(None)
+            except (OSError, ValueError):
+                pass
+        for p in self._procs:
+            p.join(timeout=1.0)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout=1.0)
+        for q in (self._urgent, self._background, self._results):
+            q.close()
+            q.cancel_join_thread()
+
+
+def _quiet_signals():
+    """A design process ends with its queue's sentinel or its parent, not with the
+    terminal's Ctrl-C (the monitor handles that and closes the worker)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _serve_urgent(requests, results) -> None:
+    from agent.monitor_core import design_gains_for
+
+    _quiet_signals()
+    while True:
+        item = requests.get()
+        if item is None:
+            return
+        roster, kinds = item
+        for kind in kinds:
+            results.put((roster, *design_gains_for(roster, kind)))
+
+
+def precompute_single_failures(roster, gains, stop=lambda: False, log=None) -> int:
+    """Plan and design gains for the failure of each single agent of ``roster`` (and of
+    each pair when it has at most :data:`PAIRS_UP_TO` agents).
+
+    Two passes: a fast stabilising gain for every set first (tenths of a second each, so
+    that a failure soon after start-up is already foreseen on a loaded machine), then the
+    MSE-refined gain for every set, which replaces it."""
+    import itertools
+
+    from design.errors import SocmonError
+    from design.roster import replan
+
+    sets = [[a] for a in roster.ids]
+    if len(roster.ids) <= PAIRS_UP_TO:
+        sets += [list(p) for p in itertools.combinations(roster.ids, 2)]
+    planned = []
+    for a in sets:
+        try:
+            _, nxt = replan(roster, a)
+        except SocmonError:
+            continue
+        if nxt is not None:
+            planned.append((a, nxt))
+    done = 0
+    for refined in (False, True):
+        for a, nxt in planned:
+            if stop():
+                return done
+            if not refined and gains.has(nxt):
+                continue
+            G, info = gains.design(nxt, refined=refined)
+            gains.put(nxt, G, info)
+            if G is not None:
+                done += refined
+            if log is not None and (refined or G is None):
+                print(f"monitor: precomputed the failure of agents {a}: "
+                      f"{'refined gains ready' if G is not None else 'no stabilising gain'}",
+                      file=log, flush=True)
+    return done
+
+
+class _Sink:
+    """What :func:`precompute_single_failures` designs into: results go
+    back to the monitor as they come."""
+
+    def __init__(self, results):
+        self.results = results
+        self.sent: set = set()
+
+    def has(self, roster) -> bool:
+        from agent.monitor_core import GainSource
+
+        return GainSource.key(roster) in self.sent
+
+    def design(self, roster, refined: bool = False):
+        from agent.monitor_core import design_gains_for
+
+        return design_gains_for(roster, "refined" if refined else "fast")
+
+    def put(self, roster, G, info=None) -> None:
+        from agent.monitor_core import GainSource
+
+        self.sent.add(GainSource.key(roster))
+        self.results.put((roster, G, info or {}))
+
+
+def _serve_background(requests, results) -> None:
+    _quiet_signals()
+    try:
+        os.nice(BACKGROUND_NICE)
+    except OSError:
+        pass
+    pending = None
+    while True:
+        item = pending if pending is not None else requests.get()
+        pending = None
+        if item is None:
+            return
+        generation, roster = item
+
+        def superseded() -> bool:
+            nonlocal pending
+            try:
+                newer = requests.get_nowait()
+            except queue.Empty:
+                return False
+            pending = newer
+            return True
+
+        precompute_single_failures(roster, _Sink(results), stop=superseded, log=sys.stderr)

@@ -1,0 +1,106 @@
+"""The run's record is read from what the agents did, never from what was sent."""
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.recorder import Recording
+from agent.run_summary import (
+    DIVERGED_FACTOR,
+    _failures,
+    diverged_at,
+    rosters_in_force,
+    steady_mse,
+    switch_steps,
+)
+
+
+def _epochs(switches, first=0, last=400):
+    """{step: epoch} of one agent from {step: epoch it switches to}."""
+    out, e = {}, 0
+    for k in range(first, last + 1):
+        e = switches.get(k, e)
+        out[k] = e
+    return out
+
+
+def test_a_rejected_first_assignment_is_not_in_force_and_its_reissue_is():
+    """Epoch 1 at step 175: agents 1 and 2 ran it, the standby 4 heard it too late and
+    rejected it; the re-issue (epoch 2 at 184) is what every agent ran. The record used to
+    say 175 (what was sent) and the simulator check then failed."""
+    rosters = [(0, (1, 2, 3), 0), (175, (1, 2, 4), 1), (184, (1, 2, 4), 2)]
+    est = {1: _epochs({175: 1, 184: 2}), 2: _epochs({175: 1, 184: 2}),
+           3: _epochs({}, last=160),                     # killed
+           4: {k: 2 for k in range(183, 401)}}           # standby: starts stamped 183
+    assigns = {(4, 1): {}, (1, 1): {}, (2, 1): {}, (4, 2): {}, (1, 2): {}, (2, 2): {}}
+    in_force, mixed = rosters_in_force(rosters, est, assigns)
+    assert in_force == [(0, (1, 2, 3), 0), (184, (1, 2, 4), 2)]
+    assert mixed == [{"epoch": 1, "activate_at": 175, "switched": {1: 175, 2: 175, 4: None}}]
+
+
+def test_sequential_failures_and_a_same_roles_gain_change_are_all_in_force():
+    rosters = [(0, (1, 2, 3), 0), (120, (4, 2, 3), 1), (200, (4, 2, 3), 2),
+               (300, (2, 3), 3)]
+    est = {1: _epochs({}, last=110),
+           2: _epochs({120: 1, 200: 2, 300: 3}), 3: _epochs({120: 1, 200: 2, 300: 3}),
+           4: {**{k: 1 for k in range(119, 200)}, **{k: 2 for k in range(200, 290)}}}
+    assigns = {(a, e): {} for e, ids in ((1, (4, 2, 3)), (2, (4, 2, 3)), (3, (2, 3)))
+               for a in ids}
+    in_force, mixed = rosters_in_force(rosters, est, assigns)
+    assert [r[0] for r in in_force] == [0, 120, 200, 300] and mixed == []
+
+
+def test_a_roster_superseded_at_its_own_step_never_ran():
+    rosters = [(0, (1, 2, 3), 0), (150, (4, 2, 3), 1), (150, (4, 2), 2)]
+    est = {2: _epochs({150: 2}), 4: {k: 2 for k in range(149, 300)}}
+    in_force, _ = rosters_in_force(rosters, est, {(4, 1): {}, (4, 2): {}, (2, 2): {}})
+    assert in_force == [(0, (1, 2, 3), 0), (150, (4, 2), 2)]
+
+
+def test_a_standby_that_takes_over_switches_the_step_after_its_first_estimate():
+    assert switch_steps({k: 3 for k in range(99, 120)}, 3) == 100
+    assert switch_steps({**{k: 1 for k in range(0, 100)}, **{k: 3 for k in range(100, 120)}},
+                        3) == 100
+
+
+def test_steady_mse_and_divergence_are_one_definition():
+    assert steady_mse([1.0, math.nan, 3.0]) == 2.0
+    assert steady_mse([1.0, math.inf]) == math.inf
+    mse = [0.3, 0.4, 0.28 * DIVERGED_FACTOR * 1.01, 1e30]
+    assert diverged_at([0, 1, 2, 3], mse, [0.27, 0.28, None]) == 2
+    assert diverged_at([0, 1], [0.3, math.nan], [0.27]) == 1
+
+
+def _recording(rosters, est_epoch, assigns, steps=400):
+    rec = Recording(run_id="t", ports=[])
+    rec.rosters, rec.est_epoch, rec.assigns = rosters, est_epoch, assigns
+    return rec
+
+
+@pytest.mark.parametrize("after, recovered", [(0.30, True), (5.0, False)])
+def test_recovered_needs_the_roles_in_force_and_the_error_near_its_prediction(after,
+                                                                                recovered):
+    """A run whose roles are in force but whose error after them is 18x the exact level
+    (a network that diverges while it recovers) is not recovered."""
+    from design.roster import Roster, role_specs
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    specs = role_specs(Roster.initial(s), G)
+    rosters = [(0, (1, 2, 3), 0), (100, (1, 2, 3), 1)]
+    assigns = {(a, 1): {"measure": list(sp.measure), "neighbours": sp.neighbours,
+                        "self_weight": sp.self_weight, "gain": sp.gain}
+               for a, sp in specs.items()}
+    est = {a: _epochs({100: 1}) for a in (1, 2, 3)}
+    steps = list(range(0, 401))
+    from design.closed_loop import closed_loop_for
+
+    exact = closed_loop_for(s, G, s.delays).mse_steady(s.process_noise, s.measurement_noise)
+    mse = [exact] * 100 + [after / 0.30 * exact] * 301
+    out = _failures(None, _recording(rosters, est, assigns), s, s.delays, steps, mse, G)
+    assert out["mse_steady_exact_after_recovery"] == pytest.approx(exact)
+    assert out["recovered"] is recovered
+    if not recovered:
+        assert any("not recovered" in w for w in out["warnings"])
