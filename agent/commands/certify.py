@@ -53,10 +53,16 @@ def _run(args) -> int:
     gains = load_gains_arg(args.gains, scenario, force=args.force_gains)
     with ProgressLine("certify", enabled=not args.json, delay=0) as line:
         result = certify(scenario, gains.G, taus=taus, tau_cap=cap, progress=line.update)
+    from design.gap import diverging_gaps, gap_report
+
+    gaps = gap_report(scenario, gains.G, scenario.delays)
+    result["gaps"] = [g.to_dict() for g in gaps]
     result["gains_file"] = str(args.gains)
     result["gains_meta"] = gains.meta
     mismatch = gains_scenario_mismatch(gains.meta, scenario)   # only with --force-gains
-    result["warnings"] = [mismatch] if mismatch is not None else []
+    result["warnings"] = ([mismatch] if mismatch is not None else []) + [
+        f"{line}: the estimates diverge if the switch does not come within the hold window"
+        for line in diverging_gaps(gaps)]
     if args.json:
         print_json(result)
     else:
@@ -104,6 +110,16 @@ def format_text(d: dict) -> str:
             f"paper's Phi (Remark 2): {_f(d['phi'], 4)} with {d['phi_beta_choice']} = "
             f"{_f(d['phi_beta'], 4)}; alpha1 = {_f(d['phi_alpha1'], 4)}, "
             f"alpha2 = {_f(d['phi_alpha2'], 4)}")
+    if d.get("gaps"):
+        lines.append("")
+        lines.append("between a failure and the switch (scenario delays; the failed agent's "
+                     "weight on its receivers' own predictions):")
+        lines.append("  failed   exact radius  stable   exact steady MSE   own-loop radii")
+        for g in d["gaps"]:
+            own = ", ".join(f"{a}: {r:.4f}" for a, r in g["own_loop_radius"].items())
+            lines.append(f"  {g['failed']:>6}   {g['rho_exact']:12.6f}  "
+                         f"{'yes' if g['stable'] else 'NO ':<6}   "
+                         f"{_f(g['mse_steady_exact'], 6):>16}   {own}")
     for warning in d.get("warnings", []):
         lines.append(f"warning: {warning}")
     return "\n".join(lines)

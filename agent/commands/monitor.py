@@ -108,6 +108,12 @@ def run(args) -> int:
         from ._common import load_signer
 
         signer = load_signer(args.control_key) if args.control_key else None
+        import sys
+
+        from design.gap import gap_warnings
+
+        for line in gap_warnings(scenario, list(G), delays):
+            print(f"monitor {args.id}: warning: {line}", file=sys.stderr, flush=True)
         return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
                            events_out=args.events, precompute=not args.no_precompute,
                            signer=signer)

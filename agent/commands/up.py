@@ -164,6 +164,10 @@ def run_config(args, say, prog="up"):
         say("designing gains with the default method ...")
         G = gains_for(scenario, None, delays)
         method = "default"
+    from design.gap import gap_warnings
+
+    for line in gap_warnings(scenario, G, delays):
+        print(f"{prog}: warning: {line}", file=sys.stderr, flush=True)
     gains_path = (out / "gains.npz").resolve()
     rho = closed_loop_for(scenario, G, delays).spectral_radius()
     save_gains(gains_path, G, gains_meta(scenario, method, delays, rho))

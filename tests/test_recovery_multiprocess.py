@@ -1,0 +1,30 @@
+"""Recovery that holds with long delays: paper-14-live at 15-step delays, each agent killed
+in turn, the run recovers (roles in force, error near its exact level, no divergence) and
+equals the simulator's replay of what the agents really did. Loopback, deadlines, each
+``socmon up`` stops its own children."""
+
+import json
+
+import pytest
+
+from tests.test_runtime_multiprocess import _socmon
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+@pytest.mark.parametrize("agent", [1, 2, 3])
+def test_a_kill_at_15_step_delays_recovers_and_equals_the_simulator(tmp_path, agent):
+    """The default gains designed for the run's delays (the monitor's precomputed and
+    refined gains likewise), agent killed at step 150 of 450."""
+    code, out, err = _socmon("up", "paper-14-live", "--steps", "450", "--delays",
+                             "uniform:15", "--kill", f"150:{agent}", "--check-simulator",
+                             "--out", str(tmp_path / "run"), "--json", timeout=420)
+    assert code == 0, err
+    s = json.loads(out)
+    (f,) = s["failures"]
+    assert (f["agent"], f["cause"]) == (agent, "crash")
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert s["rosters"][-1]["ids"] != [1, 2, 3] and s["rosters_not_in_force"] == []
+    # the switch came well inside the hold window (taubar + 17 = 32 steps)
+    assert f["activate_at"] - f["detected_step"] <= 20, f
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9
