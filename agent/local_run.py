@@ -505,7 +505,7 @@ def _standby_monitor(argv, monitor_id: int, listen: str) -> list:
     out = list(argv)
     if "--listen" in out:
         out[out.index("--listen") + 1] = listen
-    return out + ["--id", str(monitor_id)]
+    return out[:2] + ["--id", str(monitor_id)] + out[2:]      # after "monitor SCENARIO"
 
 
 def _signal(children, name, sig):
