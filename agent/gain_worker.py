@@ -8,10 +8,14 @@ waiting (1.9-10 s measured). :class:`GainWorker` runs two processes:
 - the *urgent* one designs, on request, the gains of a configuration nobody foresaw: a
   first certified gain (stable for the configuration's delays, exact radius < 1), sent at
   once, then the refined one for the same configuration, sent when ready;
-- the *background* one precomputes every single failure (and pairs, for small networks)
-  of the configuration in force: fast gains for all first, then refined ones; a newer
+- the urgent one also designs, between requests, a fast gain for every single failure
+  (and pairs, for small networks) of the configuration in force, so that a foreseen
+  failure has its first gain within seconds even on a loaded machine;
+- the *background* one refines them (the gain of least steady MSE, seconds each); a newer
   configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
-  that on a loaded machine the monitor's loop and the urgent designs go first.
+  that on a loaded machine the monitor's loop, the agents and the urgent designs go first
+  (at nice 10 beside two busy loops it got too little CPU to finish even the fast pass
+  in the first 3 s of a run).
 
 Results come back as ``(roster, G, info)``, ``info`` as
 :func:`agent.monitor_core.design_gains_for` gives it (``kind`` ``"fast"`` or ``"refined"``,
@@ -39,10 +43,12 @@ PAIRS_UP_TO = 4
 class GainWorker:
     """Two design processes and their queues; :meth:`close` ends them."""
 
-    def __init__(self):
+    def __init__(self, start: bool = False):
         self._ctx = multiprocessing.get_context("spawn")
-        self._procs: list = []           # started at the first request (a standby monitor
-        self._generation = 0             # that never acts never starts them)
+        self._procs: list = []           # started now, or at the first request (a standby
+        self._generation = 0             # monitor that never acts never starts them)
+        if start:
+            self._start()
 
     def _start(self) -> None:
         if self._procs:
@@ -62,13 +68,14 @@ class GainWorker:
         """Design the gains of ``roster`` now: a fast certified gain, then a refined one
         (``kinds``: only the refined one, for a configuration in force on a fast gain)."""
         self._start()
-        self._urgent.put((roster, tuple(kinds)))
+        self._urgent.put(("request", roster, tuple(kinds)))
 
     def precompute(self, roster) -> None:
         """Precompute the failures of ``roster`` (the configuration now in force); any
         earlier precompute still running is abandoned."""
         self._start()
         self._generation += 1
+        self._urgent.put(("precompute", roster))
         self._background.put((self._generation, roster))
 
     def poll(self) -> list:
@@ -112,25 +119,37 @@ def _quiet_signals():
 
 
 def _serve_urgent(requests, results) -> None:
+    """Requests first; between them, the fast pass of the newest precompute (so that a
+    foreseen failure has a first gain within seconds, at the urgent process's priority,
+    while the niced background process refines)."""
+    from collections import deque
+
     from agent.monitor_core import design_gains_for
 
     _quiet_signals()
+    fast = deque()                     # (failed ids, configuration) still to design
+    sink = _Sink(results)
     while True:
-        item = requests.get()
+        try:
+            item = requests.get() if not fast else requests.get_nowait()
+        except queue.Empty:
+            a, nxt = fast.popleft()
+            if not sink.has(nxt):
+                sink.put(nxt, *design_gains_for(nxt, "fast"))
+            continue
         if item is None:
             return
-        roster, kinds = item
+        if item[0] == "precompute":
+            fast = deque(plan_failures(item[1]))
+            continue
+        _, roster, kinds = item
         for kind in kinds:
             results.put((roster, *design_gains_for(roster, kind)))
 
 
-def precompute_single_failures(roster, gains, stop=lambda: False, log=None) -> int:
-    """Plan and design gains for the failure of each single agent of ``roster`` (and of
-    each pair when it has at most :data:`PAIRS_UP_TO` agents).
-
-    Two passes: a fast stabilising gain for every set first (tenths of a second each, so
-    that a failure soon after start-up is already foreseen on a loaded machine), then the
-    MSE-refined gain for every set, which replaces it."""
+def plan_failures(roster) -> list:
+    """``[(failed ids, next configuration)]`` for the failure of each single agent of
+    ``roster`` (and of each pair when it has at most :data:`PAIRS_UP_TO` agents)."""
     import itertools
 
     from design.errors import SocmonError
@@ -147,8 +166,20 @@ def precompute_single_failures(roster, gains, stop=lambda: False, log=None) -> i
             continue
         if nxt is not None:
             planned.append((a, nxt))
+    return planned
+
+
+def precompute_single_failures(roster, gains, stop=lambda: False, log=None,
+                               passes=(False, True)) -> int:
+    """Plan (:func:`plan_failures`) and design gains for the failures of ``roster``.
+
+    Two passes: a fast stabilising gain for every set first (tenths of a second each, so
+    that a failure soon after start-up is already foreseen on a loaded machine), then the
+    MSE-refined gain for every set, which replaces it (``passes``: which of the two,
+    ``False`` for the fast one)."""
+    planned = plan_failures(roster)
     done = 0
-    for refined in (False, True):
+    for refined in passes:
         for a, nxt in planned:
             if stop():
                 return done
@@ -213,4 +244,5 @@ def _serve_background(requests, results) -> None:
             pending = newer
             return True
 
-        precompute_single_failures(roster, _Sink(results), stop=superseded, log=sys.stderr)
+        precompute_single_failures(roster, _Sink(results), stop=superseded, log=sys.stderr,
+                                   passes=(True,))

@@ -66,7 +66,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     if isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
         signal.signal(signal.SIGINT, stop)
-    worker = GainWorker()
+    # the first monitor starts its design processes at once (their imports overlap its
+    # listening time and the start handshake); a standby monitor when it first acts
+    worker = GainWorker(start=monitor_id == 1)
     gains = GainSource(worker=worker)
     core = MonitorCore(config or MonitorConfig(), scenario, G, delays, gains=gains)
     stats = MessageStats()
@@ -90,6 +92,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         if precompute and precomputing[0] is not roster:
             precomputing[0] = roster
             worker.precompute(roster)
+
+    if monitor_id == 1:
+        precompute_for(core.roster)  # the scenario's configuration: at once, not once active
 
     try:
         with Peer(net, "monitor", monitor_id) as peer:

@@ -283,12 +283,13 @@ def rosters_in_force(rosters, est_epoch, assigns):
     {1: 175, 2: 175, 4: None}
     """
     out, mixed = [rosters[0]], []
+    last = max((max(e) for e in est_epoch.values() if e), default=-1)
     newest_at: dict = {}
     for at, ids, epoch in rosters[1:]:
         newest_at[at] = max(newest_at.get(at, epoch), epoch)
     for at, ids, epoch in sorted(rosters[1:], key=lambda r: r[2]):
-        if newest_at[at] != epoch:
-            continue                       # superseded at the same step before it ran
+        if newest_at[at] != epoch or at > last:
+            continue                       # superseded before it ran, or after the run
         assigned = sorted(a for (a, e) in assigns if e == epoch and a in ids) or list(ids)
         switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
         if all(k is None for k in switched.values()):

@@ -104,3 +104,12 @@ def test_recovered_needs_the_roles_in_force_and_the_error_near_its_prediction(af
     assert out["recovered"] is recovered
     if not recovered:
         assert any("not recovered" in w for w in out["warnings"])
+
+
+def test_a_roster_that_would_activate_after_the_run_ended_is_simply_not_in_force():
+    rosters = [(0, (1, 2, 3), 0), (192, (1, 4, 3), 1), (457, (1, 4, 3), 2)]
+    est = {1: _epochs({192: 1}, last=450), 3: _epochs({192: 1}, last=450),
+           4: {k: 1 for k in range(191, 451)}}
+    assigns = {(a, e): {} for a in (1, 3, 4) for e in (1, 2)}
+    assert rosters_in_force(rosters, est, assigns) == ([(0, (1, 2, 3), 0),
+                                                         (192, (1, 4, 3), 1)], [])
