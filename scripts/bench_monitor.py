@@ -14,6 +14,13 @@ separate processes on loopback) and reads each run folder:
 
 Usage: python scripts/bench_monitor.py [--scenario paper-14-live|sampson] [--repeats 3]
        [--healthy-steps 3000]
+       python scripts/bench_monitor.py --recovery [--taus 3,7,15] [--busy 2]
+           [--scenario ...]: every single failure and one double failure at each delay
+           bound (15-step delays: ``--delays uniform:T``), with ``--busy`` busy loops beside
+           the runs: detection step, verdict -> roles in force (steps, and ms from the
+           verdict to every assignment confirmed), the gains used (precomputed or designed,
+           fast or refined), peak MSE after the fault over the exact level after, steps
+           above 2x, re-issues, recovered, divergence, and the simulator check.
 
 ``sampson`` is the Sampson-like scenario of the paper's Section 5.2 built from
 ../shared/data/sampson (18 nodes, 4 agents) with A rescaled to rho(A) = 0.98 for long live
@@ -78,15 +85,102 @@ def recovery_steps(out, summary):
     return None
 
 
+def busy_loops(count):
+    """``count`` processes spinning on a core each (the load a run meets beside others)."""
+    import os
+    import signal
+
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                              start_new_session=True) for _ in range(count)]
+
+    def stop():
+        for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            p.wait()
+    return stop
+
+
+def recovery_row(out, s, killed):
+    """What one run with ``--kill 150:AGENTS`` did, read from its run folder."""
+    import csv
+    import math
+
+    rows = list(csv.reader(open(Path(out) / "mse.csv")))[1:]
+    mse = {int(k): float(m) for k, m in rows}
+    f = s["failures"]
+    ev = events(out)
+    v = [e for e in ev if e["kind"] == "verdict"]
+    c = next((e for e in ev if e["kind"] == "confirmed"), None)
+    exact = s.get("mse_steady_exact_after_recovery")
+    first = min(x["detected_step"] for x in f) if f else None
+    after = [m for k, m in mse.items() if first is not None and k >= first]
+    peak = max(after) if after else float("nan")
+    above = sum(1 for m in after if exact and m > 2 * exact)
+    switch = [x["activate_at"] - x["detected_step"] for x in f
+              if x.get("activate_at") is not None]
+    return {
+        "killed": killed, "detected": [x["detected_step"] for x in f],
+        "switch_steps": max(switch) if switch else None,
+        "confirm_ms": 1e3 * (c["t"] - v[0]["detected_t"]) if c and v else None,
+        "precomputed": all(x.get("precomputed") for x in f) if f else None,
+        "gains": sorted({x.get("gains") or "?" for x in f}),
+        "peak_over_exact": peak / exact if exact and math.isfinite(exact) else None,
+        "steps_above_2x": above, "reissues": len(s.get("reissues", [])),
+        "recovered": s.get("recovered"), "diverged_at": s.get("diverged_at"),
+        "check": s.get("max_rel_diff_vs_simulator"),
+    }
+
+
+def recovery_table(args, tmp):
+    stop = busy_loops(args.busy)
+    try:
+        table = []
+        for tau in [int(t) for t in args.taus.split(",")]:
+            for killed in ("1", "2", "3", "1,2"):
+                out = tmp / f"T{tau}-k{killed.replace(',', '')}"
+                try:
+                    s = up(out, "--delays", f"uniform:{tau}", "--kill", f"150:{killed}",
+                           "--check-simulator", steps=450)
+                except RuntimeError as exc:       # a failed check exits 1: still read it
+                    s = json.loads((out / "summary.json").read_text())
+                    print(f"note: T={tau} kill {killed}: {str(exc)[:200]}", file=sys.stderr)
+                row = recovery_row(out, s, killed)
+                row["tau"] = tau
+                table.append(row)
+                print(json.dumps(row), flush=True)
+    finally:
+        stop()
+    print(f"\n{args.scenario}, 20 ms steps, kill at step 150 of 450, {args.busy} busy loops")
+    print("T   killed  switch(steps)  confirmed(ms)  gains            peak/exact  >2x  "
+          "reissues  recovered  diverged  check")
+    for r in table:
+        peak = "-" if r["peak_over_exact"] is None else f"{r['peak_over_exact']:.2f}"
+        conf = "-" if r["confirm_ms"] is None else f"{r['confirm_ms']:.0f}"
+        gains = ("precomputed " if r["precomputed"] else "designed ") + "/".join(r["gains"])
+        print(f"{r['tau']:<3} {r['killed']:<7} {str(r['switch_steps']):>13}  {conf:>13}  "
+              f"{gains:<16} {peak:>10}  {r['steps_above_2x']:>3}  {r['reissues']:>8}  "
+              f"{str(r['recovered']):>9}  {str(r['diverged_at']):>8}  {r['check']:.2g}")
+    print(f"run folders: {tmp}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="paper-14-live", choices=("paper-14-live", "sampson"))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--healthy-steps", type=int, default=3000)
+    ap.add_argument("--recovery", action="store_true",
+                    help="the recovery table (every single failure and one double failure)")
+    ap.add_argument("--taus", default="3,7,15", help="delay bounds of --recovery")
+    ap.add_argument("--busy", type=int, default=0, help="busy loops beside the runs")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-monitor-"))
     global SCENARIO
     SCENARIO = sampson_live(tmp) if args.scenario == "sampson" else args.scenario
+    if args.recovery:
+        return recovery_table(args, tmp)
     rows = {"crash": [], "hang": []}
     for r in range(args.repeats):
         out = tmp / f"crash{r}"
