@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
@@ -148,9 +148,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "monitor": c.monitor,
         "faults": [f.to_dict() for f in c.faults],
         "events": rec.events,
-        "final_roles": {str(a): {"active": st.get("active"), "epoch": st.get("epoch"),
-                                 "measure": st.get("measure")}
-                        for a, st in last.items() if st},
+        "final_roles": final_roles(last, rec.events, steps[-1] if steps else -1),
     }
     summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec,
                              c.scenario, c.delays, steps, mse, c.G))
@@ -180,6 +178,43 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
                                              + summary.get("warnings", [])))
     return summary, steps, mse
+
+
+def final_roles(last_status, events, last_step) -> dict:
+    """``final_roles`` of a summary: each agent's last status (``epoch``, ``measure``)
+    and whether it ended ``dead`` (its process exited during the run, or its liveliness
+    token went before the last step), ``fenced`` (alive, it dropped its role: convicted
+    by the monitor) and ``active`` (it held a role at the end: its last status said so
+    and it is neither dead nor fenced).
+
+    >>> st = {1: {"active": True, "epoch": 0, "measure": ["a"]},
+    ...       2: {"active": False, "epoch": 1, "measure": []}}
+    >>> ev = [{"process": "agent-1", "exit_status": -9, "step": 150},
+    ...       {"process": "agent-2", "role": "dropped", "epoch": 1, "step": 90}]
+    >>> r = final_roles(st, ev, 400)
+    >>> r["1"]["dead"], r["1"]["active"], r["2"]["fenced"], r["2"]["dead"]
+    (True, False, True, False)
+    """
+    dead, fenced = set(), set()
+    for e in events:
+        name = e.get("process", "")
+        if not name.startswith("agent-") or not name[6:].isdigit():
+            continue
+        a = int(name[6:])
+        step = e.get("step")
+        if e.get("exit_status") is not None or (
+                e.get("liveliness") is False and isinstance(step, int) and step < last_step):
+            dead.add(a)
+        elif e.get("role") == "dropped":
+            fenced.add(a)
+    out = {}
+    for a, st in last_status.items():
+        if not st:
+            continue
+        out[str(a)] = {"active": bool(st.get("active")) and a not in dead and a not in fenced,
+                       "epoch": st.get("epoch"), "measure": st.get("measure"),
+                       "dead": a in dead, "fenced": a in fenced and a not in dead}
+    return out
 
 
 def failure_lines(summary) -> list:
