@@ -605,10 +605,13 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
-    for i, r in enumerate(summary.get("reissues", [])):
+    labelled = set()        # one legend entry per reason given by the monitor
+    for r in summary.get("reissues", []):
         if isinstance(r.get("activate_at"), int):
+            reason = str(r.get("reason") or "activate_at had passed")[:60]
             ax.axvline(r["activate_at"], color="tab:orange", lw=0.8, ls="-.",
-                       label="roles re-issued (activate_at had passed)" if i == 0 else None)
+                       label=None if reason in labelled else f"roles re-issued: {reason}")
+            labelled.add(reason)
     for i, r in enumerate(summary.get("rosters", [])[1:]):
         if not any(f.get("activate_at") == r["activate_at"]
                    for f in summary.get("failures", [])):
