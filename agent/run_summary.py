@@ -505,6 +505,12 @@ def compare_simulator(config, rec, steps_done):
                     f"agent {a} {'at step ' + str(k) if k is not None else 'never'}"
                     for a, k in sorted(m["switched"].items()))
                 + "): the simulator replays whole configurations only")
+        took = sorted(a for a in kills if a > c.scenario.N
+                      and any(a in ids for _, ids, _ in rosters[1:]))
+        if took:
+            return float("inf"), (
+                f"agent {took[0]} was killed after it took a role: the simulator fails "
+                "agents of the initial configuration only")
         table = link_delay_table(c.scenario, c.delays)
         chain = []
         for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
@@ -516,6 +522,9 @@ def compare_simulator(config, rec, steps_done):
             chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
                                   activate_at=at))
         recover = chain or None
+        if recover is not None and fail is None:
+            return float("inf"), ("a reassignment after the kill of a standby only cannot "
+                                  "be replayed")
     elif len(rec.rosters) > 1:
         return float("inf"), "a reassignment without a scripted crash cannot be replayed"
     res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
