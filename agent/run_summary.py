@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
@@ -148,9 +148,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "monitor": c.monitor,
         "faults": [f.to_dict() for f in c.faults],
         "events": rec.events,
-        "final_roles": {str(a): {"active": st.get("active"), "epoch": st.get("epoch"),
-                                 "measure": st.get("measure")}
-                        for a, st in last.items() if st},
+        "final_roles": final_roles(last, rec.events, steps[-1] if steps else -1),
     }
     summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec,
                              c.scenario, c.delays, steps, mse, c.G))
@@ -180,6 +178,43 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
                                              + summary.get("warnings", [])))
     return summary, steps, mse
+
+
+def final_roles(last_status, events, last_step) -> dict:
+    """``final_roles`` of a summary: each agent's last status (``epoch``, ``measure``)
+    and whether it ended ``dead`` (its process exited during the run, or its liveliness
+    token went before the last step), ``fenced`` (alive, it dropped its role: convicted
+    by the monitor) and ``active`` (it held a role at the end: its last status said so
+    and it is neither dead nor fenced).
+
+    >>> st = {1: {"active": True, "epoch": 0, "measure": ["a"]},
+    ...       2: {"active": False, "epoch": 1, "measure": []}}
+    >>> ev = [{"process": "agent-1", "exit_status": -9, "step": 150},
+    ...       {"process": "agent-2", "role": "dropped", "epoch": 1, "step": 90}]
+    >>> r = final_roles(st, ev, 400)
+    >>> r["1"]["dead"], r["1"]["active"], r["2"]["fenced"], r["2"]["dead"]
+    (True, False, True, False)
+    """
+    dead, fenced = set(), set()
+    for e in events:
+        name = e.get("process", "")
+        if not name.startswith("agent-") or not name[6:].isdigit():
+            continue
+        a = int(name[6:])
+        step = e.get("step")
+        if e.get("exit_status") is not None or (
+                e.get("liveliness") is False and isinstance(step, int) and step < last_step):
+            dead.add(a)
+        elif e.get("role") == "dropped":
+            fenced.add(a)
+    out = {}
+    for a, st in last_status.items():
+        if not st:
+            continue
+        out[str(a)] = {"active": bool(st.get("active")) and a not in dead and a not in fenced,
+                       "epoch": st.get("epoch"), "measure": st.get("measure"),
+                       "dead": a in dead, "fenced": a in fenced and a not in dead}
+    return out
 
 
 def failure_lines(summary) -> list:
@@ -442,8 +477,10 @@ def compare_simulator(config, rec, steps_done):
 
     ``max_k max_a |xhat_live - xhat_sim| / max(1, |x_k|)`` (infinity norms) over every
     estimate both computed. With scripted crashes at one step (``--kill``) and the
-    monitor's reassignments, the simulator replays the crash at that step and the chain
-    of recorded reassignments (their ``activate_at``, roles and gains).
+    monitor's reassignments, the simulator replays every crash at its step (any number,
+    at different steps; a standby killed before it took a role computed nothing) and the
+    chain of configurations in force (:func:`rosters_in_force`: the step the agents
+    switched, the roles and gains of their assignments).
     Returns ``(difference, what was compared)``.
     """
     from design.roster import link_delay_table, roster_from_specs
@@ -456,10 +493,10 @@ def compare_simulator(config, rec, steps_done):
     if any(f.kind != "crash" for f in c.faults):
         return float("inf"), "the simulator replays scripted crashes (--kill) only"
     if kills:
-        if len(set(kills.values())) != 1:
-            return float("inf"), "the simulator replays one scripted crash step only"
-        f = next(iter(kills.values()))
-        fail = (f, sorted(a - 1 for a in kills))
+        # a standby killed before it took a role never computed: nothing to replay
+        steps_of = sorted({f for a, f in kills.items() if a <= c.scenario.N})
+        fail = [(f, sorted(a - 1 for a, g in kills.items() if g == f and a <= c.scenario.N))
+                for f in steps_of] or None
         rosters, mixed = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)
         if mixed:
             m = mixed[0]
@@ -468,6 +505,12 @@ def compare_simulator(config, rec, steps_done):
                     f"agent {a} {'at step ' + str(k) if k is not None else 'never'}"
                     for a, k in sorted(m["switched"].items()))
                 + "): the simulator replays whole configurations only")
+        took = sorted(a for a in kills if a > c.scenario.N
+                      and any(a in ids for _, ids, _ in rosters[1:]))
+        if took:
+            return float("inf"), (
+                f"agent {took[0]} was killed after it took a role: the simulator fails "
+                "agents of the initial configuration only")
         table = link_delay_table(c.scenario, c.delays)
         chain = []
         for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
@@ -479,6 +522,9 @@ def compare_simulator(config, rec, steps_done):
             chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
                                   activate_at=at))
         recover = chain or None
+        if recover is not None and fail is None:
+            return float("inf"), ("a reassignment after the kill of a standby only cannot "
+                                  "be replayed")
     elif len(rec.rosters) > 1:
         return float("inf"), "a reassignment without a scripted crash cannot be replayed"
     res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
@@ -568,10 +614,13 @@ def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
-    for i, r in enumerate(summary.get("reissues", [])):
+    labelled = set()        # one legend entry per reason given by the monitor
+    for r in summary.get("reissues", []):
         if isinstance(r.get("activate_at"), int):
+            reason = str(r.get("reason") or "activate_at had passed")[:60]
             ax.axvline(r["activate_at"], color="tab:orange", lw=0.8, ls="-.",
-                       label="roles re-issued (activate_at had passed)" if i == 0 else None)
+                       label=None if reason in labelled else f"roles re-issued: {reason}")
+            labelled.add(reason)
     for i, r in enumerate(summary.get("rosters", [])[1:]):
         if not any(f.get("activate_at") == r["activate_at"]
                    for f in summary.get("failures", [])):

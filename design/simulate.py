@@ -301,8 +301,11 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         Link delays; default ``scenario.delays``.
     drop : float in [0, 1)
         Probability that one message (one estimate on one link) is lost.
-    fail : (int, sequence of int), optional
-        ``(f, rows)``: the agents in 0-based ``rows`` fail at step f (1 <= f <= steps).
+    fail : (int, sequence of int) or sequence of them, optional
+        ``(f, rows)``: the agents in 0-based ``rows`` fail at step f (1 <= f <= steps);
+        a list of such pairs: failures at different steps (each row once). A
+        replacement takes over the last estimate of the row it replaces, propagated from
+        that row's own failure step.
     recover : Recovery or sequence of Recovery, optional
         Configuration that takes over at the failure step or at its ``activate_at``
         (needs ``fail``). A sequence is a chain of reassignments (a live monitor that
@@ -349,22 +352,29 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         raise SimulationError("delays: nonzero delay off the links of W or on a self link")
 
     fail_step, failed = None, ()
+    fail_at = {}        # 0-based row -> the step it fails
     if fail is not None:
         try:
-            f, rows = fail
-            rows = list(rows)
-        except (TypeError, ValueError):
-            raise SimulationError(f"fail: expected (step, [agent rows]), got {fail!r}") from None
-        fail_step = _check_int(f, "fail step", 1)
-        if fail_step > steps:
-            raise SimulationError(f"fail step: {fail_step} is after the last step {steps}")
-        for a in rows:
-            _check_int(a, "fail agent row", 0)
-            if a >= N:
-                raise SimulationError(f"fail: no agent row {a} (rows are 0..{N - 1})")
-        if not rows or len(set(rows)) != len(rows):
-            raise SimulationError(f"fail: give distinct agent rows, got {rows!r}")
-        failed = tuple(int(a) for a in rows)
+            pairs = list(fail) if fail and isinstance(fail[0], (list, tuple)) else [fail]
+            pairs = [(f, list(rows)) for f, rows in pairs]
+        except (TypeError, ValueError, IndexError, KeyError):
+            raise SimulationError(f"fail: expected (step, [agent rows]) or a list of them, "
+                                  f"got {fail!r}") from None
+        if not pairs:
+            raise SimulationError("fail: an empty list of failures")
+        for f, rows in pairs:
+            f = _check_int(f, "fail step", 1)
+            if f > steps:
+                raise SimulationError(f"fail step: {f} is after the last step {steps}")
+            for a in rows:
+                _check_int(a, "fail agent row", 0)
+                if a >= N:
+                    raise SimulationError(f"fail: no agent row {a} (rows are 0..{N - 1})")
+            if not rows or len(set(rows)) != len(rows) or set(rows) & set(fail_at):
+                raise SimulationError(f"fail: give distinct agent rows, got {fail!r}")
+            fail_at.update({int(a): f for a in rows})
+        fail_step = min(fail_at.values())
+        failed = tuple(sorted(fail_at, key=lambda r: (fail_at[r], r)))
         if recover is None and len(failed) == N:
             raise SimulationError("fail: every agent fails and no recovery is given")
     if recover is not None and fail is None:
@@ -381,10 +391,10 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         raise SimulationError("recover: an empty sequence of recoveries")
     activations = []
     for i, rec in enumerate(chain):
-        configs.append(_recovery_config(rec, scenario, failed, ids0,
-                                        last=i == len(chain) - 1))
         at = fail_step if rec.activate_at is None else _check_int(
             rec.activate_at, "recover.activate_at", fail_step)
+        configs.append(_recovery_config(rec, scenario, failed, ids0,
+                                        last=i == len(chain) - 1, fail_at=fail_at, at=at))
         if at > steps:
             raise SimulationError(f"recover.activate_at: {at} is after the last step {steps}")
         if activations and at <= activations[-1]:
@@ -424,14 +434,16 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
 
     with np.errstate(over="ignore", invalid="ignore"):
         for k in range(1, steps + 1):
-            if k == fail_step:
+            if k in fail_at.values():
                 config = _Config(config.W, config.delays, config.ids, config.roles, config.r,
-                                 frozenset(config.ids[r] for r in failed))
+                                 config.dead | frozenset(
+                                     r + 1 for r, f in fail_at.items()
+                                     if f == k and r + 1 in config.ids))
             if k in activations:
                 i = activations.index(k)
                 config = _apply_recovery(config, configs[i + 1], chain[i], est, published, x,
                                          S, P, seed, n, trials, error_coords, k,
-                                         k - fail_step, ids0)
+                                         fail_at, ids0)
             nu = noise.process_noise(seed, k - 1, n, q, trials)
             if track_x:
                 x = x @ P.transposed(1) + nu
@@ -495,7 +507,8 @@ def _record(recorded, k, est, config, ids):
             recorded[:, k, i] = est[a]
 
 
-def _recovery_config(recover, scenario, failed, ids0, last=True) -> _Config:
+def _recovery_config(recover, scenario, failed, ids0, last=True, fail_at=None,
+                     at=None) -> _Config:
     if not isinstance(recover, Recovery):
         raise SimulationError(f"recover: expected a Recovery, got {type(recover).__name__}")
     new = recover.scenario
@@ -510,7 +523,9 @@ def _recovery_config(recover, scenario, failed, ids0, last=True) -> _Config:
             f"recover.ids: need {new.N} distinct agent ids (one per row), got {ids!r}")
     for a in ids:
         _check_int(a, "recover.ids entry", 1)
-    failed_ids = {r + 1 for r in failed}
+    # failed by the time this configuration takes over (a later failure comes after)
+    failed_ids = {r + 1 for r in failed
+                  if fail_at is None or at is None or fail_at[r] <= at}
     back = sorted(failed_ids & set(ids))
     if back and last:
         raise SimulationError(f"recover.ids: failed agents {back} cannot be in the new configuration")
@@ -528,11 +543,11 @@ def _recovery_config(recover, scenario, failed, ids0, last=True) -> _Config:
 
 
 def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, trials,
-                    error_coords, k, gap, ids0):
-    """Switch to the recovery configuration at step k (``gap`` steps after the failure).
+                    error_coords, k, fail_at, ids0):
+    """Switch to the recovery configuration at step k (``fail_at``: row -> its failure step).
 
     A replacement takes over the failed agent's last estimate (stamp f - 1) propagated
-    to step k - 1: ``A^gap xhat_{f-1}``; in error coordinates that is
+    to step k - 1: ``A^gap xhat_{f-1}`` (``gap = k - f``); in error coordinates that is
     ``A^gap z_{f-1} - S_gap(k-1)``, with ``S`` still the window of step k - 1.
     """
     replaces = dict(recover.replaces)
@@ -540,6 +555,7 @@ def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, tria
         if a in new.dead or (a in est and a not in config.dead):
             continue
         if a in replaces:
+            gap = k - fail_at[replaces[a]]
             value = est[ids0[replaces[a]]]
             if gap:
                 value = value @ P.transposed(gap)

@@ -28,3 +28,21 @@ def test_a_kill_at_15_step_delays_recovers_and_equals_the_simulator(tmp_path, ag
     # the switch came well inside the hold window (taubar + 17 = 32 steps)
     assert f["activate_at"] - f["detected_step"] <= 20, f
     assert s["max_rel_diff_vs_simulator"] <= 1e-9
+
+
+def test_kills_at_two_different_steps_replay_in_the_simulator(tmp_path):
+    """Agent 1 killed at step 150 (the standby takes its role), agent 2 at 260 (no standby
+    left: a survivor takes its node): both failures recovered, and the simulator's replay
+    of each crash at its own step and of the configurations in force equals the run."""
+    code, out, err = _socmon("up", "paper-14-live", "--steps", "400", "--kill", "150:1",
+                             "--kill", "260:2", "--check-simulator",
+                             "--out", str(tmp_path / "run"), "--json", timeout=420)
+    assert code == 0, err
+    s = json.loads(out)
+    assert sorted((f["agent"], f["cause"]) for f in s["failures"]) == [(1, "crash"),
+                                                                      (2, "crash")]
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert 1 not in s["rosters"][-1]["ids"] and 2 not in s["rosters"][-1]["ids"]
+    assert s["final_roles"]["1"]["dead"] and s["final_roles"]["2"]["dead"]
+    assert not s["final_roles"]["1"]["active"] and s["final_roles"]["4"]["active"]
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9

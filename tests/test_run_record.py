@@ -113,3 +113,40 @@ def test_a_roster_that_would_activate_after_the_run_ended_is_simply_not_in_force
     assigns = {(a, e): {} for a in (1, 3, 4) for e in (1, 2)}
     assert rosters_in_force(rosters, est, assigns) == ([(0, (1, 2, 3), 0),
                                                          (192, (1, 4, 3), 1)], [])
+
+
+def test_final_roles_mark_killed_and_fenced_agents():
+    """A killed agent's last status still says active: the record says dead, not active;
+    an agent that dropped its role and lives is fenced; tokens that go at the run's end
+    are no death."""
+    from agent.run_summary import final_roles
+
+    last = {1: {"active": True, "epoch": 0, "measure": ["1"]},
+            2: {"active": False, "epoch": 2, "measure": ["2"]},
+            3: {"active": True, "epoch": 2, "measure": ["3"]},
+            4: {"active": True, "epoch": 2, "measure": ["1"]}}
+    events = [{"process": "agent-1", "exit_status": -9, "step": 150},
+              {"process": "agent-2", "role": "dropped", "epoch": 2, "step": 180},
+              {"process": "agent-3", "liveliness": False, "step": 400},
+              {"process": "agent-4", "liveliness": False, "step": 400}]
+    roles = final_roles(last, events, 400)
+    assert roles["1"] == {"active": False, "epoch": 0, "measure": ["1"], "dead": True,
+                          "fenced": False}
+    assert roles["2"]["fenced"] and not roles["2"]["dead"] and not roles["2"]["active"]
+    assert roles["3"]["active"] and roles["4"]["active"]
+    assert not any(roles[a]["dead"] or roles[a]["fenced"] for a in ("3", "4"))
+    # a token gone before the last step (a watched run: no exit status) is a death
+    events.append({"process": "agent-3", "liveliness": False, "step": 260})
+    assert final_roles(last, events, 400)["3"]["dead"]
+
+
+def test_failures_at_different_steps_are_named_each_once():
+    from design.scenario import load_scenario
+    from design.simulate import SimulationError, simulate
+
+    s = load_scenario("paper-14")
+    G = [np.zeros((s.n, len(m))) for m in s.measure]
+    with pytest.raises(SimulationError, match="distinct agent rows"):
+        simulate(s, G, steps=20, trials=1, seed=0, fail=[(5, [0]), (8, [0])])
+    res = simulate(s, G, steps=20, trials=1, seed=0, fail=[(5, [0]), (8, [1])])
+    assert res.fail_step == 5 and res.failed == (1, 2)

@@ -344,3 +344,52 @@ def test_a_chain_of_reassignments_equals_the_simulator(paper14, gains14):
     live = _mesh_estimates(mesh, ids, steps)
     live[a1 - 1, 1] = np.nan
     np.testing.assert_allclose(live, _sim_estimates(res, ids), rtol=1e-12, atol=1e-12)
+
+
+def test_failures_at_different_steps_replay_in_the_simulator(paper14, gains14):
+    """Agent 1 crashes at step 10 and agent 2 at step 12; the standby 4 takes over agent
+    2's row at 17 (agent 1 still a row, computing nothing) and agent 1 is removed at 24.
+    The standby starts from agent 2's last estimate (stamp 11) propagated over 5 steps,
+    not from the first failure's step: the simulator's failures at their own steps and
+    the live protocol agree estimate by estimate."""
+    from design.roster import Roster, replan, role_specs
+    from design.simulate import Recovery, simulate
+
+    f1, f2, a1, a2, steps = 10, 12, 17, 24, 40
+    r0 = Roster.initial(paper14, D3)
+    _, r1 = replan(r0, [2])
+    _, r2 = replan(r1, [1])
+    assert 4 in r1.ids and 1 in r1.ids and 1 not in r2.ids
+    rng = np.random.default_rng(4)
+    G1 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r1.scenario.measure]
+    G2 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r2.scenario.measure]
+    specs1 = role_specs(r1, G1, take_over={4: 2})
+    specs2 = role_specs(r2, G2)
+    mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1.0)
+    for k in range(steps + 1):
+        if k == f1:
+            mesh.crash(1)
+        if k == f2:
+            mesh.crash(2)
+        if k == f2 + 1:
+            for agent, spec in specs1.items():
+                if agent in mesh.agents and agent not in (1, 2):
+                    mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a1))
+        if k == a1 + 1:
+            for agent, spec in specs2.items():
+                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=2, at=a2))
+        mesh.tick()
+        mesh.pass_time(1.1)
+    chain = [Recovery(r1.scenario, G1, r1.ids, replaces={4: 1}, delays=r1.delays,
+                      activate_at=a1),
+             Recovery(r2.scenario, G2, r2.ids, delays=r2.delays, activate_at=a2)]
+    fail = [(f1, [0]), (f2, [1])]
+    res = simulate(paper14, gains14, steps=steps, trials=1, seed=5, delays=D3,
+                   fail=fail, recover=chain, coordinates="absolute", record_estimates=True)
+    ids = (3, 4)
+    live = _mesh_estimates(mesh, ids, steps)
+    live[a1 - 1, 1] = np.nan
+    np.testing.assert_allclose(live, _sim_estimates(res, ids), rtol=1e-12, atol=1e-12)
+    res_e = simulate(paper14, gains14, steps=steps, trials=1, seed=5, delays=D3,
+                     fail=fail, recover=chain)
+    np.testing.assert_allclose(res_e.mse, res.mse, rtol=1e-9)
