@@ -70,6 +70,12 @@ class GainWorker:
         self._start()
         self._urgent.put(("request", roster, tuple(kinds)))
 
+    def assess(self, roster, G, info) -> None:
+        """The exact steady MSE of the gain ``G`` (``info`` its design's) for ``roster``,
+        sent back as ``(roster, G, info + mse)`` (after any request queued before)."""
+        self._start()
+        self._urgent.put(("assess", roster, list(G), dict(info)))
+
     def precompute(self, roster) -> None:
         """Precompute the failures of ``roster`` (the configuration now in force); any
         earlier precompute still running is abandoned."""
@@ -142,9 +148,26 @@ def _serve_urgent(requests, results) -> None:
         if item[0] == "precompute":
             fast = deque(plan_failures(item[1]))
             continue
+        if item[0] == "assess":
+            _, roster, G, info = item
+            results.put((roster, G, {**info, "mse": steady_mse_of(roster, G)}))
+            continue
         _, roster, kinds = item
         for kind in kinds:
             results.put((roster, *design_gains_for(roster, kind)))
+
+
+def steady_mse_of(roster, G):
+    """The exact steady MSE of gain ``G`` on the configuration ``roster`` with its delays
+    (:meth:`design.closed_loop.ClosedLoop.mse_steady`); ``G`` has an exact radius < 1."""
+    import numpy as np
+
+    from design.closed_loop import ClosedLoop
+
+    s = roster.scenario
+    loop = ClosedLoop(s.A, s.W, np.asarray(roster.delays), s.measure,
+                      [np.asarray(g, dtype=float) for g in G])
+    return float(loop.mse_steady(s.process_noise, s.measurement_noise))
 
 
 def plan_failures(roster) -> list:
