@@ -154,6 +154,8 @@ def _serve_urgent(requests, results) -> None:
             continue
         _, roster, kinds = item
         for kind in kinds:
+            if kind == "fast" and sink.has(roster):
+                continue                   # the fast pass has just sent it
             results.put((roster, *design_gains_for(roster, kind)))
 
 
