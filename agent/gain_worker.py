@@ -11,7 +11,9 @@ waiting (1.9-10 s measured). :class:`GainWorker` runs two processes:
 - the urgent one also designs, between requests, a fast gain for every single failure
   (and pairs, for small networks) of the configuration in force, so that a foreseen
   failure has its first gain within seconds even on a loaded machine;
-- the *background* one refines them (the gain of least steady MSE, seconds each); a newer
+- the *background* one refines them (the gain of least steady MSE, seconds each), and
+  computes the exact steady MSE of a fast gain put in force (:meth:`GainWorker.assess`:
+  the fast design does not compute it, a Lyapunov solve of seconds); a newer
   configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
   that on a loaded machine the monitor's loop, the agents and the urgent designs go first
   (at nice 10 beside two busy loops it got too little CPU to finish even the fast pass
@@ -69,6 +71,14 @@ class GainWorker:
         (``kinds``: only the refined one, for a configuration in force on a fast gain)."""
         self._start()
         self._urgent.put(("request", roster, tuple(kinds)))
+
+    def assess(self, roster, G, info) -> None:
+        """The exact steady MSE of the gain ``G`` (``info`` its design's) for ``roster``,
+        sent back as ``(roster, G, info + mse)``. The background process computes it
+        between two refinements: a solve of up to tens of seconds at large delays must not
+        hold an unforeseen failure's first gain back."""
+        self._start()
+        self._background.put(("assess", roster, list(G), dict(info)))
 
     def precompute(self, roster) -> None:
         """Precompute the failures of ``roster`` (the configuration now in force); any
@@ -144,7 +154,27 @@ def _serve_urgent(requests, results) -> None:
             continue
         _, roster, kinds = item
         for kind in kinds:
+            if kind == "fast" and sink.has(roster):
+                continue                   # the fast pass has just sent it
             results.put((roster, *design_gains_for(roster, kind)))
+
+
+def steady_mse_of(roster, G):
+    """The exact steady MSE of gain ``G`` on the configuration ``roster`` with its delays
+    (:meth:`design.closed_loop.ClosedLoop.mse_steady`); ``G`` has an exact radius < 1."""
+    import numpy as np
+
+    from design.closed_loop import ClosedLoop
+
+    s = roster.scenario
+    loop = ClosedLoop(s.A, s.W, np.asarray(roster.delays), s.measure,
+                      [np.asarray(g, dtype=float) for g in G])
+    return float(loop.mse_steady(s.process_noise, s.measurement_noise))
+
+
+def _assess(item, results) -> None:
+    _, roster, G, info = item
+    results.put((roster, G, {**info, "mse": steady_mse_of(roster, G)}))
 
 
 def plan_failures(roster) -> list:
@@ -233,16 +263,23 @@ def _serve_background(requests, results) -> None:
         pending = None
         if item is None:
             return
+        if item[0] == "assess":
+            _assess(item, results)
+            continue
         generation, roster = item
 
         def superseded() -> bool:
             nonlocal pending
-            try:
-                newer = requests.get_nowait()
-            except queue.Empty:
-                return False
-            pending = newer
-            return True
+            while True:
+                try:
+                    newer = requests.get_nowait()
+                except queue.Empty:
+                    return False
+                if newer is not None and newer[0] == "assess":
+                    _assess(newer, results)        # between two refinements
+                    continue
+                pending = newer
+                return True
 
         precompute_single_failures(roster, _Sink(results), stop=superseded, log=sys.stderr,
                                    passes=(True,))

@@ -237,15 +237,22 @@ class GainSource:
             return True
         if k not in self._requested:
             self._requested.add(k)
+            self._requested.add(("asked",) + k)      # its refined gain is on the way too
             self.worker.request(roster)
         return False
 
     def refine(self, roster) -> None:
-        """Ask the worker (once) for the refined gain of ``roster``, in force on a fast one."""
+        """Ask the worker (once) for the refined gain of ``roster``, in force on a fast one,
+        then for the exact steady MSE of that fast gain (a Lyapunov solve of seconds at
+        large delays: the fast gain is sent without it, the MSE follows)."""
         k = ("refine",) + self.key(roster)
         if self.worker is not None and k not in self._requested:
             self._requested.add(k)
-            self.worker.request(roster, kinds=("refined",))
+            if ("asked",) + self.key(roster) not in self._requested:
+                self.worker.request(roster, kinds=("refined",))
+            G, info = self.get(roster)
+            if G is not None and info.get("kind") == "fast" and info.get("mse") is None:
+                self.worker.assess(roster, G, info)
 
     def get(self, roster):
         """``(G, info)``, or ``(None, {})`` when none is known (see :meth:`ready`)."""
@@ -316,6 +323,7 @@ class MonitorCore:
         self.specs = role_specs(self.roster, self.G)
         self.gains = gains or GainSource()
         self.gain_info = {"kind": "initial"}   # what the gains in force are
+        self.gain_notes: list = []             # exact MSEs of fast gains, known later
         self.gains.put(self.roster, self.G, self.gain_info)
         self._pending: dict | None = None     # a reassignment waiting for its gains
         self._delay_pending: dict | None = None   # a delay verdict waiting for its gains
@@ -492,6 +500,7 @@ class MonitorCore:
         suspended = now < self._suspended_until
         if self._pending is not None:
             out += self._emit_reassign(now)     # its gains came back from the worker
+        self._note_gain_mse()
         if not suspended and self._clock[0] >= 0 and not self._unconfirmed \
                 and self._pending is None:
             out += self.check_delays(now)
@@ -810,6 +819,19 @@ class MonitorCore:
                              **record, **_gain_record(info)})
         self.events.append(f"epoch {self.epoch}: {why} from step {at} ({_gain_words(info)})")
         return out
+
+    def _note_gain_mse(self) -> None:
+        """The fast gain in force went out without its exact steady MSE; when the worker
+        sends it, it is said (an event, and a note in :attr:`gain_notes`)."""
+        if self.gain_info.get("kind") != "fast" or self.gain_info.get("mse") is not None:
+            return
+        info = self.gains.info(self.roster)
+        if info.get("kind") != "fast" or info.get("mse") is None \
+                or info.get("rho") != self.gain_info.get("rho"):
+            return
+        self.gain_info = {**self.gain_info, "mse": info["mse"]}
+        self.gain_notes.append({"epoch": self.epoch, **_gain_record(self.gain_info)})
+        self.events.append(f"epoch {self.epoch}: in force: {_gain_words(self.gain_info)}")
 
     def _upgrade_gains(self, now: float) -> list:
         """The configuration in force runs a fast gain and its refined gain has come back:

@@ -205,6 +205,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                                mono=h["decided_at"], mono_sent=h["sent_at"])
                         precompute_for(core.roster)
                     recorded["history"] = len(core.history)
+                    for g in core.gain_notes[recorded.setdefault("gain_notes", 0):]:
+                        record("gains", **g)
+                    recorded["gain_notes"] = len(core.gain_notes)
                     for r in core.reissues[recorded["reissues"]:]:
                         record("reissue", **r)
                     recorded["reissues"] = len(core.reissues)

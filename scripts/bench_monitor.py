@@ -21,6 +21,16 @@ Usage: python scripts/bench_monitor.py [--scenario paper-14-live|sampson] [--rep
            verdict to every assignment confirmed), the gains used (precomputed or designed,
            fast or refined), peak MSE after the fault over the exact level after, steps
            above 2x, re-issues, recovered, divergence, and the simulator check.
+       python scripts/bench_monitor.py --per-failure --taus 3,7,15 [--kill-step 150]
+
+``--per-failure``: for each delay bound T (``--delays uniform:T``) and every agent of the
+initial configuration, one run with that agent killed (``--kill STEP:A``): detection (verdict
+minus the logged SIGKILL time), verdict -> roles in force in steps (the step the new roles
+took effect, read from the agents' statuses, minus the verdict's step) and in ms at the run's
+step period, verdict -> every assignment confirmed in ms, re-issues, which gain went in
+first (fast or refined, precomputed or not) and whether the refined one followed, and the
+hold window (taubar + 17 steps) the switch must come inside. The machine's load average is
+printed with the figures.
 
 ``sampson`` is the Sampson-like scenario of the paper's Section 5.2 built from
 ../shared/data/sampson (18 nodes, 4 agents) with A rescaled to rho(A) = 0.98 for long live
@@ -164,6 +174,74 @@ def recovery_table(args, tmp):
               f"{gains:<16} {peak:>10}  {r['steps_above_2x']:>3}  {r['reissues']:>8}  "
               f"{str(r['recovered']):>9}  {str(r['diverged_at']):>8}  {r['check']:.2g}")
     print(f"run folders: {tmp}")
+STEP_S = 0.02           # socmon up's default step period
+
+
+def per_failure(tmp, taus, kill_step, steps):
+    """One run per (T, agent killed): the switch measured against the hold window."""
+    import os
+
+    sys.path.insert(0, str(ROOT))
+    from design.scenario import load_scenario
+
+    scen = load_scenario(SCENARIO)
+    agents = list(range(1, len(scen.measure) + 1))
+    print(f"{SCENARIO}, 20 ms steps, kill at step {kill_step}, one run per (T, agent); "
+          f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    print(f"{'T':>3} {'agent':>5} {'detect ms':>9} {'v->force steps':>14} {'ms':>6} "
+          f"{'hold':>4} {'v->confirmed ms':>15} {'reissues':>8} {'first gain':>18} "
+          f"{'refined epoch':>13}", flush=True)
+    rows = []
+    for tau in taus:
+        for a in agents:
+            out = tmp / f"T{tau}-kill{a}"
+            try:
+                s = up(out, "--kill", f"{kill_step}:{a}", "--delays", f"uniform:{tau}",
+                       "--seed", str(a), steps=steps)
+            except RuntimeError as e:
+                print(f"{tau:3} {a:5} run failed: {str(e)[-300:]}", flush=True)
+                rows.append({"T": tau, "agent": a, "error": str(e)[-300:]})
+                continue
+            log = (out / "logs" / f"agent-{a}.log").read_text()
+            m = re.search(r"SIGKILL at t=([0-9.]+)", log)
+            ev = events(out)
+            v = next((e for e in ev if e["kind"] == "verdict" and e["agent"] == a), None)
+            f = next((x for x in s["failures"] if x["agent"] == a), None)
+            r = next((e for e in ev if e["kind"] == "reassign" and a in e.get("failed", [])),
+                     None)
+            later = [e for e in ev if e["kind"] == "reassign" and r is not None
+                     and e["epoch"] > r["epoch"] and e.get("gains") == "refined"
+                     and not e.get("failed")]
+            c = next((e for e in ev if e["kind"] == "confirmed" and v is not None
+                      and e["t"] >= v["detected_t"]), None)
+            row = {"T": tau, "agent": a, "hold_steps": tau + 17,
+                   "detect_ms": (1e3 * (v["detected_t"] - float(m.group(1)))
+                                 if v and m else None),
+                   "force_steps": (f["activate_at"] - f["detected_step"]
+                                   if f and f.get("activate_at") is not None else None),
+                   "confirm_ms": 1e3 * (c["t"] - v["detected_t"]) if c and v else None,
+                   "reissues": len(s.get("reissues", [])),
+                   "first_gain": (f"{r.get('gains')}{' pre' if r.get('precomputed') else ''}"
+                                  f" {r.get('gains_rho') or float('nan'):.3f}" if r else None),
+                   "refined_epoch": later[0]["epoch"] if later else None,
+                   "recovered": s.get("recovered")}
+            rows.append(row)
+            fs = row["force_steps"]
+            print(f"{tau:3} {a:5} {_fmt(row['detect_ms']):>9} {_fmt(fs):>14} "
+                  f"{_fmt(fs * STEP_S * 1e3 if fs is not None else None):>6} {tau + 17:4} "
+                  f"{_fmt(row['confirm_ms']):>15} {row['reissues']:8} "
+                  f"{row['first_gain'] or '-':>18} {_fmt(row['refined_epoch']):>13}",
+                  flush=True)
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(f"run folders: {tmp}")
+    (tmp / "per_failure.json").write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+def _fmt(x):
+    if x is None:
+        return "-"
+    return f"{x:.0f}" if isinstance(x, float) else str(x)
 
 
 def main():
@@ -173,14 +251,26 @@ def main():
     ap.add_argument("--healthy-steps", type=int, default=3000)
     ap.add_argument("--recovery", action="store_true",
                     help="the recovery table (every single failure and one double failure)")
-    ap.add_argument("--taus", default="3,7,15", help="delay bounds of --recovery")
-    ap.add_argument("--busy", type=int, default=0, help="busy loops beside the runs")
+    ap.add_argument("--busy", type=int, default=0, help="busy loops beside the --recovery runs")
+    ap.add_argument("--per-failure", action="store_true",
+                    help="every single failure at each --taus delay bound")
+    ap.add_argument("--taus", default="3,7,15",
+                    help="delay bounds T for --per-failure and --recovery")
+    ap.add_argument("--kill-step", type=int, default=150)
+    ap.add_argument("--steps", type=int, default=400, help="steps of a --per-failure run")
     args = ap.parse_args()
+    try:
+        taus = [int(t) for t in args.taus.split(",")]
+    except ValueError:
+        ap.error(f"--taus: comma-separated integers expected, got {args.taus!r}")
     tmp = Path(tempfile.mkdtemp(prefix="bench-monitor-"))
     global SCENARIO
     SCENARIO = sampson_live(tmp) if args.scenario == "sampson" else args.scenario
     if args.recovery:
         return recovery_table(args, tmp)
+    if args.per_failure:
+        per_failure(tmp, taus, args.kill_step, args.steps)
+        return
     rows = {"crash": [], "hang": []}
     for r in range(args.repeats):
         out = tmp / f"crash{r}"

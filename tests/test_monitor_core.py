@@ -296,6 +296,9 @@ class _FakeWorker:
     def request(self, roster, kinds=("fast", "refined")):
         self.requests.append((roster, tuple(kinds)))
 
+    def assess(self, roster, G, info):
+        self.requests.append((roster, ("assess",)))
+
 
 def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_them(paper14):
     """The loop never designs: a configuration without gains is requested from the worker;
@@ -331,8 +334,8 @@ def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_th
     assert msg.ids == (4, 2, 3) and msg.activate_at >= 200 + core.config.lead_steps
     h = core.history[-1]
     assert h["precomputed"] is False and h["gains"] == "fast" and h["gains_rho"] < 1
-    assert (roster, ("refined",)) in worker.requests or worker.requests[0][1] == (
-        "fast", "refined")
+    # the refined gain was asked with the fast one (not twice); the fast one's MSE after
+    assert [k for _, k in worker.requests] == [("fast", "refined"), ("assess",)]
     for a in (2, 3, 4):
         core.on_status(_status(a, 215, epoch=1), 4.3)
     assert core.tick(4.3) == []                              # confirmed, no refined yet
@@ -343,3 +346,94 @@ def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_th
     assert core.history[-1]["gains"] == "refined" and core.history[-1]["causes"] == {
         "0": "refined"}
     assert core.roster.ids == (4, 2, 3)
+
+
+def test_a_crash_is_answered_while_the_monitors_own_pause_suspends_verdicts(core):
+    """The pause guard suspends the verdicts that read clocks (a status looks old because
+    the monitor slept), never a deleted token: agent 2's crash during the monitor's own
+    pause is convicted within CRASH_SETTLE_S, not hang_timeout_s later."""
+    from agent.monitor_core import CRASH_SETTLE_S
+
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    core.on_status(_status(1, 200), 4.0)                 # the monitor slept 3 s
+    core.on_status(_status(3, 200), 4.0)
+    core.on_liveliness("agent", 2, False, 4.0)
+    assert core.tick(4.0) == [] and core.verdicts == []    # suspended; token just gone
+    assert any("paused" in e for e in core.events)
+    t = 4.0
+    while not core.verdicts and t < 4.0 + core.config.hang_timeout_s:
+        t += 0.05
+        for a in (1, 3, 4):
+            core.on_status(_status(a, int(50 * t), active=a <= 3), t)
+        out = core.tick(t)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "crash")]
+    assert t - 4.0 < CRASH_SETTLE_S + 0.1 < core.config.hang_timeout_s
+    assert any(isinstance(m, RosterUpdate) for m in out)
+
+
+def test_a_pause_that_takes_every_token_is_no_crash(core):
+    """A monitor cut off sees every token go at once: during its pause that is no crash."""
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    for a in (1, 2, 3):
+        core.on_liveliness("agent", a, False, 4.0)
+    assert core.tick(4.0) == []
+    assert core.tick(4.3) == [] and core.verdicts == []
+
+
+def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14):
+    """A failure before the background refined its configuration switches at once on the
+    precomputed fast gain; the refined one, when the worker sends it, is put in force
+    under a later epoch, and the record says which gain is in force each time."""
+    from agent.gain_worker import plan_failures
+    from agent.monitor_core import GainSource, design_gains_for
+
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    worker = _FakeWorker()
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), s, G,
+                       s.delays, gains=GainSource(worker=worker))
+    (roster,) = [nxt for a, nxt in plan_failures(core.roster) if a == [1]]
+    fast_G, fast = design_gains_for(roster, "fast")
+    assert fast_G is not None and fast["kind"] == "fast" and fast["rho"] < 1
+    core.gains.put(roster, fast_G, fast)                  # the urgent process's fast pass
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    out = core.tick(2.05)
+    (msg,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert msg.epoch == 1 and msg.ids == roster.ids
+    h = core.history[-1]
+    assert h["precomputed"] is True and h["gains"] == "fast" and h["gains_rho"] == fast["rho"]
+    # asked once, not designed here: the refined gain, then the fast one's exact MSE
+    assert [k for _, k in worker.requests] == [("refined",), ("assess",)]
+    assert all(GainSource.key(r) == GainSource.key(roster) for r, _ in worker.requests)
+    assert any("fast gains" in e for e in core.events)
+    for a in roster.ids:
+        core.on_status(_status(a, 110, epoch=1), 2.2)
+    assert core.tick(2.2) == []                           # in force; no refined gain yet
+    from agent.gain_worker import steady_mse_of
+
+    mse = steady_mse_of(roster, fast_G)                   # what the worker sends back
+    assert mse > 0
+    core.gains.put(roster, fast_G, {**fast, "mse": mse})
+    assert core.tick(2.25) == []
+    assert core.gain_notes == [{"epoch": 1, "gains": "fast", "gains_rho": fast["rho"],
+                                "gains_mse": mse}]
+    assert any(f"steady MSE {mse:.4g}" in e for e in core.events)
+    fast = {**fast, "mse": mse}
+    refined = {"kind": "refined", "rho": fast["rho"] * 0.9, "mse": fast["mse"] * 0.8}
+    core.gains.put(roster, [2 * g for g in fast_G], refined)
+    core.gains.put(roster, fast_G, fast)                  # a late fast answer is ignored
+    out = core.tick(2.3)
+    assert {m.epoch for m in out} == {2} and core.roster.ids == roster.ids
+    assert {m.agent for m in out if isinstance(m, Assignment)} == set(roster.ids)
+    h = core.history[-1]
+    assert h["gains"] == "refined" and h["gains_rho"] == refined["rho"]
+    assert h["gains_mse"] == refined["mse"] and h["activate_at"] >= 115
+    assert all(np.allclose(g, 2 * f) for g, f in zip(core.G, fast_G))
+    for a in roster.ids:
+        core.on_status(_status(a, 130, epoch=2), 2.6)
+    assert core.tick(2.6) == []                           # nothing more to upgrade
