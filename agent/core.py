@@ -80,6 +80,7 @@ from design.estimator import (
     NONE,
     AgentRole,
     PowerCache,
+    continued_stamp,
     estimator_step,
     hold_limit,
     neighbour_input,
@@ -134,6 +135,8 @@ class Role:
     self_weight: float
     gain: np.ndarray
     take_over: int | None = None
+    #: new neighbour -> the failed agent whose stream it continues (the continuity rule)
+    continues: dict = field(default_factory=dict)
 
 
 def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
@@ -171,9 +174,16 @@ def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
     take_over = msg.get("take_over")
     if take_over is not None and (take_over == agent or take_over not in set(agents)):
         problems.append(f"take_over: {take_over} is not another agent of the run")
+    continues = dict(msg.get("continues") or {})
+    bad = sorted(b for b, f in continues.items() if b not in nbrs or f not in set(agents)
+                 or f == agent or f == b)
+    if bad:
+        problems.append(f"continues: neighbours {bad} are not new neighbours continuing "
+                        "another agent of the run")
     if problems:
         raise AssignmentError("; ".join(problems))
-    return Role(take_over=take_over, epoch=int(msg["epoch"]), activate_at=int(msg["activate_at"]),
+    return Role(take_over=take_over, continues=continues,
+                epoch=int(msg["epoch"]), activate_at=int(msg["activate_at"]),
                 measure=tuple(msg["measure"]),
                 neighbours={a: w for a, w in nbrs.items() if w > 0},
                 self_weight=w_self, gain=gain.copy())
@@ -235,7 +245,8 @@ class AgentConfig:
 class _Neighbour:
     """What an agent holds from one other agent."""
 
-    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held", "since")
+    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held", "since",
+                 "cont")
 
     def __init__(self, window: int):
         self.est: dict = {}              # stamp -> x
@@ -245,6 +256,8 @@ class _Neighbour:
         self.alive = True
         self.step_held = 0               # messages held by an injected step delay
         self.since = -1                  # oldest stamp usable on the link of the current role
+        self.cont = None                 # (failed agent, first own stamp): the link
+                                         # continues that agent's stream before it
 
     @property
     def tau(self):
@@ -592,6 +605,11 @@ class AgentCore:
             if j not in old:
                 nb = self._nb(j)
                 nb.since = k - 1 - (nb.tau if nb.tau is not None else 0)
+                # the continuity rule (design.estimator.continued_stamp): a neighbour
+                # that takes over a failed agent's row carries, before its own first
+                # estimate (stamped k - 1), the stream this agent receives from that agent
+                f = role.continues.get(j)
+                nb.cont = (f, k - 1) if f is not None and f in self.nbrs else None
         self.role, self.pending, self.epoch = role, None, role.epoch
         return out
 
@@ -611,14 +629,15 @@ class AgentCore:
         return not lost
 
     def _plan(self, k: int, now: float):
-        """``{neighbour: (stamp used or None, stamp needed)}`` for step k, or None to wait."""
+        """``{neighbour: (stamp used or None, stamp needed, whose estimate)}`` for step k, or
+        None to wait."""
         plan, waiting = {}, False
         for j in self.role.neighbours:
             nb = self._nb(j)
             tau = nb.tau if nb.tau is not None else 0
             need = max(k - 1 - tau, 0)
             if need in nb.est and need >= nb.since and self._usable(j, need):
-                plan[j] = (need, need)
+                plan[j] = (need, need, j)
             elif (nb.alive and not nb.step_held and need not in nb.est
                   and not (nb.est and max(nb.est) > need)):
                 # no use waiting when a fresher estimate is held (the one needed was lost),
@@ -626,12 +645,12 @@ class AgentCore:
                 # neighbour's messages until this agent's step moves on, or when the
                 # neighbour's liveliness token is gone
                 waiting = True
-                plan[j] = (None, need)
+                plan[j] = (None, need, j)
             else:
-                plan[j] = (None, need)
+                plan[j] = (None, need, j)
         if waiting and now < self.ready_at + self.config.deadline_s:
             return None
-        for j, (s, need) in plan.items():
+        for j, (s, need, _) in plan.items():
             if s is None:
                 nb = self.nbrs[j]
                 if nb.heard:
@@ -639,9 +658,25 @@ class AgentCore:
                     nb.missed.add(need)
                     if len(nb.missed) > self.history:
                         nb.missed.discard(min(nb.missed))
-                plan[j] = (nb.freshest(k - 1, lambda st, j=j, nb=nb: st >= nb.since
-                                       and self._usable(j, st)), need)
+                stamp, src = self._freshest(j, k - 1)
+                plan[j] = (stamp, need, src)
         return plan
+
+    def _freshest(self, j: int, at_most: int) -> tuple:
+        """``(stamp, source)``: the freshest estimate usable on the link from ``j``: its own
+        (from the link's first usable stamp on) or, on a link that continues a failed
+        agent's row (:func:`design.estimator.continued_stamp`), that agent's before ``j``'s
+        first stamp. ``(None, j)`` when nothing is usable."""
+        nb = self.nbrs[j]
+        s = nb.freshest(at_most, lambda st: st >= nb.since and self._usable(j, st))
+        if s is None and nb.cont is not None:
+            f, first = nb.cont
+            src = self.nbrs[f]
+            s = src.freshest(at_most, lambda st: continued_stamp(st, first)
+                             and self._usable(f, st))
+            if s is not None:
+                return s, f
+        return s, j
 
     def _compute(self, k: int, readings: dict, plan: dict):
         role = self.role
@@ -655,8 +690,8 @@ class AgentCore:
                 measured=measured, self_weight=role.self_weight, G=role.gain[:, cols]))
         est_role = held[2]
         nbs = []
-        for j, (s, need) in plan.items():
-            x = None if s is None else self.nbrs[j].est[s]
+        for j, (s, need, src) in plan.items():
+            x = None if s is None else self.nbrs[src].est[s]
             nb, state = neighbour_input(role.neighbours[j], k, s, x, self.config.max_age, need)
             self.states[state] += 1
             nbs.append(nb)

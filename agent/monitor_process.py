@@ -113,14 +113,18 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 for roster, G_new, info in worker.poll():
                     gains.put(roster, G_new, info)
                 now = time.monotonic()
+                # the events file is written by one monitor: the smallest live id (the one
+                # that acts, or will once it has listened)
+                first = not any(role == "monitor" and i.isdigit() and int(i) < monitor_id
+                                for role, i in watch.alive())
                 for ev in watch.drain():
                     if ev.role == "agent" and ev.id.isdigit():
                         core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
-                        if not ev.alive and active:
+                        if not ev.alive and first:
                             record("liveliness", agent=int(ev.id), alive=False)
                     elif ev.role == "world":
                         core.on_liveliness("world", ev.id, ev.alive, ev.arrival)
-                        if not ev.alive and active:
+                        if not ev.alive and first:
                             record("liveliness", process="world", alive=False,
                                    step=core.last_step_reported)
                 for item in status_in.drain():
@@ -186,6 +190,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                             peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
                                 m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
                                 sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
+                                continues=sp.continues,
                                 run=run))
                         elif isinstance(m, RosterUpdate):
                             peer.put(keys.ctl_key(run, 0), wire.encode_roster(

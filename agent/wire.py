@@ -215,6 +215,9 @@ def ctl_schema(n: int) -> Schema:
         "self_weight": Float(0.0, 1.0),
         "gain": F64Array((n, None)),
         "take_over": Int(1, MAX_AGENT, required=False),
+        # new neighbour -> the failed agent whose stream it continues (design.estimator's
+        # continuity rule); optional: an assignment without it continues nothing
+        "continues": IntMap(agent_keys=True, required=False),
         **_SIGNED,
     })
 
@@ -295,6 +298,7 @@ def encode_est(agent: int, step: int, x, epoch: int, t: float) -> bytes:
 
 def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: dict,
                self_weight: float, gain, take_over: int | None = None, signer=None,
+               continues: dict | None = None,
                run: str | None = None) -> bytes:
     """Encode a role assignment; ``neighbours`` maps agent id (int) -> weight.
 
@@ -306,9 +310,13 @@ def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: di
            "self_weight": _f(self_weight), "gain": np.asarray(gain, dtype=float)}
     if take_over is not None:
         msg["take_over"] = int(take_over)
+    if continues:
+        msg["continues"] = {int(a): int(f) for a, f in continues.items()}
     if signer is not None:
         msg = signer.sign(msg, run)
     msg["neighbours"] = {str(a): w for a, w in msg["neighbours"].items()}
+    if "continues" in msg:
+        msg["continues"] = {str(a): f for a, f in msg["continues"].items()}
     return encode(msg)
 
 

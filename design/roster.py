@@ -180,6 +180,8 @@ class RoleSpec:
     self_weight: float
     gain: np.ndarray          # (n, len(measure))
     take_over: int | None = None
+    #: new neighbour id -> the failed agent id whose estimate stream it continues
+    continues: dict | None = None
 
     def same_as(self, other) -> bool:
         """True iff ``other`` (a RoleSpec) describes the same role."""
@@ -193,18 +195,22 @@ class RoleSpec:
 def role_specs(roster: Roster, G, take_over=None) -> dict:
     """``{id: RoleSpec}`` of every agent of ``roster`` with gains ``G`` (by row).
 
-    ``take_over`` maps a new id to the id whose estimate it starts from.
+    ``take_over`` maps a new id to the id whose estimate it starts from; a neighbour that
+    takes over in this way *continues* that agent's stream (``continues``, the continuity
+    rule of :class:`design.estimator.NeighbourLink`).
     """
     s = roster.scenario
     take_over = take_over or {}
     out = {}
     for i, a in enumerate(roster.ids):
+        neighbours = {roster.ids[j]: float(s.W[i, j]) for j in range(s.N)
+                      if j != i and s.W[i, j] > 0}
         out[a] = RoleSpec(
             agent=a, measure=tuple(s.labels[v] for v in s.measure[i]),
-            neighbours={roster.ids[j]: float(s.W[i, j]) for j in range(s.N)
-                        if j != i and s.W[i, j] > 0},
+            neighbours=neighbours,
             self_weight=float(s.W[i, i]), gain=np.asarray(G[i], dtype=float),
-            take_over=take_over.get(a))
+            take_over=take_over.get(a),
+            continues={b: take_over[b] for b in neighbours if b in take_over} or None)
     return out
 
 

@@ -71,6 +71,7 @@ import numpy as np
 from . import noise
 from .errors import GainsError, SocmonError
 from .estimator import (
+    continued_stamp,
     AgentRole,
     NeighbourEstimate,
     PowerCache,
@@ -418,6 +419,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         est[a] = v - x0 if error_coords else v
     published = {a: {0: est[a]} for a in ids0}    # id -> {stamp: value}
     held = {}       # (receiver id, sender id) -> (stamp, value)
+    continued = {}  # (receiver, replacement) -> (failed id, old delay, first own stamp)
     # S[a] = S_a(k) = x_k - A^a x_{k-a} for the current step (S[0] unused; at k = 0 the
     # entries are placeholders: an age never exceeds k)
     S = [None] + [np.zeros((trials, n))] * (max(max_delay + 1, gap))
@@ -443,11 +445,11 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 i = activations.index(k)
                 config = _apply_recovery(config, configs[i + 1], chain[i], est, published, x,
                                          S, P, seed, n, trials, error_coords, k,
-                                         fail_at, ids0)
+                                         fail_at, ids0, held, continued)
             nu = noise.process_noise(seed, k - 1, n, q, trials)
             if track_x:
                 x = x @ P.transposed(1) + nu
-            _receive(config, published, held, seed, k, drop, trials)
+            _receive(config, published, held, seed, k, drop, trials, continued)
             if error_coords:
                 S = _advance_window(S, nu, P, max(min(_oldest_age(held, k), max_age),
                                                   max_delay + 1, gap))
@@ -543,14 +545,27 @@ def _recovery_config(recover, scenario, failed, ids0, last=True, fail_at=None,
 
 
 def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, trials,
-                    error_coords, k, fail_at, ids0):
+                    error_coords, k, fail_at, ids0, held, continued):
     """Switch to the recovery configuration at step k (``fail_at``: row -> its failure step).
 
     A replacement takes over the failed agent's last estimate (stamp f - 1) propagated
     to step k - 1: ``A^gap xhat_{f-1}`` (``gap = k - f``); in error coordinates that is
-    ``A^gap z_{f-1} - S_gap(k-1)``, with ``S`` still the window of step k - 1.
+    ``A^gap z_{f-1} - S_gap(k-1)``, with ``S`` still the window of step k - 1. Every
+    receiver that listened to the failed agent and now listens to its replacement
+    continues the failed agent's stream on that link (``continued``: (receiver,
+    replacement) -> (failed id, its old link delay, the replacement's first stamp)): see
+    :func:`_receive` and :func:`design.estimator.continued_stamp`.
     """
     replaces = dict(recover.replaces)
+    old_delay = {(config.ids[i], config.ids[j]): tau for i, j, _w, tau in config.links}
+    for b, row in replaces.items():
+        f = ids0[row]
+        for i, j, _w, _tau in new.links:
+            a = new.ids[i]
+            if new.ids[j] == b and (a, f) in old_delay and a not in new.dead:
+                continued[(a, b)] = (f, old_delay[(a, f)], k - 1)
+                if (a, f) in held and (a, b) not in held:
+                    held[(a, b)] = held[(a, f)]        # what it had already received
     for a in new.ids:
         if a in new.dead or (a in est and a not in config.dead):
             continue
@@ -639,22 +654,30 @@ def _advance_window(S, nu, P, needed):
     return out
 
 
-def _receive(config, published, held, seed, k, drop, trials):
+def _receive(config, published, held, seed, k, drop, trials, continued=None):
     """Deliver, on every link, the estimate stamped ``k - 1 - tau`` unless it is lost.
 
     ``held[(receiver, sender)] = (stamps, values)``: per trial the stamp (-1 = nothing
-    held) and the value of the freshest estimate received.
+    held) and the value of the freshest estimate received. A link that continues a
+    failed agent's stream (``continued``) also delivers, on the failed agent's own link
+    schedule, what it had published before the replacement's first stamp.
     """
-    for i, j, _w, tau in config.links:
-        a, b = config.ids[i], config.ids[j]
+    links = [(config.ids[i], config.ids[j], tau) for i, j, _w, tau in config.links]
+    for (a, b), (f, tau_f, first) in (continued or {}).items():
+        s = k - 1 - tau_f
+        if continued_stamp(s, first):
+            links.append((a, b, tau_f, f))
+    for link in links:
+        a, b, tau = link[:3]
+        src = link[3] if len(link) > 3 else b         # whose published stream it carries
         s = k - 1 - tau
-        value = published.get(b, {}).get(s)
+        value = published.get(src, {}).get(s)
         if value is None:
             continue
         h = held.get((a, b))
         take = np.ones(trials, dtype=bool) if h is None else h[0] < s
         if drop > 0:
-            take &= ~noise.message_dropped(seed, b, a, s, drop, trials)
+            take &= ~noise.message_dropped(seed, src, a, s, drop, trials)
         if not take.any():
             continue
         if take.all() or h is None and take.all():

@@ -299,7 +299,8 @@ def _spec_message(spec, epoch, at):
     return {"agent": spec.agent, "epoch": epoch, "activate_at": at,
             "measure": list(spec.measure), "neighbours": dict(spec.neighbours),
             "self_weight": spec.self_weight, "gain": spec.gain,
-            **({"take_over": spec.take_over} if spec.take_over else {})}
+            **({"take_over": spec.take_over} if spec.take_over else {}),
+            **({"continues": dict(spec.continues)} if spec.continues else {})}
 
 
 def test_a_chain_of_reassignments_equals_the_simulator(paper14, gains14):
