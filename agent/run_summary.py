@@ -305,7 +305,8 @@ def rosters_in_force(rosters, est_epoch, assigns):
 
     Returns ``(in_force, mixed)``: ``[(step, ids, epoch)]`` and
     ``[{"epoch", "activate_at", "switched": {agent: step or None}}]`` for every roster
-    that was not run by all its agents at its ``activate_at``.
+    that some of its agents ran and others did not, or ran from different steps (a roster
+    none of them ran, rejected or superseded before its step, is simply not in force).
 
     >>> rosters = [(0, (1, 2, 3), 0), (175, (1, 2, 4), 1), (184, (1, 2, 4), 2)]
     >>> est = {a: {174: 0, 175: 1, 183: 1, 184: 2} for a in (1, 2)}
@@ -329,8 +330,7 @@ def rosters_in_force(rosters, est_epoch, assigns):
         switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
         if all(k is None for k in switched.values()):
             if any(est_epoch.get(a) for a in assigned):
-                mixed.append({"epoch": epoch, "activate_at": at, "switched": switched})
-                continue                   # nobody ran it
+                continue                   # nobody ran it: rejected, or superseded first
             out.append((at, tuple(ids), epoch))    # no estimate recorded: as sent
             continue
         if any(k != at for k in switched.values()):

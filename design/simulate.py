@@ -445,7 +445,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 i = activations.index(k)
                 config = _apply_recovery(config, configs[i + 1], chain[i], est, published, x,
                                          S, P, seed, n, trials, error_coords, k,
-                                         fail_at, ids0, held, continued)
+                                         fail_at, ids0, held, continued, drop)
             nu = noise.process_noise(seed, k - 1, n, q, trials)
             if track_x:
                 x = x @ P.transposed(1) + nu
@@ -545,7 +545,7 @@ def _recovery_config(recover, scenario, failed, ids0, last=True, fail_at=None,
 
 
 def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, trials,
-                    error_coords, k, fail_at, ids0, held, continued):
+                    error_coords, k, fail_at, ids0, held, continued, drop=0.0):
     """Switch to the recovery configuration at step k (``fail_at``: row -> its failure step).
 
     A replacement takes over the failed agent's last estimate (stamp f - 1) propagated
@@ -560,12 +560,22 @@ def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, tria
     old_delay = {(config.ids[i], config.ids[j]): tau for i, j, _w, tau in config.links}
     for b, row in replaces.items():
         f = ids0[row]
-        for i, j, _w, _tau in new.links:
+        for i, j, _w, tau in new.links:
             a = new.ids[i]
-            if new.ids[j] == b and (a, f) in old_delay and a not in new.dead:
+            if new.ids[j] != b or a in new.dead:
+                continue
+            if (a, f) in old_delay:                    # it listened to f
                 continued[(a, b)] = (f, old_delay[(a, f)], k - 1)
                 if (a, f) in held and (a, b) not in held:
                     held[(a, b)] = held[(a, f)]        # what it had already received
+            elif a in replaces:
+                # a replacement listening to another: as a standby it heard f's stream
+                # too, on the run's delay for that pair (the new link's: uniform delays)
+                continued[(a, b)] = (f, tau, k - 1)
+                first = _heard_before(published.get(f, {}), k - 2 - tau, seed, f, a, drop,
+                                      trials)
+                if first is not None:
+                    held[(a, b)] = first
     for a in new.ids:
         if a in new.dead or (a in est and a not in config.dead):
             continue
@@ -582,6 +592,26 @@ def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, tria
         est[a] = value
         published[a] = {k - 1: value}
     return new
+
+
+def _heard_before(stream, newest, seed, sender, receiver, drop, trials):
+    """``(stamps, values)``: per trial the freshest estimate of ``stream`` ({stamp: value})
+    stamped at most ``newest`` that the keyed drops let through to ``receiver``; None when
+    no trial holds one."""
+    stamps = np.full(trials, -1)
+    values = None
+    for s in sorted((st for st in stream if st <= newest), reverse=True):
+        take = stamps < 0
+        if drop > 0:
+            take &= ~noise.message_dropped(seed, sender, receiver, s, drop, trials)
+        if not take.any():
+            continue
+        v = np.broadcast_to(stream[s], (trials, stream[s].shape[-1]))
+        values = np.where(take[:, None], v, 0.0 if values is None else values)
+        stamps = np.where(take, s, stamps)
+        if (stamps >= 0).all():
+            break
+    return None if values is None else (stamps, values)
 
 
 def _mse(est, ids, x, error_coords):
