@@ -394,3 +394,41 @@ def test_failures_at_different_steps_replay_in_the_simulator(paper14, gains14):
     res_e = simulate(paper14, gains14, steps=steps, trials=1, seed=5, delays=D3,
                      fail=fail, recover=chain)
     np.testing.assert_allclose(res_e.mse, res.mse, rtol=1e-9)
+
+
+@pytest.mark.parametrize("continues", [True, False])
+def test_a_replacements_link_continues_the_failed_agents_stream(paper14, gains14, continues):
+    """Agent 3 listens to agent 1 over a 3-step link; 1 crashes after step 9 and the
+    standby 4 takes its row at step 14 (its own first estimate, stamped 13, reaches 3 at
+    step 17). With ``continues`` (the wire field), agent 3 reads 1's stream on the new
+    link meanwhile: its held estimate (stamp 9), propagated. Without it the link is empty
+    and the weight goes to its own prediction."""
+    from design.estimator import continued_stamp
+
+    s = paper14
+    mesh = Mesh(s, gains14, seed=4, delays=D3)
+    for _ in range(10):
+        mesh.tick()                                  # steps 0..9
+    mesh.crash(1)
+    for _ in range(3):
+        mesh.tick()                                  # steps 10..12
+    g = np.full((s.n, 1), 0.1)
+    w = float(s.W[2, 0])
+    payload = wire.encode_ctl(3, 1, 14, ["12"], {4: w}, 1 - w, g,
+                              continues={4: 1} if continues else None)
+    msg = wire.decode(payload, wire.ctl_schema(s.n))
+    assert ("continues" in msg) is continues
+    mesh.agents[3].on_assignment(msg)
+    mesh.agents[4].on_assignment(_assignment(s, 4, 1, 14, ["7"], {2: 0.5}, 0.5, g))
+    core = mesh.agents[3]
+    before = dict(core.states)
+    mesh.tick()                                      # step 13: old role, 1's stamp 9 due
+    mesh.tick()                                      # step 14: the new link from 4
+    plan = core._plan(15, mesh.now)
+    stamp, _need, src = plan[4]
+    if continues:
+        assert (stamp, src) == (9, 1) and continued_stamp(stamp, first_own=13)
+    else:
+        assert stamp is None
+    held = core.states["held"] - before["held"]
+    assert held == (1 if continues else 0)           # step 14 continues 1's stream
