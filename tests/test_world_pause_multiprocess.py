@@ -3,16 +3,12 @@ the start at once. Loopback only, deadlines, children in their own process group
 
 import argparse
 import json
-import os
 import re
-import signal
-import subprocess
-import sys
 
 import pytest
 
-from agent.launcher import ROOT
 from agent.local_run import LocalRun
+from tests.test_runtime_multiprocess import _socmon
 
 pytestmark = [pytest.mark.multiprocess]
 
@@ -41,19 +37,9 @@ def test_a_child_that_dies_before_the_clock_starts_ends_the_start(tmp_path, live
     assert not rec.truth
 
 
-def _up(tmp_path, gains, *argv, timeout=300.0):
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-m", "agent.cli", "up", "paper-14-live",
-                             "--gains", str(gains), "--out", str(tmp_path), "--json",
-                             "--quiet", *argv], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    return proc.returncode, out, err
+def _up(tmp_path, gains, *argv):
+    return _socmon("up", "paper-14-live", "--gains", str(gains), "--out", str(tmp_path),
+                   "--json", "--quiet", *argv)
 
 
 def test_a_world_paused_past_the_lease_is_waited_for_and_the_run_completes(tmp_path,
