@@ -98,15 +98,10 @@ def predicted_mse(scenario, G, delays) -> tuple:
 
 
 def summarize(config, rec, loop_rho, predicted) -> tuple:
-    """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md)."""
-    import json
+    """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md); pure:
+    the run folder is written by :func:`write_run_folder`."""
+    from .jsonable import SCHEMA_VERSION
 
-    from .jsonable import SCHEMA_VERSION, to_jsonable
-
-    if config.out is not None:
-        (config.out / "assignments.json").write_text(json.dumps(to_jsonable(
-            [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(rec.assigns.items())]))
-            + "\n")
     c = config
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
@@ -577,21 +572,24 @@ def plottable(mse) -> np.ndarray:
     return np.isfinite(mse) & (mse > 0) & (mse < 1e250)
 
 
-def write_run_folder(out, summary, steps_done, mse, predicted, rosters=()):
-    import csv
+def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
+    """The run folder's summary, MSE per step, assignments heard and ``mse.png``; every
+    file written atomically (:func:`agent.run_folder.write_atomic`)."""
     import json
     import sys
 
     from .jsonable import to_jsonable
+    from .run_folder import write_atomic
 
-    (out / "summary.json").write_text(json.dumps(to_jsonable(summary), indent=2) + "\n")
-    with open(out / "mse.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["step", "mse"])
-        for k, m in zip(steps_done, mse):
-            w.writerow([k, repr(float(m))])
-    (out / "mse.json").write_text(json.dumps(to_jsonable(
+    write_atomic(out / "summary.json", json.dumps(to_jsonable(summary), indent=2) + "\n")
+    write_atomic(out / "mse.csv", "step,mse\r\n" + "".join(
+        f"{k},{float(m)!r}\r\n" for k, m in zip(steps_done, mse)))
+    write_atomic(out / "mse.json", json.dumps(to_jsonable(
         {"step": steps_done, "mse": list(mse)})) + "\n")
+    if assigns is not None:
+        write_atomic(out / "assignments.json", json.dumps(to_jsonable(
+            [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(assigns.items())]))
+            + "\n")
     plt = pyplot()
     if plt is None:
         return

@@ -98,7 +98,7 @@ def watch(config: WatchConfig, view) -> WatchResult:
     summary, steps, mse = summarize(run_config, rec, rho, predicted)
     summary.update(watched=True, ended=ended, connect=list(c.net.connect))
     if c.out is not None:
-        write_run_folder(c.out, summary, steps, mse, predicted, rec.rosters)
+        write_run_folder(c.out, summary, steps, mse, predicted, assigns=rec.assigns)
         active = [a for a in range(1, M + 1) if rec.est[a]]
         save_estimates(c.out / "estimates.npz", steps, rec.truth, rec.est, active, s.n)
         summary["out"] = str(c.out)

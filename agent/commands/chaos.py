@@ -91,7 +91,7 @@ def _chaos(args) -> int:
     s = config.scenario
     rec, summary, steps, mse, predicted = run_and_summarize(config, say)
     violations = [] if rec.failure else check_invariants(config, rec, summary, steps, mse)
-    write_run_folder(config.out, summary, steps, mse, predicted, rec.rosters)
+    write_run_folder(config.out, summary, steps, mse, predicted, assigns=rec.assigns)
     report = {
         "schema_version": SCHEMA_VERSION,
         "scenario": s.name, "seed": args.seed, "duration": args.duration,

@@ -287,7 +287,7 @@ def _up(args) -> int:
         summary["simulator_compared"] = how
         if not diff <= CHECK_TOL:
             status_code = 1
-    write_run_folder(config.out, summary, steps_done, mse, predicted, rec.rosters)
+    write_run_folder(config.out, summary, steps_done, mse, predicted, assigns=rec.assigns)
     active = [a for a in range(1, config.M + 1) if rec.est[a]]
     save_estimates(config.out / "estimates.npz", steps_done, rec.truth, rec.est, active, s.n)
     summary["out"] = str(config.out)
