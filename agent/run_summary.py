@@ -163,11 +163,16 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         warnings.append(f"the estimates DIVERGED: the MSE at step {summary['diverged_at']} "
                         f"is above {DIVERGED_FACTOR:g}x every exact prediction (or not finite)")
     needed = sum(sum((s.get("inputs") or {}).values()) for s in last.values())
-    missed = summary["drops"] + summary["late"]
+    # a failed agent's missing estimates are drops too: with faults, only the late ones
+    # (arrived after the step that needed them) say the period was not sustained
+    faulty = bool(summary.get("failures") or c.faults)
+    missed = summary["late"] + (0 if faulty else summary["drops"])
     if needed and missed > 0.01 * needed:
         warnings.append(f"period not sustained: {missed} of {needed} neighbour estimates "
-                        f"({100 * missed / needed:.1f} %) were late or dropped (the machine "
-                        "is too loaded for this step period, or links are impaired)")
+                        f"({100 * missed / needed:.1f} %) were "
+                        + ("late" if faulty else "late or dropped")
+                        + " (the machine is too loaded for this step period, or links are "
+                          "impaired)")
     summary["warnings"] = summary.get("warnings", []) + warnings
     logged = log_warnings(c.out / "logs") if c.out is not None else []
     summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
