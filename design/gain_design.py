@@ -36,6 +36,7 @@ import numpy as np
 from .ccl import SolverError, ccl_design
 from .closed_loop import ClosedLoop
 from .errors import NotObservableError, SocmonError
+from .gap import GAP_MARGIN, GapTerms, gap_report
 from .gradient import LoopModel, bfgs_minimise
 from .graph import influence_structure, unmeasured_parents
 from .observability import distributed_detectability
@@ -72,6 +73,8 @@ _DEFAULT_OPTIONS = {
     "blas_threads": 1,
     "target": None,         # objective rho: stop as soon as rho < target
     "mse": "impulse",       # MSE evaluation: "impulse" (structured) or "lyapunov" (dense)
+    "gaps": True,           # keep every single failure's gap loop stable where possible
+    "gap_margin": GAP_MARGIN,   # ... with exact radius below 1 - gap_margin
 }
 _CCL_OPTIONS = {
     "solver": "CLARABEL",
@@ -82,6 +85,15 @@ _CCL_OPTIONS = {
     "solver_options": None,
     "blas_threads": 1,
 }
+
+
+#: The gap stage (:func:`_gap_stage`): soft-maximum temperature of the radii in its second
+#: round (the first uses the top moduli; doubled each round), eigenvalues in the soft
+#: maxima, rounds.
+GAP_SMOOTH = 0.005
+GAP_SOFTMAX_K = 6           # per gap loop
+NOMINAL_SOFTMAX_K = 12      # the nominal radius (objective rho), see _gap_stage
+GAP_ROUNDS = 5
 
 
 class DesignError(SocmonError):
@@ -134,6 +146,14 @@ class DesignResult:
     iterations : int, optimiser iterations (BFGS) or cone-complementarity iterations
     history : list of dict, one record per iteration / solve (status of every solve)
     status : str, why the design stopped
+    gaps : list of dict, for the failure of each agent the gap loop the others run until
+        the switch (:func:`design.gap.gap_report`, radii only): ``failed``,
+        ``rho_exact``, ``stable``, ``own_loop_radius``
+    gap_design : dict, what the gap terms of ``default`` did (empty for ``ccl``):
+        ``enabled``, ``target`` (radius every gap is kept below), ``met``,
+        ``rho_gap_before`` (gap radii of the nominal design, failed id -> radius),
+        ``iterations``, ``impossible`` (gaps no gain can make stable: ``failed`` and
+        ``bound``, their largest unobservable modulus), ``note``
     """
 
     G: list
@@ -151,6 +171,8 @@ class DesignResult:
     rho_delay_free: float = float("nan")
     detectability: dict = field(default_factory=dict)
     options: dict = field(default_factory=dict)
+    gaps: list = field(default_factory=list)
+    gap_design: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         """JSON-ready record (no gain arrays)."""
@@ -167,6 +189,8 @@ class DesignResult:
             "seed": int(self.seed),
             "rho_delay_free": float(self.rho_delay_free),
             "detectability": self.detectability,
+            "gaps": list(self.gaps),
+            "gap_design": dict(self.gap_design),
         }
 
 
@@ -378,7 +402,7 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
         res = _design_ccl(scenario, D, opts, report)
     else:
         res = _design_default(scenario, D, objective, seed, opts, t0, report)
-    G, history, iterations, status, rho_exact = res
+    G, history, iterations, status, rho_exact, gap_info = res
     certify = report.stage("certifying (exact radius and steady MSE)", "rho", 0)
     if certify is not None:
         certify(0, float("nan"))        # one dense eigenvalue problem and Lyapunov solve
@@ -390,13 +414,20 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
     mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
            if stable and exact_mse else None)
     rho0 = ClosedLoop(scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
+    known = None
+    if gap_info and not gap_info["iterations"]:      # the gains the gap radii were of
+        known = {int(f): r for f, r in gap_info["rho_gap_before"].items()}
+    gaps = [g.to_dict() for g in gap_report(scenario, G, D, mse=False, radii=known)]
+    for g in gaps:
+        g.pop("mse_steady_exact")
     shown = {k: v for k, v in opts.items() if k != "init"}
     return DesignResult(
         G=G, method=method, objective=objective, delays=D, rho=float(rho),
         mse_steady=None if mse is None else float(mse), stable=stable,
         seconds=time.perf_counter() - t0, iterations=int(iterations), history=history,
         status=status, seed=int(seed), rho_delay_free=float(rho0),
-        detectability=detect.to_dict(), options=shown,
+        detectability=detect.to_dict(), options=shown, gaps=gaps,
+        gap_design=gap_info or {},
     )
 
 
@@ -424,7 +455,7 @@ def _design_ccl(scenario, D, opts, report):
                      solver_options=opts["solver_options"],
                      callback=report.stage(f"ccl ({opts['solver']}), delay-free radius", "rho",
                                            opts["max_iter"]))
-    return out["G"], out["history"], out["iterations"], out["reason"], None
+    return out["G"], out["history"], out["iterations"], out["reason"], None, None
 
 
 def _starts(model, scenario, seed, count, init):
@@ -457,6 +488,7 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
         if deadline is not None:
             sub["time_limit"] = max(deadline - time.perf_counter(), 1e-3)
         sub["starts"] = 1
+        sub["gaps"] = False         # the gap terms apply to the design for the delays
         warm = _Reporter(None if report.progress is None else
                          (lambda p: report.progress(replace(p, stage="delay-free warm start, "
                                                             + p.stage))), t0, None)
@@ -536,4 +568,115 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
         if objective == "rho" and opts["target"] is not None and rho < float(opts["target"]):
             break
     _, x, status, rho = best
-    return model.unpack(x), history, iterations, status, rho
+    gap_info = None
+    if opts["gaps"]:
+        x, status, rho, gap_info = _gap_stage(scenario, D, model, x, status, rho, objective,
+                                              opts, common, report, history)
+        iterations += gap_info["iterations"]
+    return model.unpack(x), history, iterations, status, rho, gap_info
+
+
+def _gap_stage(scenario, D, model, x, status, rho, objective, opts, common, report, history):
+    """Keep the gap loops stable (:mod:`design.gap`).
+
+    Nothing changes when every gap of the nominal design ``x`` has an exact radius below
+    ``target = 1 - gap_margin`` (one radius per gap). Else, from ``x``, BFGS minimises
+    the nominal objective plus the exact penalty ``mu * sum_f max(0, rho_f - threshold)``
+    (``threshold = 1 - 1.5 gap_margin``) over the gaps that can be made stable, in up to
+    five rounds until every gap is below the target: each round raises ``mu`` tenfold
+    (from ``f(x) / gap_margin``: an excess of one margin costs the objective's own value).
+    The first round follows the top eigenvalue moduli; the later ones soft maxima of the
+    top few, at a temperature doubled each round: a radius minimised by the nominal
+    design sits where many eigenvalues share the top modulus (paper-14 delay-free: more
+    than six), and from there the gradient of the top modulus alone is no descent
+    direction for the sum, that of a soft maximum over many of them is. With objective
+    rho and a ``target``, a round stops as soon as the radius is below it and every
+    gap below ``threshold``. Returns ``(x, status, rho, info)``."""
+    margin = float(opts["gap_margin"])
+    if not 0 < margin < 1:
+        raise DesignError(f"gap_margin: must be in (0, 1), got {margin!r}")
+    target, threshold = 1.0 - margin, 1.0 - 1.5 * margin
+    terms = GapTerms(scenario, D)
+    radii = terms.radii(x)
+    info = {"enabled": True, "target": target, "iterations": 0,
+            "rho_gap_before": {str(f): r for f, r in radii.items()}, "impossible": []}
+
+    def done(x, status, rho, met, note):
+        info["impossible"] = [{"failed": f, "bound": b} for f, b in terms.impossible]
+        info["met"], info["note"] = bool(met and not terms.impossible), note
+        if terms.impossible:
+            info["note"] += "; " + ", ".join(
+                f"the gap after agent {f} fails cannot be stable (unobservable mode of "
+                f"modulus {b:.4g})" for f, b in terms.impossible)
+        return x, status, rho, info
+
+    if all(r < target for r in radii.values()):
+        return done(x, status, rho, True, "the nominal design already keeps every gap stable")
+    terms.drop_impossible(f for f, r in radii.items() if r >= target)
+    if not terms.models:
+        return done(x, status, rho, False, "no gap above the target can be made stable")
+    q, r = scenario.process_noise, scenario.measurement_noise
+    rho_max = 1.0 - float(opts["margin"])
+    if objective == "mse":
+        J0 = model.mse_and_gradient(x, q, r, rho_max=rho_max, method=opts["mse"])[0]
+
+        def nominal(y, temperature):
+            J, g = model.mse_and_gradient(y, q, r, rho_max=rho_max, method=opts["mse"],
+                                          bound=10.0 * J0)
+            return (np.inf, np.zeros_like(y)) if g is None else (J, g)
+    else:
+        def nominal(y, temperature):
+            return model.spectral_radius_and_gradient(y, smooth=temperature,
+                                                      k=NOMINAL_SOFTMAX_K)
+    mu = max(abs(nominal(x, 0.0)[0]), 1e-6) / margin
+    best = None                   # (worst gap radius, x, nominal rho)
+    start = x
+    seen = {}                     # total value -> (nominal value, penalty, worst gap)
+    goal = opts["target"] if objective == "rho" else None
+    for k in range(GAP_ROUNDS):
+        temperature = 0.0 if k == 0 else GAP_SMOOTH * 2.0 ** (k - 1)
+
+        def total(y, mu=mu, temperature=temperature):
+            f, g = nominal(y, temperature)
+            if not np.isfinite(f):
+                return np.inf, np.zeros_like(y)
+            P, gP, radii = terms.penalty_and_gradient(y, threshold, temperature,
+                                                      GAP_SOFTMAX_K)
+            value = f + mu * P
+            seen[value] = (f, P, GapTerms.worst(radii))
+            return value, g + mu * gP
+
+        def stop(value):
+            # objective rho with a target: stop once it and every gap are met (a soft
+            # maximum is above the radius it stands for)
+            f, P, _ = seen.get(value, (np.inf, np.inf, np.inf))
+            return goal is not None and f < float(goal) and P == 0
+
+        stage = report.stage(f"gap loops, round {k + 1}", "rho", common["max_iter"])
+        callback = None if stage is None else (
+            lambda it, value, stage=stage: stage(it, seen.get(value, (0, 0, np.inf))[2]))
+        res = bfgs_minimise(total, start, label=f"gaps {k}", stop=stop, callback=callback,
+                            **common)
+        report.finished(res.iterations)
+        history += res.history
+        info["iterations"] += res.iterations
+        mu *= 10.0
+        if not res.iterations:
+            continue
+        rho_k = model.spectral_radius(res.x)
+        if not rho_k < (rho_max if objective == "mse" else 1.0):
+            continue              # the nominal loop left the stable set
+        start = res.x
+        worst = max(GapTerms.worst(terms.radii(res.x)), 0.0)
+        if best is None or worst < best[0]:
+            best = (worst, res.x, rho_k)
+        if worst < target:
+            break
+    if best is None:
+        return done(x, status, rho, False, "the gap terms found no better gain: nominal "
+                    "design kept")
+    worst, x, rho_k = best
+    met = worst < target
+    note = ("every gap kept below the target" if met else
+            f"a gap stays above the target: best worst-gap radius {worst:.4g}")
+    return done(x, f"{status}; gaps: {note}", rho_k, met, note)

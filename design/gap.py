@@ -33,8 +33,12 @@ import numpy as np
 
 from .closed_loop import ClosedLoop, spectral_radius
 
-__all__ = ["GapLoop", "gap_loop", "gap_report", "own_loop_radius", "diverging_gaps",
-           "gap_warnings"]
+__all__ = ["GapLoop", "gap_weights", "gap_loop", "gap_report", "own_loop_radius",
+           "diverging_gaps", "gap_warnings", "gap_detectability", "own_loop_bound",
+           "GapTerms", "GAP_MARGIN"]
+
+#: The design keeps every gap's exact radius below ``1 - GAP_MARGIN`` where it can.
+GAP_MARGIN = 0.01
 
 
 @dataclass(frozen=True)
@@ -72,23 +76,35 @@ def own_loop_radius(A, measured, G_i) -> float:
     return float(round(spectral_radius((np.eye(A.shape[0]) - np.asarray(G_i) @ H) @ A), 12))
 
 
-def gap_loop(scenario, G, delays, failed_row: int) -> ClosedLoop:
-    """The :class:`ClosedLoop` of the other agents once ``failed_row``'s estimate is lost."""
-    W = np.asarray(scenario.W, dtype=float)
-    N = W.shape[0]
-    keep = [r for r in range(N) if r != failed_row]
+def gap_weights(W, failed_row: int):
+    """``(keep, W_gap)``: the rows that remain and their weights once ``failed_row`` is
+    lost; each receiver's weight on it goes to its own prediction (rows still sum to 1).
+
+    >>> keep, W2 = gap_weights(np.array([[0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]]), 2)
+    >>> keep, W2.tolist()
+    ([0, 1], [[0.5, 0.5], [0.0, 1.0]])
+    """
+    W = np.asarray(W, dtype=float)
+    keep = [r for r in range(W.shape[0]) if r != failed_row]
     W2 = W[np.ix_(keep, keep)].copy()
     for row, i in enumerate(keep):
         W2[row, row] += W[i, failed_row]
+    return keep, W2
+
+
+def gap_loop(scenario, G, delays, failed_row: int) -> ClosedLoop:
+    """The :class:`ClosedLoop` of the other agents once ``failed_row``'s estimate is lost."""
+    keep, W2 = gap_weights(scenario.W, failed_row)
     D = np.asarray(scenario.delays if delays is None else delays, dtype=int)
     return ClosedLoop(scenario.A, W2, D[np.ix_(keep, keep)],
                       [scenario.measure[r] for r in keep], [G[r] for r in keep])
 
 
-def gap_report(scenario, G, delays=None, mse: bool = True) -> list:
+def gap_report(scenario, G, delays=None, mse: bool = True, radii=None) -> list:
     """A :class:`GapLoop` for the failure of each agent of ``scenario`` (N >= 2);
     ``mse=False`` skips the steady MSE (a Lyapunov solve each: the radii alone are what a
-    start-up check needs)."""
+    start-up check needs); ``radii`` (failed id -> exact radius of its gap loop with these
+    gains and delays) skips the radii already known."""
     out = []
     N = len(scenario.measure)
     if N < 2:
@@ -96,7 +112,7 @@ def gap_report(scenario, G, delays=None, mse: bool = True) -> list:
     own = {i + 1: own_loop_radius(scenario.A, scenario.measure[i], G[i]) for i in range(N)}
     for f in range(N):
         loop = gap_loop(scenario, G, delays, f)
-        rho = loop.spectral_radius()
+        rho = radii[f + 1] if radii is not None and f + 1 in radii else loop.spectral_radius()
         value = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) \
             if mse and rho < 1 else None
         out.append(GapLoop(failed=f + 1, rho=float(rho), mse_steady=value,
@@ -125,3 +141,92 @@ def gap_warnings(scenario, G, delays=None) -> list:
     """The start-up warnings of a run: one line per single failure whose gap diverges."""
     return [f"{line}: the estimates diverge if the switch comes later than the hold "
             "window" for line in diverging_gaps(gap_report(scenario, G, delays, mse=False))]
+
+
+def gap_detectability(scenario, failed_row: int):
+    """Detectability of the gap's distributed pair (:class:`PairObservability`): when it
+    is not detectable no gain makes that gap stable (its unobservable modes stay)."""
+    from .observability import distributed_detectability
+
+    keep, W2 = gap_weights(scenario.W, failed_row)
+    return distributed_detectability(scenario.A, W2, [scenario.measure[r] for r in keep])
+
+
+def own_loop_bound(A, measured) -> float:
+    """The largest unobservable modulus of ``(A, H_i)``: no ``G_i`` brings agent i's own
+    loop below it (0 when agent i alone observes everything).
+
+    >>> own_loop_bound(np.array([[0.5, 0.0], [1.0, 2.0]]), (0,))
+    2.0
+    """
+    from .observability import pair_observability
+
+    A = np.asarray(A, dtype=float)
+    H = np.zeros((len(measured), A.shape[0]))
+    H[np.arange(len(measured)), list(measured)] = 1.0
+    return pair_observability(A, H).max_unobservable_modulus
+
+
+class GapTerms:
+    """The gap loops of a design as functions of the whole gain vector.
+
+    One :class:`design.gradient.LoopModel` per single failure (N >= 2). The gains vector
+    is the design's (all N agents packed as :meth:`LoopModel.pack` does); a gap's model
+    sees it without the failed agent's block. :meth:`drop_impossible` removes the gaps
+    whose distributed pair is not detectable (no gain makes them stable) and lists them
+    in ``impossible`` as ``(failed id, largest unobservable modulus)``: a staircase per
+    gap, so only for the gaps that need it.
+
+    :meth:`penalty_and_gradient` is the exact penalty ``sum_f max(0, rho_f - threshold)``
+    with the gradient of each gap's top eigenvalue modulus (eigenvalue sensitivity, as
+    for the nominal radius), or of a soft maximum of its top moduli.
+    """
+
+    def __init__(self, scenario, delays):
+        from .gradient import LoopModel
+
+        self.scenario = scenario
+        D = np.asarray(delays, dtype=int)
+        N = len(scenario.measure)
+        sizes = [scenario.n * len(m) for m in scenario.measure]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.size = int(offsets[-1])
+        self.models, self.impossible = [], []
+        for f in range(N if N >= 2 else 0):
+            keep, W2 = gap_weights(scenario.W, f)
+            model = LoopModel(scenario.A, W2, D[np.ix_(keep, keep)],
+                              [scenario.measure[r] for r in keep])
+            index = np.concatenate([np.arange(offsets[r], offsets[r + 1]) for r in keep])
+            self.models.append((f + 1, model, index))
+
+    def drop_impossible(self, failed_ids) -> None:
+        """Check the detectability of the gaps of ``failed_ids``; drop those without."""
+        for f in sorted(set(failed_ids)):
+            d = gap_detectability(self.scenario, f - 1)
+            if not d.detectable:
+                self.impossible.append((f, float(d.max_unobservable_modulus)))
+                self.models = [t for t in self.models if t[0] != f]
+
+    @staticmethod
+    def worst(radii: dict) -> float:
+        return max(radii.values()) if radii else 0.0
+
+    def radii(self, x) -> dict:
+        """Failed id -> exact radius of its gap loop (the gaps still in the terms)."""
+        x = np.asarray(x, dtype=float)
+        return {f: float(m.spectral_radius(x[idx])) for f, m, idx in self.models}
+
+    def penalty_and_gradient(self, x, threshold: float, smooth: float = 0.0, k: int = 12):
+        """``(P, dP/dx, radii)``, ``P = sum_f max(0, rho_f - threshold)``; with
+        ``smooth > 0``, ``rho_f`` is the soft maximum of the top ``k`` moduli
+        (:meth:`LoopModel.spectral_radius_and_gradient`), above the radius by at most
+        ``smooth * log k``."""
+        x = np.asarray(x, dtype=float)
+        total, grad, radii = 0.0, np.zeros(self.size), {}
+        for f, model, idx in self.models:
+            rho, g = model.spectral_radius_and_gradient(x[idx], smooth=smooth, k=k)
+            radii[f] = float(rho)
+            if rho > threshold:
+                total += rho - threshold
+                grad[idx] += g
+        return total, grad, radii

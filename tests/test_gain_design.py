@@ -119,7 +119,8 @@ def test_default_stabilises_paper14_with_delays(paper14, spec, tmp_path):
 
 
 def test_default_beats_ccl_radius_delay_free(paper14, ccl_paper14):
-    res = design_gains(paper14, delays="none", starts=1, max_iter=50)
+    # the nominal radius alone (the gap terms trade some of it: test_gap.py)
+    res = design_gains(paper14, delays="none", starts=1, max_iter=50, gaps=False)
     assert res.rho < ccl_paper14.rho - 0.2
 
 

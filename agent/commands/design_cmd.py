@@ -66,6 +66,10 @@ def add_arguments(parser) -> None:
                              "a stage stops (default 1e-3)")
     parser.add_argument("--target", type=float, default=None, metavar="RHO",
                         help="--method default, --objective rho: stop once rho < RHO")
+    parser.add_argument("--no-gaps", action="store_true",
+                        help="--method default: design for the nominal loop alone, without "
+                             "keeping the loop each single failure leaves until the switch "
+                             "(its gap) stable")
     parser.add_argument("--keep-iterating", action="store_true",
                         help="--method ccl: go on after rho < 1 to lower rho")
     parser.add_argument("--out", required=True, metavar="FILE", help="gains file to write (.npz)")
@@ -78,7 +82,8 @@ def _options(args) -> dict:
     opts = {}
     if args.method == "ccl":
         for flag, value in (("--starts", args.starts), ("--target", args.target),
-                            ("--window", args.window), ("--rel-tol", args.rel_tol)):
+                            ("--window", args.window), ("--rel-tol", args.rel_tol),
+                            ("--no-gaps", args.no_gaps or None)):
             if value is not None:
                 raise CommandError(f"{flag} applies to --method default only")
         if args.objective == "mse":
@@ -92,6 +97,8 @@ def _options(args) -> dict:
             raise CommandError("--keep-iterating applies to --method ccl only")
         if args.starts is not None:
             opts["starts"] = args.starts
+        if args.no_gaps:
+            opts["gaps"] = False
         if args.window is not None:
             if args.window < 1:
                 raise CommandError(f"--window: must be at least 1, got {args.window}")
@@ -164,7 +171,8 @@ def _run(args) -> int:
         record["rho_exact"] = loop.spectral_radius()
         record["stable"] = bool(record["rho_exact"] < 1)
         record["written"] = str(out)
-        record["warnings"] = _worse_than_no_correction(scenario, D, record)
+        record["warnings"] = (_worse_than_no_correction(scenario, D, record)
+                              + gap_design_warnings(record))
     status = EXIT_OK if record["stable"] else EXIT_NEGATIVE
     if args.json:
         print_json(record)
@@ -178,6 +186,25 @@ def _run(args) -> int:
         print(f"socmon: no stabilising gain found for these delays (rho = {record['rho_exact']:.6g}); "
               f"{where}", file=sys.stderr)
     return status
+
+
+def gap_design_warnings(record) -> list:
+    """A warning per gap (single failure) whose loop diverges with the gain designed,
+    saying whether no gain could have kept it stable."""
+    impossible = {g["failed"]: g["bound"]
+                  for g in (record.get("gap_design") or {}).get("impossible", [])}
+    out = []
+    for g in record.get("gaps", []):
+        if g["stable"]:
+            continue
+        why = (f"no gain can keep it stable (an unobservable mode of modulus "
+               f"{impossible[g['failed']]:.4g})" if g["failed"] in impossible else
+               "the gap terms could not keep it stable" if record["gap_design"] else
+               "designed without the gap terms")
+        out.append(f"if agent {g['failed']} fails, the others run a loop of exact radius "
+                   f"{g['rho_exact']:.4g} until the switch: {why}; the estimates diverge if "
+                   "the switch does not come within the hold window")
+    return out
 
 
 def _worse_than_no_correction(scenario, D, record) -> list:
@@ -218,5 +245,15 @@ def _print_text(record, res) -> None:
         print("  (the --time-limit budget ended the design: raise it for a lower "
               + ("radius, or give --target RHO to stop at a radius)"
                  if record["objective"] == "rho" else "MSE)"))
+    if record.get("gaps"):
+        radii = ", ".join(f"{g['failed']}: {g['rho_exact']:.4f}" for g in record["gaps"])
+        print(f"  gap radii (exact; failed agent: the loop the others run until the switch)"
+              f" {radii}")
+        gd = record.get("gap_design") or {}
+        if gd:
+            before = ", ".join(f"{f}: {r:.4f}" for f, r in gd["rho_gap_before"].items())
+            print(f"  gap terms (every gap below {gd['target']:.4g}): {gd['note']}"
+                  + ("" if not gd["iterations"] else
+                     f"; {gd['iterations']} iterations; the nominal design's gaps {before}"))
     if record["written"]:
         print(f"  gains written to {record['written']}")
