@@ -106,7 +106,7 @@ def test_delay_free_design_is_reported_unstable_at_uniform7(paper14, ccl_paper14
 @pytest.mark.parametrize("spec", ["none", "uniform:3", "uniform:7",
                                   pytest.param("uniform:15", marks=pytest.mark.slow)])
 def test_default_stabilises_paper14_with_delays(paper14, spec, tmp_path):
-    opts = {"starts": 1, "max_iter": 60, "target": 0.995}
+    opts = {"starts": 1, "max_iter": 60, "target": 0.995, "gaps": False}
     res = design_gains(paper14, delays=spec, **opts)
     assert res.stable and res.rho < 0.995
     D = resolve_delays(paper14, spec)
@@ -248,7 +248,7 @@ def test_warm_start_from_a_neighbouring_design_is_certified_stable(paper14):
 def test_progress_callback_reports_every_iteration(paper14):
     seen = []
     res = design_gains(paper14, delays="uniform:2", objective="mse", max_iter=25,
-                       time_limit=600, progress=seen.append)
+                       time_limit=600, progress=seen.append, gaps=False)
     stages = [p.stage for p in seen]
     assert stages[0] == "start 1 of 1, radius" and stages[-2] == "start 1 of 1, MSE"
     assert stages[-1].startswith("certifying") and np.isnan(seen[-1].value)
@@ -262,9 +262,18 @@ def test_progress_callback_reports_every_iteration(paper14):
     assert all(p.time_left is not None and 0 <= p.time_left <= 600 for p in seen)
     # the last MSE reported is the certified steady MSE of the result
     assert mse[-1].value == pytest.approx(res.mse_steady, rel=1e-9)
+    # with the gap terms (a gap of this gain is above the target), their rounds follow,
+    # reporting the worst gap radius
+    seen.clear()
+    res = design_gains(paper14, delays="uniform:2", objective="mse", max_iter=25,
+                       progress=seen.append)
+    assert res.gap_design["iterations"] > 0
+    gap = [p for p in seen if p.stage.startswith("gap loops")]
+    assert gap and {p.quantity for p in gap} == {"rho"} and gap[0].stage.endswith("round 1")
+    assert seen[-1].iterations == res.iterations
     # the default design's own starts: three for the radius, with the best so far
     seen.clear()
-    design_gains(paper14, delays="none", max_iter=5, progress=seen.append)
+    design_gains(paper14, delays="none", max_iter=5, progress=seen.append, gaps=False)
     assert {p.stage for p in seen[:-1]} == {f"start {k} of 3, radius" for k in (1, 2, 3)}
     assert seen[0].best is None and seen[-1].best is not None
 
