@@ -35,10 +35,13 @@ from .closed_loop import ClosedLoop, spectral_radius
 
 __all__ = ["GapLoop", "gap_weights", "gap_loop", "gap_report", "own_loop_radius",
            "diverging_gaps", "gap_warnings", "gap_detectability", "own_loop_bound",
-           "GapTerms", "GAP_MARGIN"]
+           "GapTerms", "GAP_MARGIN", "gap_possibilities", "GAP_ANALYSIS_MAX_ORDER"]
 
 #: The design keeps every gap's exact radius below ``1 - GAP_MARGIN`` where it can.
 GAP_MARGIN = 0.01
+#: :func:`gap_possibilities` runs one staircase of order n (N - 1) per agent: up to this
+#: order (communities-16, order 540: 8 s on the 2-core development machine).
+GAP_ANALYSIS_MAX_ORDER = 300
 
 
 @dataclass(frozen=True)
@@ -230,3 +233,31 @@ class GapTerms:
                 total += rho - threshold
                 grad[idx] += g
         return total, grad, radii
+
+
+def gap_possibilities(scenario):
+    """What any gain can do in the gaps, from the scenario alone.
+
+    Returns ``(gaps, own)``: ``gaps`` a list of dicts, for the failure of each agent,
+    ``failed`` (id), ``detectable`` (some gain makes that gap loop stable only if so) and
+    ``max_unobservable_modulus`` of the gap's distributed pair; ``own`` agent id ->
+    :func:`own_loop_bound`, the lowest radius any gain gives that agent's own loop.
+    ``gaps`` is None when ``n (N - 1)`` is above :data:`GAP_ANALYSIS_MAX_ORDER`.
+
+    >>> from design.scenario import load_scenario
+    >>> gaps, own = gap_possibilities(load_scenario("paper-14-live"))
+    >>> [g["detectable"] for g in gaps], sorted(own)
+    ([True, True, True], [1, 2, 3])
+    """
+    N = len(scenario.measure)
+    own = {i + 1: own_loop_bound(scenario.A, scenario.measure[i]) for i in range(N)}
+    if N < 2:
+        return [], own
+    if scenario.n * (N - 1) > GAP_ANALYSIS_MAX_ORDER:
+        return None, own
+    gaps = []
+    for f in range(N):
+        d = gap_detectability(scenario, f)
+        gaps.append({"failed": f + 1, "detectable": bool(d.detectable),
+                     "max_unobservable_modulus": float(d.max_unobservable_modulus)})
+    return gaps, own

@@ -6,8 +6,10 @@ from design.analysis import analyze
 
 from ._common import (
     EXIT_OK,
+    add_force_gains_argument,
     add_scenario_argument,
     int_flag,
+    load_gains_arg,
     load_scenario_arg,
     print_json,
     run_command,
@@ -24,6 +26,11 @@ def add_arguments(parser) -> None:
         help="bound on the failure sets examined for the failure tolerance "
              "(default 20000; past it the tolerance is a lower bound)",
     )
+    parser.add_argument("--gains", default=None, metavar="FILE",
+                        help="also report, for these gains, the loop each single failure "
+                             "leaves until the switch (exact radius and steady MSE with the "
+                             "scenario's delays, own-loop radii), as certify does")
+    add_force_gains_argument(parser)
 
 
 def run(args) -> int:
@@ -32,8 +39,22 @@ def run(args) -> int:
 
 def _run(args) -> int:
     scenario = load_scenario_arg(args.scenario)
+    from design.gap import diverging_gaps, gap_possibilities, gap_report
+
     result = analyze(scenario, max_subsets=args.max_subsets)
+    gains = None if args.gains is None else load_gains_arg(args.gains, scenario,
+                                                          force=args.force_gains)
     data = result.to_dict()
+    possible, own = gap_possibilities(scenario)
+    data["gap_detectability"] = possible
+    data["own_loop_bound"] = {str(a): b for a, b in own.items()}
+    if gains is not None:
+        gaps = gap_report(scenario, gains.G, scenario.delays)
+        data["gaps"] = [g.to_dict() for g in gaps]
+        data["gains_file"] = str(args.gains)
+        data["warnings"] = list(data["warnings"]) + [
+            f"{line}: the estimates diverge if the switch does not come within the hold "
+            "window" for line in diverging_gaps(gaps)]
     if args.json:
         print_json(data)
     else:
@@ -114,6 +135,30 @@ def format_text(d: dict) -> str:
            if d["failure_tolerance_without_replacement"] is None
            else str(d["failure_tolerance_without_replacement"])),
     ]
+    lines += _gap_lines(d)
     for w in d["warnings"]:
         lines.append(f"warning: {w}")
     return "\n".join(lines)
+
+
+def _gap_lines(d) -> list:
+    from .certify import format_gaps
+
+    lines = ["between a failure and the switch (the failed agent's weight on its receivers' "
+             "own predictions):"]
+    if d["gap_detectability"] is None:
+        lines.append("  whether a gain can keep each gap stable: not examined (n (N - 1) "
+                     "above the analysis limit)")
+    else:
+        for g in d["gap_detectability"]:
+            lines.append(
+                f"  agent {g['failed']} fails: "
+                + ("a gain can keep the gap stable" if g["detectable"] else
+                   "NO gain keeps the gap stable")
+                + f" (largest unobservable modulus {g['max_unobservable_modulus']:.4g})")
+    lines.append("  lowest own-loop radius any gain gives (an agent alone on its readings): "
+                 + ", ".join(f"{a}: {b:.4g}" for a, b in d["own_loop_bound"].items()))
+    if d.get("gaps"):
+        lines.append(f"  with the gains of {d['gains_file']} (scenario delays):")
+        lines += ["  " + line for line in format_gaps(d["gaps"])]
+    return lines

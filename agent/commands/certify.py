@@ -55,8 +55,14 @@ def _run(args) -> int:
         result = certify(scenario, gains.G, taus=taus, tau_cap=cap, progress=line.update)
     from design.gap import diverging_gaps, gap_report
 
+    from design.scenario import uniform_delays
+
     gaps = gap_report(scenario, gains.G, scenario.delays)
     result["gaps"] = [g.to_dict() for g in gaps]
+    for row in result["rows"]:      # the gap radii with every link delayed by the row's tau
+        row["gaps_rho_exact"] = {
+            str(g.failed): g.rho for g in gap_report(
+                scenario, gains.G, uniform_delays(scenario.W, row["tau"]), mse=False)}
     result["gains_file"] = str(args.gains)
     result["gains_meta"] = gains.meta
     mismatch = gains_scenario_mismatch(gains.meta, scenario)   # only with --force-gains
@@ -68,6 +74,17 @@ def _run(args) -> int:
     else:
         print(format_text(result))
     return EXIT_OK if result["stable"] else EXIT_NEGATIVE
+
+
+def format_gaps(gaps) -> list:
+    """The table of :func:`design.gap.gap_report`'s records (``to_dict``), one line each."""
+    lines = ["  failed   exact radius  stable   exact steady MSE   own-loop radii"]
+    for g in gaps:
+        own = ", ".join(f"{a}: {r:.4f}" for a, r in g["own_loop_radius"].items())
+        lines.append(f"  {g['failed']:>6}   {g['rho_exact']:12.6f}  "
+                     f"{'yes' if g['stable'] else 'NO ':<6}   "
+                     f"{_f(g.get('mse_steady_exact'), 6):>16}   {own}")
+    return lines
 
 
 def _f(x, digits=5) -> str:
@@ -114,12 +131,12 @@ def format_text(d: dict) -> str:
         lines.append("")
         lines.append("between a failure and the switch (scenario delays; the failed agent's "
                      "weight on its receivers' own predictions):")
-        lines.append("  failed   exact radius  stable   exact steady MSE   own-loop radii")
-        for g in d["gaps"]:
-            own = ", ".join(f"{a}: {r:.4f}" for a, r in g["own_loop_radius"].items())
-            lines.append(f"  {g['failed']:>6}   {g['rho_exact']:12.6f}  "
-                         f"{'yes' if g['stable'] else 'NO ':<6}   "
-                         f"{_f(g['mse_steady_exact'], 6):>16}   {own}")
+        lines += format_gaps(d["gaps"])
+        lines.append("  exact gap radius with every link delayed by tau (failed agent: radius):")
+        for r in d["rows"]:
+            lines.append(f"  {r['tau']:>5}   " + ", ".join(
+                f"{f}: {rho:.6f}{'' if rho < 1 else ' NO'}"
+                for f, rho in r.get("gaps_rho_exact", {}).items()))
     for warning in d.get("warnings", []):
         lines.append(f"warning: {warning}")
     return "\n".join(lines)
