@@ -36,8 +36,8 @@ import numpy as np
 from .ccl import SolverError, ccl_design
 from .closed_loop import ClosedLoop
 from .errors import NotObservableError, SocmonError
-from .gap import GAP_MARGIN, GapTerms, gap_report
-from .gradient import LoopModel, bfgs_minimise
+from .gap import GAP_MARGIN, gap_report
+from .gradient import GapTerms, LoopModel, bfgs_minimise
 from .graph import influence_structure, unmeasured_parents
 from .observability import distributed_detectability
 from .scenario import resolve_delays

@@ -54,6 +54,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .closed_loop import ClosedLoop
+from .gap import gap_detectability, gap_weights
 
 __all__ = ["LoopModel", "bfgs_minimise", "OptimResult", "DENSE_SPECTRUM_MAX_ORDER"]
 
@@ -573,3 +574,66 @@ def _weak_wolfe(fg, x, f, g, d, gd, c1=1e-4, c2=0.9, max_evals=30):
     if best is not None:
         return (*best, ne)
     return 0.0, None, f, g, ne
+
+
+class GapTerms:
+    """The gap loops of a design as functions of the whole gain vector.
+
+    One :class:`LoopModel` per single failure (N >= 2). The gains vector
+    is the design's (all N agents packed as :meth:`LoopModel.pack` does); a gap's model
+    sees it without the failed agent's block. :meth:`drop_impossible` removes the gaps
+    whose distributed pair is not detectable (no gain makes them stable) and lists them
+    in ``impossible`` as ``(failed id, largest unobservable modulus)``: a staircase per
+    gap, so only for the gaps that need it.
+
+    :meth:`penalty_and_gradient` is the exact penalty ``sum_f max(0, rho_f - threshold)``
+    with the gradient of each gap's top eigenvalue modulus (eigenvalue sensitivity, as
+    for the nominal radius), or of a soft maximum of its top moduli.
+    """
+
+    def __init__(self, scenario, delays):
+        self.scenario = scenario
+        D = np.asarray(delays, dtype=int)
+        N = len(scenario.measure)
+        sizes = [scenario.n * len(m) for m in scenario.measure]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.size = int(offsets[-1])
+        self.models, self.impossible = [], []
+        for f in range(N if N >= 2 else 0):
+            keep, W2 = gap_weights(scenario.W, f)
+            model = LoopModel(scenario.A, W2, D[np.ix_(keep, keep)],
+                              [scenario.measure[r] for r in keep])
+            index = np.concatenate([np.arange(offsets[r], offsets[r + 1]) for r in keep])
+            self.models.append((f + 1, model, index))
+
+    def drop_impossible(self, failed_ids) -> None:
+        """Check the detectability of the gaps of ``failed_ids``; drop those without."""
+        for f in sorted(set(failed_ids)):
+            d = gap_detectability(self.scenario, f - 1)
+            if not d.detectable:
+                self.impossible.append((f, float(d.max_unobservable_modulus)))
+                self.models = [t for t in self.models if t[0] != f]
+
+    @staticmethod
+    def worst(radii: dict) -> float:
+        return max(radii.values()) if radii else 0.0
+
+    def radii(self, x) -> dict:
+        """Failed id -> exact radius of its gap loop (the gaps still in the terms)."""
+        x = np.asarray(x, dtype=float)
+        return {f: float(m.spectral_radius(x[idx])) for f, m, idx in self.models}
+
+    def penalty_and_gradient(self, x, threshold: float, smooth: float = 0.0, k: int = 12):
+        """``(P, dP/dx, radii)``, ``P = sum_f max(0, rho_f - threshold)``; with
+        ``smooth > 0``, ``rho_f`` is the soft maximum of the top ``k`` moduli
+        (:meth:`LoopModel.spectral_radius_and_gradient`), above the radius by at most
+        ``smooth * log k``."""
+        x = np.asarray(x, dtype=float)
+        total, grad, radii = 0.0, np.zeros(self.size), {}
+        for f, model, idx in self.models:
+            rho, g = model.spectral_radius_and_gradient(x[idx], smooth=smooth, k=k)
+            radii[f] = float(rho)
+            if rho > threshold:
+                total += rho - threshold
+                grad[idx] += g
+        return total, grad, radii

@@ -98,7 +98,7 @@ def test_a_gap_by_hand_equals_its_direct_construction():
 
 
 def test_the_gap_penalty_gradient_matches_finite_differences():
-    from design.gap import GapTerms
+    from design.gradient import GapTerms
     from design.gradient import LoopModel
 
     s = _three_agents()
