@@ -7,7 +7,8 @@ Layers, lowest first. A module imports only from its own layer or the layers bel
 (``tests/test_layers.py`` checks every import, lazy ones included):
 
 1. **model** -- the objects of the paper and the graph algorithms they are checked with:
-   :mod:`~design.errors`, :mod:`~design.metrics`, :mod:`~design.noise`,
+   :mod:`~design.errors`, :mod:`~design.files` (files read at a bounded cost),
+   :mod:`~design.metrics`, :mod:`~design.noise`,
    :mod:`~design.graph` (SCCs, condensation, parent SCCs), :mod:`~design.connectivity`
    (agent network), :mod:`~design.scenario`, :mod:`~design.gains`,
    :mod:`~design.generate` (generated scenarios).
@@ -27,7 +28,7 @@ Heavy imports (cvxpy) happen inside the functions that need them.
 
 #: Layer of every module of the package (checked by tests/test_layers.py).
 LAYERS = {
-    "errors": 1, "metrics": 1, "noise": 1, "graph": 1, "connectivity": 1, "scenario": 1,
+    "errors": 1, "files": 1, "metrics": 1, "noise": 1, "graph": 1, "connectivity": 1, "scenario": 1,
     "gains": 1, "generate": 1,
     "observability": 2, "recovery": 2, "analysis": 2, "roster": 2,
     "estimator": 3, "closed_loop": 3, "certificates": 3, "gap": 3,

@@ -5,6 +5,10 @@ catch the broad class; the message names the field or argument that is wrong.
 """
 
 
+#: Problems a ScenarioError's message lists (all are in ``problems``).
+MAX_SHOWN_PROBLEMS = 50
+
+
 class SocmonError(ValueError):
     """Base class of socmon's input and precondition errors."""
 
@@ -25,9 +29,11 @@ class ScenarioError(SocmonError):
         if len(self.problems) == 1:
             msg = where + self.problems[0]
         else:
+            shown = self.problems[:MAX_SHOWN_PROBLEMS]
+            more = len(self.problems) - len(shown)
             msg = where + f"{len(self.problems)} problems:\n" + "\n".join(
-                f"  - {p}" for p in self.problems
-            )
+                f"  - {p}" for p in shown
+            ) + (f"\n  ... and {more} more" if more else "")
         super().__init__(msg)
 
 

@@ -22,6 +22,8 @@ import hashlib
 import importlib.resources
 import json
 import math
+import os
+import re
 import tomllib
 import warnings
 from dataclasses import dataclass, field
@@ -31,6 +33,7 @@ import numpy as np
 
 from .connectivity import agent_components
 from .errors import ScenarioError
+from .files import UnreadableFile, read_bounded
 
 __all__ = [
     "Scenario",
@@ -90,10 +93,24 @@ _ROW_SUM_TOL = 1e-9
 #: Largest link delay, in steps, that a scenario or a delay flag may name. The exact closed
 #: loop has order (taubar+1) n N: beyond a thousand steps it is out of reach anyway.
 MAX_DELAY = 1000
-#: Largest number of individuals of a scenario (A is held dense).
-MAX_NODES = 20000
+#: Largest number of individuals of a scenario (A is held dense): labels, rows of A and
+#: node ids of an edges file all count. What ``analyze`` costs there: docs/scenario.md.
+MAX_NODES = 2000
+#: Largest number of active agents (lists of ``agents.measure``; W is held dense).
+MAX_AGENTS = 200
+#: Largest distributed order n N (every agent holds an estimate of all n individuals; the
+#: observability staircase of (W (x) A, D_H) costs about (n N)^3: docs/scenario.md).
+MAX_ORDER = 3000
 #: Largest number of standby agents a scenario may declare.
 MAX_STANDBY = 1000
+#: Largest scenario file (tomllib reads about 2.5 MB/s; a dense A of n = 900 is ~15 MiB:
+#: larger graphs are given by social.edges).
+MAX_SCENARIO_BYTES = 16 << 20
+#: Largest edges CSV file (every edge of a complete graph on MAX_NODES nodes fits).
+MAX_EDGES_BYTES = 64 << 20
+#: Deepest nesting of arrays and inline tables in a scenario file (a scenario needs 2;
+#: tomllib recurses on nesting, and a file nested 100 000 deep exhausts Python's stack).
+MAX_TOML_DEPTH = 32
 
 
 class RankDeficientWarning(UserWarning):
@@ -269,21 +286,103 @@ def load_scenario(spec) -> Scenario:
         Listing every problem found, each naming its field.
     """
     path = Path(spec)
-    if path.is_file():
-        try:
-            data = tomllib.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ScenarioError(f"not valid TOML: {exc}", str(path)) from None
-        return scenario_from_dict(data, base_dir=path.parent, source=str(path))
     name = str(spec)
-    if name in builtin_scenarios():
+    if name in builtin_scenarios() and not path.is_file():
         res = importlib.resources.files("design") / "scenarios" / f"{name}.toml"
         data = tomllib.loads(res.read_text())
         return scenario_from_dict(data, base_dir=None, source=f"builtin:{name}")
-    raise ScenarioError(
-        f"no scenario file {name!r} and no built-in scenario of that name "
-        f"(built-in: {', '.join(builtin_scenarios())})"
-    )
+    try:
+        raw = read_bounded(path, MAX_SCENARIO_BYTES)
+    except UnreadableFile as exc:
+        if not os.path.lexists(path):
+            raise ScenarioError(
+                f"no scenario file {name!r} and no built-in scenario of that name "
+                f"(built-in: {', '.join(builtin_scenarios())})"
+            ) from None
+        raise ScenarioError(f"cannot read the scenario file: {exc}", str(path)) from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(f"not valid TOML: not UTF-8 text ({exc.reason} at byte "
+                            f"{exc.start})", str(path)) from None
+    data = parse_toml(text, str(path))
+    return scenario_from_dict(data, base_dir=path.parent, source=str(path))
+
+
+def parse_toml(text: str, source: str = "<text>") -> dict:
+    """``tomllib.loads(text)`` at a bounded cost: nesting deeper than
+    :data:`MAX_TOML_DEPTH` is refused before tomllib, which recurses on it, sees it.
+
+    Raises
+    ------
+    ScenarioError
+        Naming ``source`` (and the line of a too deep nesting) for text that is not TOML.
+
+    >>> parse_toml("a = [[1, 2], [3]]")
+    {'a': [[1, 2], [3]]}
+    >>> parse_toml("a = " + "[" * 40 + "]" * 40)
+    Traceback (most recent call last):
+    ...
+    design.errors.ScenarioError: <text>: not valid TOML: arrays and inline tables nested deeper than 32 (line 1)
+    """
+    depth, line = toml_nesting(text, stop=MAX_TOML_DEPTH)
+    if depth > MAX_TOML_DEPTH:
+        raise ScenarioError(f"not valid TOML: arrays and inline tables nested deeper than "
+                            f"{MAX_TOML_DEPTH} (line {line})", source)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"not valid TOML: {exc}", source) from None
+    except RecursionError:   # not reached below MAX_TOML_DEPTH; a guard all the same
+        raise ScenarioError("not valid TOML: nested too deeply", source) from None
+
+
+# the TOML tokens that matter to the nesting: strings (brackets in them do not count),
+# comments, brackets and braces; then, per opening token, where its string or comment ends
+_TOML_TOKEN = re.compile(r'"""|' + r"'''|" + r"""["'#\[\]{}]""")
+_TOML_END = {
+    '"': re.compile(r'(?:[^"\\\n]|\\.)*"'),
+    "'": re.compile(r"[^'\n]*'"),
+    '"""': re.compile(r'(?:[^\\]|\\.)*?"""(?:"{1,2}(?!"))?', re.S),
+    "'''": re.compile(r".*?'''(?:'{1,2}(?!'))?", re.S),
+    "#": re.compile(r"[^\n]*"),
+}
+
+
+def toml_nesting(text: str, stop: int | None = None) -> tuple:
+    """``(depth, line)``: the deepest nesting of ``[`` and ``{`` in TOML ``text`` outside
+    strings and comments, and the line where it is first reached. Linear in the text and
+    without recursion; the scan ends as soon as the depth passes ``stop``. A table header
+    ``[[x]]`` counts 2.
+
+    >>> toml_nesting('a = [[1], "[[["]  # [[[[\\nb = {c = [2]}')
+    (2, 1)
+    >>> toml_nesting("a = '''\\n[[[\\n'''\\nb = [{c = [1]}]")
+    (3, 4)
+    """
+    depth = best = 0
+    line = 1
+    pos, end = 0, len(text)
+    while pos < end:
+        m = _TOML_TOKEN.search(text, pos)
+        if m is None:
+            break
+        tok, pos = m.group(), m.end()
+        if tok in ("[", "{"):
+            depth += 1
+            if depth > best:
+                best = depth
+                line = text.count("\n", 0, m.start()) + 1
+                if stop is not None and best > stop:
+                    break
+        elif tok in ("]", "}"):
+            depth = max(depth - 1, 0)
+        else:
+            s = _TOML_END[tok].match(text, pos)
+            if s is None:    # an unterminated string: tomllib reports it
+                break
+            pos = s.end()
+    return best, line
 
 
 def scenario_to_toml(scenario: Scenario) -> str:
@@ -464,6 +563,13 @@ def resolve_delays(scenario: Scenario, spec: str = "scenario") -> np.ndarray:
 # parsing helpers
 
 
+def _some(items, k: int = 10) -> str:
+    """The first ``k`` of ``items`` and how many more (an error message stays short)."""
+    items = list(items)
+    more = f" and {len(items) - k} more" if len(items) > k else ""
+    return f"{items[:k]}{more}"
+
+
 def _is_int(x) -> bool:
     return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
 
@@ -501,10 +607,14 @@ def _positive_number(table, key, where, problems, default):
     return float(value)
 
 
-def _matrix(value, where, problems):
+def _matrix(value, where, problems, max_rows=None, rows_are="rows"):
     """Parse a list of lists of numbers into a float array, or report why not."""
     if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
         problems.append(f"{where}: must be a non-empty list of rows")
+        return None
+    if max_rows is not None and len(value) > max_rows:
+        problems.append(f"{where}: {len(value)} rows, above the largest supported number of "
+                        f"{rows_are}, {max_rows}")
         return None
     widths = {len(r) for r in value}
     if len(widths) != 1:
@@ -530,9 +640,15 @@ def _parse_social(social, base_dir, problems):
             labels = None
         else:
             labels = [str(x) for x in labels]
-            dup = sorted({x for x in labels if labels.count(x) > 1})
+            if len(labels) > MAX_NODES:
+                problems.append(f"social.labels: {len(labels)} labels, above the largest "
+                                f"supported number of individuals, {MAX_NODES}")
+                return np.eye(1), ["1"]
+            seen, dup = set(), set()
+            for x in labels:
+                (dup if x in seen else seen).add(x)
             if dup:
-                problems.append(f"social.labels: duplicate labels {dup}")
+                problems.append(f"social.labels: duplicate labels {_some(sorted(dup))}")
     if has_A == has_edges:
         problems.append("social: give exactly one of A (dense matrix) or edges (CSV file)")
         return np.eye(1), ["1"]
@@ -540,7 +656,8 @@ def _parse_social(social, base_dir, problems):
         for key in ("self_weight", "seed"):
             if key in social:
                 problems.append(f"social.{key}: only meaningful with social.edges")
-        A = _matrix(social["A"], "social.A", problems)
+        A = _matrix(social["A"], "social.A", problems, max_rows=MAX_NODES,
+                    rows_are="individuals")
         if A is None:
             return np.eye(1), ["1"]
         if A.shape[0] != A.shape[1]:
@@ -590,9 +707,9 @@ def _edges_matrix(social, base_dir, labels, problems):
     if not path.is_absolute() and base_dir is not None:
         path = Path(base_dir) / path
     try:
-        lines = path.read_text().splitlines()
-    except OSError as exc:
-        problems.append(f"social.edges: cannot read {str(path)!r}: {exc.strerror}")
+        lines = read_bounded(path, MAX_EDGES_BYTES).decode("utf-8").splitlines()
+    except UnreadableFile as exc:
+        problems.append(f"social.edges: cannot read {str(path)!r}: {exc}")
         return None, labels
     except UnicodeDecodeError:
         problems.append(f"social.edges: {str(path)!r} is not UTF-8 text")
@@ -628,6 +745,10 @@ def _edges_matrix(social, base_dir, labels, problems):
             labels = [str(i + 1) for i in range(top)]
             canon = {x: str(int(x)) for x in ids}
         else:
+            if len(ids) > MAX_NODES:
+                problems.append(f"social.edges: {path}: {len(ids)} node ids, above the largest "
+                                f"supported number of individuals, {MAX_NODES}")
+                return None, labels
             labels = ids
             canon = {x: x for x in ids}
     else:
@@ -635,7 +756,7 @@ def _edges_matrix(social, base_dir, labels, problems):
     index = {lab: i for i, lab in enumerate(labels)}
     unknown = sorted({x for x in ids if canon[x] not in index})
     if unknown:
-        problems.append(f"social.edges: {path}: ids not among social.labels: {unknown[:10]}")
+        problems.append(f"social.edges: {path}: ids not among social.labels: {_some(unknown)}")
         return None, labels
     n = len(labels)
     mask = np.zeros((n, n), dtype=bool)
@@ -662,6 +783,16 @@ def _parse_measure(agents, labels, problems):
     if not isinstance(measure, list) or not measure:
         problems.append("agents.measure: must be a non-empty list of lists of node labels")
         return None
+    if len(measure) > MAX_AGENTS:
+        problems.append(f"agents.measure: {len(measure)} agents, above the largest supported "
+                        f"number, {MAX_AGENTS}")
+        return None
+    if labels is not None and len(labels) * len(measure) > MAX_ORDER:
+        problems.append(
+            f"agents.measure: {len(measure)} agents estimating n = {len(labels)} individuals "
+            f"each: the distributed order n N = {len(labels) * len(measure)} is above the "
+            f"largest supported, {MAX_ORDER}")
+        return None
     index = {lab: i for i, lab in enumerate(labels)} if labels is not None else None
     out = []
     for a, group in enumerate(measure, start=1):
@@ -669,14 +800,18 @@ def _parse_measure(agents, labels, problems):
             problems.append(f"agents.measure[{a}]: agent {a} must measure a non-empty list of labels")
             out.append(())
             continue
-        idx = []
+        idx, unknown = [], []
         for lab in group:
             if index is None:
                 idx.append(str(lab))      # the graph's labels are unknown: only the shape
             elif str(lab) not in index:
-                problems.append(f"agents.measure[{a}]: unknown node label {lab!r}")
+                unknown.append(lab)
             else:
                 idx.append(index[str(lab)])
+        for lab in unknown[:3]:
+            problems.append(f"agents.measure[{a}]: unknown node label {lab!r}")
+        if len(unknown) > 3:
+            problems.append(f"agents.measure[{a}]: and {len(unknown) - 3} more unknown labels")
         if len(set(idx)) != len(idx):
             problems.append(f"agents.measure[{a}]: agent {a} lists a node twice")
         out.append(tuple(idx))
@@ -689,7 +824,13 @@ def _parse_weights(network, N, problems):
         for key in ("topology", "self_weight"):
             if key in network:
                 problems.append(f"network.{key}: give either weights or topology/self_weight")
-        W = _matrix(network["weights"], "network.weights", problems)
+        raw = network["weights"]
+        if isinstance(raw, list) and len(raw) != N:
+            cols = len(raw[0]) if raw and isinstance(raw[0], list) else 0
+            problems.append(f"network.weights: must be {N} x {N} (one row per agent in "
+                            f"agents.measure), got {len(raw)} x {cols}")
+            return None
+        W = _matrix(raw, "network.weights", problems)
         if W is None:
             return None
         if W.shape != (N, N):
