@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +25,7 @@ __all__ = [
     "DEFAULT_LEASE_MS",
     "DEFAULT_LISTEN",
     "DEFAULT_SECURE_LISTEN",
+    "MAX_CONFIG_BYTES",
     "MAX_MESSAGE_BYTES",
     "SOCMON_KEYS",
     "InvalidNetConfig",
@@ -53,6 +56,8 @@ CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 500, "period_increase_f
 #: Largest message zenoh will reassemble (``transport/link/rx/max_message_size``).
 #: zenoh's default is 1 GiB; socmon messages are a few hundred bytes.
 MAX_MESSAGE_BYTES = 1 << 20
+#: Largest zenoh config file read (a config is a few kB; certificates are files of their own).
+MAX_CONFIG_BYTES = 1 << 20
 #: The zenoh keys socmon sets, each with the NetConfig field or the fixed value it takes
 #: when the config file does not set it.
 SOCMON_KEYS = {
@@ -134,11 +139,49 @@ def _default(key: str):
     return _DEFAULTS[key]
 
 
+def _read_config_file(path: str) -> bytes:
+    """The bytes of the zenoh config file `path`: a regular file of at most
+    :data:`MAX_CONFIG_BYTES`, else InvalidNetConfig saying why (a FIFO is opened without
+    waiting for a writer, and nothing of a device or a directory is read)."""
+    def bad(why):
+        return InvalidNetConfig("zenoh_config", f"{why} {str(path)!r}" if why == "no such file"
+                                else f"{str(path)!r}: {why}")
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise bad("no such file") from None
+    except OSError as exc:
+        raise bad(f"cannot open: {exc.strerror}") from None
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
+        kind = ("a directory" if stat.S_ISDIR(st.st_mode) else
+                "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else
+                "a character device" if stat.S_ISCHR(st.st_mode) else
+                "a block device" if stat.S_ISBLK(st.st_mode) else
+                "a socket" if stat.S_ISSOCK(st.st_mode) else "a special file")
+        raise bad(f"is {kind}, not a regular file")
+    with os.fdopen(fd, "rb") as f:
+        data = f.read(MAX_CONFIG_BYTES + 1)
+    if max(st.st_size, len(data)) > MAX_CONFIG_BYTES:
+        raise bad(f"{max(st.st_size, len(data))} bytes, above the largest zenoh config "
+                  f"file read, {MAX_CONFIG_BYTES >> 20} MiB")
+    return data
+
+
+def _load_config_file(path: str) -> zenoh.Config:
+    """``zenoh.Config`` of the file `path` once :func:`_read_config_file` has found it a
+    regular file of a bounded size (zenoh then reads it by path: ``from_json5`` of the
+    same bytes would lose the line of an error, and yaml is read only by path)."""
+    _read_config_file(path)
+    return zenoh.Config.from_file(path)
+
+
 def _base_config(zenoh_config: str | None, fragment: dict | None) -> zenoh.Config:
     """The file (or zenoh's defaults) with the secure fragment inserted on top."""
     if zenoh_config is not None:
         try:
-            conf = zenoh.Config.from_file(zenoh_config)
+            conf = _load_config_file(zenoh_config)
         except zenoh.ZError as exc:
             raise InvalidNetConfig("zenoh_config", f"cannot load {zenoh_config!r}: {_zenoh_message(exc)}") from None
     else:
@@ -229,8 +272,7 @@ class NetConfig:
             if not isinstance(self.zenoh_config, (str, Path)):
                 raise InvalidNetConfig("zenoh_config", f"expected a path, got {type(self.zenoh_config).__name__}")
             path = Path(self.zenoh_config)
-            if not path.is_file():
-                raise InvalidNetConfig("zenoh_config", f"no such file {str(self.zenoh_config)!r}")
+            _read_config_file(str(path))   # a missing, special or huge file named at once
             put("zenoh_config", str(path))
         fragment = None
         if self.keys is not None:

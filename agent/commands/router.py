@@ -51,7 +51,8 @@ def run(args) -> int:
         try:
             net = net_config_from_args(args)
         except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+            raise CommandError(f"--{exc.field.replace('_', '-')}: "
+                               f"{str(exc).removeprefix(exc.field + ': ')}") from None
 
         def ready(router):
             endpoints = router.endpoints()
@@ -63,7 +64,8 @@ def run(args) -> int:
         try:
             serve_router(net, on_ready=ready)
         except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+            raise CommandError(f"--{exc.field.replace('_', '-')}: "
+                               f"{str(exc).removeprefix(exc.field + ': ')}") from None
         except zenoh.ZError as exc:  # e.g. the port is taken
             raise CommandError(f"cannot start the router: {' '.join(str(exc).split())}",
                                status=1) from None
