@@ -100,7 +100,7 @@ MAX_NODES = 2000
 MAX_AGENTS = 200
 #: Largest distributed order n N (every agent holds an estimate of all n individuals; the
 #: observability staircase of (W (x) A, D_H) costs about (n N)^3: docs/scenario.md).
-MAX_ORDER = 3000
+MAX_ORDER = 10000
 #: Largest number of standby agents a scenario may declare.
 MAX_STANDBY = 1000
 #: Largest scenario file (tomllib reads about 2.5 MB/s; a dense A of n = 900 is ~15 MiB:

@@ -73,7 +73,7 @@ def test_through_router_drops_listen_and_connects_to_the_router_only():
 @pytest.mark.parametrize("argv, message", [
     (["router", "--keys", "x"], "--keys: a router cannot run with keys"),
     (["router", "--mode", "client"], "--mode: a router is not a client"),
-    (["router", "--listen", "nowhere"], "--listen: listen: invalid endpoint 'nowhere'"),
+    (["router", "--listen", "nowhere"], "--listen: invalid endpoint 'nowhere'"),
     (["up", "paper-14", "--router", "--secure"], "--router: not with --secure"),
 ])
 def test_bad_router_flags_exit_2_with_one_line(argv, message, capsys):
