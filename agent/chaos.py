@@ -21,7 +21,7 @@ Invariants (the bounds are in :class:`Bounds`):
   ``window`` steps stays below ``error_factor`` times the exact steady MSE of the
   configuration in force (its gains, the run's delays);
 - ``convictions``: the monitor convicts only agents that were made faulty (killed,
-  stopped, hung, silenced sensors, partitioned).
+  stopped, hung, silenced sensors, partitioned), and every agent that dies holding a role.
 
 Examples
 --------
@@ -228,14 +228,16 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     monitors = {name for name in summary["exit_status"] if name.startswith("monitor")}
     for name, code in summary["exit_status"].items():
         if code not in (0, None) and name not in killed and not (
-                name in monitors and any(f.kind == "monitor" for f in c.faults)):
+                name in monitors and any(f.kind in ("monitor", "monitorsgone")
+                                         for f in c.faults)):
             out.append(Violation("processes", -1, f"{name} exited with status {code}"))
     for name in summary["orphans"]:
         out.append(Violation("processes", -1, f"{name} was still running at the end"))
 
     # -- error -----------------------------------------------------------------------------
     marks = sorted([f.step for f in c.faults] + [x["at"] for x in configs[1:]]
-                   + [v["detected_step"] for v in summary.get("failures", [])])
+                   + [v["detected_step"] for v in summary.get("failures", [])
+                      if v.get("detected_step") is not None])
     mse_at = dict(zip(steps, mse))
     predicted = {}
     for x in configs:
@@ -267,7 +269,12 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     faulty = {f.agent for f in c.faults
               if f.kind in ("kill", "crash", "stop", "hang", "sensor", "partition")}
     for v in summary.get("failures", []):
-        if v["agent"] and v["agent"] not in faulty:
+        if v.get("detected") is False:
+            if v.get("role") == "active":
+                out.append(Violation("convictions", v["died_step"],
+                                     f"agent {v['agent']} died holding a role and was never "
+                                     f"convicted ({v['why']})"))
+        elif v["agent"] and v["agent"] not in faulty:
             out.append(Violation("convictions", v["detected_step"],
                                  f"agent {v['agent']} convicted ({v['cause']}: "
                                  f"{v.get('evidence')}) but no fault was injected into it"))

@@ -39,12 +39,20 @@ def format_line(view: dict) -> str:
             + f"  drops {view['drops']}  late {view['late']}  malformed {view['malformed']}"
             + f"  roster {','.join(map(str, view['roster']))} (epoch {view['epoch']})"
             + "".join(f"  FAILED agent {f['agent']} ({f['cause']}, step {f['step']})"
-                      for f in view["failures"]))
+                      for f in view["failures"])
+            + _no_monitor(view, "  "))
+
+
+def _no_monitor(view: dict, sep: str) -> str:
+    since = view.get("no_monitor_since")
+    return ("" if since is None else
+            f"{sep}NO MONITOR ALIVE since step {since}: failures are neither detected nor "
+            "recovered")
 
 
 def format_lines(view: dict) -> list:
     """The run, then one line per agent, then one per verdict."""
-    lines = [format_line(view).split("  FAILED")[0],
+    lines = [format_line(view).split("  FAILED")[0].split("  NO MONITOR")[0],
              f"{'agent':>5} {'step':>7} {'role':>8} {'epoch':>5} {'mse':>10} {'drops':>6} "
              f"{'late':>6} {'malformed':>9}"]
     for a, r in sorted(view["agents"].items()):
@@ -54,6 +62,8 @@ def format_lines(view: dict) -> list:
                      f"{r['drops']:>6} {r['late']:>6} {r['malformed']:>9}")
     for f in view["failures"]:
         lines.append(f"verdict: agent {f['agent']} {f['cause']} at step {f['step']}")
+    if view.get("no_monitor_since") is not None:
+        lines.append(_no_monitor(view, ""))
     return lines
 
 

@@ -50,10 +50,11 @@ __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KI
 #: agent's sensor readings stop (the world's link into it cut) for ``seconds``.
 #: linkdown: the agent's host's link brought down for ``seconds`` (a real partition; a run
 #: on a testbed of network namespaces only, :mod:`agent.netns`).
+#: monitorsgone: every monitor (active and standby) SIGKILLed, none started again.
 FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
-               "drop", "linkdown", "worldstop", "monitorstop")
+               "drop", "linkdown", "worldstop", "monitorstop", "monitorsgone")
 #: The kinds that act on a process other than an agent (no AGENT in ``--fault``).
-PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop")
+PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop", "monitorsgone")
 
 
 @dataclass(frozen=True, order=True)
@@ -89,6 +90,7 @@ class Fault:
             "linkdown": "agent {a} host link down",
             "worldstop": "world stopped (SIGSTOP)",
             "monitorstop": "monitor stopped (SIGSTOP)",
+            "monitorsgone": "every monitor killed (SIGKILL), none started again",
         }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
         return what + (f" for {self.seconds:g} s" if self.seconds else "")
 
@@ -255,6 +257,7 @@ class LocalRun:
             with Peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
                       "recorder", 0) as peer:
                 recorder.subscribe(peer)
+                alive_watch = peer.watch_liveliness()
                 impair_key = keys.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
                 children.start("world", argv["world"], self._wrap("world"))
@@ -312,6 +315,11 @@ class LocalRun:
                         _signal(children, proc, signal.SIGSTOP)
                         event(process=proc, signal="SIGSTOP", step=k_now)
                         undo.append((now + f.seconds, f))
+                    elif f.kind == "monitorsgone":
+                        for ch in children.running():
+                            if ch.name.startswith("monitor"):
+                                _signal(children, ch.name, signal.SIGKILL)
+                                event(process=ch.name, signal="SIGKILL", step=k_now)
                     elif f.kind == "monitor" and c.monitor:
                         _signal(children, "monitor" if not restarts else
                                 f"monitor-{restarts + 1}", signal.SIGKILL)
@@ -395,6 +403,15 @@ class LocalRun:
                             event(process=child.name, exit_status=child.returncode, step=k_now)
                             self.say(f"{child.name} exited with status {child.returncode} "
                                      f"at step {k_now}; the run goes on")
+                    for ev in alive_watch.drain():
+                        if ev.role == "monitor" and world_end is None and c.monitor:
+                            change = recorder.on_monitor_liveliness(ev.id, ev.alive)
+                            if change == "none":
+                                self.say(f"WARNING: no monitor alive at step {recorder.step}:"
+                                         " a failure from now on is neither detected nor "
+                                         "recovered")
+                            elif change == "back":
+                                self.say(f"a monitor is alive again at step {recorder.step}")
                     now = time.monotonic()
                     k_now = recorder.step
                     while pending and k_now >= pending[0].step:

@@ -61,6 +61,9 @@ class Recording:
     failure: str | None = None
     interrupted: bool = False
     children: object = None                            # agent.launcher.Children of `up`
+    monitors_alive: set = field(default_factory=set)   # monitor ids whose token is up
+    monitor_seen: bool = False                         # a monitor's token was ever heard
+    no_monitor_since: int | None = None                # step the last monitor token went
 
 
 class Recorder:
@@ -102,6 +105,37 @@ class Recorder:
         self._newest = -1
         self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
         self.estimates_received = 0
+
+    # -- liveliness ----------------------------------------------------------------------
+    def on_monitor_liveliness(self, ident: str, alive: bool) -> str | None:
+        """A monitor's token came (``alive``) or went; returns ``"none"`` when the last
+        monitor token went (from then on a failure is neither detected nor recovered),
+        ``"back"`` when one returned after that, else None; both are events.
+
+        >>> r = Recorder("demo", n=1, N=1, M=1)
+        >>> r.on_monitor_liveliness("1", True), r.on_monitor_liveliness("1", False)
+        (None, 'none')
+        >>> r.recording.no_monitor_since, r.on_monitor_liveliness("2", True)
+        (-1, 'back')
+        """
+        rec = self.recording
+        was = bool(rec.monitors_alive)
+        (rec.monitors_alive.add if alive else rec.monitors_alive.discard)(ident)
+        rec.monitor_seen |= alive
+        if was and not rec.monitors_alive:
+            rec.no_monitor_since = self.step
+            self._event(process="monitor", monitors_alive=0, step=self.step)
+            return "none"
+        if alive and not was and rec.no_monitor_since is not None:
+            self._event(process="monitor", monitors_alive=len(rec.monitors_alive),
+                        step=self.step, absent_since=rec.no_monitor_since)
+            rec.no_monitor_since = None
+            return "back"
+        return None
+
+    def _event(self, **fields) -> None:
+        if len(self.recording.events) < MAX_EVENTS:
+            self.recording.events.append({**fields, "t": time.time()})
 
     # -- the wire -----------------------------------------------------------------------
     def subscribe(self, peer) -> None:
@@ -277,6 +311,8 @@ class Recorder:
                 "late": sum(r["late"] for r in agents.values()),
                 "malformed": sum(r["malformed"] for r in agents.values()),
                 "roster": list(rec.rosters[-1][1]), "epoch": rec.rosters[-1][2],
+                "monitors_alive": len(rec.monitors_alive) if rec.monitor_seen else None,
+                "no_monitor_since": rec.no_monitor_since,
                 "failures": [{"agent": v.get("agent"), "cause": v.get("cause"),
                               "step": v.get("step")} for v in verdicts],
                 "agents": agents}
@@ -339,9 +375,11 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 now = time.monotonic()
                 alive = alive_watch.alive()
                 for ev in alive_watch.drain():
-                    if ev.role == "agent" and not ev.alive and len(rec.events) < MAX_EVENTS:
-                        rec.events.append({"process": f"agent-{ev.id}", "liveliness": False,
-                                           "step": recorder.step, "t": time.time()})
+                    if ev.role == "monitor" and world_gone is None:
+                        recorder.on_monitor_liveliness(ev.id, ev.alive)
+                    elif ev.role == "agent" and not ev.alive and world_gone is None:
+                        recorder._event(process=f"agent-{ev.id}", liveliness=False,
+                                        step=recorder.step)
                 if ("world", "0") in alive:
                     world_seen, world_gone = True, None
                 elif world_seen and world_gone is None:

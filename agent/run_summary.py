@@ -221,6 +221,11 @@ def failure_lines(summary) -> list:
     """One line per failure of a summary (and the MSE after recovery), for terminals."""
     lines = []
     for f in summary.get("failures", []):
+        if f.get("detected") is False:
+            lines.append(f"  failure: agent {f['agent']} died at step {f['died_step']} and was "
+                         f"never convicted ({f['why']}): not recovered"
+                         + (" (a standby)" if f.get("role") == "standby" else ""))
+            continue
         rep = f.get("replacement") or {}
         lines.append(f"  failure: agent {f['agent']} {f['cause']} at step {f['detected_step']}"
                      + (f"; agent {rep.get('agent')} measures {rep.get('node')} from step "
@@ -383,6 +388,7 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     for e in events:
         name = e.get("process", "")
         if name.startswith("agent-") and (e.get("exit_status") is not None or
+                                          e.get("liveliness") is False or
                                           e.get("signal") == "SIGSTOP" or
                                           e.get("link") == "down"):
             deaths.setdefault(int(name.split("-")[1]), e)
@@ -418,6 +424,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             entry["replacement"] = ({"agent": rep[0]["by"], "node": rep[0]["to"]} if rep
                                     else None)
         failures.append(entry)
+    absent = _no_monitor_windows(events)
+    failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},
+                            absent, rosters)
     out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
                                                "epoch": ep} for at, ids, ep in rosters],
            "rosters_not_in_force": [{**m, "switched": {str(a): k for a, k
@@ -469,6 +478,61 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                 f"exact prediction {exact if exact is not None else float('nan'):.4g}")
     elif failures:
         out["recovered"] = False
+    for a, b in absent:
+        out.setdefault("warnings", []).append(
+            f"NO MONITOR ALIVE from step {a} " + ("to the end of the run" if b == math.inf
+                                                  else f"to step {b}")
+            + ": a failure in that window was neither detected nor recovered")
+    out["no_monitor"] = [{"from": a, "to": None if b == math.inf else b} for a, b in absent]
+    if any(f.get("detected") is False and f.get("role") == "active" for f in failures):
+        out["recovered"] = False
+        out.setdefault("warnings", []).extend(
+            f"agent {f['agent']} died at step {f['died_step']} and was never convicted "
+            f"({f['why']}): its role was not recovered" for f in failures
+            if f.get("detected") is False and f.get("role") == "active")
+    return out
+
+
+def _no_monitor_windows(events) -> list:
+    """``(from, to)`` steps while no monitor token was up (the recorder's monitor events);
+    ``to`` is inf when none came back.
+
+    >>> _no_monitor_windows([{"process": "monitor", "monitors_alive": 0, "step": 10},
+    ...                      {"process": "monitor", "monitors_alive": 1, "step": 30},
+    ...                      {"process": "monitor", "monitors_alive": 0, "step": 50}])
+    [(10, 30), (50, inf)]
+    """
+    absent, since = [], None
+    for e in events:
+        if e.get("process") == "monitor" and "monitors_alive" in e:
+            if e["monitors_alive"] == 0:
+                since = e.get("step", -1)
+            elif since is not None:
+                absent.append((since, e.get("step", since)))
+                since = None
+    if since is not None:
+        absent.append((since, math.inf))
+    return absent
+
+
+def _undetected(deaths, convicted, absent, rosters) -> list:
+    """Failures entries for the agents whose process went (exit or liveliness token gone)
+    and that no verdict named: ``detected: False``, the step it died, whether it held a
+    role then (``role``: the roster in force at that step) and ``why``: ``"no monitor
+    alive"`` when it died in one of the ``absent`` windows, else ``"no verdict"``."""
+    out = []
+    for agent, e in sorted(deaths.items()):
+        if agent in convicted or (e.get("exit_status") is None and e.get("liveliness") is not False):
+            continue           # a stop or a link down that no verdict followed: it came back
+        k = e.get("step", -1)
+        ids = next((ids for at, ids, _ in reversed(rosters) if at <= k), rosters[0][1])
+        out.append({"agent": agent, "cause": "crash", "detected": False,
+                    "evidence": ("exit status " + str(e["exit_status"])
+                                 if e.get("exit_status") is not None else "liveliness token gone"),
+                    "died_step": k, "detected_step": None,
+                    "role": "active" if agent in ids else "standby",
+                    "why": "no monitor alive" if any(a <= k <= b for a, b in absent)
+                    else "no verdict"})
     return out
 
 
@@ -609,6 +673,10 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
         ax.axhline(after, color="tab:green", ls=":", lw=0.9,
                    label="predicted after recovery")
     for i, f in enumerate(summary.get("failures", [])):
+        if f.get("detected") is False:
+            ax.axvline(f["died_step"], color="tab:red", lw=1.5, ls=":",
+                       label=f"agent {f['agent']} died, never convicted ({f['why']})")
+            continue
         ax.axvline(f["detected_step"], color="tab:red", lw=0.8, ls="--",
                    label="detected" if i == 0 else None)
         if f.get("activate_at") is not None:

@@ -75,3 +75,24 @@ def test_a_paused_monitor_stays_and_recovers_a_crash_after_it(tmp_path, live_gai
     assert failures[0]["replacement"]["agent"] == 4 and summary["recovered"] is True
     monitor = (tmp_path / "logs" / "monitor.log").read_text()
     assert "monitor paused" in monitor and "exiting" not in monitor.split("verdict")[0]
+
+
+def test_with_no_monitor_alive_a_crash_is_reported_undetected_and_unrecovered(tmp_path,
+                                                                            live_gains):
+    """Every monitor SIGKILLed for good, then agent 1 killed: nobody convicts it. The run
+    says so (a warning, ``no_monitor``), records the crash as an undetected, unrecovered
+    failure of an agent holding a role, and exits 1."""
+    code, out, err = _up(tmp_path, live_gains, "--steps", "500",
+                         "--fault", "monitorsgone:100", "--fault", "kill:300:1")
+    assert code == 1, err
+    summary = json.loads(out)
+    assert summary["recovered"] is False
+    [f] = summary["failures"]
+    assert (f["agent"], f["detected"], f["role"], f["why"]) == (1, False, "active",
+                                                                "no monitor alive")
+    assert f["died_step"] >= 300 and f["detected_step"] is None
+    [window] = summary["no_monitor"]
+    assert 100 <= window["from"] <= f["died_step"] and window["to"] is None
+    assert "NO MONITOR ALIVE from step" in err and "never convicted" in err
+    events = [json.loads(x) for x in (tmp_path / "events.jsonl").read_text().splitlines()]
+    assert not [e for e in events if e.get("kind") == "verdict"]

@@ -62,7 +62,8 @@ def add_arguments(parser) -> None:
                              "probability), monitor, linkdown (the agent's host's link down "
                              "for SECONDS; with --netns), worldstop and monitorstop (the "
                              "world or the monitor SIGSTOPped for SECONDS: "
-                             "worldstop:STEP::SECONDS); see docs/monitor.md")
+                             "worldstop:STEP::SECONDS), monitorsgone (every monitor "
+                             "SIGKILLed for good); see docs/monitor.md")
     parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
                         metavar="S", help="the monitor's hang timeout (default "
                         f"{TIMING.hang_timeout_s:g} s; above twice the status period "
@@ -281,6 +282,9 @@ def _up(args) -> int:
         status_code = 130 if rec.interrupted else 1
     if summary.get("diverged_at") is not None:
         status_code = status_code or 1       # a negative result: said in the warnings
+    if any(f.get("detected") is False and f.get("role") == "active"
+           for f in summary.get("failures", [])):
+        status_code = status_code or 1       # a role lost for good: said in the warnings
     if args.check_simulator and not rec.failure:
         diff, how = compare_simulator(config, rec, steps_done)
         summary["max_rel_diff_vs_simulator"] = diff
