@@ -62,12 +62,13 @@ def test_a_world_paused_past_the_lease_is_waited_for_and_the_run_completes(tmp_p
         assert "the world went silent" in log and "giving up" not in log
 
 
-@pytest.mark.parametrize("seconds", [1, 5])
+@pytest.mark.parametrize("seconds", [1, 5, pytest.param(30, marks=pytest.mark.slow)])
 def test_a_paused_monitor_stays_and_recovers_a_crash_after_it(tmp_path, live_gains, seconds):
     """SIGSTOP of the monitor (its links lapse: every token seems to go at once): it
     resumes, rebuilds from the network and still answers a crash that comes after."""
-    code, out, err = _up(tmp_path, live_gains, "--steps", "600",
-                         "--fault", f"monitorstop:100::{seconds}", "--kill", "400:1")
+    kill = 400 + 50 * seconds          # 20 ms steps: well after the monitor resumed
+    code, out, err = _up(tmp_path, live_gains, "--steps", str(kill + 200),
+                         "--fault", f"monitorstop:100::{seconds}", "--kill", f"{kill}:1")
     assert code == 0, err
     summary = json.loads(out)
     failures = summary["failures"]
@@ -96,3 +97,16 @@ def test_with_no_monitor_alive_a_crash_is_reported_undetected_and_unrecovered(tm
     assert "NO MONITOR ALIVE from step" in err and "never convicted" in err
     events = [json.loads(x) for x in (tmp_path / "events.jsonl").read_text().splitlines()]
     assert not [e for e in events if e.get("kind") == "verdict"]
+
+
+def test_a_killed_active_monitor_hands_over_and_a_crash_after_it_is_recovered(tmp_path,
+                                                                               live_gains):
+    """SIGKILL of the active monitor (started again at once) with the standby beside it:
+    one of them acts, and a crash that comes after is convicted once and recovered."""
+    code, out, err = _up(tmp_path, live_gains, "--steps", "600",
+                         "--fault", "monitor:100", "--kill", "300:1")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert [(f["agent"], f["cause"]) for f in summary["failures"]] == [(1, "crash")]
+    assert summary["recovered"] is True and summary["rosters"][-1]["ids"] == [4, 2, 3]
+    assert summary.get("no_monitor") == []
