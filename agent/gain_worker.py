@@ -3,14 +3,17 @@
 A design takes from a tenth of a second (a first stabilising gain) to seconds (the gain of
 least steady MSE); under the GIL a design thread starved the monitor's loop, whose pause
 guard then suspended its verdicts, and a design made inside the loop left every agent
-waiting (1.9-10 s measured). :class:`GainWorker` runs two processes:
+waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
 
 - the *urgent* one designs, on request, the gains of a configuration nobody foresaw: a
   first certified gain (stable for the configuration's delays, exact radius < 1), sent at
   once, then the refined one for the same configuration, sent when ready;
-- the urgent one also designs, between requests, a fast gain for every single failure
-  (and pairs, for small networks) of the configuration in force, so that a foreseen
-  failure has its first gain within seconds even on a loaded machine;
+- the *precompute* one designs a fast gain for every single failure (and pairs, for
+  small networks) of the configuration in force, so that a foreseen failure has its first
+  gain within seconds even on a loaded machine (at the monitor's priority: niced, it got
+  too little CPU beside two busy loops); it pauses at its next design iteration while the
+  urgent one designs a first gain (when both shared one process, a request waited for the
+  precompute design in progress: 1.6 s from verdict to roles beside two busy loops);
 - the *background* one refines them (the gain of least steady MSE, seconds each), and
   computes the exact steady MSE of a fast gain put in force (:meth:`GainWorker.assess`:
   the fast design does not compute it, a Lyapunov solve of seconds); a newer
@@ -36,7 +39,7 @@ import sys
 
 __all__ = ["GainWorker", "BACKGROUND_NICE", "precompute_single_failures"]
 
-#: Niceness of the background (precompute) process.
+#: Niceness of the background (refining) process.
 BACKGROUND_NICE = 10
 #: pairs of failures are precomputed too when the configuration has at most this many agents
 PAIRS_UP_TO = 4
@@ -57,9 +60,15 @@ class GainWorker:
             return
         ctx = self._ctx
         self._urgent, self._background, self._results = ctx.Queue(), ctx.Queue(), ctx.Queue()
+        # kept: a semaphore collected before the children unpickle it is gone for them
+        self._fast, self._idle = ctx.Queue(), ctx.Event()
+        idle = self._idle
+        idle.set()
         self._procs = [
-            ctx.Process(target=_serve_urgent, args=(self._urgent, self._results),
+            ctx.Process(target=_serve_urgent, args=(self._urgent, self._results, idle),
                         name="socmon-gains-urgent", daemon=True),
+            ctx.Process(target=_serve_precompute, args=(self._fast, self._results, idle),
+                        name="socmon-gains-precompute", daemon=True),
             ctx.Process(target=_serve_background, args=(self._background, self._results),
                         name="socmon-gains-background", daemon=True),
         ]
@@ -85,7 +94,7 @@ class GainWorker:
         earlier precompute still running is abandoned."""
         self._start()
         self._generation += 1
-        self._urgent.put(("precompute", roster))
+        self._fast.put(("precompute", roster))
         self._background.put((self._generation, roster))
 
     def poll(self) -> list:
@@ -105,7 +114,7 @@ class GainWorker:
     def close(self) -> None:
         if not self._procs:
             return
-        for q in (self._urgent, self._background):
+        for q in (self._urgent, self._fast, self._background):
             try:
                 q.put(None)
             except (OSError, ValueError):
@@ -115,7 +124,7 @@ class GainWorker:
             if p.is_alive():
                 p.terminate()
                 p.join(timeout=1.0)
-        for q in (self._urgent, self._background, self._results):
+        for q in (self._urgent, self._fast, self._background, self._results):
             q.close()
             q.cancel_join_thread()
 
@@ -128,35 +137,56 @@ def _quiet_signals():
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _serve_urgent(requests, results) -> None:
-    """Requests first; between them, the fast pass of the newest precompute (so that a
-    foreseen failure has a first gain within seconds, at the urgent process's priority,
-    while the niced background process refines)."""
+def _serve_urgent(requests, results, idle) -> None:
+    """Requests only: a configuration nobody foresaw is designed at once (no precompute
+    design is ahead of it in this process). ``idle`` is clear while a request is being
+    designed: the precompute process waits at its next iteration meanwhile."""
+    from agent.monitor_core import design_gains_for
+
+    _quiet_signals()
+    while True:
+        item = requests.get()
+        if item is None:
+            idle.set()
+            return
+        idle.clear()
+        try:
+            _, roster, kinds = item
+            for kind in kinds:
+                results.put((roster, *design_gains_for(roster, kind)))
+                if kind == "fast":
+                    idle.set()          # the first gain is out: the refinement shares
+        finally:
+            idle.set()
+
+
+def _serve_precompute(requests, results, idle) -> None:
+    """The fast pass of the newest precompute (so that a foreseen failure has a first gain
+    within seconds even on a loaded machine: at the monitor's priority), pausing at every
+    design iteration while the urgent process designs a first gain (``idle`` clear); a
+    newer configuration supersedes the list."""
     from collections import deque
 
     from agent.monitor_core import design_gains_for
 
     _quiet_signals()
+
+    def yield_to_urgent(_progress) -> None:
+        while not idle.wait(timeout=1.0):
+            pass
+
     fast = deque()                     # (failed ids, configuration) still to design
-    sink = _Sink(results)
     while True:
         try:
             item = requests.get() if not fast else requests.get_nowait()
         except queue.Empty:
-            a, nxt = fast.popleft()
-            if not sink.has(nxt):
-                sink.put(nxt, *design_gains_for(nxt, "fast"))
+            _, nxt = fast.popleft()
+            idle.wait()
+            results.put((nxt, *design_gains_for(nxt, "fast", progress=yield_to_urgent)))
             continue
         if item is None:
             return
-        if item[0] == "precompute":
-            fast = deque(plan_failures(item[1]))
-            continue
-        _, roster, kinds = item
-        for kind in kinds:
-            if kind == "fast" and sink.has(roster):
-                continue                   # the fast pass has just sent it
-            results.put((roster, *design_gains_for(roster, kind)))
+        fast = deque(plan_failures(item[1]))
 
 
 def steady_mse_of(roster, G):

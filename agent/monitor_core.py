@@ -280,13 +280,14 @@ def _gain_words(info: dict) -> str:
     return words
 
 
-def design_gains_for(roster, kind: str = "fast"):
+def design_gains_for(roster, kind: str = "fast", progress=None):
     """``(G, info)`` for the configuration ``roster``, designed against its delays.
 
     ``kind="fast"``: :func:`design.reconfigure.fast_recovery_gains`, a first stabilising
     gain (a target radius, few iterations); ``"refined"``:
     :func:`design.reconfigure.refined_recovery_gains` (least steady MSE), falling back to
-    the fast one when it is not stable. Bounded by iterations, not by the clock. ``G`` is
+    the fast one when it is not stable. Bounded by iterations, not by the clock
+    (``progress``: called at every iteration, see :func:`design.gain_design.design_gains`). ``G`` is
     None when no stabilising gain was found; ``info`` holds ``kind``, the exact radius
     ``rho``, the exact steady MSE ``mse`` and the design's ``seconds``.
     """
@@ -295,11 +296,11 @@ def design_gains_for(roster, kind: str = "fast"):
 
     design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
     try:
-        res = design(roster.scenario, roster.delays)
+        res = design(roster.scenario, roster.delays, progress=progress)
     except SocmonError:
         res = None
     if res is None or not res.stable:
-        return design_gains_for(roster, "fast") if kind == "refined" else (None, {})
+        return design_gains_for(roster, "fast", progress) if kind == "refined" else (None, {})
     return list(res.G), {"kind": kind, "rho": float(res.rho),
                          "mse": None if res.mse_steady is None else float(res.mse_steady),
                          "seconds": float(res.seconds)}
