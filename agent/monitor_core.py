@@ -93,8 +93,9 @@ class MonitorConfig:
         A gap between two ticks longer than this suspends verdicts (the monitor itself
         was paused) until ``hang_timeout_s`` of fresh evidence has passed.
     rejoin_s : float
-        A convicted agent that came back (fenced into a standby) may take a role again
-        once this long has passed since its conviction and it advances as a standby.
+        Probation: a convicted agent that came back (fenced into a standby) rejoins the
+        standby pool once it has been healthy (:meth:`MonitorCore.healthy_standby`) for
+        this long without a break.
     settle_s : float
         After a first verdict, wait this long for others (agents killed together: their
         tokens go within a few ms) so that one reassignment answers them all.
@@ -174,6 +175,7 @@ class _Agent:
     status_at: float | None = None       # when its last status arrived
     gone_at: float | None = None         # when its token was last deleted
     others_at_progress: int = -1         # the others' newest step then
+    healthy_since: float | None = None   # convicted, on probation: healthy since then
     sensor_last: int = -1
     status: dict = field(default_factory=dict)
 
@@ -335,6 +337,8 @@ class MonitorCore:
         self.events: list = []            # human-readable log lines, drained by the shell
         self.failed: set = set()          # ids convicted and not healthy again since
         self.convicted_at: dict = {}      # id -> when it was last convicted
+        self.on_probation: set = set()    # convicted, not yet healthy for rejoin_s
+        self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
         self._unconfirmed: dict = {}      # agent -> Assignment awaiting its status
@@ -499,6 +503,8 @@ class MonitorCore:
         out = []
         self._check_confirmations(now)
         suspended = now < self._suspended_until
+        if not suspended:
+            self._probation(now)
         if self._pending is not None:
             out += self._emit_reassign(now)     # its gains came back from the worker
         self._note_gain_mse()
@@ -713,6 +719,8 @@ class MonitorCore:
         self.failed |= set(failed)
         for a in failed:
             self.convicted_at[a] = now
+            self.on_probation.add(a)
+            self.agents[a].healthy_since = None
         for v in verdicts:
             self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
         if self._pending is not None:
@@ -845,10 +853,60 @@ class MonitorCore:
         return self._assign_all(self.roster, G, info, now, {"causes": {"0": "refined"}},
                                 "refined gains for the configuration in force")
 
+    def healthy_standby(self, agent: int, now: float) -> bool:
+        """What probation asks of a convicted agent, at ``now``: its token is up, it holds
+        no role, its step moved within half the hang timeout and is within the hold
+        window (``lead_steps``) of the network's newest, its sensor readings (if it
+        wants any) are no older than that window, and no status (its own or a
+        neighbour's) shows an impaired link into or out of it."""
+        cfg, st = self.config, self.agents[agent]
+        if not st.alive or st.progress_at is None or st.status.get("active"):
+            return False
+        if now - st.progress_at > cfg.hang_timeout_s / 2:
+            return False
+        window = max(cfg.lead_steps, 1)
+        if self.newest_step() - st.step > window:
+            return False
+        sensor = st.status.get("sensor") if isinstance(st.status.get("sensor"), dict) else {}
+        if sensor.get("labels") and st.step - st.sensor_last > window:
+            return False
+        me = str(agent)
+        for b, other in self.agents.items():
+            links = other.status.get("links")
+            if isinstance(links, dict) and links and (b == agent or me in links):
+                return False
+        return True
+
+    def _probation(self, now: float) -> None:
+        """Agents on probation that stayed healthy for ``rejoin_s`` rejoin the standby pool
+        (an event and an entry of :attr:`rejoins`); a break starts the probation over."""
+        for a in sorted(self.on_probation):
+            st = self.agents[a]
+            if a in self.roster.ids:                # taken again meanwhile
+                self.on_probation.discard(a)
+                continue
+            if not self.healthy_standby(a, now):
+                st.healthy_since = None
+                continue
+            if st.healthy_since is None:
+                st.healthy_since = now
+            if now - st.healthy_since >= self.config.rejoin_s:
+                self.on_probation.discard(a)
+                self.failed.discard(a)
+                pool = self.standby_pool(now)
+                self.rejoins.append({"agent": a, "step": self.current_step(now),
+                                     "healthy_s": round(now - st.healthy_since, 3),
+                                     "standby": list(pool)})
+                self.events.append(
+                    f"agent {a} rejoined as a standby after {now - st.healthy_since:.1f} s of "
+                    f"probation (progressing, sensor fresh, no impaired link): standbys "
+                    f"{list(pool)}, {len(pool)} failure(s) can be answered by a replacement")
+
     def standby_pool(self, now: float, exclude=()) -> tuple:
         """Ids that can take a role now: alive, advancing as standbys (no role), and not
-        convicted in the last ``rejoin_s``. A replaced agent that came back (SIGCONT, a
-        healed partition) and was fenced into a standby rejoins the pool that way."""
+        on probation after a conviction. A replaced agent that came back (SIGCONT, a
+        healed partition) and was fenced into a standby rejoins the pool after probation
+        (:meth:`_probation`)."""
         cfg = self.config
         out = []
         for a in sorted(self.agents):
@@ -857,7 +915,7 @@ class MonitorCore:
                 continue
             if st.status.get("active") or now - st.progress_at > cfg.hang_timeout_s:
                 continue
-            if now - self.convicted_at.get(a, -math.inf) < cfg.rejoin_s:
+            if a in self.on_probation:
                 continue
             out.append(a)
         first = [a for a in self.roster.standby_ids if a in out]

@@ -216,6 +216,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     for r in core.reissues[recorded["reissues"]:]:
                         record("reissue", **r)
                     recorded["reissues"] = len(core.reissues)
+                    for r in core.rejoins[recorded.setdefault("rejoins", 0):]:
+                        record("rejoin", **r)
+                    recorded["rejoins"] = len(core.rejoins)
                     if core.history and not core.confirmed():
                         recorded["waiting"] = core.epoch
                     elif recorded["waiting"] is not None and core.confirmed():

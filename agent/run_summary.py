@@ -434,7 +434,15 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                                     for m in mixed],
            "reissues": [{"epoch": r.get("epoch"), "activate_at": r.get("activate_at"),
                          "reason": r.get("reason", "")}
-                        for r in records if r.get("kind") == "reissue"]}
+                        for r in records if r.get("kind") == "reissue"],
+           "rejoins": [{"agent": r.get("agent"), "step": r.get("step"),
+                        "healthy_s": r.get("healthy_s"), "standby": r.get("standby")}
+                       for r in records if r.get("kind") == "rejoin"]}
+    for f in failures:           # a convicted agent that came back and passed probation
+        back = [r for r in out["rejoins"] if r["agent"] == f["agent"]
+                and (f.get("detected_step") or 0) <= (r["step"] or 0)]
+        if back:
+            f["rejoined_step"] = back[0]["step"]
     for m in mixed:
         out.setdefault("warnings", []).append(
             f"epoch {m['epoch']} (activate_at {m['activate_at']}) was not run by all its "

@@ -56,7 +56,8 @@ class Timing:
     resend_s: float = 0.25
     #: A replacement that has not confirmed its role by then is treated as failed.
     confirm_timeout_s: float = 3.0
-    #: A convicted agent that came back may take a role again this long after conviction.
+    #: Probation: a convicted agent that came back rejoins the standbys once healthy this
+    #: long without a break (statuses moving, sensor fresh, no impaired link).
     rejoin_s: float = 5.0
     #: The world must stay gone this long before an agent with nothing left to do leaves.
     world_grace_s: float = 5.0

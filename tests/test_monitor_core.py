@@ -437,3 +437,46 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     for a in roster.ids:
         core.on_status(_status(a, 130, epoch=2), 2.6)
     assert core.tick(2.6) == []                           # nothing more to upgrade
+
+
+def _standby_status(agent, step, links=None):
+    return {**_status(agent, step, active=False), "links": links or {},
+            "sensor": {"labels": [], "last_step": -1}}
+
+
+def test_a_convicted_agent_rejoins_the_standbys_after_probation_only(core):
+    """Agent 2 hangs and is convicted; it comes back fenced (a standby, advancing). It
+    rejoins the pool only after rejoin_s of unbroken health: a status showing an impaired
+    link into it starts the probation over. Then it can replace the next failure."""
+    step = lambda t: int(50 * t)                                    # noqa: E731
+    _advance(core, 0.0, 1.0, step)
+    _advance(core, 1.1, 2.6, step, skip=(2,))
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "hang")]
+    assert 2 not in core.standby_pool(2.6)
+    t, rejoined_at, broken = 2.7, None, False
+
+    def others(t):
+        for a in (1, 3, 4):
+            core.on_status(_status(a, step(t), epoch=core.epoch), t)
+
+    while t < 14.0 and rejoined_at is None:
+        others(t)
+        impaired = 4.0 <= t < 4.5                    # a partition still in force for a while
+        broken |= impaired
+        core.on_status(_standby_status(2, step(t), {"1": {"partition": True}} if impaired
+                                       else None), t)
+        core.tick(t)
+        if core.rejoins:
+            rejoined_at = t
+        t += 0.1
+    assert broken and rejoined_at is not None
+    # healthy from 4.5 s on: rejoined rejoin_s later, not rejoin_s after the conviction
+    assert rejoined_at >= 4.5 + core.config.rejoin_s - 1e-9
+    (r,) = core.rejoins
+    assert r["agent"] == 2 and r["standby"] == [2]
+    assert any("rejoined as a standby" in e for e in core.events)
+    # the next failure is answered by agent 2
+    core.on_liveliness("agent", 4, False, t)
+    out = core.tick(t + 0.01)
+    (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert 2 in roster.ids and 4 not in roster.ids

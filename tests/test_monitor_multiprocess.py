@@ -207,3 +207,20 @@ def test_a_monitor_run_by_hand_ends_with_the_world_and_convicts_nobody(tmp_path,
     assert any(e["kind"] == "liveliness" and e.get("agent") == 4 for e in events)
     assert "scripted crash after step 59" in children.tail("agent-4", 3)
     assert "and the agents with it; exiting" in children.tail("monitor", 3)
+
+
+def test_a_partitioned_agent_rejoins_after_probation_and_replaces_the_next_failure(
+        tmp_path, live_gains):
+    """Agent 2's outgoing links cut for 2 s: convicted, its role handed to the standby
+    (4). The links heal, agent 2 is fenced into a standby, passes probation and rejoins
+    the pool; when agent 4 is killed later, agent 2 takes a role again."""
+    s = _up(tmp_path, live_gains, "--fault", "partition:100:2:2", "--kill", "700:4",
+            steps=900)
+    convicted = [(f["agent"], f.get("detected")) for f in s["failures"]]
+    assert convicted[:1] == [(2, None)] and (4, None) in convicted, s["failures"]
+    (rejoin,) = [r for r in s["rejoins"] if r["agent"] == 2]
+    first = s["failures"][0]
+    assert first["rejoined_step"] == rejoin["step"] > first["detected_step"]
+    assert rejoin["step"] < 700 and 2 in rejoin["standby"]
+    assert 2 in s["rosters"][-1]["ids"] and 4 not in s["rosters"][-1]["ids"]
+    assert s["recovered"] is True
