@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from design.metrics import mse_of_step
+
 from broker_free_net import keys
 from broker_free_net.keys import InvalidKey
 from broker_free_net.codec import MessageStats, try_decode
@@ -286,9 +288,8 @@ class Recorder:
                   if k in rec.truth and any(k in rec.est[a] for a in self.in_force(k))),
                  None)
         def mse_at(k):
-            errs = [np.mean((rec.est[a][k] - rec.truth[k]) ** 2) for a in self.in_force(k)
-                    if k in rec.est[a]]
-            return float(np.mean(errs)) if errs else None
+            return mse_of_step([rec.est[a][k] for a in self.in_force(k) if k in rec.est[a]],
+                               rec.truth[k])
 
         mse = mse_at(k) if k is not None else None
         recent = [] if k is None else [m for m in (mse_at(j) for j in range(max(0, k - 99), k + 1)
@@ -299,7 +300,7 @@ class Recorder:
             last = max(rec.est[a]) if rec.est[a] else None
             err = None
             if last is not None and last in rec.truth:
-                err = float(np.mean((rec.est[a][last] - rec.truth[last]) ** 2))
+                err = mse_of_step([rec.est[a][last]], rec.truth[last])
             agents[a] = {"step": st["step"] if st else last, "active": st["active"] if st
                          else None, "epoch": st["epoch"] if st else None, "mse": err,
                          "drops": st["drops"] if st else 0, "late": st["late"] if st else 0,

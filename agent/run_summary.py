@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from design.metrics import mse_of_step, steady_mse, steady_window
+
 __all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
 
@@ -24,20 +26,6 @@ RECOVERED_FACTOR = 3.0
 #: the larger exact prediction (the configuration started with, the one in force at the
 #: end); with no finite prediction, only a non-finite MSE counts.
 DIVERGED_FACTOR = 1e3
-
-
-def steady_mse(values) -> float:
-    """The steady MSE of a window of per-step MSEs: their mean, steps without an estimate
-    left out (NaN for an empty window, inf when one is infinite). The one definition used by the summary and the headline.
-
-    >>> steady_mse([1.0, 3.0]), steady_mse([])
-    (2.0, nan)
-    """
-    values = np.asarray(list(values), dtype=float)
-    values = values[~np.isnan(values)]            # steps no agent estimate reached
-    if not len(values):
-        return float("nan")
-    return float(np.mean(values)) if np.isfinite(values).all() else float("inf")
 
 
 def diverged_at(steps, mse, predictions) -> int | None:
@@ -67,12 +55,9 @@ def mse_by_step(rec, K, rosters=None):
     def in_force(k):
         return [ids for at, ids, _ in rosters if at <= k][-1]
 
-    mse = []
-    for k in steps:
-        errs = [np.mean((rec.est[a][k] - rec.truth[k]) ** 2) for a in in_force(k)
-                if k in rec.est[a]]
-        mse.append(float(np.mean(errs)) if errs else float("nan"))
-    return steps, np.array(mse)
+    mse = [mse_of_step([rec.est[a][k] for a in in_force(k) if k in rec.est[a]], rec.truth[k])
+           for k in steps]
+    return steps, np.array([float("nan") if m is None else m for m in mse])
 
 
 def run_and_summarize(config, say=lambda text: None) -> tuple:
@@ -105,8 +90,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     c = config
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
-    tail = max(1, K // 4)
-    mse_steady = steady_mse(mse[-tail:])
+    mse_steady = steady_mse(mse) if len(mse) else float("nan")
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
     children = rec.children.children.values() if rec.children is not None else ()
     summary = {
@@ -149,7 +133,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
                              c.scenario, c.delays, steps, mse, c.G))
     warnings = []
     # the prediction for what was in force over the steady window (the last quarter)
-    window_from = steps[-tail] if len(steps) >= tail else (steps[0] if steps else 0)
+    window_from = steps[-steady_window(len(steps))] if steps else 0
     last_switch = summary["rosters"][-1]["activate_at"] if len(summary["rosters"]) > 1 else 0
     summary["mse_steady_exact_in_force"] = (
         summary.get("mse_steady_exact_after_recovery") if last_switch
@@ -457,8 +441,7 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         ids, specs = specs_in_force(rosters, assigns, scenario, G0)
         recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
         after = [m for k, m in zip(steps_done, mse) if k >= at]
-        tail = after[-max(1, len(after) // 4):] if after else []
-        out["mse_steady_after_recovery"] = steady_mse(tail)
+        out["mse_steady_after_recovery"] = steady_mse(after) if after else float("nan")
         try:
             from design.closed_loop import closed_loop_for
             from design.roster import link_delay_table, roster_from_specs

@@ -2,7 +2,9 @@
 
 One definition of the steady mean-squared error used by the simulator, the live run's
 summary, the paper's reproduction and the tests: the mean over the last quarter of the
-steps, ``max(1, steps // 4)`` entries (the first three quarters are the transient).
+steps, ``max(1, steps // 4)`` entries (the first three quarters are the transient); a
+step without any estimate (NaN, in a live record) is left out, an infinite one makes it
+infinite. And one definition of the error of a step: :func:`mse_of_step`.
 
 Examples
 --------
@@ -14,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["steady_window", "steady_mse"]
+__all__ = ["steady_window", "steady_mse", "mse_of_step"]
 
 
 def steady_window(steps: int) -> int:
@@ -37,11 +39,33 @@ def steady_mse(mse, axis: int = -1):
     1.0
     >>> steady_mse(np.array([[1.0, 1, 1, 1, 3, 5, 7, 9], [0, 0, 0, 0, 0, 0, 2, 2]]))
     array([8., 2.])
+    >>> steady_mse([1.0, 1, 1, 1, 1, 1, 2, float("nan")])    # a step nobody estimated
+    2.0
+    >>> steady_mse([1.0, 1, 1, 1, 1, 1, float("nan"), float("nan")])
+    nan
     """
     a = np.asarray(mse, dtype=float)
     if a.ndim == 0 or a.shape[axis] == 0:
         raise ValueError(f"mse: needs at least one step, got shape {a.shape}")
     q = steady_window(a.shape[axis])
     tail = np.take(a, np.arange(a.shape[axis] - q, a.shape[axis]), axis=axis)
-    out = tail.mean(axis=axis)
-    return float(out) if out.ndim == 0 else out
+    missing = np.isnan(tail)
+    if not missing.any():
+        out = tail.mean(axis=axis)
+    else:
+        count = (~missing).sum(axis=axis)
+        total = np.where(missing, 0.0, tail).sum(axis=axis)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def mse_of_step(estimates, truth) -> float | None:
+    """The error of one step: the mean over ``estimates`` (each agent's estimate of the
+    state) of their mean squared error against ``truth``; None without an estimate.
+
+    >>> mse_of_step([np.array([1.0, 1.0]), np.array([0.0, 2.0])], np.array([0.0, 0.0]))
+    1.5
+    """
+    errs = [float(np.mean((np.asarray(x) - truth) ** 2)) for x in estimates]
+    return float(np.mean(errs)) if errs else None

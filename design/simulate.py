@@ -80,6 +80,7 @@ from .estimator import (
     neighbour_input,
 )
 from .gains import Gains, check_gains_fit
+from .metrics import steady_mse, steady_window
 
 __all__ = [
     "Recovery",
@@ -486,8 +487,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 break
 
     mse = mse_trials.mean(axis=0)
-    q_len = max(1, steps // 4)
-    mse_steady = float(mse[-q_len:].mean())
+    q_len = steady_window(steps)
+    mse_steady = steady_mse(mse)
     finite = bool(np.all(np.isfinite(mse_trials)))
     previous = float(mse[-2 * q_len:-q_len].mean()) if steps >= 2 * q_len + 1 else mse[0]
     diverged = (not finite) or not (

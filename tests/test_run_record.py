@@ -65,8 +65,12 @@ def test_a_standby_that_takes_over_switches_the_step_after_its_first_estimate():
 
 
 def test_steady_mse_and_divergence_are_one_definition():
-    assert steady_mse([1.0, math.nan, 3.0]) == 2.0
-    assert steady_mse([1.0, math.inf]) == math.inf
+    # the last quarter, steps nobody estimated left out: the live record and the simulator
+    assert steady_mse([9.0] * 6 + [math.nan, 3.0]) == 3.0
+    assert steady_mse([9.0] * 6 + [1.0, math.inf]) == math.inf
+    from agent import run_summary
+    from design import metrics
+    assert run_summary.steady_mse is metrics.steady_mse
     mse = [0.3, 0.4, 0.28 * DIVERGED_FACTOR * 1.01, 1e30]
     assert diverged_at([0, 1, 2, 3], mse, [0.27, 0.28, None]) == 2
     assert diverged_at([0, 1], [0.3, math.nan], [0.27]) == 1
