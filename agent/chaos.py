@@ -132,7 +132,7 @@ def _roster_at(rosters, k):
 
 def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()) -> list:
     """Every violation of the module's invariants in one recorded run."""
-    from design.closed_loop import closed_loop_for
+    from design.closed_loop import exact_performance
     from design.errors import SocmonError
     from design.graph import influence_structure
     from design.roster import Roster, link_delay_table, replan, roster_from_specs
@@ -242,10 +242,8 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     predicted = {}
     for x in configs:
         try:
-            loop = closed_loop_for(x["scenario"], x["G"], x["D"])
-            rho = loop.spectral_radius()
-            predicted[x["epoch"]] = (loop.mse_steady(s.process_noise, s.measurement_noise)
-                                     if rho < 1 else math.inf)
+            predicted[x["epoch"]] = exact_performance(x["scenario"], x["G"],
+                                                      x["D"]).mse_or_inf
         except (SocmonError, ValueError):
             predicted[x["epoch"]] = math.inf
     k = 0

@@ -5,16 +5,17 @@ least steady MSE); under the GIL a design thread starved the monitor's loop, who
 guard then suspended its verdicts, and a design made inside the loop left every agent
 waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
 
-- the *urgent* one designs, on request, the gains of a configuration nobody foresaw: a
-  first certified gain (stable for the configuration's delays, exact radius < 1), sent at
-  once, then the refined one for the same configuration, sent when ready;
-- the *precompute* one designs a fast gain for every single failure (and pairs, for
+- the *urgent* one designs, on request and nothing else, the first gain of a
+  configuration nobody foresaw: a certified gain (stable for the configuration's delays,
+  exact radius < 1), sent at once; its refined gain follows from the precompute process;
+- the *precompute* one designs the refined gain of a configuration put in force on a
+  fast gain, and a fast gain for every single failure (and pairs, for
   small networks) of the configuration in force, so that a foreseen failure has its first
   gain within seconds even on a loaded machine (at the monitor's priority: niced, it got
   too little CPU beside two busy loops); it pauses at its next design iteration while the
   urgent one designs a first gain (when both shared one process, a request waited for the
   precompute design in progress: 1.6 s from verdict to roles beside two busy loops);
-- the *background* one refines them (the gain of least steady MSE, seconds each), and
+- the *background* one refines the precomputed ones (the gain of least steady MSE, seconds each), and
   computes the exact steady MSE of a fast gain put in force (:meth:`GainWorker.assess`:
   the fast design does not compute it, a Lyapunov solve of seconds); a newer
   configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
@@ -76,10 +77,14 @@ class GainWorker:
             p.start()
 
     def request(self, roster, kinds=("fast", "refined")) -> None:
-        """Design the gains of ``roster`` now: a fast certified gain, then a refined one
-        (``kinds``: only the refined one, for a configuration in force on a fast gain)."""
+        """Design the gains of ``roster`` now: a fast certified gain (the urgent process),
+        then a refined one (the precompute process, before its fast pass) (``kinds``: only
+        the refined one, for a configuration in force on a fast gain)."""
         self._start()
-        self._urgent.put(("request", roster, tuple(kinds)))
+        if "fast" in kinds:
+            self._urgent.put(("request", roster, ("fast",)))
+        if "refined" in kinds:
+            self._fast.put(("refine", roster))
 
     def assess(self, roster, G, info) -> None:
         """The exact steady MSE of the gain ``G`` (``info`` its design's) for ``roster``,
@@ -149,22 +154,22 @@ def _serve_urgent(requests, results, idle) -> None:
         if item is None:
             idle.set()
             return
-        idle.clear()
-        try:
-            _, roster, kinds = item
-            for kind in kinds:
+        _, roster, kinds = item
+        for kind in kinds:
+            if kind == "fast":          # a first gain: the precompute waits meanwhile
+                idle.clear()
+            try:
                 results.put((roster, *design_gains_for(roster, kind)))
-                if kind == "fast":
-                    idle.set()          # the first gain is out: the refinement shares
-        finally:
-            idle.set()
+            finally:
+                idle.set()
 
 
 def _serve_precompute(requests, results, idle) -> None:
-    """The fast pass of the newest precompute (so that a foreseen failure has a first gain
-    within seconds even on a loaded machine: at the monitor's priority), pausing at every
-    design iteration while the urgent process designs a first gain (``idle`` clear); a
-    newer configuration supersedes the list."""
+    """At the monitor's priority, pausing at every design iteration while the urgent
+    process designs a first gain (``idle`` clear): the refined gain of a configuration
+    put in force on a fast one first, then the fast pass of the newest precompute (so
+    that a foreseen failure has a first gain within seconds even on a loaded machine);
+    a newer configuration supersedes that pass."""
     from collections import deque
 
     from agent.monitor_core import design_gains_for
@@ -175,31 +180,35 @@ def _serve_precompute(requests, results, idle) -> None:
         while not idle.wait(timeout=1.0):
             pass
 
-    fast = deque()                     # (failed ids, configuration) still to design
+    refine, fast = deque(), deque()    # configurations still to design
     while True:
         try:
-            item = requests.get() if not fast else requests.get_nowait()
+            item = requests.get() if not (refine or fast) else requests.get_nowait()
         except queue.Empty:
-            _, nxt = fast.popleft()
             idle.wait()
-            results.put((nxt, *design_gains_for(nxt, "fast", progress=yield_to_urgent)))
+            if refine:
+                nxt, kind = refine.popleft(), "refined"
+            else:
+                nxt, kind = fast.popleft()[1], "fast"
+            results.put((nxt, *design_gains_for(nxt, kind, progress=yield_to_urgent)))
             continue
         if item is None:
             return
-        fast = deque(plan_failures(item[1]))
+        if item[0] == "refine":
+            refine.append(item[1])
+        else:
+            fast = deque(plan_failures(item[1]))
 
 
 def steady_mse_of(roster, G):
     """The exact steady MSE of gain ``G`` on the configuration ``roster`` with its delays
-    (:meth:`design.closed_loop.ClosedLoop.mse_steady`); ``G`` has an exact radius < 1."""
+    (:func:`design.closed_loop.exact_performance`; None when it has none)."""
     import numpy as np
 
-    from design.closed_loop import ClosedLoop
+    from design.closed_loop import exact_performance
 
-    s = roster.scenario
-    loop = ClosedLoop(s.A, s.W, np.asarray(roster.delays), s.measure,
-                      [np.asarray(g, dtype=float) for g in G])
-    return float(loop.mse_steady(s.process_noise, s.measurement_noise))
+    return exact_performance(roster.scenario, [np.asarray(g, dtype=float) for g in G],
+                             np.asarray(roster.delays)).mse
 
 
 def _assess(item, results) -> None:

@@ -73,13 +73,12 @@ def run_and_summarize(config, say=lambda text: None) -> tuple:
 
 
 def predicted_mse(scenario, G, delays) -> tuple:
-    """``(rho, mse_steady)`` of the exact closed loop of ``G`` (mse inf when not stable)."""
-    from design.closed_loop import closed_loop_for
+    """``(rho, mse_steady)`` of the exact closed loop of ``G`` (mse inf when there is none,
+    :func:`design.closed_loop.exact_performance`)."""
+    from design.closed_loop import exact_performance
 
-    loop = closed_loop_for(scenario, G, delays)
-    rho = loop.spectral_radius()
-    return rho, (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
-                 if rho < 1 else float("inf"))
+    p = exact_performance(scenario, G, delays)
+    return p.rho, p.mse_or_inf
 
 
 def summarize(config, rec, loop_rho, predicted) -> tuple:
@@ -443,17 +442,14 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         after = [m for k, m in zip(steps_done, mse) if k >= at]
         out["mse_steady_after_recovery"] = steady_mse(after) if after else float("nan")
         try:
-            from design.closed_loop import closed_loop_for
+            from design.closed_loop import exact_performance
             from design.roster import link_delay_table, roster_from_specs
 
             table = link_delay_table(scenario, delays)
             new, G, D = roster_from_specs(scenario, table, ids, specs)
-            loop = closed_loop_for(new, G, D)
-            rho = loop.spectral_radius()
-            out["rho_exact_after_recovery"] = rho
-            out["mse_steady_exact_after_recovery"] = (
-                loop.mse_steady(new.process_noise, new.measurement_noise)
-                if rho < 1 else math.inf)
+            perf = exact_performance(new, G, D)
+            out["rho_exact_after_recovery"] = perf.rho
+            out["mse_steady_exact_after_recovery"] = perf.mse_or_inf
         except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
             out["mse_steady_exact_after_recovery"] = None
             out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")

@@ -25,6 +25,7 @@ Examples
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -41,8 +42,14 @@ __all__ = [
     "theorem1_matrix",
     "spectral_radius",
     "DENSE_EIG_MAX_ORDER",
+    "LoopPerformance",
+    "exact_performance",
+    "EXACT_MSE_MAX_ORDER",
 ]
 
+#: Largest order of the noise state space (companion order + the process-noise window)
+#: whose dense Lyapunov solve :func:`exact_performance` attempts (about 10 s here).
+EXACT_MSE_MAX_ORDER = 2000
 #: Above this companion order the spectral radius is computed by ARPACK.
 DENSE_EIG_MAX_ORDER = 2000
 #: Largest order for which a stalled ARPACK run falls back to dense eigenvalues.
@@ -284,6 +291,55 @@ class ClosedLoop:
 def _solve_lyapunov(M, S):
     P = sla.solve_discrete_lyapunov(M, S)
     return 0.5 * (P + P.T)
+
+
+@dataclass(frozen=True)
+class LoopPerformance:
+    """The exact performance of a loop: its spectral radius and steady MSE (None when the
+    loop is not stable, or too large to solve: ``why`` says which)."""
+
+    rho: float
+    mse: float | None
+    why: str = ""
+
+    @property
+    def stable(self) -> bool:
+        return bool(self.rho < 1)
+
+    @property
+    def mse_or_inf(self) -> float:
+        """The MSE, inf when there is none (a run summary's and the chaos bounds' value)."""
+        return float("inf") if self.mse is None else self.mse
+
+
+def exact_performance(scenario, G, delays=None, mse: bool = True) -> LoopPerformance:
+    """The one definition of "the exact radius, and the steady MSE if stable" of
+    ``scenario``'s loop with gains ``G`` and ``delays`` (default: the scenario's).
+
+    ``mse=False`` skips the Lyapunov solve. The MSE is left out (None, ``why`` says so)
+    above :data:`EXACT_MSE_MAX_ORDER`.
+
+    >>> import numpy as np
+    >>> from design.scenario import scenario_from_dict
+    >>> s = scenario_from_dict({"social": {"A": [[1.1]]}, "agents": {"measure": [["1"]]}})
+    >>> p = exact_performance(s, [np.array([[0.5]])])
+    >>> round(p.rho, 6), p.mse > 0, exact_performance(s, [np.array([[0.0]])]).why
+    (0.55, True, 'not stable')
+    """
+    if isinstance(delays, str):
+        from .scenario import resolve_delays
+
+        delays = resolve_delays(scenario, delays)
+    loop = closed_loop_for(scenario, G, delays)
+    rho = float(loop.spectral_radius())
+    if not rho < 1:
+        return LoopPerformance(rho, None, "not stable")
+    if not mse:
+        return LoopPerformance(rho, None, "not computed")
+    if loop.order + loop.taubar * loop.n > EXACT_MSE_MAX_ORDER:
+        return LoopPerformance(rho, None, f"order above {EXACT_MSE_MAX_ORDER}")
+    return LoopPerformance(rho, loop.mse_steady(scenario.process_noise,
+                                                scenario.measurement_noise))
 
 
 def closed_loop_for(scenario, G, delays=None) -> ClosedLoop:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .certificates import paper_formula, paper_phi, theorem1_radius
-from .closed_loop import ClosedLoop, closed_loop_for
+from .closed_loop import ClosedLoop, closed_loop_for, exact_performance
 from .errors import ScenarioError
 from .gain_design import design_gains
 from .graph import influence_structure
@@ -117,10 +117,8 @@ def _rows_measuring(scenario, labels):
 
 def _exact(scenario, G, D):
 
-    loop = closed_loop_for(scenario, G, D)
-    rho = loop.spectral_radius()
-    mse = loop.mse_steady(scenario.process_noise, scenario.measurement_noise) if rho < 1 else None
-    return rho, mse
+    p = exact_performance(scenario, G, D)
+    return p.rho, p.mse
 
 
 def _steady_se(res):

@@ -155,15 +155,9 @@ class ProgressBar:
 
 def exact_steady_mse(scenario, G, delays):
     """The exact steady MSE of the loop (None when unstable or too large to solve)."""
-    from design.closed_loop import closed_loop_for
+    from design.closed_loop import exact_performance
 
-    loop = closed_loop_for(scenario, G, delays)
-    if loop.order + loop.taubar * loop.n > 2000:
-        return None
-    try:
-        return float(loop.mse_steady(scenario.process_noise, scenario.measurement_noise))
-    except ValueError:
-        return None
+    return exact_performance(scenario, G, delays).mse
 
 
 def _run(args) -> int:
