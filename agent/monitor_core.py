@@ -96,6 +96,9 @@ class MonitorConfig:
         Probation: a convicted agent that came back (fenced into a standby) rejoins the
         standby pool once it has been healthy (:meth:`MonitorCore.healthy_standby`) for
         this long without a break.
+    epoch_jump_max : int
+        Epochs heard from the network (statuses, rosters) above the highest seen plus
+        this are refused: every epoch comes from a monitor, one per reassignment.
     settle_s : float
         After a first verdict, wait this long for others (agents killed together: their
         tokens go within a few ms) so that one reassignment answers them all.
@@ -123,6 +126,7 @@ class MonitorConfig:
     step_s: float = 0.02
     settle_s: float = 0.01
     rejoin_s: float = TIMING.rejoin_s
+    epoch_jump_max: int = TIMING.epoch_jump_max
     world_gone_s: float = TIMING.monitor_world_gone_s
     world_silent_s: float = TIMING.monitor_world_silent_s
 
@@ -132,6 +136,7 @@ class MonitorConfig:
         return cls(hang_timeout_s=timing.hang_timeout_s, resend_s=timing.resend_s,
                    confirm_timeout_s=timing.confirm_timeout_s,
                    pause_guard_s=timing.pause_guard_s, rejoin_s=timing.rejoin_s,
+                   epoch_jump_max=timing.epoch_jump_max,
                    world_gone_s=timing.monitor_world_gone_s,
                    world_silent_s=timing.monitor_world_silent_s, **fields)
 
@@ -338,6 +343,10 @@ class MonitorCore:
         self.failed: set = set()          # ids convicted and not healthy again since
         self.convicted_at: dict = {}      # id -> when it was last convicted
         self.on_probation: set = set()    # convicted, not yet healthy for rejoin_s
+        self.rejected: dict = {}          # reason -> evidence refused (see reject)
+        self.anomalies: list = []         # the first refusal of each reason and agent
+        self._rejected_seen: set = set()
+        self._epoch_seen = 0              # the highest epoch accepted from the network
         self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
@@ -435,9 +444,47 @@ class MonitorCore:
             a.progress_at = now
             a.others_at_progress = self.newest_step()
 
-    def on_status(self, msg: dict, now: float) -> None:
+    # -- evidence ------------------------------------------------------------------------
+    def epoch_ceiling(self) -> int:
+        """The largest epoch accepted from the network now: the highest seen (this monitor's
+        own, adopted ones included) plus :attr:`MonitorConfig.epoch_jump_max`."""
+        return max(self.epoch, self._epoch_seen) + self.config.epoch_jump_max
+
+    def reject(self, reason: str, agent, detail: str) -> None:
+        """Evidence refused (counted in :attr:`rejected` by reason; the first of each
+        reason and agent is an event and an entry of :attr:`anomalies`)."""
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        key = (reason, agent)
+        if key not in self._rejected_seen and len(self._rejected_seen) < 1024:
+            self._rejected_seen.add(key)
+            self.anomalies.append({"reason": reason, "agent": agent, "detail": detail})
+            self.events.append(f"evidence refused ({reason}): {detail}")
+
+    def accept_roster(self, msg: dict) -> bool:
+        """A roster heard on the wire (already signature-checked by the caller when the
+        run signs) is taken for adoption only within :meth:`epoch_ceiling`."""
+        if int(msg["epoch"]) > self.epoch_ceiling():
+            self.reject("epoch", 0, f"a roster with epoch {msg['epoch']}, above the highest "
+                        f"epoch seen plus {self.config.epoch_jump_max} ({self.epoch_ceiling()})")
+            return False
+        self._epoch_seen = max(self._epoch_seen, int(msg["epoch"]))
+        return True
+
+    def on_status(self, msg: dict, now: float, sender: int | None = None) -> None:
+        """An agent's status; ``sender``: the agent id of the key it came on (the shell
+        parses it). A status whose payload names another agent than its key, or carries
+        an epoch above :meth:`epoch_ceiling`, is refused (:meth:`reject`)."""
+        if sender is not None and msg.get("agent") != sender:
+            self.reject("sender", sender, f"a status on agent {sender}'s key names agent "
+                        f"{msg.get('agent')}")
+            return
         a = self._agent(msg.get("agent"))
         if a is None:
+            return
+        if int(msg.get("epoch", 0)) > self.epoch_ceiling():
+            self.reject("epoch", msg["agent"], f"agent {msg['agent']}'s status carries epoch "
+                        f"{msg.get('epoch')}, above the highest epoch seen plus "
+                        f"{self.config.epoch_jump_max} ({self.epoch_ceiling()})")
             return
         step = int(msg.get("step", -1))
         if step != a.step or a.progress_at is None:
@@ -448,6 +495,7 @@ class MonitorCore:
         if step >= self._clock[0]:
             self._clock = (step, now)
         a.epoch = int(msg.get("epoch", 0))
+        self._epoch_seen = max(self._epoch_seen, a.epoch)
         a.active = bool(msg.get("active", False))
         ctl = msg.get("ctl") if isinstance(msg.get("ctl"), dict) else {}
         a.pending = int(ctl.get("pending", 0) or 0)

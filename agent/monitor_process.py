@@ -33,6 +33,7 @@ from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.peer import Peer
 
 from . import wire
+from .control_auth import SignatureError
 from .gain_worker import GainWorker
 from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
 
@@ -74,6 +75,14 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     stats = MessageStats()
     run = net.run
     ctl_schema = wire.roster_schema()
+    # a roster heard is adopted only with the run's control signature (the monitors share
+    # the control key) and within the epoch bound (MonitorCore.accept_roster)
+    verifier = None
+    if signer is not None:
+        from .control_auth import ControlVerifier
+
+        verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
+    status_sender: dict = {}        # status key -> agent id (parsed once, bounded)
     out_file = open(events_out, "a") if events_out else None
     publish = []              # the peer's put, once it is open: watchers hear every event
 
@@ -129,15 +138,35 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                                    step=core.last_step_reported)
                 for item in status_in.drain():
                     msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
-                    if msg is not None:
-                        core.on_status(msg, now)
+                    if msg is None:
+                        continue
+                    sender = status_sender.get(item.key)
+                    if sender is None:
+                        try:
+                            sender = keys.parse_agent_key(run, "status", item.key)
+                        except keys.InvalidKey:
+                            stats.count_dropped("key")
+                            continue
+                        if sender in core.agents:        # bounded: the run's agents only
+                            status_sender[item.key] = sender
+                    core.on_status(msg, now, sender=sender)
                 for item in end_in.drain():
                     msg = try_decode(item.payload, wire.END_SCHEMA, stats)
                     if msg is not None:
                         core.on_world_end(msg["step"])
                 for item in roster_in.drain():
                     msg = try_decode(item.payload, ctl_schema, stats)
-                    if msg is not None and (heard_roster is None or msg["epoch"] > heard_roster["epoch"]):
+                    if msg is None:
+                        continue
+                    if verifier is not None:
+                        try:
+                            verifier.check(msg, replay=False)
+                        except SignatureError as exc:
+                            core.reject("signature", 0, f"a roster (epoch {msg['epoch']}) "
+                                        f"without the run's control signature ({exc})")
+                            continue
+                    if core.accept_roster(msg) and (heard_roster is None
+                                                    or msg["epoch"] > heard_roster["epoch"]):
                         heard_roster = msg
                 others = sorted(int(i) for role, i in watch.alive() if role == "monitor"
                                 and i.isdigit() and int(i) != monitor_id)
@@ -219,6 +248,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     for r in core.rejoins[recorded.setdefault("rejoins", 0):]:
                         record("rejoin", **r)
                     recorded["rejoins"] = len(core.rejoins)
+                    for r in core.anomalies[recorded.setdefault("anomalies", 0):]:
+                        record("evidence_refused", **r)
+                    recorded["anomalies"] = len(core.anomalies)
                     if core.history and not core.confirmed():
                         recorded["waiting"] = core.epoch
                     elif recorded["waiting"] is not None and core.confirmed():

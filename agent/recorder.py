@@ -35,6 +35,7 @@ from broker_free_net.keys import InvalidKey
 from broker_free_net.codec import MessageStats, try_decode
 
 from . import wire
+from .timing import DEFAULT as TIMING
 
 __all__ = ["Recording", "Recorder", "watch_run", "WatchEnd"]
 
@@ -105,6 +106,7 @@ class Recorder:
 
             self._verifier = ControlVerifier(control_public, run_id, not_before=0.0)
         self._newest = -1
+        self._epoch_seen = 0     # the highest epoch taken (statuses, signed rosters)
         self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
         self.estimates_received = 0
 
@@ -188,7 +190,10 @@ class Recorder:
             m = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
             if m is not None and self._sender_of(key, "status") != m["agent"]:
                 self.stats.count_dropped("sender")
+            elif m is not None and m["epoch"] > self._epoch_seen + TIMING.epoch_jump_max:
+                self.stats.count_dropped("epoch")       # the monitor's rule (MonitorCore)
             elif m is not None and m["agent"] in rec.est:
+                self._epoch_seen = max(self._epoch_seen, m["epoch"])
                 was = rec.status.get(m["agent"])
                 if was is not None and was["active"] and not m["active"] and \
                         len(rec.events) < MAX_EVENTS:    # an agent dropped its role (fenced)
@@ -205,6 +210,7 @@ class Recorder:
             m = self._authentic(try_decode(payload, self._schemas["roster"], self.stats))
             if m is not None and m["epoch"] > rec.rosters[-1][2]:
                 rec.rosters.append((m["activate_at"], tuple(m["ids"]), m["epoch"]))
+                self._epoch_seen = max(self._epoch_seen, m["epoch"])
         elif kind == "ctl":
             m = self._authentic(try_decode(payload, self._schemas["ctl"], self.stats))
             if m is not None and len(rec.assigns) < MAX_EVENTS:

@@ -418,6 +418,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
            "reissues": [{"epoch": r.get("epoch"), "activate_at": r.get("activate_at"),
                          "reason": r.get("reason", "")}
                         for r in records if r.get("kind") == "reissue"],
+           "evidence_refused": [{"reason": r.get("reason"), "agent": r.get("agent"),
+                                 "detail": r.get("detail")}
+                                for r in records if r.get("kind") == "evidence_refused"],
            "rejoins": [{"agent": r.get("agent"), "step": r.get("step"),
                         "healthy_s": r.get("healthy_s"), "standby": r.get("standby")}
                        for r in records if r.get("kind") == "rejoin"]}

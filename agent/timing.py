@@ -59,6 +59,9 @@ class Timing:
     #: Probation: a convicted agent that came back rejoins the standbys once healthy this
     #: long without a break (statuses moving, sensor fresh, no impaired link).
     rejoin_s: float = 5.0
+    #: Epochs heard (statuses, rosters) above the highest seen plus this are refused: a
+    #: monitor adds one per reassignment, re-issue or gain upgrade, a few per failure.
+    epoch_jump_max: int = 64
     #: The world must stay gone this long before an agent with nothing left to do leaves.
     world_grace_s: float = 5.0
     #: Once the world has left, an agent exits after this long even if messages keep coming.

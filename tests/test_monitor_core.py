@@ -480,3 +480,31 @@ def test_a_convicted_agent_rejoins_the_standbys_after_probation_only(core):
     out = core.tick(t + 0.01)
     (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
     assert 2 in roster.ids and 4 not in roster.ids
+
+
+def test_a_status_on_one_agents_key_naming_another_is_refused(core):
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    forged = {**_status(1, 60), "epoch": 5}
+    core.on_status(forged, 1.05, sender=2)               # agent 2's key, agent 1's name
+    assert core.agents[1].epoch == 0 and core.rejected == {"sender": 1}
+    assert core.anomalies == [{"reason": "sender", "agent": 2,
+                               "detail": "a status on agent 2's key names agent 1"}]
+    core.on_status(forged, 1.06, sender=2)
+    assert core.rejected == {"sender": 2} and len(core.anomalies) == 1   # one event each
+    core.on_status(_status(1, 61), 1.07, sender=1)        # the genuine one still counts
+    assert core.agents[1].step == 61
+
+
+def test_epochs_far_above_the_highest_seen_are_refused_from_statuses_and_rosters(core):
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    bound = core.epoch_ceiling()
+    assert bound == core.config.epoch_jump_max
+    core.on_status({**_status(1, 60), "epoch": 2 ** 62}, 1.05, sender=1)
+    assert core.epoch == 0 and not core.behind and core.rejected == {"epoch": 1}
+    assert not core.accept_roster({"epoch": 2 ** 62, "activate_at": 10, "ids": [1, 2, 3]})
+    assert core.rejected == {"epoch": 2}
+    # a genuine epoch a few above this monitor's (another monitor acted) is taken
+    core.on_status({**_status(1, 61), "epoch": 3}, 1.06, sender=1)
+    assert core.epoch == 3 and core.behind
+    assert core.accept_roster({"epoch": 3 + core.config.epoch_jump_max, "activate_at": 10,
+                               "ids": [1, 2, 3]})

@@ -253,3 +253,21 @@ def test_link_impairments_taking_effect_are_recorded_as_events(fed):
     changes = [(e["process"], e["step"], e["links"]) for e in fed.recording.events
                if "links" in e]
     assert changes == [("agent-1", 5, {"2": {"partition": True}}), ("agent-1", 9, {})]
+
+
+def test_a_status_with_an_epoch_far_above_any_seen_is_not_recorded():
+    from agent.recorder import Recorder
+    from agent.timing import DEFAULT as TIMING
+    from agent import wire as w
+    from broker_free_net import keys as k
+
+    r = Recorder("demo", n=2, N=1, M=1)
+    status = {"agent": 1, "step": 3, "active": True, "epoch": 2 ** 61, "measure": ["1"],
+              "neighbours": {}, "delays": {}, "drops": 0, "late": 0, "malformed": 0,
+              "malformed_reasons": {}, "impaired": 0, "sensor": {}, "heard": [], "ctl": {},
+              "links": {}, "overflows": 0}
+    r.feed(k.status_key("demo", 1), w.encode_status(status))
+    assert 1 not in r.recording.status and r.stats.total_dropped == 1
+    r.feed(k.status_key("demo", 1), w.encode_status({**status,
+                                                     "epoch": TIMING.epoch_jump_max}))
+    assert r.recording.status[1]["epoch"] == TIMING.epoch_jump_max

@@ -1,0 +1,88 @@
+"""Forged evidence on a live run (plain mode): statuses that speak for another agent or
+carry an absurd epoch, and rosters without the run's control signature, are refused and
+counted; the monitor that takes over after the active one is killed adopts the real
+configuration, and a crash after it is recovered. Loopback, deadlines, ``up`` cleans up."""
+
+import json
+import threading
+import time
+
+import pytest
+
+from tests.test_monitor_multiprocess import _up
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+def _status(agent, step, epoch):
+    """A status as agent ``agent`` would publish it (docs/runtime.md), forged."""
+    return {"agent": agent, "step": step, "active": True, "epoch": epoch, "measure": ["7"],
+            "neighbours": {2: 0.5}, "delays": {2: 1}, "drops": 0, "late": 0, "inputs": {},
+            "ages": {}, "malformed": 0, "malformed_reasons": {}, "impaired": 0,
+            "sensor": {"labels": ["7"], "last_step": step, "missed": 0}, "heard": [2, 3],
+            "ctl": {"accepted": 1, "rejected": 0, "last_error": "", "pending": 0},
+            "links": {}, "overflows": 0}
+
+
+def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_path,
+                                                                            live_gains):
+    from agent import wire
+    from agent.control_auth import ControlSigner
+    from broker_free_net import keys
+    from broker_free_net.codec import MessageStats, try_decode
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import Peer
+
+    out = tmp_path / "run"
+    result = {}
+    runner = threading.Thread(target=lambda: result.update(s=_up(
+        tmp_path, live_gains, "--fault", "monitor:250", "--kill", "450:1", steps=650)))
+    runner.start()
+    try:
+        deadline = time.monotonic() + 180
+        while not (out / "run.json").is_file():
+            assert time.monotonic() < deadline and runner.is_alive()
+            time.sleep(0.05)
+        run = json.loads((out / "run.json").read_text())
+        rid = run["run"]
+        # a client: it brokers nobody's traffic (a slow peer in the mesh would)
+        net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
+        with Peer(net, "attacker", 0) as peer:
+            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
+            roster_key = keys.ctl_key(rid, 0)
+            for key in (roster_key, keys.status_key(rid, 1), keys.status_key(rid, 2)):
+                peer.publisher(key)
+            outsider = ControlSigner.generate()
+            stats, step, sent = MessageStats(), -1, 0
+            while step < 420:                          # past the monitor's kill at 250
+                assert time.monotonic() < deadline and runner.is_alive(), step
+                item = truth_in.get(timeout=0.5)
+                for it in ([item] if item else []) + truth_in.drain():
+                    m = try_decode(it.payload, wire.truth_schema(14), stats)
+                    if m is not None:
+                        step = max(step, m["step"])
+                if item is None or step % 5:
+                    continue
+                # agent 2's key, agent 1's name and an epoch far ahead
+                peer.put(keys.status_key(rid, 2), wire.encode_status(
+                    _status(1, step + 5, 2 ** 62)))
+                # agent 1's own key, an epoch far ahead
+                peer.put(keys.status_key(rid, 1), wire.encode_status(
+                    _status(1, step, 2 ** 61)))
+                # rosters: unsigned, and signed with a key that is not the run's
+                peer.put(roster_key, wire.encode_roster(2 ** 62, 10 ** 6, [1, 2, 3]))
+                peer.put(roster_key, wire.encode_roster(7, 10 ** 6, [2, 3, 4],
+                                                        signer=outsider, run=rid))
+                sent += 1
+    finally:
+        runner.join(timeout=300)
+    assert sent > 20
+    s = result["s"]
+    assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(1, "crash")], s["failures"]
+    assert s["recovered"] is True and s["rosters"][-1]["ids"] == [4, 2, 3]
+    assert max(r["epoch"] for r in s["rosters"]) < 64
+    assert all(int(v["epoch"] or 0) < 64 for v in s["final_roles"].values())
+    reasons = {(e["reason"], e["agent"]) for e in s["evidence_refused"]}
+    assert {("sender", 2), ("epoch", 1), ("signature", 0)} <= reasons, reasons
+    log = (out / "logs" / "monitor.2.log").read_text()
+    assert "evidence refused (signature)" in log
