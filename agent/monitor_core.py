@@ -17,7 +17,8 @@ Detection (one verdict per cause, each with its evidence):
 - ``silent``: it looks alive and advances, but every agent that listens to it reports
   that the freshest estimate it holds from it is more than ``silent_steps`` old, for
   ``hang_timeout_s`` (its estimates no longer reach the network: a partition, a broken
-  publisher);
+  publisher); a single listener's report stands only when the monitor's own observation
+  (the estimates it hears) or that listener's impaired link agrees;
 - ``delay``: the delays the agents learned on their links exceed the ones the gains were
   designed for and the exact closed loop with the learned delays is no longer stable
   (radius >= 1). Nobody is removed: the monitor designs gains for the learned delays and
@@ -181,6 +182,7 @@ class _Agent:
     gone_at: float | None = None         # when its token was last deleted
     others_at_progress: int = -1         # the others' newest step then
     healthy_since: float | None = None   # convicted, on probation: healthy since then
+    estimate_at: float | None = None     # when the monitor last heard one of its estimates
     sensor_last: int = -1
     status: dict = field(default_factory=dict)
 
@@ -651,7 +653,8 @@ class MonitorCore:
                         + ("" if talking else "; no status either"), now, newest))
             else:
                 ages = self._listener_ages(i)
-                if ages and min(ages.values()) > cfg.silent_steps:
+                if ages and min(ages.values()) > cfg.silent_steps \
+                        and self._hearsay_holds(i, ages, now):
                     since = self._silent_since.setdefault(i, now)
                     if now - since > cfg.hang_timeout_s:
                         found.append(Verdict(
@@ -662,13 +665,43 @@ class MonitorCore:
                     self._silent_since.pop(i, None)
         return found
 
+    def on_estimate_seen(self, agent, now: float) -> None:
+        """The monitor's own observation: an estimate of ``agent`` arrived at ``now`` (the
+        shell tells it from the key alone, without decoding)."""
+        a = self._agent(agent)
+        if a is not None:
+            a.estimate_at = now
+
+    def _hearsay_holds(self, agent: int, ages: dict, now: float) -> bool:
+        """One listener's word is not enough to convict: a ``silent`` verdict from a single
+        listener stands only if the monitor's own observation agrees (it has heard no
+        estimate of ``agent`` for ``silent_steps`` steps) or that listener's status shows
+        the link from ``agent`` impaired. Otherwise its hearsay is discounted (an
+        anomaly: :meth:`reject` ``hearsay``)."""
+        if len(ages) >= 2:
+            return True
+        (j,) = ages
+        links = self.agents[j].status.get("links")
+        if isinstance(links, dict) and str(agent) in links:
+            return True
+        seen = self.agents[agent].estimate_at
+        window = self.config.silent_steps * self.config.step_s
+        if seen is None or now - seen > window:
+            return True
+        self.reject("hearsay", j, f"agent {j} reports agent {agent} silent ({ages[j]} steps) "
+                    f"but the monitor heard agent {agent}'s estimates {now - seen:.2f} s ago "
+                    "and no impaired link: not convicted on one listener's word")
+        return False
+
     def _listener_ages(self, agent: int) -> dict:
         """``{listener: age of the freshest estimate of agent it holds}`` (-1: none yet
-        counts as not silent; listeners without a status are left out)."""
+        counts as not silent; listeners without a status are left out). The listeners are
+        those of the configuration in force (its W), not whoever claims to listen."""
         out = {}
+        W, col = self.roster.scenario.W, self.roster.row_of(agent)
         for j in self.roster.ids:
             st = self.agents[j].status
-            if j == agent or not st or agent not in st.get("neighbours", {}):
+            if j == agent or not st or not W[self.roster.row_of(j), col] > 0:
                 continue
             age = st.get("ages", {}).get(agent)
             if age is None or age < 0:

@@ -86,3 +86,64 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
     assert {("sender", 2), ("epoch", 1), ("signature", 0)} <= reasons, reasons
     log = (out / "logs" / "monitor.2.log").read_text()
     assert "evidence refused (signature)" in log
+
+
+def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gains):
+    """--secure, agent 2's own credentials: on its own key it publishes a status naming
+    agent 1 (epoch 2^62), one naming agent 3 that says agent 1 is 500 steps stale, and its
+    own status claiming to listen to agent 1 with the same stale age, and agent 3 (which
+    it does listen to) 500 steps stale. Nothing of it is
+    taken: no healthy agent is convicted and a later crash of agent 1 is recovered."""
+    from agent import wire
+    from broker_free_net import keys
+    from broker_free_net.codec import MessageStats, try_decode
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import Peer
+
+    out = tmp_path / "run"
+    result = {}
+    runner = threading.Thread(target=lambda: result.update(s=_up(
+        tmp_path, live_gains, "--secure", "--kill", "450:1", steps=650)))
+    runner.start()
+    try:
+        deadline = time.monotonic() + 180
+        while not (out / "run.json").is_file():
+            assert time.monotonic() < deadline and runner.is_alive()
+            time.sleep(0.05)
+        run = json.loads((out / "run.json").read_text())
+        rid = run["run"]
+        from broker_free_net.ports import listen_port
+
+        net = NetConfig(run=rid, listen=(f"tls/127.0.0.1:{listen_port()}",),
+                        connect=(run["connect"],), keys=str(out / "keys"), identity="agent-2")
+        with Peer(net, "agent", 2) as peer:
+            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
+            mine = keys.status_key(rid, 2)
+            peer.publisher(mine)
+            stats, step, sent = MessageStats(), -1, 0
+            while step < 420:
+                assert time.monotonic() < deadline and runner.is_alive(), step
+                item = truth_in.get(timeout=0.5)
+                for it in ([item] if item else []) + truth_in.drain():
+                    m = try_decode(it.payload, wire.truth_schema(14), stats)
+                    if m is not None:
+                        step = max(step, m["step"])
+                if item is None:
+                    continue
+                stale = {"neighbours": {1: 0.5}, "ages": {1: 500}}
+                peer.put(mine, wire.encode_status(_status(1, step, 2 ** 62)))
+                peer.put(mine, wire.encode_status({**_status(3, step, 0), **stale}))
+                # a listener agent 1 is not (W), then the one agent 3 is: alone, its word
+                # against the monitor's own observation of agent 3's estimates
+                peer.put(mine, wire.encode_status({**_status(2, step, 0), **stale}))
+                peer.put(mine, wire.encode_status({**_status(2, step, 0),
+                                                   "neighbours": {3: 0.5}, "ages": {3: 500}}))
+                sent += 1
+    finally:
+        runner.join(timeout=300)
+    assert sent > 50
+    s = result["s"]
+    assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(1, "crash")], s["failures"]
+    assert s["recovered"] is True and max(r["epoch"] for r in s["rosters"]) < 64
+    reasons = {(e["reason"], e["agent"]) for e in s["evidence_refused"]}
+    assert {("sender", 2), ("hearsay", 2)} <= reasons, reasons

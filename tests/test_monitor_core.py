@@ -508,3 +508,42 @@ def test_epochs_far_above_the_highest_seen_are_refused_from_statuses_and_rosters
     assert core.epoch == 3 and core.behind
     assert core.accept_roster({"epoch": 3 + core.config.epoch_jump_max, "activate_at": 10,
                                "ids": [1, 2, 3]})
+
+
+def _feed_ages(core, paper14, t, age_of_2, links_of_1=None, monitor_hears_2=False):
+    step = int(50 * t)
+    for a in (1, 2, 3):
+        nbrs = {b + 1: float(paper14.W[a - 1, b]) for b in paper14.neighbours[a - 1]}
+        ages = {b: (age_of_2 if b == 2 else 1) for b in nbrs}
+        core.on_status({**_status(a, step), "neighbours": nbrs, "ages": ages,
+                        "links": (links_of_1 or {}) if a == 1 else {}}, t)
+    core.on_status(_status(4, step, active=False), t)
+    if monitor_hears_2:
+        core.on_estimate_seen(2, t)
+    return core.tick(t)
+
+
+def test_one_listeners_word_against_the_monitors_own_observation_convicts_nobody(core,
+                                                                                 paper14):
+    """Agent 1, agent 2's only listener, reports it 40 steps stale while the monitor keeps
+    hearing agent 2's estimates: no verdict, agent 1's hearsay is an anomaly."""
+    t = 0.0
+    while t < 4.0:
+        _feed_ages(core, paper14, t, 1 if t < 1.0 else 40, monitor_hears_2=True)
+        t += 0.1
+    assert core.verdicts == []
+    assert core.rejected.get("hearsay", 0) > 0
+    assert [x["agent"] for x in core.anomalies if x["reason"] == "hearsay"] == [1]
+
+
+def test_one_listener_with_an_impaired_link_still_convicts_a_partitioned_agent(core, paper14):
+    """A partition cut at the receivers (socmon's impairment): the monitor still hears
+    agent 2, but agent 1's status shows the link from 2 cut, so its word stands."""
+    t = 0.0
+    while t < 4.0 and not core.verdicts:
+        late = t >= 1.0
+        _feed_ages(core, paper14, t, 40 if late else 1,
+                   links_of_1={"2": {"partition": True}} if late else None,
+                   monitor_hears_2=True)
+        t += 0.1
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "silent")]
