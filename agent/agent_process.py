@@ -254,7 +254,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 return
             step, x = msg["step"], msg["x"]
             for label in core.wanted_labels():
-                core.on_sensor(label, step, float(x[node_index[label]]))
+                core.on_sensor(label, step, float(x[node_index[label]]), now=item.arrival)
 
         est_key_agent: dict = {}                 # est key -> agent id (parsed once)
 

@@ -107,6 +107,11 @@ SENSOR_WINDOW = 100_000
 #: sends one every step; one stray stamp is never believed and cannot make the agent skip
 #: the readings in between).
 SENSOR_GAP = 64
+#: Once the agent keeps pace with the world, a reading is refused (``sensor_future``) when
+#: it is further ahead than SENSOR_GAP plus this many times the steps the world can have
+#: made since the agent's newest in-order reading (elapsed time / the observed period): a
+#: world cannot run ahead of its own clock, a forged stamp far ahead can.
+SENSOR_PACE_FACTOR = 2.0
 #: Steps of readings held at most (``SENSOR_GAP`` aside); beyond it the farthest go first.
 SENSOR_HELD = 4096
 #: Steps one :meth:`AgentCore.poll` computes at most; the caller polls again at once.
@@ -308,7 +313,9 @@ class AgentCore:
         self.late = 0
         self.impaired = 0
         self.sensor_missed = 0
+        self.sensor_future = 0            # readings refused: ahead of the world's pace
         self.sensor_last = -1
+        self._pace = None                 # (newest in-order step, its arrival, period s)
         self.ctl_accepted = 0
         self.ctl_rejected = 0
         self.ctl_last_error = ""
@@ -364,7 +371,7 @@ class AgentCore:
         return out
 
     # -- inputs ------------------------------------------------------------------
-    def on_sensor(self, label: str, step: int, value: float) -> bool:
+    def on_sensor(self, label: str, step: int, value: float, now: float | None = None) -> bool:
         """A sensor reading of node ``label`` at ``step`` (the true state, without noise).
 
         Returns False if it is ignored: a step already computed, or more than
@@ -372,11 +379,24 @@ class AgentCore:
         (unused) until a reading of an adjacent step arrives, which a world that resumes
         after a silence sends at once; a lone stray stamp is never believed. At most
         ``SENSOR_HELD`` steps are held, ``SENSOR_GAP`` of them aside (farthest dropped).
+
+        With ``now`` (the arrival time): once the agent keeps pace with the world (two
+        in-order readings seen), a reading further ahead than the world can be
+        (:data:`SENSOR_PACE_FACTOR`) is refused and counted ``sensor_future``; an agent
+        that was stopped for seconds accepts the readings of those seconds.
         """
         step = int(step)
         base = max(self.step, 0)
         if step <= self.step or step > base + SENSOR_WINDOW:
             return False
+        pace = self._pace
+        if now is not None and pace is not None and pace[2] is not None:
+            newest, at, period = pace
+            if step > newest + SENSOR_GAP + SENSOR_PACE_FACTOR * max(now - at, 0.0) / period:
+                self.sensor_future += 1
+                return False
+        if now is not None and step <= base + SENSOR_GAP:
+            self._note_pace(step, now)
         aside = self.sensor_aside
         for s in [s for s in aside if s <= self.step]:
             del aside[s]
@@ -395,6 +415,20 @@ class AgentCore:
                     s += direction
         self._hold_reading(step, reading)
         return True
+
+    def _note_pace(self, step: int, now: float) -> None:
+        """The world's pace from in-order readings: the newest step, when it came, and the
+        period between steps (the shortest seen over a reading one step after another,
+        floored at 1 ms: bursts after a stall must not make the world look slow)."""
+        pace = self._pace
+        if pace is None:
+            self._pace = (step, now, None)
+        elif step > pace[0]:
+            period = pace[2]
+            if step == pace[0] + 1 and now > pace[1]:
+                gap = max(now - pace[1], 1e-3)
+                period = gap if period is None else min(period, gap) * 0.5 + period * 0.5
+            self._pace = (step, now, period)
 
     def _hold_reading(self, step: int, readings: dict) -> None:
         if step <= self.step:
@@ -727,7 +761,7 @@ class AgentCore:
             "roster_epoch": self.roster_epoch,
             "impaired": self.impaired,
             "sensor": {"labels": list(self.wanted_labels()), "last_step": self.sensor_last,
-                       "missed": self.sensor_missed},
+                       "missed": self.sensor_missed, "future": self.sensor_future},
             "heard": sorted(self.heard),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
                       for (src, dst), p in self.impair.links().items() if not p.is_identity},

@@ -39,6 +39,7 @@ runs and one standby agent added.
 
 import argparse
 import json
+import os
 import re
 import statistics
 import subprocess
@@ -64,6 +65,52 @@ def sampson_live(tmp):
     path = Path(tmp) / "sampson-live.toml"
     path.write_text(scenario_to_toml(s))
     return str(path)
+
+
+def seven_agents(tmp):
+    """Five communities, five agents and two standbys (seven agent processes): the run
+    of the false-positive table, as a TOML file."""
+    sys.path.insert(0, str(ROOT))
+    from design.generate import communities_scenario
+    from design.scenario import scenario_from_dict, scenario_to_toml
+
+    s = scenario_from_dict(communities_scenario(5, seed=5), source="communities-5")
+    s = s.replace(name="communities-5-live", standby=2)
+    path = Path(tmp) / "communities-5-live.toml"
+    path.write_text(scenario_to_toml(s))
+    return str(path)
+
+
+def false_positives(args, tmp):
+    """Healthy runs of seven agents beside ``--busy`` loops: every verdict is false; with
+    the re-issues and the period actually sustained (late and dropped estimates)."""
+    scenario = seven_agents(tmp)
+    print(f"{Path(scenario).stem}: 5 agents + 2 standbys, 20 ms steps, "
+          f"{args.healthy_steps} healthy steps per run, {args.busy} busy loops")
+    print(f"{'run':>3} {'verdicts':>8} {'reissues':>8} {'epoch':>5} {'late':>6} "
+          f"{'drops':>6} {'load':>5}  period")
+    total_v = total_steps = 0
+    for r in range(args.repeats):
+        out = tmp / f"fp{r}"
+        stop = busy_loops(args.busy)
+        try:
+            s = up(out, "--seed", str(r), steps=args.healthy_steps, scenario=scenario)
+        finally:
+            load = os.getloadavg()[0]
+            stop()
+        verdicts = [e for e in events(out) if e.get("kind") == "verdict"]
+        total_v += len(verdicts)
+        total_steps += s["steps"]
+        sustained = not any("period not sustained" in w for w in s.get("warnings", []))
+        print(f"{r:>3} {len(verdicts):>8} {len(s.get('reissues', [])):>8} "
+              f"{max(x['epoch'] for x in s['rosters']):>5} "
+              f"{s['late']:>6} {s['drops']:>6} {load:>5.1f}  "
+              f"{'sustained' if sustained else 'NOT sustained'}"
+              + "".join(f"\n      verdict: agent {v['agent']} {v['cause']} ({v['evidence']})"
+                        for v in verdicts))
+    print(f"false convictions: {total_v} in {total_steps} healthy steps "
+          f"({1e4 * total_v / max(total_steps, 1):.2f} per 10,000 steps)")
+    print(f"run folders: {tmp}")
 
 
 def up(out, *flags, steps=400, scenario=None):
@@ -251,7 +298,10 @@ def main():
     ap.add_argument("--healthy-steps", type=int, default=3000)
     ap.add_argument("--recovery", action="store_true",
                     help="the recovery table (every single failure and one double failure)")
-    ap.add_argument("--busy", type=int, default=0, help="busy loops beside the --recovery runs")
+    ap.add_argument("--busy", type=int, default=0,
+                    help="busy loops beside the --recovery and --false-positives runs")
+    ap.add_argument("--false-positives", action="store_true",
+                    help="healthy runs of 5 agents + 2 standbys: verdicts, re-issues, load")
     ap.add_argument("--per-failure", action="store_true",
                     help="every single failure at each --taus delay bound")
     ap.add_argument("--taus", default="3,7,15",
@@ -268,6 +318,8 @@ def main():
     SCENARIO = sampson_live(tmp) if args.scenario == "sampson" else args.scenario
     if args.recovery:
         return recovery_table(args, tmp)
+    if args.false_positives:
+        return false_positives(args, tmp)
     if args.per_failure:
         per_failure(tmp, taus, args.kill_step, args.steps)
         return

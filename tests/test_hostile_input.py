@@ -327,3 +327,28 @@ def test_a_newer_roster_supersedes_pending_ones_that_start_later():
         core.on_sensor("a", k, 1.0)
     assert [k for k, *_ in core.poll(0.0)] == list(range(31))
     assert core.active and core.roster_epoch == 2 and core.roster_pending == []
+
+
+def test_readings_from_beyond_the_worlds_pace_are_refused():
+    """Readings every 20 ms: two adjacent forged stamps 99,998 and 99,999 steps ahead,
+    0.1 s later, are refused (a world cannot have run that far) and the agent keeps
+    stepping; after the agent itself was stopped 5 s, the readings of those 5 s (250
+    steps ahead, from its inbox) are taken."""
+    core = _lone_agent()
+    t = 0.0
+    for k in range(20):
+        assert core.on_sensor("a", k, 1.0, now=t)
+        t += 0.02
+    assert _drive(core) == list(range(20))
+    assert not core.on_sensor("a", 19 + 99_998, -1e6, now=t + 0.1)
+    assert not core.on_sensor("a", 19 + 99_999, -1e6, now=t + 0.1)
+    assert core.sensor_future == 2 and not core.sensor_aside
+    for k in range(20, 40):
+        assert core.on_sensor("a", k, 1.0, now=t)
+        t += 0.02
+    assert _drive(core) == list(range(20, 40)) and 0 < core.x[0] < 1
+    t += 5.0                                       # the agent was stopped
+    for k in range(290, 300):                      # what its inbox kept of those 5 s
+        assert core.on_sensor("a", k, 1.0, now=t)
+    assert _drive(core) == list(range(40, 300))
+    assert core.sensor_future == 2 and core.status()["sensor"]["future"] == 2
