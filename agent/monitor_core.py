@@ -555,6 +555,7 @@ class MonitorCore:
         suspended = now < self._suspended_until
         if not suspended:
             self._probation(now)
+            out += self._retry_unanswered(now)
         if self._pending is not None:
             out += self._emit_reassign(now)     # its gains came back from the worker
         self._note_gain_mse()
@@ -788,15 +789,17 @@ class MonitorCore:
                     del self._unconfirmed[agent]
 
     # -- reassignment ----------------------------------------------------------------
-    def _reassign(self, verdicts: list, now: float) -> list:
+    def _reassign(self, verdicts: list, now: float, unanswered=()) -> list:
         """Record the verdicts, plan the failure on the configuration in force and emit
         the new roles as soon as their gains are known (:meth:`_emit_reassign`). Verdicts
-        found while an earlier plan still waits for its gains join that plan."""
+        found while an earlier plan still waits for its gains join that plan.
+        ``unanswered``: agents convicted earlier whose recovery was impossible then (no
+        standby), planned again now that the pool has one."""
         from design.errors import SocmonError
         from design.roster import replan
 
         self.verdicts += verdicts
-        failed = sorted({v.agent for v in verdicts})
+        failed = sorted({v.agent for v in verdicts} | set(unanswered))
         self.failed |= set(failed)
         for a in failed:
             self.convicted_at[a] = now
@@ -939,7 +942,8 @@ class MonitorCore:
         no role, its step moved within half the hang timeout and is within the hold
         window (``lead_steps``) of the network's newest, its sensor readings (if it
         wants any) are no older than that window, and no status (its own or a
-        neighbour's) shows an impaired link into or out of it."""
+        neighbour's) shows a link into or out of it cut (partitioned, or dropping half
+        or more; a delay is no cut)."""
         cfg, st = self.config, self.agents[agent]
         if not st.alive or st.progress_at is None or st.status.get("active"):
             return False
@@ -954,8 +958,13 @@ class MonitorCore:
         me = str(agent)
         for b, other in self.agents.items():
             links = other.status.get("links")
-            if isinstance(links, dict) and links and (b == agent or me in links):
-                return False
+            if not isinstance(links, dict):
+                continue
+            for src, p in links.items():
+                cut = isinstance(p, dict) and (p.get("partition") or
+                                               float(p.get("drop", 0) or 0) >= 0.5)
+                if cut and (b == agent or src == me):    # a delay is no cut
+                    return False
         return True
 
     def _probation(self, now: float) -> None:
@@ -982,6 +991,18 @@ class MonitorCore:
                     f"agent {a} rejoined as a standby after {now - st.healthy_since:.1f} s of "
                     f"probation (progressing, sensor fresh, no impaired link): standbys "
                     f"{list(pool)}, {len(pool)} failure(s) can be answered by a replacement")
+
+    def _retry_unanswered(self, now: float) -> list:
+        """A failure whose recovery was impossible (no standby then) is planned again as
+        soon as the pool has an agent (one that passed probation, or a new standby)."""
+        stuck = [a for a in self.roster.ids if a in self.failed]
+        if not (self.unrecoverable and stuck and self._pending is None
+                and not self._unconfirmed and self.standby_pool(now)):
+            return []
+        self.unrecoverable = False
+        self.events.append(f"a standby is available again: planning the recovery of "
+                           f"{stuck} (impossible when they failed)")
+        return self._reassign([], now, unanswered=stuck)
 
     def standby_pool(self, now: float, exclude=()) -> tuple:
         """Ids that can take a role now: alive, advancing as standbys (no role), and not

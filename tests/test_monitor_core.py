@@ -547,3 +547,35 @@ def test_one_listener_with_an_impaired_link_still_convicts_a_partitioned_agent(c
                    monitor_hears_2=True)
         t += 0.1
     assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "silent")]
+
+
+def test_a_failure_without_a_standby_is_recovered_once_an_agent_rejoins(core):
+    """Agents 1, 4, 2 and 3 crash one after the other: the standby takes 1's role, the
+    others cover 4's and 2's, and 3's cannot be recovered (nobody left to take it). When
+    agent 1 comes back and passes probation, 3's role is handed to it."""
+    step = lambda t: int(50 * t)                                    # noqa: E731
+    _advance(core, 0.0, 1.0, step)
+    t, gone = 1.0, set()
+
+    def run(until, back=()):
+        nonlocal t
+        while t < until:
+            t += 0.1
+            for a in core.roster.ids:
+                if a not in gone:
+                    core.on_status(_status(a, step(t), epoch=core.epoch), t)
+            for a in back:
+                core.on_status(_standby_status(a, step(t)), t)
+            core.tick(t)
+
+    for a in (1, 4, 2, 3):
+        core.on_liveliness("agent", a, False, t)
+        gone.add(a)
+        run(t + 1.5)
+    assert core.unrecoverable and core.roster.ids == (3,)
+    core.on_liveliness("agent", 1, True, t)                         # agent 1 is back
+    gone.discard(1)
+    run(t + core.config.rejoin_s + 2.0, back=(1,))
+    assert [r["agent"] for r in core.rejoins] == [1]
+    assert core.roster.ids == (1,) and not core.unrecoverable
+    assert any("planning the recovery of [3]" in e for e in core.events)
