@@ -291,8 +291,6 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             urgent_status = False
             # len() before drain(): most inboxes are empty at most wake-ups
             for ev in watch.drain() if len(watch) else ():
-                if ev.duplicate:                   # a second session's token: no news
-                    continue
                 if ev.role == "world":
                     if ev.alive and world_gone_at is not None and world_end is None:
                         say(f"agent {me}: the world is back after "

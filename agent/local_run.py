@@ -404,8 +404,6 @@ class LocalRun:
                             self.say(f"{child.name} exited with status {child.returncode} "
                                      f"at step {k_now}; the run goes on")
                     for ev in alive_watch.drain():
-                        if ev.duplicate:
-                            continue
                         if ev.role == "monitor" and world_end is None and c.monitor:
                             change = recorder.on_monitor_liveliness(ev.id, ev.alive)
                             if change == "none":

@@ -132,12 +132,6 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 first = not any(role == "monitor" and i.isdigit() and int(i) < monitor_id
                                 for role, i in watch.alive())
                 for ev in watch.drain():
-                    if ev.duplicate and ev.role in ("agent", "world"):
-                        who = int(ev.id) if ev.id.isdigit() else 0
-                        core.reject("token", who, f"a second liveliness token for "
-                                    f"{ev.role} {ev.id} from another session ({ev.key}): "
-                                    "only the first one counts")
-                        continue
                     if ev.role == "agent" and ev.id.isdigit():
                         core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
                         if not ev.alive and first:

@@ -382,8 +382,6 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 now = time.monotonic()
                 alive = alive_watch.alive()
                 for ev in alive_watch.drain():
-                    if ev.duplicate:
-                        continue
                     if ev.role == "monitor" and world_gone is None:
                         recorder.on_monitor_liveliness(ev.id, ev.alive)
                     elif ev.role == "agent" and not ev.alive and world_gone is None:

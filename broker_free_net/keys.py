@@ -32,7 +32,6 @@ __all__ = [
     "monitor_events_key",
     "parse_agent_key",
     "parse_alive_key",
-    "parse_alive_token",
     "run_prefix",
     "sensors_key",
     "status_key",
@@ -151,20 +150,13 @@ def monitor_events_key(run: str) -> str:
     return f"{run_prefix(run)}/monitor/events"
 
 
-def alive_key(run: str, role: str, id, session: str | None = None) -> str:
-    """Return the liveliness key ``socmon/<run>/alive/<role>/<id>``, and with `session`
-    (the declaring zenoh session's id) ``.../<id>/<session>``: the token a process
-    declares, so that a second session's token for the same role and id is seen (zenoh
-    aggregates the tokens of one key: a second one on the same key is invisible).
+def alive_key(run: str, role: str, id) -> str:
+    """Return the liveliness key ``socmon/<run>/alive/<role>/<id>``.
 
     `id` may be a non-negative int or a key chunk.
-
-    >>> alive_key("r", "agent", 2, session="ab12")
-    'socmon/r/alive/agent/2/ab12'
     """
     id_chunk = _agent_chunk(id) if isinstance(id, int) and not isinstance(id, bool) else validate_chunk(id, "id")
-    key = f"{run_prefix(run)}/alive/{validate_chunk(role, 'role')}/{id_chunk}"
-    return key if session is None else f"{key}/{validate_chunk(session, 'session')}"
+    return f"{run_prefix(run)}/alive/{validate_chunk(role, 'role')}/{id_chunk}"
 
 
 def alive_pattern(run: str) -> str:
@@ -197,24 +189,9 @@ def parse_agent_key(run: str, kind: str, key) -> int:
 
 
 def parse_alive_key(run: str, key) -> tuple[str, str]:
-    """Extract ``(role, id)`` from ``socmon/<run>/alive/<role>/<id>[/<session>]``.
+    """Extract ``(role, id)`` from ``socmon/<run>/alive/<role>/<id>``.
 
     The id is returned as the str chunk; agents use ``int(id)``.
     """
-    return parse_alive_token(run, key)[:2]
-
-
-def parse_alive_token(run: str, key) -> tuple[str, str, str]:
-    """Extract ``(role, id, session)`` from ``socmon/<run>/alive/<role>/<id>/<session>``
-    (``session`` is ``""`` for a token without one).
-
-    >>> parse_alive_token("r", "socmon/r/alive/agent/2/ab12"), parse_alive_token("r", "socmon/r/alive/agent/2")
-    (('agent', '2', 'ab12'), ('agent', '2', ''))
-    """
-    try:
-        role, id_chunk, session = _split(run, key, 3, "alive")
-        session = validate_chunk(session, "session")
-    except InvalidKey:
-        role, id_chunk = _split(run, key, 2, "alive")
-        session = ""
-    return validate_chunk(role, "role"), validate_chunk(id_chunk, "id"), session
+    role, id_chunk = _split(run, key, 2, "alive")
+    return validate_chunk(role, "role"), validate_chunk(id_chunk, "id")

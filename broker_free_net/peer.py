@@ -50,17 +50,13 @@ class Received(NamedTuple):
 
 
 class LivelinessEvent(NamedTuple):
-    """A peer appeared (``alive=True``) or disappeared (``alive=False``).
-
-    ``duplicate``: a second session declared a token for a role and id already alive
-    (``alive`` stays what it was: the first session's token is the one that counts)."""
+    """A peer appeared (``alive=True``) or disappeared (``alive=False``)."""
 
     role: str
     id: str
     alive: bool
     key: str
     arrival: float
-    duplicate: bool = False
 
 
 def _check_bound(name, value, lo):
@@ -198,43 +194,19 @@ class LivelinessWatch(Inbox):
         super().__init__(maxlen, wakeup)
         self.run = run
         self._alive: set[tuple[str, str]] = set()
-        # (role, id) -> the session whose token counts (the first one declared), and the
-        # other sessions' tokens for it (duplicates: never a new life, never hiding an end)
-        self._bound: dict[tuple[str, str], str] = {}
-        self._others: dict[tuple[str, str], set] = {}
 
     def _on_sample(self, sample) -> None:
         try:
             key = str(sample.key_expr)
             try:
-                role, id_, session = keys.parse_alive_token(self.run, key)
+                role, id_ = keys.parse_alive_key(self.run, key)
             except keys.InvalidKey:
                 self._ignore()
                 return
-            put = sample.kind == zenoh.SampleKind.PUT
-            who = (role, id_)
+            alive = sample.kind == zenoh.SampleKind.PUT
             with self._cond:
-                bound = self._bound.get(who)
-                others = self._others.setdefault(who, set()) if len(self._others) < 4096 \
-                    else self._others.get(who, set())
-                if put and bound is None:
-                    self._bound[who] = session
-                    self._alive.add(who)
-                    event = LivelinessEvent(role, id_, True, key, time.monotonic())
-                elif put and session != bound:
-                    others.add(session)
-                    event = LivelinessEvent(role, id_, True, key, time.monotonic(),
-                                            duplicate=True)
-                elif not put and session == bound:
-                    # the process that counts is gone, whoever else holds a token for it
-                    del self._bound[who]
-                    self._alive.discard(who)
-                    event = LivelinessEvent(role, id_, False, key, time.monotonic())
-                else:
-                    others.discard(session)
-                    event = None
-            if event is not None:
-                self._push(event)
+                (self._alive.add if alive else self._alive.discard)((role, id_))
+            self._push(LivelinessEvent(role, id_, alive, key, time.monotonic()))
         except Exception:  # never raise into zenoh
             self._ignore()
 
@@ -305,7 +277,7 @@ class Peer:
         self.run = net.run
         self.role = role
         self.id = id
-        keys.alive_key(net.run, role, id)  # validates role and id before opening
+        token_key = keys.alive_key(net.run, role, id)  # validates role and id
         self._pid = os.getpid()
         self._lock = threading.Lock()
         self._publishers: dict[str, tuple[zenoh.Publisher, bool]] = {}
@@ -318,10 +290,7 @@ class Peer:
         # process's receive threads to sleep until it returns (see linger.py)
         self._linger = LingerGuard()
         try:
-            # the token names this session: a second process speaking for the same role
-            # and id is seen as such (LivelinessWatch), not hidden by zenoh's aggregation
-            self._token = self._session.liveliness().declare_token(
-                keys.alive_key(net.run, role, id, session=str(self._session.zid())))
+            self._token = self._session.liveliness().declare_token(token_key)
         except BaseException:
             self._linger.stop()
             self._session.close()

@@ -166,13 +166,13 @@ def token_keys(run: str, name: str) -> list[str]:
     """Liveliness tokens process `name` may declare.
 
     >>> token_keys("r", "agent-2"), token_keys("r", "operator")
-    (['socmon/r/alive/agent/2/*'], ['socmon/r/alive/inject/*/*', 'socmon/r/alive/operator/*/*'])
+    (['socmon/r/alive/agent/2'], ['socmon/r/alive/inject/*', 'socmon/r/alive/operator/*'])
     """
     _check_run(run)
     role, i = parse_identity(name)
-    if role == "agent":           # the last chunk: the declaring session's id
-        return [f"socmon/{run}/alive/agent/{i}/*"]
-    return [f"socmon/{run}/alive/{r}/*/*" for r in _TOKEN_ROLES[role]]
+    if role == "agent":
+        return [f"socmon/{run}/alive/agent/{i}"]
+    return [f"socmon/{run}/alive/{r}/*" for r in _TOKEN_ROLES[role]]
 
 
 def access_control(run: str, names) -> dict:
