@@ -409,7 +409,7 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         failures.append(entry)
     absent = _no_monitor_windows(events)
     failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},
-                            absent, rosters)
+                            absent, rosters, steps_done[-1] if len(steps_done) else None)
     out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
                                                "epoch": ep} for at, ids, ep in rosters],
            "rosters_not_in_force": [{**m, "switched": {str(a): k for a, k
@@ -505,16 +505,19 @@ def _no_monitor_windows(events) -> list:
     return absent
 
 
-def _undetected(deaths, convicted, absent, rosters) -> list:
+def _undetected(deaths, convicted, absent, rosters, last_step=None) -> list:
     """Failures entries for the agents whose process went (exit or liveliness token gone)
     and that no verdict named: ``detected: False``, the step it died, whether it held a
     role then (``role``: the roster in force at that step) and ``why``: ``"no monitor
-    alive"`` when it died in one of the ``absent`` windows, else ``"no verdict"``."""
+    alive"`` when it died in one of the ``absent`` windows, else ``"no verdict"``. An
+    exit at the run's last step (``last_step``) is the end of the run, not a failure."""
     out = []
     for agent, e in sorted(deaths.items()):
         if agent in convicted or (e.get("exit_status") is None and e.get("liveliness") is not False):
             continue           # a stop or a link down that no verdict followed: it came back
         k = e.get("step", -1)
+        if last_step is not None and k >= last_step:
+            continue
         ids = next((ids for at, ids, _ in reversed(rosters) if at <= k), rosters[0][1])
         out.append({"agent": agent, "cause": "crash", "detected": False,
                     "evidence": ("exit status " + str(e["exit_status"])
