@@ -256,22 +256,17 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             for label in core.wanted_labels():
                 core.on_sensor(label, step, float(x[node_index[label]]), now=item.arrival)
 
-        est_key_agent: dict = {}                 # est key -> agent id (parsed once)
+        est_sender = keys.AgentKeyCache(run, "est", senders)
 
         def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
                              now_step=max(core.step, 0), window=STAMP_WINDOW)
             if msg is None:
                 return
-            sender = est_key_agent.get(item.key)
+            sender = est_sender.agent_of(item.key)
             if sender is None:
-                try:
-                    sender = keys.parse_agent_key(run, "est", item.key)
-                except keys.InvalidKey:
-                    bad("key")
-                    return
-                if sender in senders:           # bounded: the run's agents only
-                    est_key_agent[item.key] = sender
+                bad("key")
+                return
             if sender != msg["agent"]:
                 bad("key")
                 return

@@ -82,8 +82,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         from .control_auth import ControlVerifier
 
         verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
-    status_sender: dict = {}        # status key -> agent id (parsed once, bounded)
-    est_sender: dict = {}
+    status_sender = keys.AgentKeyCache(run, "status", core.agents)
+    est_sender = keys.AgentKeyCache(run, "est", core.agents)
     out_file = open(events_out, "a") if events_out else None
     publish = []              # the peer's put, once it is open: watchers hear every event
 
@@ -145,26 +145,15 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                     if msg is None:
                         continue
-                    sender = status_sender.get(item.key)
+                    sender = status_sender.agent_of(item.key)
                     if sender is None:
-                        try:
-                            sender = keys.parse_agent_key(run, "status", item.key)
-                        except keys.InvalidKey:
-                            stats.count_dropped("key")
-                            continue
-                        if sender in core.agents:        # bounded: the run's agents only
-                            status_sender[item.key] = sender
+                        stats.count_dropped("key")
+                        continue
                     core.on_status(msg, now, sender=sender)
                 for item in est_in.drain():
-                    sender = est_sender.get(item.key)
-                    if sender is None:
-                        try:
-                            sender = keys.parse_agent_key(run, "est", item.key)
-                        except keys.InvalidKey:
-                            continue
-                        if sender in core.agents:
-                            est_sender[item.key] = sender
-                    core.on_estimate_seen(sender, now)
+                    sender = est_sender.agent_of(item.key)
+                    if sender is not None:
+                        core.on_estimate_seen(sender, now)
                 for item in end_in.drain():
                     msg = try_decode(item.payload, wire.END_SCHEMA, stats)
                     if msg is not None:

@@ -32,6 +32,7 @@ __all__ = [
     "monitor_events_key",
     "parse_agent_key",
     "parse_alive_key",
+    "AgentKeyCache",
     "run_prefix",
     "sensors_key",
     "status_key",
@@ -195,3 +196,34 @@ def parse_alive_key(run: str, key) -> tuple[str, str]:
     """
     role, id_chunk = _split(run, key, 2, "alive")
     return validate_chunk(role, "role"), validate_chunk(id_chunk, "id")
+
+
+class AgentKeyCache:
+    """``socmon/<run>/<kind>/<agent>`` -> agent id, parsed once per key and kept only for
+    the ``known`` ids (a stream of made-up keys cannot grow it).
+
+    >>> c = AgentKeyCache("r", "est", known={1, 2})
+    >>> c.agent_of("socmon/r/est/2"), c.agent_of("socmon/r/est/9"), c.agent_of("socmon/r/x/1")
+    (2, 9, None)
+    >>> len(c)
+    1
+    """
+
+    def __init__(self, run: str, kind: str, known):
+        self.run, self.kind, self.known = run, kind, known
+        self._ids: dict = {}
+
+    def agent_of(self, key) -> int | None:
+        """The agent id of ``key``, or None when it is not such a key."""
+        agent = self._ids.get(key)
+        if agent is None:
+            try:
+                agent = parse_agent_key(self.run, self.kind, key)
+            except InvalidKey:
+                return None
+            if agent in self.known:
+                self._ids[key] = agent
+        return agent
+
+    def __len__(self) -> int:
+        return len(self._ids)

@@ -3,6 +3,7 @@ carry an absurd epoch, and rosters without the run's control signature, are refu
 counted; the monitor that takes over after the active one is killed adopts the real
 configuration, and a crash after it is recovered. Loopback, deadlines, ``up`` cleans up."""
 
+import contextlib
 import json
 import threading
 import time
@@ -12,6 +13,44 @@ import pytest
 from tests.test_monitor_multiprocess import _up
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+@contextlib.contextmanager
+def _attached(tmp_path, gains, *flags, steps):
+    """``socmon up`` in a thread; yields ``(run.json, alive, result)`` once the run folder
+    names the run (``alive()``: the deadline not passed and ``up`` still running); the
+    summary is ``result["s"]`` after the block."""
+    out = tmp_path / "run"
+    result = {}
+    runner = threading.Thread(target=lambda: result.update(s=_up(tmp_path, gains, *flags,
+                                                                 steps=steps)))
+    runner.start()
+    deadline = time.monotonic() + 180
+
+    def alive():
+        return time.monotonic() < deadline and runner.is_alive()
+
+    try:
+        while not (out / "run.json").is_file():
+            assert alive()
+            time.sleep(0.05)
+        yield json.loads((out / "run.json").read_text()), alive, result
+    finally:
+        runner.join(timeout=300)
+
+
+def _step_of(truth_in, stats, step):
+    """The newest step of the truth heard (``step`` if none came within 0.5 s) and
+    whether any came."""
+    from agent import wire
+    from broker_free_net.codec import try_decode
+
+    item = truth_in.get(timeout=0.5)
+    for it in ([item] if item else []) + truth_in.drain():
+        m = try_decode(it.payload, wire.truth_schema(14), stats)
+        if m is not None:
+            step = max(step, m["step"])
+    return step, item is not None
 
 
 def _status(agent, step, epoch):
@@ -29,21 +68,12 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
     from agent import wire
     from agent.control_auth import ControlSigner
     from broker_free_net import keys
-    from broker_free_net.codec import MessageStats, try_decode
+    from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
     from broker_free_net.peer import Peer
 
-    out = tmp_path / "run"
-    result = {}
-    runner = threading.Thread(target=lambda: result.update(s=_up(
-        tmp_path, live_gains, "--fault", "monitor:250", "--kill", "450:1", steps=650)))
-    runner.start()
-    try:
-        deadline = time.monotonic() + 180
-        while not (out / "run.json").is_file():
-            assert time.monotonic() < deadline and runner.is_alive()
-            time.sleep(0.05)
-        run = json.loads((out / "run.json").read_text())
+    with _attached(tmp_path, live_gains, "--fault", "monitor:250", "--kill", "450:1",
+                   steps=650) as (run, alive, result):
         rid = run["run"]
         # a client: it brokers nobody's traffic (a slow peer in the mesh would)
         net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
@@ -55,13 +85,9 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
             outsider = ControlSigner.generate()
             stats, step, sent = MessageStats(), -1, 0
             while step < 420:                          # past the monitor's kill at 250
-                assert time.monotonic() < deadline and runner.is_alive(), step
-                item = truth_in.get(timeout=0.5)
-                for it in ([item] if item else []) + truth_in.drain():
-                    m = try_decode(it.payload, wire.truth_schema(14), stats)
-                    if m is not None:
-                        step = max(step, m["step"])
-                if item is None or step % 5:
+                assert alive(), step
+                step, heard = _step_of(truth_in, stats, step)
+                if not heard or step % 5:
                     continue
                 # agent 2's key, agent 1's name and an epoch far ahead
                 peer.put(keys.status_key(rid, 2), wire.encode_status(
@@ -74,8 +100,6 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
                 peer.put(roster_key, wire.encode_roster(7, 10 ** 6, [2, 3, 4],
                                                         signer=outsider, run=rid))
                 sent += 1
-    finally:
-        runner.join(timeout=300)
     assert sent > 20
     s = result["s"]
     assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(1, "crash")], s["failures"]
@@ -84,7 +108,7 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
     assert all(int(v["epoch"] or 0) < 64 for v in s["final_roles"].values())
     reasons = {(e["reason"], e["agent"]) for e in s["evidence_refused"]}
     assert {("sender", 2), ("epoch", 1), ("signature", 0)} <= reasons, reasons
-    log = (out / "logs" / "monitor.2.log").read_text()
+    log = (tmp_path / "run" / "logs" / "monitor.2.log").read_text()
     assert "evidence refused (signature)" in log
 
 
@@ -96,39 +120,27 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
     taken: no healthy agent is convicted and a later crash of agent 1 is recovered."""
     from agent import wire
     from broker_free_net import keys
-    from broker_free_net.codec import MessageStats, try_decode
+    from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
     from broker_free_net.peer import Peer
 
-    out = tmp_path / "run"
-    result = {}
-    runner = threading.Thread(target=lambda: result.update(s=_up(
-        tmp_path, live_gains, "--secure", "--kill", "450:1", steps=650)))
-    runner.start()
-    try:
-        deadline = time.monotonic() + 180
-        while not (out / "run.json").is_file():
-            assert time.monotonic() < deadline and runner.is_alive()
-            time.sleep(0.05)
-        run = json.loads((out / "run.json").read_text())
-        rid = run["run"]
-        from broker_free_net.ports import listen_port
+    from broker_free_net.ports import listen_port
 
+    with _attached(tmp_path, live_gains, "--secure", "--kill", "450:1",
+                   steps=650) as (run, alive, result):
+        rid = run["run"]
         net = NetConfig(run=rid, listen=(f"tls/127.0.0.1:{listen_port()}",),
-                        connect=(run["connect"],), keys=str(out / "keys"), identity="agent-2")
+                        connect=(run["connect"],), keys=str(tmp_path / "run" / "keys"),
+                        identity="agent-2")
         with Peer(net, "agent", 2) as peer:
             truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
             mine = keys.status_key(rid, 2)
             peer.publisher(mine)
             stats, step, sent = MessageStats(), -1, 0
             while step < 420:
-                assert time.monotonic() < deadline and runner.is_alive(), step
-                item = truth_in.get(timeout=0.5)
-                for it in ([item] if item else []) + truth_in.drain():
-                    m = try_decode(it.payload, wire.truth_schema(14), stats)
-                    if m is not None:
-                        step = max(step, m["step"])
-                if item is None:
+                assert alive(), step
+                step, heard = _step_of(truth_in, stats, step)
+                if not heard:
                     continue
                 stale = {"neighbours": {1: 0.5}, "ages": {1: 500}}
                 peer.put(mine, wire.encode_status(_status(1, step, 2 ** 62)))
@@ -139,8 +151,6 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
                 peer.put(mine, wire.encode_status({**_status(2, step, 0),
                                                    "neighbours": {3: 0.5}, "ages": {3: 500}}))
                 sent += 1
-    finally:
-        runner.join(timeout=300)
     assert sent > 50
     s = result["s"]
     assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(1, "crash")], s["failures"]
