@@ -75,6 +75,7 @@ _DEFAULT_OPTIONS = {
     "mse": "impulse",       # MSE evaluation: "impulse" (structured) or "lyapunov" (dense)
     "gaps": True,           # keep every single failure's gap loop stable where possible
     "gap_margin": GAP_MARGIN,   # ... with exact radius below 1 - gap_margin
+    "report_gaps": True,    # report every gap's exact radius (one eigenvalue problem each)
 }
 _CCL_OPTIONS = {
     "solver": "CLARABEL",
@@ -417,7 +418,8 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
     known = None
     if gap_info and not gap_info["iterations"]:      # the gains the gap radii were of
         known = {int(f): r for f, r in gap_info["rho_gap_before"].items()}
-    gaps = [g.to_dict() for g in gap_report(scenario, G, D, mse=False, radii=known)]
+    gaps = ([g.to_dict() for g in gap_report(scenario, G, D, mse=False, radii=known)]
+            if opts.get("report_gaps", True) or known else [])
     for g in gaps:
         g.pop("mse_steady_exact")
     shown = {k: v for k, v in opts.items() if k != "init"}
