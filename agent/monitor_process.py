@@ -83,7 +83,6 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
 
         verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
     status_sender = keys.AgentKeyCache(run, "status", core.agents)
-    est_sender = keys.AgentKeyCache(run, "est", core.agents)
     out_file = open(events_out, "a") if events_out else None
     publish = []              # the peer's put, once it is open: watchers hear every event
 
@@ -111,10 +110,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
             publish.append(peer.put)
             status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
-            # the monitor's own observation of who publishes estimates (keys only: nothing
-            # is decoded); drained each loop, never waking it
-            est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=1 << 12)
-            est_in.wakes = False
+            # no subscription to the estimates for the monitor's own observation
+            # (MonitorCore.on_estimate_seen): a paused monitor subscribed to them filled
+            # its links and stalled the agents' blocking estimate puts
             roster_in = peer.subscribe(keys.ctl_key(run, 0))
             end_in = peer.subscribe(keys.end_key(run), maxlen=16)
             watch = peer.watch_liveliness()
@@ -150,10 +148,6 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                         stats.count_dropped("key")
                         continue
                     core.on_status(msg, now, sender=sender)
-                for item in est_in.drain():
-                    sender = est_sender.agent_of(item.key)
-                    if sender is not None:
-                        core.on_estimate_seen(sender, now)
                 for item in end_in.drain():
                     msg = try_decode(item.payload, wire.END_SCHEMA, stats)
                     if msg is not None:
