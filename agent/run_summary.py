@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from design.metrics import mse_of_step, steady_mse, steady_window
+from design.metrics import mean_recorded, mse_of_step, steady_mse, steady_window
 
 __all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL"]
@@ -89,7 +89,10 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     c = config
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
-    mse_steady = steady_mse(mse) if len(mse) else float("nan")
+    # the last quarter of the run's K steps (by position: a watcher that attached late
+    # averages the same final steps as the run's own recorder)
+    tail = steady_window(K)
+    mse_steady = mean_recorded(mse[-tail:])
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
     children = rec.children.children.values() if rec.children is not None else ()
     summary = {
@@ -132,7 +135,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
                              c.scenario, c.delays, steps, mse, c.G))
     warnings = []
     # the prediction for what was in force over the steady window (the last quarter)
-    window_from = steps[-steady_window(len(steps))] if steps else 0
+    window_from = steps[-tail] if len(steps) >= tail else (steps[0] if steps else 0)
     last_switch = summary["rosters"][-1]["activate_at"] if len(summary["rosters"]) > 1 else 0
     summary["mse_steady_exact_in_force"] = (
         summary.get("mse_steady_exact_after_recovery") if last_switch

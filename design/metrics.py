@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["steady_window", "steady_mse", "mse_of_step"]
+__all__ = ["steady_window", "steady_mse", "mse_of_step", "mean_recorded"]
 
 
 def steady_window(steps: int) -> int:
@@ -58,6 +58,20 @@ def steady_mse(mse, axis: int = -1):
         with np.errstate(invalid="ignore", divide="ignore"):
             out = np.where(count > 0, total / np.maximum(count, 1), np.nan)
     return float(out) if np.ndim(out) == 0 else out
+
+
+def mean_recorded(values) -> float:
+    """The mean of a window of per-step MSEs, steps nobody estimated (NaN) left out; NaN
+    for an empty window, inf when one is infinite (the window :func:`steady_mse` takes).
+
+    >>> mean_recorded([1.0, float("nan"), 3.0]), mean_recorded([])
+    (2.0, nan)
+    """
+    a = np.asarray(list(values), dtype=float)
+    a = a[~np.isnan(a)]
+    if not len(a):
+        return float("nan")
+    return float(a.mean()) if np.isfinite(a).all() else float("inf")
 
 
 def mse_of_step(estimates, truth) -> float | None:
