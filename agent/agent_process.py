@@ -89,6 +89,7 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
     return AgentConfig(
         agent=agent, A=scenario.A, labels=scenario.labels, agents=tuple(range(1, M + 1)),
         seed=int(seed), measurement_noise=scenario.measurement_noise,
+        process_noise=scenario.process_noise,
         role=initial_role(scenario, gains, agent) if gains is not None or i >= scenario.N
         else None,
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,

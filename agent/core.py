@@ -85,6 +85,7 @@ from design.estimator import (
     hold_limit,
     neighbour_input,
 )
+from design.plausibility import ESTIMATE_MULTIPLE, READING_MULTIPLE, StateScale
 
 __all__ = [
     "AssignmentError",
@@ -226,6 +227,9 @@ class AgentConfig:
     max_age : int
         Oldest age at which a held neighbour estimate is used (the neighbour policy,
         :func:`design.estimator.hold_limit`); powers of A are kept up to it.
+    process_noise : float
+        Variance q of the world's process noise (with ``A`` and ``measurement_noise``,
+        the scale past which a value is implausible: :mod:`design.plausibility`).
     drop : float
         Probability of a keyed drop (:func:`design.noise.message_dropped`) per estimate
         and link, the simulator's drop model; 0 for none.
@@ -238,6 +242,7 @@ class AgentConfig:
     seed: int
     measurement_noise: float
     role: Role | None = None
+    process_noise: float = 0.0
     link_delays: dict = field(default_factory=dict)
     deadline_s: float = 0.02
     learn_window: int = 8
@@ -314,6 +319,8 @@ class AgentCore:
         self.impaired = 0
         self.sensor_missed = 0
         self.sensor_future = 0            # readings refused: ahead of the world's pace
+        self.scale = StateScale(self.A, config.process_noise, config.measurement_noise)
+        self.implausible = {"estimates": 0, "readings": 0}  # refused: far beyond the scale
         self.sensor_last = -1
         self._pace = None                 # (newest in-order step, its arrival, period s)
         self.ctl_accepted = 0
@@ -375,7 +382,8 @@ class AgentCore:
         """A sensor reading of node ``label`` at ``step`` (the true state, without noise).
 
         Returns False if it is ignored: a step already computed, or more than
-        ``SENSOR_WINDOW`` ahead. A reading more than ``SENSOR_GAP`` ahead is held aside
+        ``SENSOR_WINDOW`` ahead, or beyond the model's scale (:mod:`design.plausibility`,
+        counted in ``implausible``). A reading more than ``SENSOR_GAP`` ahead is held aside
         (unused) until a reading of an adjacent step arrives, which a world that resumes
         after a silence sends at once; a lone stray stamp is never believed. At most
         ``SENSOR_HELD`` steps are held, ``SENSOR_GAP`` of them aside (farthest dropped).
@@ -395,6 +403,9 @@ class AgentCore:
             if step > newest + SENSOR_GAP + SENSOR_PACE_FACTOR * max(now - at, 0.0) / period:
                 self.sensor_future += 1
                 return False
+        if not self.scale.plausible(value, step, READING_MULTIPLE):
+            self.implausible["readings"] += 1
+            return False
         if now is not None and step <= base + SENSOR_GAP:
             self._note_pace(step, now)
         aside = self.sensor_aside
@@ -446,6 +457,10 @@ class AgentCore:
             self.fenced += 1
             return "fenced"
         x = np.array(x, dtype=float)
+        # judged at its stamp, the step it is used at (an estimate is never used before)
+        if not self.scale.plausible(x, int(stamp), ESTIMATE_MULTIPLE):
+            self.implausible["estimates"] += 1
+            return "implausible"
         step_held = self.impair.get((sender, self.id)).delay_steps > 0
         decision = self.impair.offer(sender, self.id, (stamp, x, step_held),
                                      stamp_step=stamp, arrival=now)
@@ -762,6 +777,7 @@ class AgentCore:
             "impaired": self.impaired,
             "sensor": {"labels": list(self.wanted_labels()), "last_step": self.sensor_last,
                        "missed": self.sensor_missed, "future": self.sensor_future},
+            "implausible": dict(self.implausible),
             "heard": sorted(self.heard),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
                       for (src, dst), p in self.impair.links().items() if not p.is_identity},

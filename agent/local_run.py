@@ -198,6 +198,7 @@ class LocalRun:
         c = self.config
         K, N, M = c.steps, c.scenario.N, c.M
         from agent.control_auth import ControlSigner
+        from design.plausibility import StateScale
 
         signer = ControlSigner.generate()       # the run's control key: the monitor's
         # the recorder keeps only the rosters and assignments this key signed
@@ -205,7 +206,9 @@ class LocalRun:
                             c.scenario.n, N, M,
                             ports=[listen_port() for _ in range(
                                 M + 3 + c.router + max(c.monitors - 1, 0))],
-                            control_public=signer.public_bytes())
+                            control_public=signer.public_bytes(),
+                            scale=StateScale(c.scenario.A, c.scenario.process_noise,
+                                             c.scenario.measurement_noise))
         rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
         ep = [f"{scheme}/{self._host_ip(name)}:{p}"

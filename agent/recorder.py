@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from design.metrics import mse_of_step
+from design.plausibility import ESTIMATE_MULTIPLE, READING_MULTIPLE
 
 from broker_free_net import keys
 from broker_free_net.keys import InvalidKey
@@ -84,10 +85,15 @@ class Recorder:
     keep_steps : int or None
         Keep the truth and estimates of the newest ``keep_steps`` steps only (a watcher of
         an endless run must not grow without bound); None keeps all (``up``: K is known).
+    scale : design.plausibility.StateScale, optional
+        The model's scale: a truth or an estimate far beyond it (the agents' own rule) is
+        not recorded but counted (``stats`` reason ``implausible``), so a forged 1e300
+        cannot make the run's MSE infinite.
     """
 
     def __init__(self, run_id: str, n: int, N: int, M: int, ports=(),
-                 keep_steps: int | None = None, control_public: bytes | None = None):
+                 keep_steps: int | None = None, control_public: bytes | None = None,
+                 scale=None):
         rec = self.recording = Recording(run_id=run_id, ports=list(ports))
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
@@ -100,6 +106,7 @@ class Recorder:
         self._truth_key = keys.truth_key(run_id)
         self._inboxes = ()
         self.keep_steps = keep_steps
+        self.scale = scale
         self._verifier = None            # with the run's control key: unsigned ctl dropped
         if control_public is not None:
             from .control_auth import ControlVerifier
@@ -109,6 +116,9 @@ class Recorder:
         self._epoch_seen = 0     # the highest epoch taken (statuses, signed rosters)
         self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
         self.estimates_received = 0
+
+    def _plausible(self, m: dict, multiple: float) -> bool:
+        return self.scale is None or self.scale.plausible(m["x"], m["step"], multiple)
 
     # -- liveliness ----------------------------------------------------------------------
     def on_monitor_liveliness(self, ident: str, alive: bool) -> str | None:
@@ -170,7 +180,9 @@ class Recorder:
         kind = str(key).split("/")[2] if str(key).count("/") >= 2 else ""
         if key == self._truth_key:
             m = try_decode(payload, self._schemas["truth"], self.stats, **self._window())
-            if m is not None:
+            if m is not None and not self._plausible(m, READING_MULTIPLE):
+                self.stats.count_dropped("implausible")
+            elif m is not None:
                 rec.truth[m["step"]] = np.array(m["x"])
                 self._newest = max(self._newest, m["step"])
                 # trimmed in batches of keep_steps // 8 (one pass over the dicts each)
@@ -182,6 +194,8 @@ class Recorder:
                            **self._window())
             if m is not None and self._sender_of(key) != m["agent"]:
                 self.stats.count_dropped("sender")      # agent j's key, agent i's estimate
+            elif m is not None and not self._plausible(m, ESTIMATE_MULTIPLE):
+                self.stats.count_dropped("implausible")
             elif m is not None:
                 rec.est[m["agent"]][m["step"]] = np.array(m["x"])
                 rec.est_epoch[m["agent"]][m["step"]] = m["epoch"]

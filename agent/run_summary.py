@@ -119,6 +119,9 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "fenced": sum(s.get("fenced", 0) for s in last.values()),
         "recorder_malformed": rec.recorder_malformed,
         "sensor_missed": sum(s.get("sensor", {}).get("missed", 0) for s in last.values()),
+        "sensor_future": sum(s.get("sensor", {}).get("future", 0) for s in last.values()),
+        "implausible": {kind: sum(s.get("implausible", {}).get(kind, 0) for s in last.values())
+                        for kind in ("estimates", "readings")},
         "learned_delays": {str(a): {str(j): d for j, d in s.get("delays", {}).items()}
                            for a, s in last.items() if s},
         "hop_ms": {str(a): s.get("hop_ms") for a, s in last.items() if s.get("hop_ms")},
@@ -216,6 +219,11 @@ def failure_lines(summary) -> list:
         lines.append(f"  failure: agent {f['agent']} {f['cause']} at step {f['detected_step']}"
                      + (f"; agent {rep.get('agent')} measures {rep.get('node')} from step "
                         f"{f.get('activate_at')}" if rep else ""))
+    refused = summary.get("implausible") or {}
+    if any(refused.values()):
+        lines.append(f"  refused as implausible (far beyond the model's scale): "
+                     f"{refused.get('estimates', 0)} estimates, {refused.get('readings', 0)} "
+                     "readings")
     if "mse_steady_after_recovery" in summary:
         after = summary.get("mse_steady_exact_after_recovery")
         lines.append(f"  after recovery: mse_steady {summary['mse_steady_after_recovery']:.4g}"

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from design.plausibility import StateScale
+
 from .recorder import Recorder, watch_run
 
 __all__ = ["WatchConfig", "WatchResult", "watch", "NoWorld"]
@@ -66,7 +68,8 @@ def watch(config: WatchConfig, view) -> WatchResult:
     s = c.scenario
     M = s.N + s.standby
     recorder = Recorder(c.net.run, s.n, s.N, M, keep_steps=c.keep_steps,
-                        control_public=c.control_public)
+                        control_public=c.control_public,
+                        scale=StateScale(s.A, s.process_noise, s.measurement_noise))
     try:
         ended = watch_run(c.net, recorder, steps=c.steps, timeout=c.timeout,
                           on_view=view.show, interval=getattr(view, "interval", 0.25))

@@ -257,6 +257,7 @@ STATUS_SCHEMA = Schema({
     "links": Loose(required=True),
     "overflows": Int(0),
     "hop_ms": Loose(required=False),
+    "implausible": Loose(required=False),
 }, sender="agent")
 
 

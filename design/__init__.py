@@ -8,7 +8,8 @@ Layers, lowest first. A module imports only from its own layer or the layers bel
 
 1. **model** -- the objects of the paper and the graph algorithms they are checked with:
    :mod:`~design.errors`, :mod:`~design.files` (files read at a bounded cost),
-   :mod:`~design.metrics`, :mod:`~design.noise`,
+   :mod:`~design.metrics`, :mod:`~design.noise`, :mod:`~design.plausibility` (the
+   model's scale of the state, past which a value is refused),
    :mod:`~design.graph` (SCCs, condensation, parent SCCs), :mod:`~design.connectivity`
    (agent network), :mod:`~design.scenario`, :mod:`~design.gains`,
    :mod:`~design.generate` (generated scenarios).
@@ -28,8 +29,8 @@ Heavy imports (cvxpy) happen inside the functions that need them.
 
 #: Layer of every module of the package (checked by tests/test_layers.py).
 LAYERS = {
-    "errors": 1, "files": 1, "metrics": 1, "noise": 1, "graph": 1, "connectivity": 1, "scenario": 1,
-    "gains": 1, "generate": 1,
+    "errors": 1, "files": 1, "metrics": 1, "noise": 1, "plausibility": 1, "graph": 1,
+    "connectivity": 1, "scenario": 1, "gains": 1, "generate": 1,
     "observability": 2, "recovery": 2, "analysis": 2, "roster": 2,
     "estimator": 3, "closed_loop": 3, "certificates": 3, "gap": 3,
     "ccl": 4, "gradient": 4, "gain_design": 4, "simulate": 4,

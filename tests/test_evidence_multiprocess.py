@@ -157,3 +157,39 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
     assert s["recovered"] is True and max(r["epoch"] for r in s["rosters"]) < 64
     reasons = {(e["reason"], e["agent"]) for e in s["evidence_refused"]}
     assert ("sender", 2) in reasons, reasons
+
+
+def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, live_gains):
+    """Plain mode: an outsider publishes, as agent 1, estimates of 1e300 and 1e30 at the
+    run's current step, and readings of 1e300 for the next step, for 150 steps. Every
+    agent refuses them (counted ``implausible``), nobody is convicted, and the run's
+    steady MSE stays within 3x of the exact prediction."""
+    from agent import wire
+    from broker_free_net import keys
+    from broker_free_net.codec import MessageStats
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import Peer
+
+    with _attached(tmp_path, live_gains, steps=500) as (run, alive, result):
+        rid = run["run"]
+        net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
+        with Peer(net, "attacker", 0) as peer:
+            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
+            for key in (keys.est_key(rid, 1), keys.sensors_key(rid)):
+                peer.publisher(key)
+            stats, step, sent = MessageStats(), -1, 0
+            while step < 250:
+                assert alive(), step
+                step, heard = _step_of(truth_in, stats, step)
+                if not heard or step < 100:
+                    continue
+                for value in (1e300, -1e30):
+                    peer.put(keys.est_key(rid, 1), wire.encode_est(
+                        1, step + 1, [value] * 14, 0, time.time()))
+                peer.put(keys.sensors_key(rid), wire.encode_sensors(step + 1, [1e300] * 14))
+                sent += 1
+    assert sent > 50
+    s = result["s"]
+    assert s["failures"] == [], s["failures"]
+    assert s["implausible"]["estimates"] > 50 and s["implausible"]["readings"] > 50, s
+    assert s["mse_steady"] < 3 * s["mse_steady_exact"], (s["mse_steady"], s["mse_steady_exact"])

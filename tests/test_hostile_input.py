@@ -38,7 +38,9 @@ from broker_free_net.codec import (
     decode,
     try_decode,
 )
+from broker_free_net.impair import DELIVER
 from broker_free_net.peer import DEFAULT_INBOX_BYTES, Inbox, Received
+from design.plausibility import ESTIMATE_MULTIPLE
 from tests.runtime_harness import Mesh, reference
 
 STEPS = 30
@@ -352,3 +354,33 @@ def test_readings_from_beyond_the_worlds_pace_are_refused():
         assert core.on_sensor("a", k, 1.0, now=t)
     assert _drive(core) == list(range(40, 300))
     assert core.sensor_future == 2 and core.status()["sensor"]["future"] == 2
+
+
+def test_absurd_readings_and_estimates_are_refused_and_counted():
+    """A reading of 1e300, and estimates of 1e300 or 1e30 from a neighbour, are refused
+    (counted under ``implausible``) and never reach the agent's state; values on the
+    model's scale pass."""
+    core = _lone_agent()
+    assert not core.on_sensor("a", 0, 1e300)
+    assert core.implausible == {"estimates": 0, "readings": 1}
+    assert core.on_sensor("a", 0, 2.5)
+    assert core.on_estimate(2, 0, [1e300, 0.0], now=0.0) == "implausible"
+    assert core.on_estimate(2, 0, [0.0, -1e30], now=0.0) == "implausible"
+    assert core.on_estimate(2, 0, [3.0, -4.0], now=0.0) == DELIVER
+    assert core.status()["implausible"] == {"estimates": 2, "readings": 1}
+    status = {**core.status(), "malformed": 0, "malformed_reasons": {}, "overflows": 0}
+    assert try_decode(wire.encode_status(status), wire.STATUS_SCHEMA, MessageStats())
+    assert 2 not in core.nbrs or list(core.nbrs[2].est) == [0]
+    assert _drive(core) == [0] and np.all(np.abs(core.x) < 10)
+
+
+def test_an_estimate_is_judged_at_its_stamp():
+    """On an unstable system the scale grows with the step: 1e10 is absurd at step 0
+    and on the model's scale 200 steps later (1.2^200 ~ 7e15), where it is used."""
+    role = Role(epoch=0, activate_at=0, measure=("a",), neighbours={2: 0.5}, self_weight=0.5,
+                gain=np.full((1, 1), 0.5))
+    core = AgentCore(AgentConfig(agent=1, A=np.array([[1.2]]), labels=("a",), agents=(1, 2),
+                                 seed=0, measurement_noise=0.0, role=role))
+    assert core.on_estimate(2, 0, [1e10], now=0.0) == "implausible"
+    assert core.on_estimate(2, 200, [1e10], now=0.0) != "implausible"
+    assert not core.scale.plausible([1e10], 0, ESTIMATE_MULTIPLE)
