@@ -98,6 +98,45 @@ def main(argv=None) -> int:
         return EXIT_BROKEN_PIPE
 
 
+class LossyStream:
+    """A text stream whose writes never raise for want of room: a full disk (or any other
+    I/O error but a broken pipe) loses the text, counted in ``lost``, instead of killing
+    the process that logs. A process's log is its least important output.
+
+    >>> import io
+    >>> class Full(io.StringIO):
+    ...     def write(self, text):
+    ...         raise OSError(28, "No space left on device")
+    >>> s = LossyStream(Full())
+    >>> s.write("step 3\n"), s.lost
+    (7, 7)
+    """
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.lost = 0
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            raise
+        except OSError:
+            self.lost += len(text)
+            return len(text)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError:
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def run_program() -> None:
     """The program (``socmon``, ``python -m agent.cli``): :func:`main`, then exit with its
     status.
@@ -107,7 +146,14 @@ def run_program() -> None:
     its own: ``up`` stops its children at the end of a run, when the world may already be
     shutting down (seen once in a chaos run). Once :func:`main` has returned the work is
     done, and both signals are ignored while the process exits.
+
+    Standard output and error are :class:`LossyStream`: a process whose log sits on a full
+    disk keeps running (``up`` says the disk is full when it writes the run folder).
     """
+    if sys.stdout is not None:
+        sys.stdout = LossyStream(sys.stdout)
+    if sys.stderr is not None:
+        sys.stderr = LossyStream(sys.stderr)
     code = main()
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -384,7 +384,8 @@ class LocalRun:
                         event(process=name, impair="restored", step=k_now)
 
                 world_end = None
-                next_progress = time.monotonic() + 1.0
+                next_progress, disk_warned = time.monotonic() + 1.0, False
+                silence_said = False
                 start_deadline = time.monotonic() + c.start_timeout + 30.0
                 while True:
                     peer.wait(timeout=0.05)
@@ -401,6 +402,17 @@ class LocalRun:
                             raise RunFailed(f"{child.name} exited with status "
                                             f"{child.returncode} before {when}; "
                                             f"its log ends:\n{children.tail(child.name)}")
+                        elif world_end is None and child.name.startswith("agent-") and \
+                                child.returncode == 1 and \
+                                _world_silent_for(recorder) > TIMING.agent_world_gone_s:
+                            # the agents leave a world silent for Timing.world_silent_s
+                            silent = _world_silent_for(recorder)
+                            rec.world_silent = {"step": recorder.step, "seconds": silent}
+                            raise RunFailed(
+                                f"the world went silent after step {recorder.step} and stayed "
+                                f"so {silent:.0f} s (paused or cut off); {child.name} left it "
+                                f"(Timing.world_silent_s = {TIMING.world_silent_s:g} s): the "
+                                "run ends there")
                         elif world_end is None:
                             k_now = recorder.step
                             event(process=child.name, exit_status=child.returncode, step=k_now)
@@ -436,6 +448,20 @@ class LocalRun:
                         break
                     if now >= next_progress and rec.truth:
                         next_progress = now + 1.0
+                        silent = _world_silent_for(recorder)
+                        if silent > TIMING.agent_world_gone_s and not silence_said:
+                            silence_said = True
+                            self.say(f"WARNING: the world has been silent since step "
+                                     f"{recorder.step} ({silent:.0f} s): paused or cut off; "
+                                     f"the agents wait up to {TIMING.world_silent_s:g} s")
+                        elif silent < 1.0 and silence_said:
+                            silence_said = False
+                            self.say(f"the world is back at step {recorder.step}")
+                        if c.out is not None and not disk_warned and _disk_full(c.out):
+                            disk_warned = True
+                            self.say(f"WARNING: the disk of {str(c.out)!r} is full at step "
+                                     f"{k_now}: the processes' logs lose lines and the run "
+                                     "folder may not be written at the end; the run goes on")
                         st = rec.status.values()
                         self.say(f"step {k_now}/{K}  drops {sum(s['drops'] for s in st)}  "
                                  f"late {sum(s['late'] for s in st)}")
@@ -488,6 +514,21 @@ class LocalRun:
                        operator_key=c.out / "operator.key", control_key=c.out / "control.key",
                        manifest=c.out / "manifest.json", gains=c.gains_path, seed=c.seed,
                        delays=c.delays_spec, steps=c.steps, step_ms=c.step_ms)
+
+
+def _world_silent_for(recorder) -> float:
+    """Seconds since the newest step of the truth came (0 before the clock starts)."""
+    at = recorder.truth_at
+    return 0.0 if at is None else time.monotonic() - at
+
+
+def _disk_full(folder, room: int = 1 << 20) -> bool:
+    """True when the file system of ``folder`` has less than ``room`` bytes free."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < room
 
 
 def _through_router(argv, router_ep):

@@ -84,13 +84,20 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
     status_sender = keys.AgentKeyCache(run, "status", core.agents)
     out_file = open(events_out, "a") if events_out else None
+    files = [out_file]                   # [the events file, None once a write failed]
     publish = []              # the peer's put, once it is open: watchers hear every event
 
     def record(kind, **fields):
         event = {"kind": kind, "t": time.time(), **fields}
-        if out_file is not None:
-            out_file.write(json.dumps(event) + "\n")
-            out_file.flush()
+        if files[0] is not None:
+            try:
+                files[0].write(json.dumps(event) + "\n")
+                files[0].flush()
+            except OSError as exc:       # a full disk: the events go on on the wire only
+                files[0] = None
+                print(f"monitor {monitor_id}: warning: cannot write {events_out}: "
+                      f"{exc.strerror}; events are published only from now on", file=log,
+                      flush=True)
         for put in publish:
             put(keys.monitor_events_key(run), wire.encode_monitor_event(event))
 
@@ -269,6 +276,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     finally:
         worker.close()
         if out_file is not None:
-            out_file.close()
+            try:
+                out_file.close()
+            except OSError:              # the last buffered line did not fit either
+                pass
     return 0
 

@@ -68,6 +68,7 @@ class Recording:
     monitors_alive: set = field(default_factory=set)   # monitor ids whose token is up
     monitor_seen: bool = False                         # a monitor's token was ever heard
     no_monitor_since: int | None = None                # step the last monitor token went
+    world_silent: dict | None = None                   # {step, seconds}: agents left it
 
 
 class Recorder:
@@ -113,6 +114,7 @@ class Recorder:
 
             self._verifier = ControlVerifier(control_public, run_id, not_before=0.0)
         self._newest = -1
+        self.truth_at = None     # when the newest step of the truth came (monotonic)
         self._epoch_seen = 0     # the highest epoch taken (statuses, signed rosters)
         self.alive = set()     # agent ids whose liveliness token is up (set by watch_run)
         self.estimates_received = 0
@@ -184,6 +186,8 @@ class Recorder:
                 self.stats.count_dropped("implausible")
             elif m is not None:
                 rec.truth[m["step"]] = np.array(m["x"])
+                if m["step"] > self._newest:
+                    self.truth_at = time.monotonic()
                 self._newest = max(self._newest, m["step"])
                 # trimmed in batches of keep_steps // 8 (one pass over the dicts each)
                 if self.keep_steps is not None and \

@@ -33,8 +33,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["RUN_JSON", "RUN_ENTRIES", "RunInfo", "InvalidRunFolder", "write_run_json",
-           "read_run_info", "prepare_run_folder", "write_atomic"]
+__all__ = ["RUN_JSON", "RUN_ENTRIES", "RunInfo", "InvalidRunFolder", "RunFolderError",
+           "EXIT_FOLDER", "write_run_json", "read_run_info", "prepare_run_folder",
+           "write_atomic"]
 
 RUN_JSON = "run.json"
 RUN_JSON_VERSION = 1
@@ -96,6 +97,26 @@ def prepare_run_folder(folder, overwrite: bool = False) -> Path:
             raise InvalidRunFolder(f"cannot remove the earlier run's {str(path)!r}: "
                                    f"{exc.strerror}") from None
     return folder
+
+
+class RunFolderError(OSError):
+    """A run-folder file could not be written (a full disk): names the file, the reason,
+    and the files written whole before it."""
+
+    def __init__(self, path, exc: OSError, written):
+        self.path, self.written = Path(path), list(written)
+        self.strerror = exc.strerror or str(exc)
+        super().__init__(exc.errno, f"cannot write {self.path.name} in {str(self.path.parent)!r}"
+                                    f" ({self.strerror}); "
+                         + (f"written whole before it: {', '.join(self.written)}"
+                            if self.written else "nothing of the run folder was written"))
+
+    def __str__(self):
+        return self.args[1]
+
+
+EXIT_FOLDER = 3
+"""Exit status of a command whose run folder could not be written (a full disk)."""
 
 
 def write_atomic(path, data) -> None:

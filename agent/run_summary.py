@@ -8,7 +8,9 @@ and the run folder's files.
 
 from __future__ import annotations
 
+import io
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -130,6 +132,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "exit_status": {ch.name: ch.returncode for ch in children},
         "orphans": [ch.name for ch in children if ch.returncode is None],
         "monitor": c.monitor,
+        "world_silent": rec.world_silent,
         "faults": [f.to_dict() for f in c.faults],
         "events": rec.events,
         "final_roles": final_roles(last, rec.events, steps[-1] if steps else -1),
@@ -377,7 +380,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                     continue
     except (OSError, TypeError):        # no file (TypeError: no run folder)
         pass
-    records = records or list(rec.monitor_events)  # a watcher has those heard on the wire
+    # a watcher has only those heard on the wire; a monitor whose disk filled wrote fewer
+    if len(rec.monitor_events) > len(records):
+        records = list(rec.monitor_events)
     deaths = {}
     for e in events:
         name = e.get("process", "")
@@ -612,8 +617,24 @@ def compare_simulator(config, rec, steps_done):
     return worst, f"estimates ({compared} compared)"
 
 
+def _write(path, data, written=None) -> None:
+    """:func:`agent.run_folder.write_atomic`; a failure raised as
+    :class:`agent.run_folder.RunFolderError`, ``written`` (names) appended to on success."""
+    from .run_folder import RunFolderError, write_atomic
+
+    try:
+        write_atomic(path, data)
+    except RunFolderError:
+        raise
+    except OSError as exc:
+        raise RunFolderError(path, exc, written or []) from None
+    if written is not None:
+        written.append(Path(path).name)
+
+
 def save_estimates(path, steps_done, truth, est, agents, n):
-    """truth (K+1, n) and estimates (K+1, agents, n), NaN where nothing was received."""
+    """truth (K+1, n) and estimates (K+1, agents, n), NaN where nothing was received;
+    written atomically (:class:`agent.run_folder.RunFolderError` if it cannot be)."""
     import numpy as np
 
     X = np.full((len(steps_done), n), np.nan)
@@ -623,8 +644,10 @@ def save_estimates(path, steps_done, truth, est, agents, n):
         for c, a in enumerate(agents):
             if k in est[a]:
                 E[r, c] = est[a][k]
-    np.savez(path, step=np.array(steps_done, dtype=int), truth=X, estimates=E,
+    buf = io.BytesIO()
+    np.savez(buf, step=np.array(steps_done, dtype=int), truth=X, estimates=E,
              agents=np.array(agents, dtype=int))
+    _write(path, buf.getvalue())
 
 
 def pyplot():
@@ -647,25 +670,27 @@ def plottable(mse) -> np.ndarray:
 
 def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
     """The run folder's summary, MSE per step, assignments heard and ``mse.png``; every
-    file written atomically (:func:`agent.run_folder.write_atomic`)."""
+    file written atomically (:func:`agent.run_folder.write_atomic`), the summary first.
+    Returns the names written; a file that cannot be written (a full disk) raises
+    :class:`agent.run_folder.RunFolderError` naming it and those written whole before it."""
     import json
     import sys
 
     from .jsonable import to_jsonable
-    from .run_folder import write_atomic
 
-    write_atomic(out / "summary.json", json.dumps(to_jsonable(summary), indent=2) + "\n")
-    write_atomic(out / "mse.csv", "step,mse\r\n" + "".join(
-        f"{k},{float(m)!r}\r\n" for k, m in zip(steps_done, mse)))
-    write_atomic(out / "mse.json", json.dumps(to_jsonable(
-        {"step": steps_done, "mse": list(mse)})) + "\n")
+    written = []
+    _write(out / "summary.json", json.dumps(to_jsonable(summary), indent=2) + "\n", written)
+    _write(out / "mse.csv", "step,mse\r\n" + "".join(
+        f"{k},{float(m)!r}\r\n" for k, m in zip(steps_done, mse)), written)
+    _write(out / "mse.json", json.dumps(to_jsonable(
+        {"step": steps_done, "mse": list(mse)})) + "\n", written)
     if assigns is not None:
-        write_atomic(out / "assignments.json", json.dumps(to_jsonable(
+        _write(out / "assignments.json", json.dumps(to_jsonable(
             [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(assigns.items())]))
-            + "\n")
+            + "\n", written)
     plt = pyplot()
     if plt is None:
-        return
+        return written
     ok = plottable(mse)
     mse = np.asarray(mse, dtype=float)
     fig, ax = plt.subplots(figsize=(8.5, 4))
@@ -715,10 +740,15 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
     # beside the axes: inside, it hid the fault and recovery lines of some runs
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0,
               fontsize="small")
+    png = io.BytesIO()
     try:
         fig.tight_layout()
-        fig.savefig(out / "mse.png", dpi=110)
+        fig.savefig(png, format="png", dpi=110)
     except (OverflowError, ValueError) as exc:  # e.g. a diverged run's huge values
         print(f"up: warning: no mse.png ({type(exc).__name__}: {exc})", file=sys.stderr)
+        png = None
     finally:
         plt.close(fig)
+    if png is not None:
+        _write(out / "mse.png", png.getvalue(), written)
+    return written

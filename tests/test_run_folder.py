@@ -61,3 +61,67 @@ def test_up_refuses_an_earlier_runs_folder_before_doing_anything(tmp_path, capsy
     assert f"--out: {str(tmp_path)!r} holds an earlier run (events.jsonl)" in err
     assert "--overwrite" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["events.jsonl"]
+
+
+def test_a_full_disk_names_the_file_and_what_was_written_whole(tmp_path, monkeypatch):
+    """write_run_folder writes the summary first; the disk fills on the second file:
+    RunFolderError names that file and the summary, which is whole; no temporary stays."""
+    import json
+
+    from agent.run_folder import RunFolderError
+    from agent.run_summary import write_run_folder
+
+    calls = {"n": 0}
+    real = os.fsync
+
+    def fills_after_one(fd):
+        calls["n"] += 1
+        if calls["n"] > 1:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", fills_after_one)
+    summary = {"scenario": "x", "agents": 1, "seed": 0, "failures": []}
+    with pytest.raises(RunFolderError) as info:
+        write_run_folder(tmp_path, summary, [0, 1], [1.0, 0.5], 0.5)
+    assert info.value.path.name == "mse.csv" and info.value.written == ["summary.json"]
+    assert str(info.value) == (f"cannot write mse.csv in {str(tmp_path)!r} (No space left on "
+                               "device); written whole before it: summary.json")
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]
+
+
+def test_a_command_whose_run_folder_cannot_be_written_says_so_in_one_line(capsys):
+    from agent.commands._common import run_command
+    from agent.run_folder import EXIT_FOLDER, RunFolderError
+
+    def body():
+        raise RunFolderError("/r/mse.png", OSError(errno.ENOSPC, "No space left on device"),
+                             ["summary.json"])
+
+    assert run_command(body) == EXIT_FOLDER == 3
+    assert capsys.readouterr().err == ("socmon: run folder: cannot write mse.png in '/r' (No "
+                                       "space left on device); written whole before it: "
+                                       "summary.json\n")
+
+
+def test_a_log_on_a_full_disk_loses_lines_not_the_process():
+    """agent.cli.LossyStream: writes that fail for want of room are counted and dropped;
+    a broken pipe still raises (``socmon certify | head`` stops)."""
+    import io
+
+    from agent.cli import LossyStream
+
+    class Full(io.StringIO):
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    class Closed(io.StringIO):
+        def write(self, text):
+            raise BrokenPipeError(errno.EPIPE, "Broken pipe")
+
+    full = LossyStream(Full())
+    print("a line", file=full, flush=True)
+    assert full.lost == len("a line\n")
+    with pytest.raises(BrokenPipeError):
+        print("x", file=LossyStream(Closed()))

@@ -110,3 +110,19 @@ def test_a_killed_active_monitor_hands_over_and_a_crash_after_it_is_recovered(tm
     assert [(f["agent"], f["cause"]) for f in summary["failures"]] == [(1, "crash")]
     assert summary["recovered"] is True and summary["rosters"][-1]["ids"] == [4, 2, 3]
     assert summary.get("no_monitor") == []
+
+
+@pytest.mark.chaos
+def test_a_world_silent_until_the_agents_leave_ends_the_run_with_its_reason(tmp_path,
+                                                                             live_gains):
+    """SIGSTOP of the world for 70 s, past Timing.world_silent_s (60 s): up says the world
+    is silent, the agents leave it, and the run ends there with exit 1, the step and the
+    silence in the summary, and no agent called dead or the run diverged (long: under the
+    chaos marker)."""
+    code, out, err = _up(tmp_path, live_gains, "--steps", "300",
+                         "--fault", "worldstop:100::70")
+    assert code == 1, err
+    summary = json.loads(out)
+    assert summary["world_silent"]["step"] >= 99 and summary["world_silent"]["seconds"] > 59
+    assert "the world went silent after step" in summary["error"]
+    assert summary["failures"] == [] and summary.get("diverged_at") is None, summary

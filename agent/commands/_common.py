@@ -275,12 +275,19 @@ def load_signer(path, flag: str = "--control-key"):
 
 
 def run_command(body):
-    """Run ``body()`` and turn a CommandError into its message and exit status."""
+    """Run ``body()`` and turn a CommandError into its message and exit status, and a
+    run folder that could not be written (:class:`agent.run_folder.RunFolderError`) into
+    one line and :data:`agent.run_folder.EXIT_FOLDER`."""
+    from ..run_folder import EXIT_FOLDER, RunFolderError
+
     try:
         return body()
     except CommandError as exc:
         print(f"socmon: {exc}", file=sys.stderr)
         return exc.status
+    except RunFolderError as exc:      # a full disk: one line, the files written stay whole
+        print(f"socmon: run folder: {exc}", file=sys.stderr)
+        return EXIT_FOLDER
 
 
 def add_attach_argument(parser, takes: str = "") -> None:

@@ -264,6 +264,7 @@ def _up(args) -> int:
         save_estimates,
         write_run_folder,
     )
+    from ..run_folder import EXIT_FOLDER, RunFolderError
     from ._common import to_jsonable
 
     def say(text):
@@ -291,9 +292,14 @@ def _up(args) -> int:
         summary["simulator_compared"] = how
         if not diff <= CHECK_TOL:
             status_code = 1
-    write_run_folder(config.out, summary, steps_done, mse, predicted, assigns=rec.assigns)
-    active = [a for a in range(1, config.M + 1) if rec.est[a]]
-    save_estimates(config.out / "estimates.npz", steps_done, rec.truth, rec.est, active, s.n)
+    folder_error = None
+    try:
+        write_run_folder(config.out, summary, steps_done, mse, predicted, assigns=rec.assigns)
+        active = [a for a in range(1, config.M + 1) if rec.est[a]]
+        save_estimates(config.out / "estimates.npz", steps_done, rec.truth, rec.est, active,
+                       s.n)
+    except RunFolderError as exc:   # a full disk: the summary still goes to stdout
+        folder_error = exc
     summary["out"] = str(config.out)
     for warning in summary.get("warnings", []):
         print(f"warning: {warning}", file=sys.stderr)
@@ -315,6 +321,9 @@ def _up(args) -> int:
         print(f"run folder: {config.out}")
     if rec.failure:
         print(f"socmon up: {rec.failure}", file=sys.stderr)
+    if folder_error is not None:
+        print(f"socmon up: run folder: {folder_error}", file=sys.stderr)
+        return status_code or EXIT_FOLDER
     return status_code
 
 
