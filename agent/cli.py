@@ -108,8 +108,8 @@ class LossyStream:
     ...     def write(self, text):
     ...         raise OSError(28, "No space left on device")
     >>> s = LossyStream(Full())
-    >>> s.write("step 3\n"), s.lost
-    (7, 7)
+    >>> s.write("step 3"), s.lost
+    (6, 6)
     """
 
     def __init__(self, stream):
