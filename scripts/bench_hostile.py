@@ -9,9 +9,26 @@ times. The target is an RSS after the whole flood within 5 MB of the RSS before 
 agent still stepping; a one-time rise in the first pass that does not come back in later
 passes is the allocator's high-water mark, not a leak.
 
+With ``--live``, a whole ``socmon up`` run (world, 3 agents, a standby, two monitors and
+``up``'s own recorder; plain mode) is attacked instead, as an outsider joined as a zenoh
+client:
+
+1. *evidence*: for ``--attack-steps`` steps, every step, statuses that speak for another
+   agent or carry an epoch of 2^62, rosters unsigned or signed with a key not the run's,
+   estimates of 1e300 published as agent 1 and readings of 1e300;
+2. *flood*: ``--count`` malformed messages of each class on the keys the monitor and the
+   recorder read (statuses, rosters, estimates, the truth, the monitor's events);
+3. agent 1 is killed once the attacks are over (``--kill``), and the run ends.
+
+It prints the RSS of every process before and after each phase, then what the run made of
+it (read from ``summary.json``): the agents convicted, the evidence the monitor refused (by
+reason), the values refused as implausible, the highest epoch of any roster in force,
+whether the crash after it was recovered, and the steady MSE against its prediction.
+
 Usage::
 
     python scripts/bench_hostile.py [--count 10000] [--step-ms 20] [--passes 2]
+    python scripts/bench_hostile.py --live [--count 10000] [--attack-steps 500]
 """
 
 from __future__ import annotations
@@ -134,11 +151,176 @@ def main(count: int, step_ms: int, passes: int) -> int:
     return 0
 
 
+def _live_classes(run: str, n: int, rng):
+    """(name, key, make_payload, share of --count) of the malformed flood on what the
+    monitor and the recorder read."""
+    deep = b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0"
+    return [
+        ("random bytes on status/2", keys.status_key(run, 2),
+         lambda: rng.bytes(int(rng.integers(0, 50))), 1.0),
+        ("nested 5000 deep on status/3", keys.status_key(run, 3), lambda: deep, 1.0),
+        ("250 kB junk on the roster key", keys.ctl_key(run, 0), lambda: rng.bytes(250_000),
+         0.02),
+        ("random bytes on est/1", keys.est_key(run, 1),
+         lambda: rng.bytes(int(rng.integers(0, 50))), 1.0),
+        ("NaN truth", keys.truth_key(run),
+         lambda: wire.encode_truth(int(rng.integers(0, 10**5)), np.full(n, np.nan)), 1.0),
+        ("random bytes on monitor events", keys.monitor_events_key(run),
+         lambda: rng.bytes(int(rng.integers(0, 200))), 1.0),
+    ]
+
+
+def _rss_all(pids: dict) -> dict:
+    out = {}
+    for name, pid in pids.items():
+        try:
+            out[name] = rss_mb(pid)
+        except (OSError, RuntimeError):
+            out[name] = float("nan")          # exited (agent 1 after its kill)
+    return out
+
+
+def live(count: int, step_ms: int, attack_steps: int) -> int:
+    """The ``--live`` benchmark (see the module docstring)."""
+    import json
+    import os
+    import signal
+    import subprocess
+
+    from agent.control_auth import ControlSigner
+    from broker_free_net.codec import MessageStats
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import Peer
+    from tests.test_evidence_multiprocess import _status, _step_of
+
+    s = load_scenario("paper-14-live")
+    start = 100
+    steps = start + attack_steps + int(120_000 / step_ms)   # room for the flood and after
+    with tempfile.TemporaryDirectory() as tmp:
+        gains, out = Path(tmp) / "g.npz", Path(tmp) / "run"
+        save_gains(gains, [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure], {"method": "bench"})
+        up = subprocess.Popen(
+            [sys.executable, "-m", "agent.cli", "up", "paper-14-live", "--gains", str(gains),
+             "--out", str(out), "--json", "--quiet", "--steps", str(steps), "--step-ms",
+             str(step_ms)], cwd=ROOT, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True, start_new_session=True,
+            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        try:
+            deadline = time.monotonic() + 120
+            while not (out / "run.json").is_file():
+                if up.poll() is not None or time.monotonic() > deadline:
+                    raise SystemExit(f"up did not start: {up.stderr.read()}")
+                time.sleep(0.05)
+            run = json.loads((out / "run.json").read_text())
+            pids = {name: p["pid"] for name, p in run["processes"].items() if p.get("pid")}
+            pids["recorder (up)"] = up.pid
+            rid = run["run"]
+            net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
+            rss = {}
+            with Peer(net, "attacker", 0) as peer:
+                truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
+                evidence = (keys.ctl_key(rid, 0), keys.status_key(rid, 1),
+                            keys.status_key(rid, 2), keys.est_key(rid, 1),
+                            keys.sensors_key(rid))
+                for key in evidence:
+                    peer.publisher(key, block=True)
+                outsider = ControlSigner.generate()
+                stats, step, sent = MessageStats(), -1, 0
+                while step < start:
+                    step, _ = _step_of(truth_in, stats, step)
+                rss["start"] = _rss_all(pids)
+                print(f"run {rid}: attacking from step {step}; {len(pids)} processes")
+                t0 = time.monotonic()
+                while step < start + attack_steps:
+                    if up.poll() is not None:
+                        raise SystemExit(f"up ended during the attack: {up.stderr.read()}")
+                    step, heard = _step_of(truth_in, stats, step)
+                    if not heard:
+                        continue
+                    peer.put(keys.status_key(rid, 2), wire.encode_status(
+                        _status(1, step + 5, 2 ** 62)))
+                    peer.put(keys.status_key(rid, 1), wire.encode_status(
+                        _status(1, step, 2 ** 61)))
+                    peer.put(keys.ctl_key(rid, 0), wire.encode_roster(2 ** 62, 10 ** 6, [1, 2, 3]))
+                    peer.put(keys.ctl_key(rid, 0), wire.encode_roster(
+                        7, 10 ** 6, [2, 3, 4], signer=outsider, run=rid))
+                    peer.put(keys.est_key(rid, 1), wire.encode_est(
+                        1, step + 1, np.full(s.n, 1e300), 0, time.time()))
+                    peer.put(keys.sensors_key(rid), wire.encode_sensors(
+                        step + 1, np.full(s.n, 1e300)))
+                    sent += 6
+                print(f"evidence: {sent} forged messages over {time.monotonic() - t0:.1f} s "
+                      f"(to step {step})")
+                rss["evidence"] = _rss_all(pids)
+                rng = np.random.default_rng(0)
+                flood = 0
+                for name, key, make, share in _live_classes(rid, s.n, rng):
+                    peer.publisher(key, block=True)
+                    t1, sent_class = time.monotonic(), max(1, int(count * share))
+                    for _ in range(sent_class):
+                        peer.put(key, make())
+                    flood += sent_class
+                    print(f"flood: {sent_class} x {name} ({time.monotonic() - t1:.1f} s)")
+                step, _ = _step_of(truth_in, stats, step)
+                t_wait = time.monotonic() + 5.0
+                while time.monotonic() < t_wait:     # let the inboxes drain
+                    step, _ = _step_of(truth_in, stats, step)
+                rss["flood"] = _rss_all(pids)
+                print(f"flood: {flood} messages; run at step {step}")
+                if step > steps - 700:
+                    raise SystemExit("the flood took too long: no room left for the crash")
+                os.kill(pids["agent-1"], signal.SIGKILL)
+                kill = step
+                print(f"agent 1 killed at step {kill}")
+            stdout, stderr = up.communicate(timeout=steps * step_ms / 1000 + 180)
+        finally:
+            if up.poll() is None:
+                os.killpg(up.pid, signal.SIGKILL)
+                up.communicate()
+        rss["end"] = {}
+        summary = json.loads(stdout) if stdout.strip() else {}
+    print()
+    print("| process | RSS at start (MB) | after the evidence attacks | after the flood | "
+          "delta (MB) |")
+    print("| --- | ---: | ---: | ---: | ---: |")
+    for name in pids:
+        a, b, c = rss["start"][name], rss["evidence"][name], rss["flood"][name]
+        print(f"| {name} | {a:.1f} | {b:.1f} | {c:.1f} | {c - a:+.1f} |")
+    print()
+    if not summary:
+        print(f"up printed no summary (exit {up.returncode}): {stderr[-2000:]}")
+        return 1
+    refused = sorted({(e.get("reason"), e.get("agent"))
+                      for e in summary.get("evidence_refused", [])}, key=str)
+    convicted = [(f["agent"], f.get("cause"), f.get("detected_step"))
+                 for f in summary.get("failures", [])]
+    epochs = [r["epoch"] for r in summary.get("rosters", [])]
+    print(f"up exit {up.returncode}; convicted {convicted} (agent 1 killed at step {kill}); "
+          f"recovered {summary.get('recovered')}")
+    print(f"evidence the monitor refused (reason, agent named): {refused}")
+    print(f"implausible values refused by the agents: {summary.get('implausible')}; "
+          f"messages the recorder refused: {summary.get('recorder_malformed')}")
+    print(f"highest roster epoch in force: {max(epochs) if epochs else None}; rosters "
+          f"{len(epochs)}")
+    after, exact = (summary.get("mse_steady_after_recovery"),
+                    summary.get("mse_steady_exact_after_recovery"))
+    print(f"mse_steady after recovery {after if after is None else f'{after:.4g}'} "
+          f"(exact {exact if exact is None else f'{exact:.4g}'})")
+    return 0
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--count", type=int, default=10_000, help="messages per class")
     parser.add_argument("--step-ms", type=int, default=20, help="the world's step period")
     parser.add_argument("--passes", type=int, default=2,
                         help="times the whole flood is sent (RSS must not grow pass after pass)")
+    parser.add_argument("--live", action="store_true",
+                        help="attack a whole `socmon up` run (evidence, then a flood on what "
+                             "the monitor and the recorder read); RSS of every process")
+    parser.add_argument("--attack-steps", type=int, default=500,
+                        help="--live: steps of forged evidence (one of each kind a step)")
     args = parser.parse_args()
+    if args.live:
+        sys.exit(live(args.count, args.step_ms, args.attack_steps))
     sys.exit(main(args.count, args.step_ms, args.passes))
