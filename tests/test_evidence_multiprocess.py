@@ -161,9 +161,10 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
 
 def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, live_gains):
     """Plain mode: an outsider publishes, as agent 1, estimates of 1e300 and 1e30 at the
-    run's current step, and readings of 1e300 for the next step, for 150 steps. Every
-    agent refuses them (counted ``implausible``), nobody is convicted, and the run's
-    steady MSE stays within 3x of the exact prediction."""
+    run's current step, readings of 1e300 for the next step, and plausible readings
+    stamped 99,998 and 99,999 steps ahead, for 150 steps. Every agent refuses them
+    (counted ``implausible`` and ``sensor_future``), nobody is convicted, the agents do
+    not race ahead, and the run's steady MSE stays within 3x of the exact prediction."""
     from agent import wire
     from broker_free_net import keys
     from broker_free_net.codec import MessageStats
@@ -187,9 +188,13 @@ def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, l
                     peer.put(keys.est_key(rid, 1), wire.encode_est(
                         1, step + 1, [value] * 14, 0, time.time()))
                 peer.put(keys.sensors_key(rid), wire.encode_sensors(step + 1, [1e300] * 14))
+                for ahead in (99_998, 99_999):    # plausible values, stamps from the future
+                    peer.put(keys.sensors_key(rid), wire.encode_sensors(step + ahead,
+                                                                        [1.0] * 14))
                 sent += 1
     assert sent > 50
     s = result["s"]
     assert s["failures"] == [], s["failures"]
     assert s["implausible"]["estimates"] > 50 and s["implausible"]["readings"] > 50, s
+    assert s["sensor_future"] > 50 and s["steps"] == 500, s
     assert s["mse_steady"] < 3 * s["mse_steady_exact"], (s["mse_steady"], s["mse_steady_exact"])
