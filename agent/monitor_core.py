@@ -373,6 +373,8 @@ class MonitorCore:
         #: the agents report an epoch this monitor did not issue: :meth:`adopt` before acting
         self.behind = False
         self._adopt_wait = None            # the last reason an adoption had to wait
+        self._recorded = {"verdicts": 0, "history": 0, "gains": 0, "reissue": 0, "rejoin": 0,
+                          "evidence_refused": 0, "waiting": None}   # see new_records
 
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
@@ -510,6 +512,40 @@ class MonitorCore:
             # acted while this one was away (restarted, paused, cut off)
             self.epoch = a.epoch
             self.behind = True
+
+    @property
+    def roster_message(self):
+        """The :class:`RosterUpdate` in force (re-published by the shell), or None."""
+        return self._roster_msg
+
+    def new_records(self) -> list:
+        """``(kind, fields)`` of what happened since the last call, for the run's record
+        (``events.jsonl`` and the monitor's events on the wire; docs/monitor.md): every
+        ``verdict``, ``reassign``, ``gains`` note, ``reissue``, ``rejoin``,
+        ``evidence_refused``, and ``confirmed`` once every agent of a reassignment runs
+        its epoch. Times are this core's (``mono``: the caller's monotonic clock)."""
+        seen = self._recorded
+        out = []
+        for v in self.verdicts[seen["verdicts"]:]:
+            out.append(("verdict", {"agent": v.agent, "cause": v.cause, "evidence": v.evidence,
+                                    "step": v.step, "mono": v.at}))
+        for h in self.history[seen["history"]:]:
+            out.append(("reassign", {**{k: v for k, v in h.items()
+                                        if k not in ("decided_at", "sent_at")},
+                                     "mono": h["decided_at"], "mono_sent": h["sent_at"]}))
+        for name, items in (("gains", self.gain_notes), ("reissue", self.reissues),
+                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies)):
+            out += [(name, dict(r)) for r in items[seen[name]:]]
+        for name, items in (("verdicts", self.verdicts), ("history", self.history),
+                            ("gains", self.gain_notes), ("reissue", self.reissues),
+                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies)):
+            seen[name] = len(items)
+        if self.history and not self.confirmed():
+            seen["waiting"] = self.epoch
+        elif seen["waiting"] is not None and self.confirmed():
+            out.append(("confirmed", {"epoch": self.epoch, "waited_for": seen["waiting"]}))
+            seen["waiting"] = None
+        return out
 
     def _agent(self, agent):
         try:

@@ -101,7 +101,6 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         for put in publish:
             put(keys.monitor_events_key(run), wire.encode_monitor_event(event))
 
-    recorded = {"verdicts": 0, "history": 0, "reissues": 0, "waiting": None}  # in events_out
     precomputing = [None]
 
     def precompute_for(roster):
@@ -233,36 +232,15 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     for line in core.events:
                         print(f"monitor {monitor_id}: {line}", file=log, flush=True)
                     core.events.clear()
-                    for v in core.verdicts[recorded["verdicts"]:]:
-                        record("verdict", agent=v.agent, cause=v.cause, evidence=v.evidence,
-                               step=v.step, mono=v.at,
-                               detected_t=time.time() - (time.monotonic() - v.at))
-                    recorded["verdicts"] = len(core.verdicts)
-                    for h in core.history[recorded["history"]:]:
-                        record("reassign", **{k: v for k, v in h.items()
-                                              if k not in ("decided_at", "sent_at")},
-                               mono=h["decided_at"], mono_sent=h["sent_at"])
-                        precompute_for(core.roster)
-                    recorded["history"] = len(core.history)
-                    for g in core.gain_notes[recorded.setdefault("gain_notes", 0):]:
-                        record("gains", **g)
-                    recorded["gain_notes"] = len(core.gain_notes)
-                    for r in core.reissues[recorded["reissues"]:]:
-                        record("reissue", **r)
-                    recorded["reissues"] = len(core.reissues)
-                    for r in core.rejoins[recorded.setdefault("rejoins", 0):]:
-                        record("rejoin", **r)
-                    recorded["rejoins"] = len(core.rejoins)
-                    for r in core.anomalies[recorded.setdefault("anomalies", 0):]:
-                        record("evidence_refused", **r)
-                    recorded["anomalies"] = len(core.anomalies)
-                    if core.history and not core.confirmed():
-                        recorded["waiting"] = core.epoch
-                    elif recorded["waiting"] is not None and core.confirmed():
-                        record("confirmed", epoch=core.epoch, waited_for=recorded["waiting"])
-                        recorded["waiting"] = None
-                    if core._roster_msg is not None and now >= next_roster:
-                        m = core._roster_msg
+                    for kind, fields in core.new_records():
+                        if kind == "verdict":      # wall-clock time of the detection
+                            fields["detected_t"] = time.time() - (time.monotonic()
+                                                                  - fields["mono"])
+                        record(kind, **fields)
+                        if kind == "reassign":
+                            precompute_for(core.roster)
+                    if core.roster_message is not None and now >= next_roster:
+                        m = core.roster_message
                         peer.put(keys.ctl_key(run, 0), wire.encode_roster(
                             m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                         next_roster = now + ROSTER_S

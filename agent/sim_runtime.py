@@ -1,0 +1,414 @@
+"""The whole runtime in one process under simulated time: world, agents and monitor cores
+wired by an event queue, with link latency, crashes, hangs and pauses, and no zenoh.
+
+What runs is what the processes run: :class:`agent.core.AgentCore`,
+:class:`agent.core.WorldCore` and :class:`agent.monitor_core.MonitorCore`, fed with
+messages that go through the same codec (:mod:`agent.wire`, encoded by the sender and
+decoded by the receiver) at the times the simulated network delivers them. The monitor's
+record is :meth:`MonitorCore.new_records`, as the monitor process writes it, and the run is
+summarised by :func:`agent.run_summary.summarize`, the code that writes a live run's
+``summary.json``: ``recovered``, the rosters in force and the MSE after recovery are read
+from what the simulated agents computed, as they are for a live run.
+
+A run of 600 steps of paper-14-live takes well under a second of CPU once the gains it
+needs are designed, so thousands of fault schedules can be checked
+(``tests/test_sim_runtime.py``, ``scripts/sim_chaos.py``).
+
+The model of the transport: every message takes ``latency_s`` plus a uniform jitter of
+``jitter_s`` per link, in order per link (zenoh's links are TCP); a dead process receives
+nothing; a paused one receives its messages when it resumes. A liveliness token goes at
+once when its process dies (the kernel closes its sockets), ``lease_s`` after it stopped
+(zenoh's link lease), and comes back when a paused process resumes. Gains the monitor asks
+for come ``design_s`` after the request (designed at once in real time and cached across
+runs by configuration).
+
+Faults are ``up``'s (:class:`agent.local_run.Fault`, :data:`FAULT_KINDS`): ``crash``
+(the agent dies once it published step ``step - 1``, as ``up --kill STEP:AGENT``), ``hang``
+(at the world's ``step`` the agent's loop stops for good; its token stays), ``stop``
+(SIGSTOP for ``seconds``: the token lapses after ``lease_s`` and comes back, the backlog is
+processed at once).
+
+>>> from design.scenario import load_scenario
+>>> import numpy as np
+>>> s = load_scenario("paper-14-live")
+>>> G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+>>> from agent.local_run import Fault
+>>> result = SimRuntime(s, G, s.delays, seed=1, faults=[Fault(150, "crash", 1)]).run(400)
+>>> [(f["agent"], f["cause"]) for f in result.summary["failures"]], result.summary["recovered"]
+([(1, 'crash')], True)
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from broker_free_net import keys
+from broker_free_net.codec import MessageStats, try_decode
+
+from . import wire
+from .agent_process import agent_config
+from .core import AgentCore, AssignmentError, WorldCore
+from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
+from .timing import DEFAULT as TIMING
+
+__all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS"]
+
+#: The kinds of :class:`agent.local_run.Fault` a simulated run applies.
+FAULT_KINDS = ("crash", "hang", "stop")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated network and process periods (seconds)."""
+
+    step_s: float = 0.02
+    latency_s: float = 0.001
+    jitter_s: float = 0.002
+    lease_s: float = 1.0
+    status_s: float = TIMING.status_s
+    tick_s: float = 0.01                 # the monitor's loop (monitor_process.TICK_S)
+    roster_s: float = 1.0                # the roster re-published (monitor_process.ROSTER_S)
+    design_s: float = 0.5                # a gain requested by the monitor comes this late
+    start_s: float = 0.5                 # the world's first step (agents heard each other)
+    deadline_s: float | None = None      # agents' deadline; default one step
+
+
+@dataclass
+class SimResult:
+    """A simulated run: the recording (:class:`agent.recorder.Recording`), its summary
+    (the keys of a live run's ``summary.json``), the MSE per step, and the monitor core."""
+
+    recording: object
+    summary: dict
+    steps: list
+    mse: list
+    monitor: MonitorCore
+
+
+class _GainDesigns:
+    """The monitor's gain worker under simulated time: a request is designed at once (in
+    real time, cached by configuration across runs) and answered ``design_s`` later."""
+
+    cache: dict = {}
+
+    def __init__(self, runtime):
+        self.rt = runtime
+        self.ready: list = []
+
+    def _answer(self, roster, kinds):
+        from .monitor_core import design_gains_for
+
+        for kind in kinds:
+            key = (GainSource.key(roster), kind)
+            if key not in self.cache:
+                self.cache[key] = design_gains_for(roster, kind)
+            G, info = self.cache[key]
+            self.rt.after(self.rt.config.design_s,
+                          lambda G=G, info=info: self.ready.append((roster, G, info)))
+
+    def request(self, roster, kinds=("fast",)):
+        self._answer(roster, kinds)
+
+    def assess(self, roster, G, info):
+        pass                                   # the exact MSE of a fast gain: not needed here
+
+    def precompute(self, roster):
+        pass                                   # unforeseen failures: every gain is requested
+
+    def poll(self):
+        out, self.ready = self.ready, []
+        return out
+
+
+class SimRuntime:
+    """One run of ``scenario`` with gains ``G`` and link ``delays`` (steps), ``faults``
+    applied, in simulated time. :meth:`run` returns a :class:`SimResult`."""
+
+    def __init__(self, scenario, G, delays, seed: int = 0, faults=(), config: SimConfig = None,
+                 monitor: MonitorConfig | None = None):
+        self.s = scenario
+        self.G = [np.asarray(g, dtype=float) for g in G]
+        self.delays = np.asarray(delays, dtype=int)
+        self.seed = int(seed)
+        self.faults = sorted(faults)
+        for f in self.faults:
+            if f.kind not in FAULT_KINDS or not 1 <= f.agent <= scenario.N + scenario.standby:
+                raise ValueError(f"a simulated run applies {FAULT_KINDS} to an agent, got {f}")
+        self._crash_at = {f.agent: f.step for f in self.faults if f.kind == "crash"}
+        self.config = config or SimConfig()
+        c = self.config
+        self.M = scenario.N + scenario.standby
+        self.now = 0.0
+        self._queue: list = []
+        self._seq = itertools.count()
+        self._rng = np.random.default_rng([self.seed, 7])
+        self._link_free: dict = {}
+        deadline = c.step_s if c.deadline_s is None else c.deadline_s
+        self.agents = {a: AgentCore(agent_config(scenario, a, self.G, self.seed, self.delays,
+                                                 deadline))
+                       for a in range(1, self.M + 1)}
+        self.world = WorldCore(scenario.A, self.seed, scenario.process_noise)
+        self.dead: set = set()                 # processes that died ("agent-3", ...)
+        self.hung: set = set()
+        self.paused_until: dict = {}           # name -> resume time
+        self._backlog: dict = {}               # name -> [callables] held while paused
+        self._wake_at: dict = {}
+        self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s)
+        self.designs = _GainDesigns(self)
+        self.gains = GainSource(worker=self.designs)
+        self.mon = MonitorCore(self.monitor_config, scenario, self.G, self.delays,
+                               gains=self.gains)
+        self.stats = MessageStats()
+        self._schemas = {"est": wire.est_schema(scenario.n), "ctl": wire.ctl_schema(scenario.n),
+                         "roster": wire.roster_schema(),
+                         "sensors": wire.sensors_schema(scenario.n)}
+        self._index = {label: i for i, label in enumerate(scenario.labels)}
+        from .recorder import Recorder
+
+        self.run_id = f"sim{self.seed}"
+        self.recorder = Recorder(self.run_id, scenario.n, scenario.N, self.M)
+        self.rec = self.recorder.recording
+        self.rec.monitor_seen = True
+        self._roster_at = 0.0
+
+    def _record(self, src: str, key: str, payload: bytes) -> None:
+        """The recorder (``up``'s) hears ``payload`` on ``key``, as on the wire."""
+        self._send(src, "recorder", lambda: self.recorder.feed(key, payload))
+
+    # -- the event queue -------------------------------------------------------------
+    def after(self, dt: float, fn) -> None:
+        heapq.heappush(self._queue, (self.now + dt, next(self._seq), fn))
+
+    def _send(self, src: str, dst: str, handle) -> None:
+        """Deliver ``handle()`` at ``dst`` after the link's latency, in order per link."""
+        c = self.config
+        at = self.now + c.latency_s + c.jitter_s * float(self._rng.random())
+        at = max(at, self._link_free.get((src, dst), 0.0))
+        self._link_free[(src, dst)] = at
+        heapq.heappush(self._queue, (at, next(self._seq), lambda: self._arrive(dst, handle)))
+
+    def _arrive(self, dst: str, handle) -> None:
+        if dst in self.dead:
+            return
+        if dst in self.hung or self.paused_until.get(dst, -1.0) > self.now:
+            self._backlog.setdefault(dst, []).append(handle)
+            if dst in self.hung and len(self._backlog[dst]) > 10_000:
+                del self._backlog[dst][0]
+            return
+        handle()
+        if dst.startswith("agent-"):
+            self._agent_poll(int(dst.split("-")[1]))
+
+    def _alive(self, name: str) -> bool:
+        return name not in self.dead and name not in self.hung and \
+            self.paused_until.get(name, -1.0) <= self.now
+
+    # -- the world -------------------------------------------------------------------
+    def _world_step(self) -> None:
+        w = self.world
+        k = w.step
+        self._record("world", keys.truth_key(self.run_id), wire.encode_truth(k, w.x))
+        payload = wire.encode_sensors(k, w.x)
+        for a in self.agents:
+            self._send("world", f"agent-{a}", lambda a=a: self._on_sensors(a, payload))
+        for f in [f for f in self.faults if f.step == k and f.kind != "crash"]:
+            self._fault(f)
+        if k < self._steps:
+            w.advance()
+            self.after(self.config.step_s, self._world_step)
+
+    # -- the agents ------------------------------------------------------------------
+    def _on_sensors(self, a: int, payload: bytes) -> None:
+        core = self.agents[a]
+        msg = try_decode(payload, self._schemas["sensors"], self.stats)
+        if msg is None:
+            return
+        for label in core.wanted_labels():
+            core.on_sensor(label, msg["step"], float(msg["x"][self._index[label]]),
+                           now=self.now)
+
+    def _on_est(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["est"], self.stats)
+        if msg is not None:
+            self.agents[a].on_estimate(msg["agent"], msg["step"], msg["x"], self.now)
+
+    def _on_ctl(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["ctl"], self.stats)
+        if msg is None:
+            return
+        try:
+            self.agents[a].on_assignment(msg)
+        except AssignmentError:
+            pass
+        self._agent_status(a)
+
+    def _on_roster(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["roster"], self.stats)
+        if msg is not None and self.agents[a].on_roster(msg):
+            self._agent_status(a)
+
+    def _agent_poll(self, a: int) -> None:
+        name = f"agent-{a}"
+        if not self._alive(name):
+            return
+        core = self.agents[a]
+        crash_at = self._crash_at.get(a)
+        for step, x, epoch in core.poll(self.now):
+            payload = wire.encode_est(a, step, x, epoch, self.now)
+            self._record(name, keys.est_key(self.run_id, a), payload)
+            for b in self.agents:
+                if b != a:
+                    self._send(name, f"agent-{b}",
+                               lambda b=b, payload=payload: self._on_est(b, payload))
+            if crash_at is not None and step >= crash_at - 1 and core.active:
+                break
+        if crash_at is not None and core.step >= crash_at - 1:
+            self._agent_status(a)                # the scripted crash's last status
+            self._crash(a, crash_at)
+            return
+        wake = core.next_wakeup(self.now)
+        if wake is not None and wake > self.now and self._wake_at.get(a, math.inf) > wake:
+            self._wake_at[a] = wake
+            heapq.heappush(self._queue, (wake, next(self._seq), lambda: self._woken(a, wake)))
+
+    def _woken(self, a: int, at: float) -> None:
+        if self._wake_at.get(a) == at:
+            del self._wake_at[a]
+        self._agent_poll(a)
+
+    def _agent_status(self, a: int) -> None:
+        name = f"agent-{a}"
+        if not self._alive(name):
+            return
+        st = self.agents[a].status()
+        st.update(malformed=0, malformed_reasons={}, overflows=0)
+        payload = wire.encode_status(st)
+        self._send(name, "monitor", lambda: self._on_status(payload))
+        self._record(name, keys.status_key(self.run_id, a), payload)
+
+    def _status_loop(self, a: int) -> None:
+        if f"agent-{a}" in self.dead:
+            return
+        self._agent_status(a)
+        self.after(self.config.status_s, lambda: self._status_loop(a))
+
+    # -- liveliness and faults ---------------------------------------------------------
+    def _token(self, a: int, alive: bool) -> None:
+        """Agent ``a``'s token went (or came back): every other process learns it."""
+        self.mon.on_liveliness("agent", a, alive, self.now)
+        for b, core in self.agents.items():
+            if b != a:
+                core.set_alive(a, alive)
+        if not alive:
+            self.rec.events.append({"process": f"agent-{a}", "liveliness": False,
+                                    "step": self.world.step, "t": self.now})
+
+    def _crash(self, a: int, step: int) -> None:
+        name = f"agent-{a}"
+        self.dead.add(name)
+        self.rec.events.append({"process": name, "exit_status": -9, "step": self.world.step,
+                                "t": self.now})
+        # the kernel closes a killed process's sockets: its peers see its links (and its
+        # token) go at once; the lease matters only for a stopped process
+        self.after(2 * self.config.latency_s, lambda: self._token(a, False))
+
+    def _fault(self, f) -> None:
+        name = f"agent-{f.agent}"
+        lease = self.config.lease_s
+        if f.kind == "hang":
+            self.hung.add(name)
+            self.rec.events.append({"process": name, "signal": "SIGUSR1", "step": f.step, "t": self.now})
+        else:
+            self.paused_until[name] = self.now + f.seconds
+            self.rec.events.append({"process": name, "signal": "SIGSTOP", "step": f.step, "t": self.now})
+            if f.seconds > lease:
+                self.after(lease, lambda: self._token(f.agent, False))
+            self.after(f.seconds, lambda: self._resume(f.agent, f.seconds > lease))
+
+    def _resume(self, a: int, token_lapsed: bool) -> None:
+        name = f"agent-{a}"
+        if name in self.dead:
+            return
+        self.rec.events.append({"process": name, "signal": "SIGCONT",
+                                "step": self.world.step, "t": self.now})
+        if token_lapsed:
+            self._token(a, True)
+        for handle in self._backlog.pop(name, []):
+            handle()
+        self._agent_poll(a)
+        self._agent_status(a)
+
+    # -- the monitor -------------------------------------------------------------------
+    def _on_status(self, payload: bytes) -> None:
+        msg = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
+        if msg is not None:
+            self.mon.on_status(msg, self.now, sender=msg["agent"])
+
+    def _publish(self, m) -> None:
+        if isinstance(m, Assignment):
+            sp = m.spec
+            payload = wire.encode_ctl(m.agent, m.epoch, m.activate_at, sp.measure,
+                                      sp.neighbours, sp.self_weight, sp.gain,
+                                      take_over=sp.take_over, continues=sp.continues)
+            self._record("monitor", keys.ctl_key(self.run_id, m.agent), payload)
+            self._send("monitor", f"agent-{m.agent}",
+                       lambda a=m.agent: self._on_ctl(a, payload))
+        elif isinstance(m, RosterUpdate):
+            self._roster_out(m)
+
+    def _roster_out(self, m) -> None:
+        payload = wire.encode_roster(m.epoch, m.activate_at, m.ids)
+        self._record("monitor", keys.ctl_key(self.run_id, 0), payload)
+        for a in self.agents:
+            self._send("monitor", f"agent-{a}", lambda a=a: self._on_roster(a, payload))
+        self._roster_at = self.now + self.config.roster_s
+
+    def _monitor_tick(self) -> None:
+        for roster, G, info in self.designs.poll():
+            self.gains.put(roster, G, info)
+        for m in self.mon.tick(self.now):
+            self._publish(m)
+        self.mon.events.clear()
+        for kind, fields in self.mon.new_records():
+            self._record("monitor", keys.monitor_events_key(self.run_id),
+                         wire.encode_monitor_event({"kind": kind, "t": self.now, **fields}))
+        roster = self.mon.roster_message
+        if roster is not None and self.now >= self._roster_at:
+            self._roster_out(roster)
+        if self.world.step < self._steps or self.now < self._end_at:
+            self.after(self.config.tick_s, self._monitor_tick)
+
+    # -- the run -------------------------------------------------------------------------
+    def run(self, steps: int) -> SimResult:
+        """Run ``steps`` steps of the world (and the agents until they computed them)."""
+        from .local_run import RunConfig
+        from .run_summary import predicted_mse, summarize
+
+        c = self.config
+        self._steps = int(steps)
+        self._end_at = c.start_s + (steps + 20) * c.step_s + 2.0
+        self.mon.on_liveliness("world", "1", True, 0.0)
+        for a in self.agents:
+            self.mon.on_liveliness("agent", a, True, 0.0)
+            self.after(0.01 * a / self.M, lambda a=a: self._status_loop(a))
+        self.after(c.start_s, self._world_step)
+        self.after(0.0, self._monitor_tick)
+        while self._queue:
+            t, _, fn = heapq.heappop(self._queue)
+            if t > self._end_at:
+                break
+            self.now = t
+            fn()
+        rho, predicted = predicted_mse(self.s, self.G, self.delays)
+        config = RunConfig(scenario=self.s, scenario_arg=self.s.name, G=self.G,
+                           gains_path=None, delays=self.delays, delays_spec="sim",
+                           steps=self._steps, seed=self.seed, step_ms=1e3 * c.step_s,
+                           deadline_ms=None, out=None, monitor=True, drop=None,
+                           run_id=self.rec.run_id, faults=tuple(self.faults))
+        summary, steps_done, mse = summarize(config, self.rec, rho, predicted)
+        return SimResult(self.rec, summary, steps_done, mse, self.mon)
