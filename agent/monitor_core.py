@@ -604,6 +604,10 @@ class MonitorCore:
             # a deleted token is evidence of its own: even while the monitor's own pause
             # suspends the verdicts that read clocks, a crash is answered
             found = self._crash_verdicts(now) if suspended else self._detect(now)
+            # when its verdict was first found, while the evidence holds: an agent convicted
+            # again later (it came back, rejoined, failed again) starts a new time
+            self._first_seen = {a: t for a, t in self._first_seen.items()
+                                if any(v.agent == a for v in found)}
             for v in found:
                 self._first_seen.setdefault(v.agent, now)
             found = [dataclasses.replace(v, at=self._first_seen[v.agent]) for v in found]
@@ -1008,9 +1012,10 @@ class MonitorCore:
         (an event and an entry of :attr:`rejoins`); a break starts the probation over."""
         for a in sorted(self.on_probation):
             st = self.agents[a]
-            if a in self.roster.ids:                # taken again meanwhile
-                self.on_probation.discard(a)
-                continue
+            if a in self.roster.ids:
+                if a not in self.failed:            # taken again meanwhile
+                    self.on_probation.discard(a)
+                continue        # still in the roster: its reassignment waits for gains
             if not self.healthy_standby(a, now):
                 st.healthy_since = None
                 continue

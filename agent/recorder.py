@@ -86,6 +86,8 @@ class Recorder:
     keep_steps : int or None
         Keep the truth and estimates of the newest ``keep_steps`` steps only (a watcher of
         an endless run must not grow without bound); None keeps all (``up``: K is known).
+    clock : callable
+        The time stamped on the events it records (default ``time.time``).
     scale : design.plausibility.StateScale, optional
         The model's scale: a truth or an estimate far beyond it (the agents' own rule) is
         not recorded but counted (``stats`` reason ``implausible``), so a forged 1e300
@@ -94,7 +96,7 @@ class Recorder:
 
     def __init__(self, run_id: str, n: int, N: int, M: int, ports=(),
                  keep_steps: int | None = None, control_public: bytes | None = None,
-                 scale=None):
+                 scale=None, clock=time.time):
         rec = self.recording = Recording(run_id=run_id, ports=list(ports))
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
@@ -108,6 +110,7 @@ class Recorder:
         self._inboxes = ()
         self.keep_steps = keep_steps
         self.scale = scale
+        self.clock = clock       # the time of the events it records (a simulated run's own)
         self._verifier = None            # with the run's control key: unsigned ctl dropped
         if control_public is not None:
             from .control_auth import ControlVerifier
@@ -151,7 +154,7 @@ class Recorder:
 
     def _event(self, **fields) -> None:
         if len(self.recording.events) < MAX_EVENTS:
-            self.recording.events.append({**fields, "t": time.time()})
+            self.recording.events.append({**fields, "t": self.clock()})
 
     # -- the wire -----------------------------------------------------------------------
     def subscribe(self, peer) -> None:
@@ -216,13 +219,13 @@ class Recorder:
                 if was is not None and was["active"] and not m["active"] and \
                         len(rec.events) < MAX_EVENTS:    # an agent dropped its role (fenced)
                     rec.events.append({"process": f"agent-{m['agent']}", "role": "dropped",
-                                       "epoch": m["epoch"], "step": m["step"], "t": time.time()})
+                                       "epoch": m["epoch"], "step": m["step"], "t": self.clock()})
                 links = m.get("links", {})
                 if links != (was or {}).get("links", {}) and len(rec.events) < MAX_EVENTS:
                     # the impairments in force on the links into it changed: by this run's
                     # faults, `socmon inject` or anyone with the operator key
                     rec.events.append({"process": f"agent-{m['agent']}", "links": links,
-                                       "step": m["step"], "t": time.time()})
+                                       "step": m["step"], "t": self.clock()})
                 rec.status[m["agent"]] = m
         elif key == self._roster_key:
             m = self._authentic(try_decode(payload, self._schemas["roster"], self.stats))

@@ -400,18 +400,34 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             dropped.setdefault(int(name.split("-")[1]), e)
     failures = []
     reassigns = [r for r in records if r.get("kind") == "reassign"]
+
+    def of_agent(a, test):
+        return [e for e in events if e.get("process") == f"agent-{a}" and test(e)]
+
     for v in [r for r in records if r.get("kind") == "verdict"]:
         entry = {"agent": v["agent"], "cause": v["cause"], "evidence": v["evidence"],
                  "detected_step": v["step"]}
-        death = deaths.get(v["agent"])
+        # an agent convicted twice (it came back, rejoined, failed again): each verdict is
+        # paired with the fault just before it and the reassignment just after it
+        at = v.get("detected_t", v.get("t"))
+        stops = of_agent(v["agent"], lambda e: e.get("signal") == "SIGSTOP"
+                         or e.get("link") == "down")
+        death = next((e for e in reversed(stops) if at is None or e.get("t", 0) <= at),
+                     deaths.get(v["agent"]))
         if death is not None and (death.get("signal") == "SIGSTOP" or
                                   death.get("link") == "down"):
-            entry["detection_ms"] = 1e3 * (v.get("detected_t", v["t"]) - death["t"])
-        back, gone = returns.get(v["agent"]), dropped.get(v["agent"])
+            entry["detection_ms"] = 1e3 * (at - death["t"])
+        since = death["t"] if death is not None else -math.inf
+        back = next(iter(of_agent(v["agent"], lambda e: (e.get("signal") == "SIGCONT"
+                                                        or e.get("link") == "up")
+                                  and e.get("t", 0) >= since)), returns.get(v["agent"]))
+        gone = next(iter(of_agent(v["agent"], lambda e: e.get("role") == "dropped"
+                                  and e.get("t", 0) >= since)), dropped.get(v["agent"]))
         if back is not None and gone is not None and gone["t"] >= back["t"]:
             # resolution: the agent's status period (0.2 s)
             entry["fenced_ms"] = 1e3 * (gone["t"] - back["t"])
-        r = next((r for r in reassigns if v["agent"] in r.get("failed", [])), None)
+        r = next((r for r in reassigns if v["agent"] in r.get("failed", [])
+                  and r.get("mono", math.inf) >= v.get("mono", -math.inf)), None)
         if r is not None:
             # the roles in force: this epoch's roster, or the re-issue that replaced it
             took = next(((at, ep) for at, _, ep in rosters[1:] if ep >= r["epoch"]), None)

@@ -23,7 +23,8 @@ for come ``design_s`` after the request (designed at once in real time and cache
 runs by configuration).
 
 Faults are ``up``'s (:class:`agent.local_run.Fault`, :data:`FAULT_KINDS`): ``crash``
-(the agent dies once it published step ``step - 1``, as ``up --kill STEP:AGENT``), ``hang``
+(the agent dies once it published step ``step - 1``, as ``up --kill STEP:AGENT``),
+``kill`` (SIGKILL when the world reaches ``step``), ``hang``
 (at the world's ``step`` the agent's loop stops for good; its token stays), ``stop``
 (SIGSTOP for ``seconds``: the token lapses after ``lease_s`` and comes back, the backlog is
 processed at once).
@@ -59,7 +60,7 @@ from .timing import DEFAULT as TIMING
 __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS"]
 
 #: The kinds of :class:`agent.local_run.Fault` a simulated run applies.
-FAULT_KINDS = ("crash", "hang", "stop")
+FAULT_KINDS = ("crash", "kill", "hang", "stop")
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,15 @@ class SimResult:
     steps: list
     mse: list
     monitor: MonitorCore
+    config: object = None                # the run as an agent.local_run.RunConfig
+
+    def violations(self, bounds=None) -> list:
+        """:func:`agent.chaos.check_invariants` of this run (what ``socmon chaos``
+        checks on a live run)."""
+        from .chaos import Bounds, check_invariants
+
+        return check_invariants(self.config, self.recording, self.summary, self.steps,
+                                self.mse, bounds or Bounds())
 
 
 class _GainDesigns:
@@ -171,7 +181,8 @@ class SimRuntime:
         from .recorder import Recorder
 
         self.run_id = f"sim{self.seed}"
-        self.recorder = Recorder(self.run_id, scenario.n, scenario.N, self.M)
+        self.recorder = Recorder(self.run_id, scenario.n, scenario.N, self.M,
+                                 clock=lambda: self.now)
         self.rec = self.recorder.recording
         self.rec.monitor_seen = True
         self._roster_at = 0.0
@@ -320,7 +331,10 @@ class SimRuntime:
     def _fault(self, f) -> None:
         name = f"agent-{f.agent}"
         lease = self.config.lease_s
-        if f.kind == "hang":
+        if f.kind == "kill":
+            if name not in self.dead:
+                self._crash(f.agent, f.step)
+        elif f.kind == "hang":
             self.hung.add(name)
             self.rec.events.append({"process": name, "signal": "SIGUSR1", "step": f.step, "t": self.now})
         else:
@@ -408,7 +422,8 @@ class SimRuntime:
         config = RunConfig(scenario=self.s, scenario_arg=self.s.name, G=self.G,
                            gains_path=None, delays=self.delays, delays_spec="sim",
                            steps=self._steps, seed=self.seed, step_ms=1e3 * c.step_s,
-                           deadline_ms=None, out=None, monitor=True, drop=None,
-                           run_id=self.rec.run_id, faults=tuple(self.faults))
+                           deadline_ms=None, out=None, monitor=True, drop=0.0,
+                           run_id=self.rec.run_id, faults=tuple(self.faults),
+                           hang_timeout=self.monitor_config.hang_timeout_s)
         summary, steps_done, mse = summarize(config, self.rec, rho, predicted)
-        return SimResult(self.rec, summary, steps_done, mse, self.mon)
+        return SimResult(self.rec, summary, steps_done, mse, self.mon, config)

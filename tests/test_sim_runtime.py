@@ -1,0 +1,86 @@
+"""The whole runtime under simulated time (agent.sim_runtime): what it computes equals the
+design simulator through a failure, its verdict, the reassignment and the switch, and the
+invariants of ``socmon chaos`` hold over random fault schedules."""
+
+import numpy as np
+import pytest
+
+from agent.chaos import draw_schedule
+from agent.local_run import Fault
+from agent.run_summary import compare_simulator
+from agent.sim_runtime import SimConfig, SimRuntime
+from design.scenario import load_scenario, resolve_delays
+
+
+@pytest.fixture(scope="module")
+def live():
+    s = load_scenario("paper-14-live")
+    return s, [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+
+
+def _run(live, faults=(), steps=500, seed=1, **config):
+    s, G = live
+    return SimRuntime(s, G, s.delays, seed=seed, faults=list(faults),
+                      config=SimConfig(**config)).run(steps)
+
+
+@pytest.mark.parametrize("faults", [[], [Fault(150, "crash", 1)],
+                                    [Fault(150, "crash", 1), Fault(150, "crash", 2)]])
+def test_the_simulated_runtime_equals_the_design_simulator(live, faults):
+    r = _run(live, faults)
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    assert [(f["agent"], f["cause"]) for f in r.summary["failures"]] == \
+        [(f.agent, "crash") for f in faults]
+    if faults:
+        assert r.summary["recovered"] is True
+        exact = r.summary["mse_steady_exact_after_recovery"]
+        assert 0.3 * exact < r.summary["mse_steady_after_recovery"] < 3 * exact
+
+
+def test_a_hang_is_convicted_and_its_role_handed_over(live):
+    r = _run(live, [Fault(150, "hang", 2)])
+    (f,) = r.summary["failures"]
+    assert (f["agent"], f["cause"]) == (2, "hang") and r.summary["recovered"] is True
+    # the hang timeout (1 s) is 50 steps of 20 ms; statuses every 0.2 s
+    assert 150 + 40 <= f["detected_step"] <= 150 + 60 < f["activate_at"]
+
+
+def test_a_stop_shorter_than_the_hang_timeout_convicts_nobody(live):
+    r = _run(live, [Fault(150, "stop", 3, 0.5)])
+    assert r.summary["failures"] == [] and r.summary["late"] > 0
+
+
+def test_a_long_stop_is_convicted_and_the_agent_rejoins_after_probation(live):
+    r = _run(live, [Fault(150, "stop", 3, 3.0)], steps=800)
+    (f,) = r.summary["failures"]
+    assert f["agent"] == 3 and r.summary["recovered"] is True
+    assert f["rejoined_step"] > f["activate_at"] > f["detected_step"]
+    assert r.violations() == []
+
+
+def test_an_agent_convicted_twice_is_paired_with_each_fault_and_reassignment(live):
+    """Agent 1 stopped 2 s at step 200 (convicted, replaced by the standby 4), rejoins as
+    the standby after probation, takes a role again when agent 4 is killed at 700, and is
+    stopped 2.5 s at 900: two verdicts, each with its own detection time and its own,
+    later, switch; the convicted agent rejoined between them."""
+    r = _run(live, [Fault(200, "stop", 1, 2.0), Fault(700, "kill", 4),
+                    Fault(900, "stop", 1, 2.5)], steps=1300)
+    first, second = [f for f in r.summary["failures"] if f["agent"] == 1]
+    for f, step in ((first, 200), (second, 900)):
+        assert step < f["detected_step"] < f["activate_at"] < step + 150, f
+        assert 800 < f["detection_ms"] < 1500, f
+    assert first["epoch"] < second["epoch"]
+    assert first["activate_at"] < first["rejoined_step"] < 700
+    assert r.summary["recovered"] is True and r.violations() == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(8))
+def test_random_fault_schedules_keep_the_chaos_invariants(live, seed):
+    """kill, stop and hang drawn by agent.chaos.draw_schedule (3 faults per 1000 steps,
+    1500 steps): recovery within its bound, fencing, error, convictions."""
+    s, G = live
+    schedule = draw_schedule(s, seed, 1500, kinds=("kill", "stop", "hang"), rate=3)
+    r = SimRuntime(s, G, resolve_delays(s, "scenario"), seed=seed, faults=schedule).run(1500)
+    assert [v.to_dict() for v in r.violations()] == []
