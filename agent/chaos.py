@@ -10,7 +10,8 @@ Invariants (the bounds are in :class:`Bounds`):
 
 - ``recovery``: after a fault that takes an agent of the configuration in force out
   (kill, crash, a stop or partition longer than the hang timeout), whenever the plan on
-  that configuration says recovery is possible, a configuration without it that
+  that configuration says recovery is possible with the standbys of that moment (not
+  dead, hung, or convicted and not yet rejoined), a configuration without it that
   measures every parent SCC is in force within ``recovery_steps``;
 - ``fencing``: no estimate that a receiver would accept comes from an agent outside the
   configuration in force (at most one agent acts for a role at any epoch): an outsider
@@ -180,10 +181,16 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
         cfg = next((x for x in configs if x["epoch"] == in_force[2]), None)
         if cfg is None:
             continue
+        # the standbys then: not dead or hung, and not convicted without having rejoined
+        # since (a convicted agent is on probation: the monitor does not take it back)
         roster = Roster(cfg["scenario"], cfg["ids"], tuple(
             a for a in range(1, c.M + 1) if a not in cfg["ids"]
-            and not any(g.kind in ("kill", "crash") and g.agent == a and g.step <= f.step
-                        for g in c.faults)), table, cfg["D"])
+            and not any(g.kind in ("kill", "crash", "hang") and g.agent == a
+                        and g.step <= f.step for g in c.faults)
+            and not any(v.get("agent") == a and v.get("detected_step") is not None
+                        and v["detected_step"] <= f.step
+                        and (v.get("rejoined_step") or math.inf) > f.step
+                        for v in summary.get("failures", []))), table, cfg["D"])
         try:
             plan, nxt = replan(roster, [f.agent])
         except SocmonError:
