@@ -49,8 +49,6 @@ from .timing import Timing
 
 __all__ = ["agent_config", "run_agent", "initial_role"]
 
-#: stamps farther than this from the agent's step are rejected as malformed ("stale"/"future")
-STAMP_WINDOW = 100_000
 #: after a burst of messages, freed heap memory is returned to the OS at most this often
 TRIM_S = 2.0
 
@@ -250,7 +248,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 core.impaired += 1
                 return
             msg = try_decode(item.payload, sensors_schema, stats,
-                             now_step=max(core.step, 0), window=STAMP_WINDOW)
+                             now_step=max(core.step, 0), window=wire.STAMP_WINDOW)
             if msg is None:
                 return
             step, x = msg["step"], msg["x"]
@@ -261,7 +259,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
 
         def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
-                             now_step=max(core.step, 0), window=STAMP_WINDOW)
+                             now_step=max(core.step, 0), window=wire.STAMP_WINDOW)
             if msg is None:
                 return
             sender = est_sender.agent_of(item.key)

@@ -87,6 +87,8 @@ from design.estimator import (
 )
 from design.plausibility import ESTIMATE_MULTIPLE, READING_MULTIPLE, StateScale
 
+from .wire import STAMP_WINDOW
+
 __all__ = [
     "AssignmentError",
     "Role",
@@ -101,8 +103,8 @@ __all__ = [
 #: |self_weight + sum of neighbour weights - 1| allowed in a role.
 WEIGHT_SUM_TOL = 1e-9
 #: Sensor stamps more than this ahead of the agent's step (0 before the clock starts) are
-#: ignored: the stamp window of every key (docs/runtime.md).
-SENSOR_WINDOW = 100_000
+#: ignored: the stamp window of every key (:data:`agent.wire.STAMP_WINDOW`).
+SENSOR_WINDOW = STAMP_WINDOW
 #: A reading more than this many steps ahead of the agent's step is held aside until the
 #: reading of the step just before or after it arrives (a world that was silent for a while
 #: sends one every step; one stray stamp is never believed and cannot make the agent skip

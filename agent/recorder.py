@@ -40,8 +40,6 @@ from .timing import DEFAULT as TIMING
 
 __all__ = ["Recording", "Recorder", "watch_run", "WatchEnd"]
 
-#: Stamp window of truth and estimates around the newest step (as an agent's).
-STAMP_WINDOW = 100_000
 #: Most events (the monitor's, heard on the wire, and role drops) a recording keeps.
 MAX_EVENTS = 100_000
 
@@ -266,7 +264,7 @@ class Recorder:
 
     def _window(self) -> dict:
         """The stamp window of truth and estimates: as an agent's, around the newest step."""
-        return {"now_step": self._newest, "window": STAMP_WINDOW} if self._newest >= 0 else {}
+        return {"now_step": self._newest, "window": wire.STAMP_WINDOW} if self._newest >= 0 else {}
 
     def _sender_of(self, key, kind: str = "est"):
         try:

@@ -65,6 +65,10 @@ __all__ = [
 
 #: Largest step stamp accepted on the wire (about 8 years at 1 ms per step).
 MAX_STEP = 2**38
+#: Stamps farther than this from the receiver's step are refused ("stale"/"future"): the
+#: one stamp window of every key (the agents' sensors and estimates, the recorder's truth
+#: and estimates; docs/runtime.md).
+STAMP_WINDOW = 100_000
 #: Agent ids on the wire: 1..MAX_AGENT.
 MAX_AGENT = 100_000
 
