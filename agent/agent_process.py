@@ -42,7 +42,9 @@ from broker_free_net.peer import DEFAULT_INBOX_BYTES, DEFAULT_INBOX_SIZE, Peer
 
 from . import wire
 from .control_auth import SignatureError
-from .core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role
+from .core import (  # noqa: F401 - agent_config and initial_role: re-exported
+    MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role, agent_config, initial_role,
+)
 from .ratelimit import LogLimiter
 from .timing import DEFAULT as TIMING
 from .timing import Timing
@@ -51,47 +53,6 @@ __all__ = ["agent_config", "run_agent", "initial_role"]
 
 #: after a burst of messages, freed heap memory is returned to the OS at most this often
 TRIM_S = 2.0
-
-
-def initial_role(scenario, gains, agent: int):
-    """The scenario's role of agent ``agent`` (1-based), or None for a standby agent."""
-    i = agent - 1
-    if i >= scenario.N:
-        return None
-    return Role(epoch=0, activate_at=0, measure=tuple(scenario.agent_labels(i)),
-                neighbours={j + 1: float(scenario.W[i, j]) for j in scenario.neighbours[i]},
-                self_weight=float(scenario.W[i, i]), gain=np.asarray(gains[i], dtype=float))
-
-
-def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: float,
-                 impair_seed: int = 0, drop: float = 0.0, max_age=None) -> AgentConfig:
-    """The :class:`AgentConfig` of agent ``agent`` (1-based) of ``scenario``.
-
-    The receiver-side delay of link b -> ``agent`` is
-    :func:`design.roster.link_delay_table` of ``delays`` (0-based (N, N), steps): the
-    scenario's delay on its links, the largest delay on every other pair (standby
-    agents included), so that a role change keeps the delays the simulator and the
-    monitor assume. ``max_age`` defaults to ``hold_limit(delays.max())``.
-    """
-    from design.estimator import hold_limit
-    from design.roster import link_delay_table
-
-    M = scenario.N + scenario.standby
-    if not 1 <= agent <= M:
-        raise ValueError(f"--id: no agent {agent} in scenario {scenario.name!r} "
-                         f"(agents 1..{scenario.N}, standby {scenario.N + 1}..{M})")
-    i = agent - 1
-    table = link_delay_table(scenario, delays)
-    link_delays = {b + 1: int(table[i, b]) for b in range(M) if b != i and table[i, b] > 0}
-    top = int(np.max(delays)) if np.size(delays) else 0
-    return AgentConfig(
-        agent=agent, A=scenario.A, labels=scenario.labels, agents=tuple(range(1, M + 1)),
-        seed=int(seed), measurement_noise=scenario.measurement_noise,
-        process_noise=scenario.process_noise,
-        role=initial_role(scenario, gains, agent) if gains is not None or i >= scenario.N
-        else None,
-        link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
-        drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age))
 
 
 def _inbox_bytes(max_payload: int, maxlen: int = DEFAULT_INBOX_SIZE) -> int:

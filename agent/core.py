@@ -96,6 +96,8 @@ __all__ = [
     "AgentCore",
     "WorldCore",
     "validate_assignment",
+    "initial_role",
+    "agent_config",
     "resolution_step",
     "WEIGHT_SUM_TOL",
 ]
@@ -787,6 +789,47 @@ class AgentCore:
                     "last_error": self.ctl_last_error,
                     "pending": self.pending.epoch if self.pending else 0},
         }
+
+
+def initial_role(scenario, gains, agent: int):
+    """The scenario's role of agent ``agent`` (1-based), or None for a standby agent."""
+    i = agent - 1
+    if i >= scenario.N:
+        return None
+    return Role(epoch=0, activate_at=0, measure=tuple(scenario.agent_labels(i)),
+                neighbours={j + 1: float(scenario.W[i, j]) for j in scenario.neighbours[i]},
+                self_weight=float(scenario.W[i, i]), gain=np.asarray(gains[i], dtype=float))
+
+
+def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: float,
+                 impair_seed: int = 0, drop: float = 0.0, max_age=None) -> AgentConfig:
+    """The :class:`AgentConfig` of agent ``agent`` (1-based) of ``scenario``.
+
+    The receiver-side delay of link b -> ``agent`` is
+    :func:`design.roster.link_delay_table` of ``delays`` (0-based (N, N), steps): the
+    scenario's delay on its links, the largest delay on every other pair (standby
+    agents included), so that a role change keeps the delays the simulator and the
+    monitor assume. ``max_age`` defaults to ``hold_limit(delays.max())``.
+    """
+    from design.estimator import hold_limit
+    from design.roster import link_delay_table
+
+    M = scenario.N + scenario.standby
+    if not 1 <= agent <= M:
+        raise ValueError(f"--id: no agent {agent} in scenario {scenario.name!r} "
+                         f"(agents 1..{scenario.N}, standby {scenario.N + 1}..{M})")
+    i = agent - 1
+    table = link_delay_table(scenario, delays)
+    link_delays = {b + 1: int(table[i, b]) for b in range(M) if b != i and table[i, b] > 0}
+    top = int(np.max(delays)) if np.size(delays) else 0
+    return AgentConfig(
+        agent=agent, A=scenario.A, labels=scenario.labels, agents=tuple(range(1, M + 1)),
+        seed=int(seed), measurement_noise=scenario.measurement_noise,
+        process_noise=scenario.process_noise,
+        role=initial_role(scenario, gains, agent) if gains is not None or i >= scenario.N
+        else None,
+        link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
+        drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age))
 
 
 # ---------------------------------------------------------------------------------

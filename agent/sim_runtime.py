@@ -52,8 +52,7 @@ from broker_free_net import keys
 from broker_free_net.codec import MessageStats, try_decode
 
 from . import wire
-from .agent_process import agent_config
-from .core import AgentCore, AssignmentError, WorldCore
+from .core import AgentCore, AssignmentError, WorldCore, agent_config
 from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
 from .timing import DEFAULT as TIMING
 

@@ -116,6 +116,7 @@ def test_no_import_cycle_between_project_modules():
 
 
 @pytest.mark.parametrize("module", ["agent.core", "agent.monitor_core", "agent.timing",
+                                    "agent.sim_runtime",
                                     "broker_free_net.codec", "broker_free_net.impair"])
 def test_the_pure_side_does_not_load_the_native_transport(module):
     """The state machines and the codec run without zenoh: only a session loads it."""
