@@ -11,6 +11,7 @@ Usage::
 
     python scripts/sim_chaos.py [--scenario paper-14-live] [--seeds 0:1000] [--steps 1500]
         [--delays scenario|none|uniform:T] [--kinds kill,stop,hang] [--rate 3]
+        [--design-s 0.5]
 
 Exit status 1 if any run broke an invariant (each is listed with its seed).
 """
@@ -29,25 +30,28 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agent.chaos import draw_schedule  # noqa: E402
-from agent.sim_runtime import FAULT_KINDS, SimRuntime  # noqa: E402
+from agent.sim_runtime import FAULT_KINDS, SimConfig, SimRuntime  # noqa: E402
 from design.gain_design import design_gains  # noqa: E402
 from design.scenario import load_scenario, resolve_delays  # noqa: E402
 
 
-def main(scenario: str, seeds: range, steps: int, delays_spec: str, kinds, rate: float) -> int:
+def main(scenario: str, seeds: range, steps: int, delays_spec: str, kinds, rate: float,
+         design_s: float = 0.5) -> int:
     s = load_scenario(scenario)
     delays = resolve_delays(s, delays_spec)
     t0 = time.monotonic()
     G = list(design_gains(s, delays=delays, starts=1).G)
     print(f"{s.name}: gains designed for delays {delays_spec} in {time.monotonic() - t0:.1f} s; "
-          f"{len(seeds)} schedules of {steps} steps, kinds {','.join(kinds)}, rate {rate:g}")
+          f"{len(seeds)} schedules of {steps} steps, kinds {','.join(kinds)}, rate {rate:g}, "
+          f"a gain the monitor asks for comes {design_s:g} s later")
     faults, broken, convicted = Counter(), [], Counter()
     detection = {k: [] for k in ("kill", "hang", "stop")}
     switch, runs_s = [], []
     for seed in seeds:
         schedule = draw_schedule(s, seed, steps, kinds=kinds, rate=rate)
         t = time.monotonic()
-        result = SimRuntime(s, G, delays, seed=seed, faults=schedule).run(steps)
+        result = SimRuntime(s, G, delays, seed=seed, faults=schedule,
+                            config=SimConfig(design_s=design_s)).run(steps)
         runs_s.append(time.monotonic() - t)
         faults.update(f.kind for f in schedule)
         for v in result.violations():
@@ -90,9 +94,12 @@ if __name__ == "__main__":
     parser.add_argument("--kinds", default="kill,stop,hang",
                         help=f"comma-separated, among {','.join(FAULT_KINDS)}")
     parser.add_argument("--rate", type=float, default=3.0, help="faults per 1000 steps")
+    parser.add_argument("--design-s", type=float, default=0.5,
+                        help="simulated time a gain the monitor asks for takes to come")
     args = parser.parse_args()
     a, b = (int(x) for x in args.seeds.split(":"))
     kinds = tuple(k for k in args.kinds.split(",") if k)
     if not set(kinds) <= set(FAULT_KINDS):
         parser.error(f"--kinds: among {FAULT_KINDS}, got {kinds}")
-    sys.exit(main(args.scenario, range(a, b), args.steps, args.delays, kinds, args.rate))
+    sys.exit(main(args.scenario, range(a, b), args.steps, args.delays, kinds, args.rate,
+                  args.design_s))
