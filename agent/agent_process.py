@@ -24,8 +24,6 @@ before computing step ``crash_at``, so the failure happens at a known step.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import os
 import signal
 import statistics
@@ -45,35 +43,19 @@ from .control_auth import SignatureError
 from .core import (  # noqa: F401 - agent_config and initial_role: re-exported
     MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role, agent_config, initial_role,
 )
+from .memory import TRIM_S, heap_trimmer
 from .ratelimit import LogLimiter
 from .timing import DEFAULT as TIMING
 from .timing import Timing
 
 __all__ = ["agent_config", "run_agent", "initial_role"]
 
-#: after a burst of messages, freed heap memory is returned to the OS at most this often
-TRIM_S = 2.0
 
 
 def _inbox_bytes(max_payload: int, maxlen: int = DEFAULT_INBOX_SIZE) -> int:
     """Byte bound of an inbox of messages of at most ``max_payload`` bytes: its count bound
     times that, capped at the transport's default."""
     return max(max_payload, min(DEFAULT_INBOX_BYTES, maxlen * max_payload))
-
-
-def _heap_trimmer():
-    """Return a function that gives freed heap pages back to the OS (glibc ``malloc_trim``).
-
-    A burst of large or many messages leaves the C heap arenas of zenoh's threads at their
-    high-water mark; trimming after such a burst keeps the agent's RSS flat. A no-op where
-    glibc is not available.
-    """
-    try:
-        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return lambda: None
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    return lambda: trim(0)
 
 
 class _Stop:
@@ -118,7 +100,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
     agent_ids = {str(a) for a in senders}
     hops = deque(maxlen=4000)
     say = LogLimiter(log).say
-    trim_heap, trimmed_at = _heap_trimmer(), [0.0, 0]  # time, messages seen at the last trim
+    trim_heap, trimmed_at = heap_trimmer(), [0.0, 0]  # time, messages seen at the last trim
 
     def bad(reason):
         stats.count_dropped(reason)

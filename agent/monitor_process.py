@@ -35,6 +35,7 @@ from broker_free_net.peer import Peer
 from . import wire
 from .control_auth import SignatureError
 from .gain_worker import GainWorker
+from .memory import TRIM_S, heap_trimmer
 from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
 
 __all__ = ["run_monitor", "TICK_S", "ROSTER_S"]
@@ -83,6 +84,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
 
         verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
     status_sender = keys.AgentKeyCache(run, "status", core.agents)
+    trim_heap, trimmed = heap_trimmer(), [0.0, 0]   # time, messages dropped at the last trim
     out_file = open(events_out, "a") if events_out else None
     files = [out_file]                   # [the events file, None once a write failed]
     publish = []              # the peer's put, once it is open: watchers hear every event
@@ -145,6 +147,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                         if not ev.alive and first:
                             record("liveliness", process="world", alive=False,
                                    step=core.last_step_reported)
+                if stats.total_dropped - trimmed[1] > 1000 and now - trimmed[0] > TRIM_S:
+                    trim_heap()          # after a burst of malformed input: memory back
+                    trimmed[:] = [now, stats.total_dropped]
                 for item in status_in.drain():
                     msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                     if msg is None:

@@ -36,6 +36,7 @@ from broker_free_net.keys import InvalidKey
 from broker_free_net.codec import MessageStats, try_decode
 
 from . import wire
+from .memory import TRIM_S, heap_trimmer
 from .timing import DEFAULT as TIMING
 
 __all__ = ["Recording", "Recorder", "watch_run", "WatchEnd"]
@@ -109,6 +110,7 @@ class Recorder:
         self.keep_steps = keep_steps
         self.scale = scale
         self.clock = clock       # the time of the events it records (a simulated run's own)
+        self._trim, self._trimmed = heap_trimmer(), (0.0, 0)
         self._verifier = None            # with the run's control key: unsigned ctl dropped
         if control_public is not None:
             from .control_auth import ControlVerifier
@@ -171,11 +173,17 @@ class Recorder:
         )
 
     def drain(self) -> None:
-        """Feed everything received since the last call (truth first, then estimates)."""
+        """Feed everything received since the last call (truth first, then estimates);
+        after a burst of malformed input, give the freed heap back to the OS (at most
+        every :data:`agent.memory.TRIM_S`)."""
         for inbox in self._inboxes:
             for item in inbox.drain():
                 self.feed(item.key, item.payload)
-        self.recording.recorder_malformed = self.stats.total_dropped
+        self.recording.recorder_malformed = dropped = self.stats.total_dropped
+        at, seen = self._trimmed
+        if dropped - seen > 1000 and time.monotonic() - at > TRIM_S:
+            self._trim()
+            self._trimmed = (time.monotonic(), dropped)
 
     def feed(self, key: str, payload: bytes) -> None:
         """One message as received on ``key``; a malformed one is counted and dropped."""
