@@ -95,7 +95,6 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
     ctl_schema = wire.ctl_schema(core.n)
     roster_schema = wire.roster_schema()
     sensors_schema = wire.sensors_schema(core.n)
-    node_index = {label: i for i, label in enumerate(core.labels)}
     senders = set(config.agents)
     agent_ids = {str(a) for a in senders}
     hops = deque(maxlen=4000)
@@ -187,16 +186,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 return False
 
         def handle_sensors(item):
-            if core.impair.get((0, me)).partition:    # the world's link cut: a quiet sensor
-                core.impaired += 1
-                return
             msg = try_decode(item.payload, sensors_schema, stats,
                              now_step=max(core.step, 0), window=wire.STAMP_WINDOW)
-            if msg is None:
-                return
-            step, x = msg["step"], msg["x"]
-            for label in core.wanted_labels():
-                core.on_sensor(label, step, float(x[node_index[label]]), now=item.arrival)
+            if msg is not None:
+                core.on_sensors(msg["step"], msg["x"], now=item.arrival)
 
         est_sender = keys.AgentKeyCache(run, "est", senders)
 

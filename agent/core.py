@@ -297,6 +297,7 @@ class AgentCore:
         self.A = np.asarray(config.A, dtype=float)
         self.n = self.A.shape[0]
         self.labels = tuple(config.labels)
+        self._label_index = {label: i for i, label in enumerate(self.labels)}
         self.powers = PowerCache(self.A, max_power=max(int(config.max_age), 1))
         self.history = max(int(config.history), int(config.max_age) + 1)
         self._dropped: dict = {}          # (sender, stamp) -> lost by a keyed drop
@@ -430,6 +431,19 @@ class AgentCore:
                     s += direction
         self._hold_reading(step, reading)
         return True
+
+    def on_sensors(self, step: int, x, now: float | None = None) -> int:
+        """The world's readings of every node at ``step`` (one message a step, ``x`` in
+        the order of ``labels``): each node this agent wants goes to :meth:`on_sensor`.
+        With the world's link into this agent cut (an injected partition of link
+        ``0 -> agent``, a stuck sensor) nothing is taken and ``impaired`` counts it.
+        Returns the readings taken."""
+        if self.impair.get((0, self.id)).partition:
+            self.impaired += 1
+            return 0
+        index = self._label_index
+        return sum(self.on_sensor(label, step, float(x[index[label]]), now=now)
+                   for label in self.wanted_labels())
 
     def _note_pace(self, step: int, now: float) -> None:
         """The world's pace from in-order readings: the newest step, when it came, and the

@@ -27,7 +27,10 @@ Faults are ``up``'s (:class:`agent.local_run.Fault`, :data:`FAULT_KINDS`): ``cra
 ``kill`` (SIGKILL when the world reaches ``step``), ``hang``
 (at the world's ``step`` the agent's loop stops for good; its token stays), ``stop``
 (SIGSTOP for ``seconds``: the token lapses after ``lease_s`` and comes back, the backlog is
-processed at once).
+processed at once), and the impairments of ``up --fault`` for ``seconds`` (``sensor``: the
+world's link into the agent cut; ``partition``: every link out of it; ``delay``/``drop``:
+every link into it delayed by ``value`` steps or dropping a fraction ``value``), sent as
+impairment messages the agents apply themselves.
 
 >>> from design.scenario import load_scenario
 >>> import numpy as np
@@ -50,6 +53,7 @@ import numpy as np
 
 from broker_free_net import keys
 from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.impair import decode_impairment, encode_impairment
 
 from . import wire
 from .core import AgentCore, AssignmentError, WorldCore, agent_config
@@ -59,7 +63,7 @@ from .timing import DEFAULT as TIMING
 __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS"]
 
 #: The kinds of :class:`agent.local_run.Fault` a simulated run applies.
-FAULT_KINDS = ("crash", "kill", "hang", "stop")
+FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop")
 
 
 @dataclass(frozen=True)
@@ -176,7 +180,6 @@ class SimRuntime:
         self._schemas = {"est": wire.est_schema(scenario.n), "ctl": wire.ctl_schema(scenario.n),
                          "roster": wire.roster_schema(),
                          "sensors": wire.sensors_schema(scenario.n)}
-        self._index = {label: i for i, label in enumerate(scenario.labels)}
         from .recorder import Recorder
 
         self.run_id = f"sim{self.seed}"
@@ -234,13 +237,20 @@ class SimRuntime:
 
     # -- the agents ------------------------------------------------------------------
     def _on_sensors(self, a: int, payload: bytes) -> None:
-        core = self.agents[a]
         msg = try_decode(payload, self._schemas["sensors"], self.stats)
-        if msg is None:
-            return
-        for label in core.wanted_labels():
-            core.on_sensor(label, msg["step"], float(msg["x"][self._index[label]]),
-                           now=self.now)
+        if msg is not None:
+            self.agents[a].on_sensors(msg["step"], msg["x"], now=self.now)
+
+    def _impair(self, src: int, dst: int, **params) -> None:
+        """An impairment change of link ``src -> dst`` (0: the world's), published by
+        ``up`` (the operator) to every agent, as ``up --fault`` does."""
+        payload = encode_impairment("set", src, dst, **params)
+        for a in self.agents:
+            self._send("up", f"agent-{a}", lambda a=a: self._on_impairment(a, payload))
+
+    def _on_impairment(self, a: int, payload: bytes) -> None:
+        if self.agents[a].on_impairment(decode_impairment(payload)):
+            self._agent_status(a)
 
     def _on_est(self, a: int, payload: bytes) -> None:
         msg = try_decode(payload, self._schemas["est"], self.stats)
@@ -333,6 +343,9 @@ class SimRuntime:
         if f.kind == "kill":
             if name not in self.dead:
                 self._crash(f.agent, f.step)
+        elif f.kind in ("sensor", "partition", "delay", "drop"):
+            self._impairment(f, True)
+            self.after(f.seconds, lambda: self._impairment(f, False))
         elif f.kind == "hang":
             self.hung.add(name)
             self.rec.events.append({"process": name, "signal": "SIGUSR1", "step": f.step, "t": self.now})
@@ -342,6 +355,35 @@ class SimRuntime:
             if f.seconds > lease:
                 self.after(lease, lambda: self._token(f.agent, False))
             self.after(f.seconds, lambda: self._resume(f.agent, f.seconds > lease))
+
+    def _impairment(self, f, on: bool) -> None:
+        """Impairment faults as ``up`` injects them (agent.local_run): ``sensor`` cuts the
+        world's link into the agent, ``partition`` every link out of it, ``delay`` and
+        ``drop`` impair every link into it; at the end the scenario's delays come back."""
+        a, M = f.agent, self.M
+        others = [b for b in range(1, M + 1) if b != a]
+        name = f"agent-{a}"
+        if f.kind == "sensor":
+            self._impair(0, a, partition=on)
+            what = "sensor cut" if on else "sensor restored"
+        elif f.kind == "partition":
+            for b in others:
+                self._impair(a, b, partition=on)
+            what = "partition" if on else "healed"
+        elif on:
+            for b in others:
+                self._impair(b, a, **({"delay_steps": int(f.value)} if f.kind == "delay"
+                                      else {"drop": float(f.value)}))
+            what = f"{f.kind} {f.value:g}"
+        else:
+            from design.roster import link_delay_table
+
+            table = link_delay_table(self.s, self.delays)
+            for b in others:
+                self._impair(b, a, delay_steps=int(table[a - 1, b - 1]), drop=0.0)
+            what = "restored"
+        self.rec.events.append({"process": name, "impair": what, "step": self.world.step,
+                                "t": self.now})
 
     def _resume(self, a: int, token_lapsed: bool) -> None:
         name = f"agent-{a}"

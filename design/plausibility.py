@@ -111,9 +111,10 @@ class StateScale:
     def plausible(self, values, step: int, multiple: float) -> bool:
         """True if every entry of ``values`` is finite and within ``bound(step, multiple)``."""
         v = np.asarray(values, dtype=float)
-        if not np.all(np.isfinite(v)):
-            return False
-        return bool(v.size == 0 or np.max(np.abs(v)) <= self.bound(step, multiple))
+        if v.size == 0:
+            return True
+        top = float(np.abs(v).max())            # NaN or inf if any entry is
+        return math.isfinite(top) and top <= self.bound(step, multiple)
 
 
 def _worse(a: float, b: float) -> float:
