@@ -121,6 +121,9 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: f
         elif kind == "delay":
             out.append(Fault(k, "delay", agent, float(np.round(rng.uniform(1.0, 2.5), 2)),
                              float(int(rng.integers(1, 6)))))
+        elif kind == "slow":            # simulated runs only (agent.sim_runtime)
+            out.append(Fault(k, "slow", agent, float(np.round(rng.uniform(1.0, 4.0), 2)),
+                             float(np.round(rng.uniform(0.5, 3.0), 2))))
         elif kind == "drop":
             out.append(Fault(k, "drop", agent, float(np.round(rng.uniform(1.0, 2.5), 2)),
                              float(np.round(rng.uniform(0.1, 0.5), 2))))

@@ -30,7 +30,10 @@ Faults are ``up``'s (:class:`agent.local_run.Fault`, :data:`FAULT_KINDS`): ``cra
 processed at once), and the impairments of ``up --fault`` for ``seconds`` (``sensor``: the
 world's link into the agent cut; ``partition``: every link out of it; ``delay``/``drop``:
 every link into it delayed by ``value`` steps or dropping a fraction ``value``), sent as
-impairment messages the agents apply themselves.
+impairment messages the agents apply themselves; and ``slow`` (simulated only: a process
+short of CPU, as beside busy loops): for ``seconds``, every message the agent handles costs
+``value`` ms of its time, one after the other, so its steps come late once the messages of
+a step cost more than the step.
 
 >>> from design.scenario import load_scenario
 >>> import numpy as np
@@ -63,7 +66,8 @@ from .timing import DEFAULT as TIMING
 __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS"]
 
 #: The kinds of :class:`agent.local_run.Fault` a simulated run applies.
-FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop")
+FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop",
+               "slow")
 
 
 @dataclass(frozen=True)
@@ -171,6 +175,8 @@ class SimRuntime:
         self.paused_until: dict = {}           # name -> resume time
         self._backlog: dict = {}               # name -> [callables] held while paused
         self._wake_at: dict = {}
+        self.slow: dict = {}                   # name -> (until, seconds a message costs)
+        self._busy_until: dict = {}
         self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s)
         self.designs = _GainDesigns(self)
         self.gains = GainSource(worker=self.designs)
@@ -206,6 +212,20 @@ class SimRuntime:
         heapq.heappush(self._queue, (at, next(self._seq), lambda: self._arrive(dst, handle)))
 
     def _arrive(self, dst: str, handle) -> None:
+        if dst in self.dead:
+            return
+        cost = self.slow.get(dst)
+        if cost is not None:             # short of CPU: messages are served one at a time
+            until, per = cost
+            if self.now < until:
+                start = max(self.now, self._busy_until.get(dst, 0.0))
+                self._busy_until[dst] = start + per
+                heapq.heappush(self._queue, (start + per, next(self._seq),
+                                             lambda: self._serve(dst, handle)))
+                return
+        self._serve(dst, handle)
+
+    def _serve(self, dst: str, handle) -> None:
         if dst in self.dead:
             return
         if dst in self.hung or self.paused_until.get(dst, -1.0) > self.now:
@@ -346,6 +366,10 @@ class SimRuntime:
         elif f.kind in ("sensor", "partition", "delay", "drop"):
             self._impairment(f, True)
             self.after(f.seconds, lambda: self._impairment(f, False))
+        elif f.kind == "slow":
+            self.slow[name] = (self.now + f.seconds, f.value / 1000.0)
+            self.rec.events.append({"process": name, "slow_ms": f.value, "step": f.step,
+                                    "t": self.now})
         elif f.kind == "hang":
             self.hung.add(name)
             self.rec.events.append({"process": name, "signal": "SIGUSR1", "step": f.step, "t": self.now})
