@@ -84,3 +84,16 @@ def test_random_fault_schedules_keep_the_chaos_invariants(live, seed):
     schedule = draw_schedule(s, seed, 1500, kinds=("kill", "stop", "hang"), rate=3)
     r = SimRuntime(s, G, resolve_delays(s, "scenario"), seed=seed, faults=schedule).run(1500)
     assert [v.to_dict() for v in r.violations()] == []
+
+
+@pytest.mark.parametrize("seed", range(100, 105))
+def test_short_schedules_of_every_kind_keep_the_chaos_invariants(live, seed):
+    """800 steps, every fault kind a simulated run applies (crash and kill, stop, hang,
+    stuck sensor, partition, delay, drop, slow), 5 faults per 1000 steps."""
+    from agent.sim_runtime import FAULT_KINDS
+
+    s, G = live
+    schedule = draw_schedule(s, seed, 800, kinds=tuple(k for k in FAULT_KINDS if k != "crash"),
+                             rate=5)
+    r = SimRuntime(s, G, resolve_delays(s, "scenario"), seed=seed, faults=schedule).run(800)
+    assert [v.to_dict() for v in r.violations()] == []
