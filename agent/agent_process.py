@@ -301,6 +301,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
             if not said_clock and core.step >= 0:
                 said_clock = True
+                # the others' statuses serve the start handshake only: once the clock
+                # runs, nothing on those keys (a flood of junk there) costs this loop
+                status_in.close()
+                status_in.drain()
                 role = core.role
                 say(f"agent {me}: clock started at step {core.step}; "
                     + (f"measures {list(role.measure)} (epoch {core.epoch})" if role
