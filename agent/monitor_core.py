@@ -1123,3 +1123,85 @@ class MonitorCore:
         self.events.append(f"adopted the configuration in force: ids {rows}, standby "
                            f"{list(standby)}, epoch {self.epoch}")
         return True
+
+
+#: a (re)started monitor listens this long (the roster is re-published every second)
+#: before it acts, so that it acts on the configuration in force, not on its scenario
+LISTEN_S = 1.5
+
+
+class MonitorSeat:
+    """Which of several monitors acts, and what a monitor that (re)takes the seat adopts
+    first: the policy of the monitor process and of the simulated runtime.
+
+    The monitor with the smallest id whose token is alive acts, once it has listened
+    ``listen_s``; the others stay passive and watch. A monitor that becomes active adopts
+    the configuration in force from the newest roster it heard (:meth:`on_roster`) or from
+    the agents' statuses (:meth:`MonitorCore.adopt`), and does so again whenever the agents
+    run an epoch it never issued (another monitor acted while it was paused or cut off).
+
+    :meth:`decide` returns ``"act"`` (tick the core), ``"idle"`` (passive) or ``"wait"``
+    (an adoption waits for more of the network); what it did is in :attr:`records`
+    (``active``, ``adopted``: the run's record), :attr:`lines` (for the log) and
+    :attr:`precompute` (the configuration in force changed), which the caller drains.
+    """
+
+    def __init__(self, core: MonitorCore, monitor_id: int, now: float,
+                 listen_s: float = LISTEN_S):
+        self.core, self.id = core, int(monitor_id)
+        self.listen_until = now + listen_s
+        self.heard_roster: dict | None = None
+        self.active = False
+        self.records: list = []
+        self.lines: list = []
+        self.precompute = False
+
+    def on_roster(self, msg: dict) -> None:
+        """A roster heard on ``ctl/0`` (its signature already checked by the caller)."""
+        if self.core.accept_roster(msg) and (self.heard_roster is None
+                                             or msg["epoch"] > self.heard_roster["epoch"]):
+            self.heard_roster = msg
+
+    def _adopt_heard(self) -> bool:
+        core, heard = self.core, self.heard_roster
+        if heard is not None and heard["epoch"] >= core.epoch:
+            return core.adopt(heard["ids"], heard["epoch"])
+        return core.adopt(None, core.epoch)
+
+    def decide(self, now: float, monitors_alive) -> str:
+        """``monitors_alive``: the ids of the monitors whose token is up."""
+        core = self.core
+        others = sorted(int(i) for i in monitors_alive if int(i) != self.id)
+        should = (not others or self.id < others[0]) and now >= self.listen_until
+        if should and not self.active:
+            seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
+                       + [st.epoch for st in core.agents.values()])
+            if core.history and not core.behind:
+                pass                     # it acted before and nobody acted since
+            elif core.history:
+                # another monitor acted while this one was away (paused, cut off): the
+                # configuration in force is the agents'
+                if not self._adopt_heard():
+                    return "wait"
+            elif self.heard_roster is not None:
+                if not core.adopt(self.heard_roster["ids"], self.heard_roster["epoch"]):
+                    return "wait"
+            elif seen > 0 and not core.adopt(None, seen):
+                # roles were reassigned before this monitor started: the agents' statuses
+                # say which; wait until every active one has reported
+                return "wait"
+            self.lines.append("active")
+            self.records.append(("active", {"monitor": self.id, "epoch": core.epoch}))
+            self.active = self.precompute = True
+        elif not should and self.active:
+            self.lines.append(f"another monitor ({others[0]}) is active; passive")
+            self.active = False
+        if self.active and core.behind:
+            # the agents run an epoch this monitor never issued: another monitor acted while
+            # this one was paused or cut off; rebuild from the network first
+            if not self._adopt_heard():
+                return "wait"
+            self.records.append(("adopted", {"monitor": self.id, "epoch": core.epoch}))
+            self.precompute = True
+        return "act" if self.active else "idle"
+

@@ -16,9 +16,10 @@ convicted while it is gone, and the monitor exits once the agents' tokens are go
 (:meth:`MonitorCore.run_ended`).
 
 A monitor listens for ``LISTEN_S`` before it acts. Several monitors may run on one run:
-the one with the smallest id whose token is alive acts, the others stay passive and watch; when the active one's token goes, the next one
-adopts the configuration in force from the roster it heard and the agents' statuses
-(:meth:`MonitorCore.adopt`) and goes on with epochs above every epoch it saw.
+the one with the smallest id whose token is alive acts, the others stay passive and watch;
+when the active one's token goes, the next one adopts the configuration in force from the
+roster it heard and the agents' statuses and goes on with epochs above every epoch it saw
+(:class:`agent.monitor_core.MonitorSeat`, the policy the simulated runtime runs too).
 """
 
 from __future__ import annotations
@@ -36,15 +37,20 @@ from . import wire
 from .control_auth import SignatureError
 from .gain_worker import GainWorker
 from .memory import TRIM_S, heap_trimmer
-from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
+from .monitor_core import (
+    LISTEN_S,  # noqa: F401 - the listening time, defined with the seat it belongs to
+    Assignment,
+    GainSource,
+    MonitorConfig,
+    MonitorCore,
+    MonitorSeat,
+    RosterUpdate,
+)
 
 __all__ = ["run_monitor", "TICK_S", "ROSTER_S"]
 
 TICK_S = 0.01
 ROSTER_S = 1.0
-#: a (re)started monitor listens this long (the roster is re-published every ROSTER_S)
-#: before it acts, so that it acts on the configuration in force, not on its scenario
-LISTEN_S = 1.5
 
 
 class _Stop:
@@ -124,9 +130,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             roster_in = peer.subscribe(keys.ctl_key(run, 0))
             end_in = peer.subscribe(keys.end_key(run), maxlen=16)
             watch = peer.watch_liveliness()
-            heard_roster = None
-            active = False
-            listen_until = time.monotonic() + LISTEN_S
+            seat = MonitorSeat(core, monitor_id, time.monotonic())
             next_roster = 0.0
             print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
             while not stop.flag:
@@ -174,53 +178,22 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                             core.reject("signature", 0, f"a roster (epoch {msg['epoch']}) "
                                         f"without the run's control signature ({exc})")
                             continue
-                    if core.accept_roster(msg) and (heard_roster is None
-                                                    or msg["epoch"] > heard_roster["epoch"]):
-                        heard_roster = msg
-                others = sorted(int(i) for role, i in watch.alive() if role == "monitor"
-                                and i.isdigit() and int(i) != monitor_id)
-                should = (not others or monitor_id < others[0]) and now >= listen_until
-                if should and not active:
-                    seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
-                               + [st.epoch for st in core.agents.values()])
-                    if core.history and not core.behind:
-                        pass                     # it acted before and nobody acted since
-                    elif core.history:
-                        # another monitor acted while this one was away (paused, cut off):
-                        # the configuration in force is the agents'
-                        if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
-                                if heard_roster is not None
-                                and heard_roster["epoch"] >= core.epoch
-                                else core.adopt(None, core.epoch)):
-                            peer.wait(timeout=0.05)
-                            continue
-                    elif heard_roster is not None:
-                        if not core.adopt(heard_roster["ids"], heard_roster["epoch"]):
-                            peer.wait(timeout=0.05)
-                            continue
-                    elif seen > 0 and not core.adopt(None, seen):
-                        # roles were reassigned before this monitor started: the agents'
-                        # statuses say which; wait until every active one has reported
-                        peer.wait(timeout=0.05)
-                        continue
-                    print(f"monitor {monitor_id}: active", file=log, flush=True)
-                    record("active", monitor=monitor_id, epoch=core.epoch)
-                    active = True
+                    seat.on_roster(msg)
+                state = seat.decide(now, [int(i) for role, i in watch.alive()
+                                          if role == "monitor" and i.isdigit()])
+                for line in seat.lines:
+                    print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                for kind, fields in seat.records:
+                    record(kind, **fields)
+                if seat.precompute:
                     precompute_for(core.roster)
-                elif not should and active:
-                    print(f"monitor {monitor_id}: another monitor ({others[0]}) is active; passive",
-                          file=log, flush=True)
-                    active = False
-                if active and core.behind:
-                    # the agents run an epoch this monitor never issued: another monitor acted
-                    # while this one was paused or cut off; rebuild from the network first
-                    if not (core.adopt(heard_roster["ids"], heard_roster["epoch"])
-                            if heard_roster is not None and heard_roster["epoch"] >= core.epoch
-                            else core.adopt(None, core.epoch)):
-                        peer.wait(timeout=0.05)
-                        continue
-                    record("adopted", monitor=monitor_id, epoch=core.epoch)
-                    precompute_for(core.roster)
+                seat.lines.clear()
+                seat.records.clear()
+                seat.precompute = False
+                if state == "wait":
+                    peer.wait(timeout=0.05)
+                    continue
+                active = state == "act"
                 if active:
                     for m in core.tick(now):
                         if isinstance(m, Assignment):

@@ -60,14 +60,24 @@ from broker_free_net.impair import decode_impairment, encode_impairment
 
 from . import wire
 from .core import AgentCore, AssignmentError, WorldCore, agent_config
-from .monitor_core import Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate
+from .monitor_core import (
+    LISTEN_S,
+    Assignment,
+    GainSource,
+    MonitorConfig,
+    MonitorCore,
+    MonitorSeat,
+    RosterUpdate,
+)
 from .timing import DEFAULT as TIMING
 
 __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS"]
 
 #: The kinds of :class:`agent.local_run.Fault` a simulated run applies.
 FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop",
-               "slow")
+               "slow", "monitor", "monitorstop", "monitorsgone")
+#: The kinds that act on the monitors (the acting one, or all for ``monitorsgone``).
+MONITOR_FAULTS = ("monitor", "monitorstop", "monitorsgone")
 
 
 @dataclass(frozen=True)
@@ -82,6 +92,8 @@ class SimConfig:
     tick_s: float = 0.01                 # the monitor's loop (monitor_process.TICK_S)
     roster_s: float = 1.0                # the roster re-published (monitor_process.ROSTER_S)
     design_s: float = 0.5                # a gain requested by the monitor comes this late
+    monitors: int = 2                    # as up: the first acts, the others stand by
+    listen_s: float = LISTEN_S           # a (re)started monitor listens before it acts
     start_s: float = 0.5                 # the world's first step (agents heard each other)
     deadline_s: float | None = None      # agents' deadline; default one step
 
@@ -95,7 +107,7 @@ class SimResult:
     summary: dict
     steps: list
     mse: list
-    monitor: MonitorCore
+    monitors: dict                       # id -> the newest monitor of that id (core, seat)
     config: object = None                # the run as an agent.local_run.RunConfig
 
     def violations(self, bounds=None) -> list:
@@ -142,6 +154,20 @@ class _GainDesigns:
         return out
 
 
+class _SimMonitor:
+    """One monitor process of a simulated run: its core, gain worker and seat."""
+
+    def __init__(self, runtime, monitor_id: int, listen_s: float):
+        self.id = int(monitor_id)
+        self.name = f"monitor-{self.id}"
+        self.designs = _GainDesigns(runtime)
+        self.gains = GainSource(worker=self.designs)
+        self.core = MonitorCore(runtime.monitor_config, runtime.s, runtime.G,
+                                runtime.delays, gains=self.gains)
+        self.seat = MonitorSeat(self.core, self.id, runtime.now, listen_s=listen_s)
+        self.roster_at = 0.0
+
+
 class SimRuntime:
     """One run of ``scenario`` with gains ``G`` and link ``delays`` (steps), ``faults``
     applied, in simulated time. :meth:`run` returns a :class:`SimResult`."""
@@ -154,8 +180,11 @@ class SimRuntime:
         self.seed = int(seed)
         self.faults = sorted(faults)
         for f in self.faults:
-            if f.kind not in FAULT_KINDS or not 1 <= f.agent <= scenario.N + scenario.standby:
-                raise ValueError(f"a simulated run applies {FAULT_KINDS} to an agent, got {f}")
+            on_agent = f.kind not in MONITOR_FAULTS
+            if f.kind not in FAULT_KINDS or (
+                    on_agent and not 1 <= f.agent <= scenario.N + scenario.standby):
+                raise ValueError(f"a simulated run applies {FAULT_KINDS}, the agent ones to "
+                                 f"an agent, got {f}")
         self._crash_at = {f.agent: f.step for f in self.faults if f.kind == "crash"}
         self.config = config or SimConfig()
         c = self.config
@@ -178,10 +207,10 @@ class SimRuntime:
         self.slow: dict = {}                   # name -> (until, seconds a message costs)
         self._busy_until: dict = {}
         self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s)
-        self.designs = _GainDesigns(self)
-        self.gains = GainSource(worker=self.designs)
-        self.mon = MonitorCore(self.monitor_config, scenario, self.G, self.delays,
-                               gains=self.gains)
+        self.monitors: dict = {}               # id -> _SimMonitor (the newest of that id)
+        self.monitors_alive: set = set()       # ids whose token is up
+        self._token_gone: set = set()          # agents whose token is down
+        self._restarts = 0
         self.stats = MessageStats()
         self._schemas = {"est": wire.est_schema(scenario.n), "ctl": wire.ctl_schema(scenario.n),
                          "roster": wire.roster_schema(),
@@ -328,7 +357,8 @@ class SimRuntime:
         st = self.agents[a].status()
         st.update(malformed=0, malformed_reasons={}, overflows=0)
         payload = wire.encode_status(st)
-        self._send(name, "monitor", lambda: self._on_status(payload))
+        for m in self.monitors.values():
+            self._send(name, m.name, lambda m=m: self._on_status(m, payload))
         self._record(name, keys.status_key(self.run_id, a), payload)
 
     def _status_loop(self, a: int) -> None:
@@ -340,7 +370,10 @@ class SimRuntime:
     # -- liveliness and faults ---------------------------------------------------------
     def _token(self, a: int, alive: bool) -> None:
         """Agent ``a``'s token went (or came back): every other process learns it."""
-        self.mon.on_liveliness("agent", a, alive, self.now)
+        (self._token_gone.discard if alive else self._token_gone.add)(a)
+        for m in self.monitors.values():
+            if self._alive(m.name):
+                m.core.on_liveliness("agent", a, alive, self.now)
         for b, core in self.agents.items():
             if b != a:
                 core.set_alive(a, alive)
@@ -358,6 +391,9 @@ class SimRuntime:
         self.after(2 * self.config.latency_s, lambda: self._token(a, False))
 
     def _fault(self, f) -> None:
+        if f.kind in MONITOR_FAULTS:
+            self._monitor_fault(f)
+            return
         name = f"agent-{f.agent}"
         lease = self.config.lease_s
         if f.kind == "kill":
@@ -422,45 +458,124 @@ class SimRuntime:
         self._agent_poll(a)
         self._agent_status(a)
 
-    # -- the monitor -------------------------------------------------------------------
-    def _on_status(self, payload: bytes) -> None:
+    # -- the monitors ------------------------------------------------------------------
+    def _start_monitor(self, monitor_id: int, listen_s: float) -> None:
+        """A monitor process (a fresh one when restarted): its core, its gain worker and
+        its seat (:class:`MonitorSeat`: which monitor acts, what it adopts)."""
+        m = _SimMonitor(self, monitor_id, listen_s)
+        self.monitors[monitor_id] = m
+        self.dead.discard(m.name)
+        m.core.on_liveliness("world", "1", True, self.now)
+        for a in self.agents:
+            alive = f"agent-{a}" not in self.dead and a not in self._token_gone
+            m.core.on_liveliness("agent", a, alive, self.now)
+        self._monitor_token(monitor_id, True)
+        self.after(0.0, lambda: self._monitor_tick(m))
+
+    def _monitor_token(self, monitor_id: int, alive: bool) -> None:
+        (self.monitors_alive.add if alive else self.monitors_alive.discard)(monitor_id)
+        self.recorder.on_monitor_liveliness(str(monitor_id), alive)
+
+    def _on_status(self, m, payload: bytes) -> None:
         msg = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
         if msg is not None:
-            self.mon.on_status(msg, self.now, sender=msg["agent"])
+            m.core.on_status(msg, self.now, sender=msg["agent"])
 
-    def _publish(self, m) -> None:
-        if isinstance(m, Assignment):
-            sp = m.spec
-            payload = wire.encode_ctl(m.agent, m.epoch, m.activate_at, sp.measure,
+    def _on_monitor_roster(self, m, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["roster"], self.stats)
+        if msg is not None:
+            m.seat.on_roster(msg)
+
+    def _publish(self, src, msg) -> None:
+        if isinstance(msg, Assignment):
+            sp = msg.spec
+            payload = wire.encode_ctl(msg.agent, msg.epoch, msg.activate_at, sp.measure,
                                       sp.neighbours, sp.self_weight, sp.gain,
                                       take_over=sp.take_over, continues=sp.continues)
-            self._record("monitor", keys.ctl_key(self.run_id, m.agent), payload)
-            self._send("monitor", f"agent-{m.agent}",
-                       lambda a=m.agent: self._on_ctl(a, payload))
-        elif isinstance(m, RosterUpdate):
-            self._roster_out(m)
+            self._record(src.name, keys.ctl_key(self.run_id, msg.agent), payload)
+            self._send(src.name, f"agent-{msg.agent}",
+                       lambda a=msg.agent: self._on_ctl(a, payload))
+        elif isinstance(msg, RosterUpdate):
+            self._roster_out(src, msg)
 
-    def _roster_out(self, m) -> None:
-        payload = wire.encode_roster(m.epoch, m.activate_at, m.ids)
-        self._record("monitor", keys.ctl_key(self.run_id, 0), payload)
+    def _roster_out(self, src, msg) -> None:
+        payload = wire.encode_roster(msg.epoch, msg.activate_at, msg.ids)
+        self._record(src.name, keys.ctl_key(self.run_id, 0), payload)
         for a in self.agents:
-            self._send("monitor", f"agent-{a}", lambda a=a: self._on_roster(a, payload))
-        self._roster_at = self.now + self.config.roster_s
+            self._send(src.name, f"agent-{a}", lambda a=a: self._on_roster(a, payload))
+        for other in self.monitors.values():
+            if other is not src:
+                self._send(src.name, other.name,
+                           lambda o=other: self._on_monitor_roster(o, payload))
+        src.roster_at = self.now + self.config.roster_s
 
-    def _monitor_tick(self) -> None:
-        for roster, G, info in self.designs.poll():
-            self.gains.put(roster, G, info)
-        for m in self.mon.tick(self.now):
-            self._publish(m)
-        self.mon.events.clear()
-        for kind, fields in self.mon.new_records():
-            self._record("monitor", keys.monitor_events_key(self.run_id),
-                         wire.encode_monitor_event({"kind": kind, "t": self.now, **fields}))
-        roster = self.mon.roster_message
-        if roster is not None and self.now >= self._roster_at:
-            self._roster_out(roster)
-        if self.world.step < self._steps or self.now < self._end_at:
-            self.after(self.config.tick_s, self._monitor_tick)
+    def _monitor_event(self, src, kind: str, fields: dict) -> None:
+        self._record(src.name, keys.monitor_events_key(self.run_id),
+                     wire.encode_monitor_event({"kind": kind, "t": self.now, **fields}))
+
+    def _monitor_tick(self, m) -> None:
+        if self.monitors.get(m.id) is not m or m.name in self.dead:
+            return                                   # killed (perhaps started again)
+        if self.now < self._end_at:
+            self.after(self.config.tick_s, lambda: self._monitor_tick(m))
+        if not self._alive(m.name):
+            return                                   # stopped: its ticks resume after
+        for roster, G, info in m.designs.poll():
+            m.gains.put(roster, G, info)
+        state = m.seat.decide(self.now, self.monitors_alive)
+        for kind, fields in m.seat.records:
+            self._monitor_event(m, kind, fields)
+        m.seat.records.clear()
+        m.seat.lines.clear()
+        if state != "act":
+            return
+        for msg in m.core.tick(self.now):
+            self._publish(m, msg)
+        m.core.events.clear()
+        for kind, fields in m.core.new_records():
+            self._monitor_event(m, kind, fields)
+        roster = m.core.roster_message
+        if roster is not None and self.now >= m.roster_at:
+            self._roster_out(m, roster)
+
+    def _monitor_fault(self, f) -> None:
+        """``monitor``: the acting monitor killed and started again at once (as ``up``
+        does); ``monitorstop``: it is stopped ``seconds``; ``monitorsgone``: every one
+        killed for good."""
+        acting = min(self.monitors_alive, default=None)
+        if f.kind == "monitorsgone":
+            targets = list(self.monitors_alive)
+        else:
+            targets = [] if acting is None else [acting]
+        for monitor_id in targets:
+            m = self.monitors[monitor_id]
+            if f.kind == "monitorstop":
+                self.paused_until[m.name] = self.now + f.seconds
+                self.rec.events.append({"process": "monitor", "signal": "SIGSTOP",
+                                        "step": f.step, "t": self.now})
+                if f.seconds > self.config.lease_s:
+                    self.after(self.config.lease_s,
+                               lambda i=monitor_id: self._monitor_token(i, False))
+                self.after(f.seconds, lambda m=m: self._monitor_resume(m))
+                continue
+            self.dead.add(m.name)
+            self.rec.events.append({"process": "monitor", "signal": "SIGKILL",
+                                    "step": f.step, "t": self.now})
+            self._monitor_token(monitor_id, False)
+            if f.kind == "monitor":
+                self._restarts += 1
+                self.rec.events.append({"process": f"monitor-{self._restarts + 1}",
+                                        "started": True, "step": f.step, "t": self.now})
+                self._start_monitor(monitor_id, self.config.listen_s)
+
+    def _monitor_resume(self, m) -> None:
+        if m.name in self.dead or self.monitors.get(m.id) is not m:
+            return
+        self.rec.events.append({"process": "monitor", "signal": "SIGCONT",
+                                "step": self.world.step, "t": self.now})
+        self._monitor_token(m.id, True)
+        for handle in self._backlog.pop(m.name, []):
+            handle()
 
     # -- the run -------------------------------------------------------------------------
     def run(self, steps: int) -> SimResult:
@@ -471,12 +586,12 @@ class SimRuntime:
         c = self.config
         self._steps = int(steps)
         self._end_at = c.start_s + (steps + 20) * c.step_s + 2.0
-        self.mon.on_liveliness("world", "1", True, 0.0)
+        for monitor_id in range(1, c.monitors + 1):
+            # the first acts at once (the run's start: nothing to adopt), the others stand by
+            self._start_monitor(monitor_id, 0.0 if monitor_id == 1 else c.listen_s)
         for a in self.agents:
-            self.mon.on_liveliness("agent", a, True, 0.0)
             self.after(0.01 * a / self.M, lambda a=a: self._status_loop(a))
         self.after(c.start_s, self._world_step)
-        self.after(0.0, self._monitor_tick)
         while self._queue:
             t, _, fn = heapq.heappop(self._queue)
             if t > self._end_at:
@@ -491,4 +606,4 @@ class SimRuntime:
                            run_id=self.rec.run_id, faults=tuple(self.faults),
                            hang_timeout=self.monitor_config.hang_timeout_s)
         summary, steps_done, mse = summarize(config, self.rec, rho, predicted)
-        return SimResult(self.rec, summary, steps_done, mse, self.mon, config)
+        return SimResult(self.rec, summary, steps_done, mse, self.monitors, config)

@@ -97,3 +97,24 @@ def test_short_schedules_of_every_kind_keep_the_chaos_invariants(live, seed):
                              rate=5)
     r = SimRuntime(s, G, resolve_delays(s, "scenario"), seed=seed, faults=schedule).run(800)
     assert [v.to_dict() for v in r.violations()] == []
+
+
+@pytest.mark.parametrize("fault, kill", [(Fault(200, "monitor"), 400),
+                                         (Fault(200, "monitorstop", 0, 1.0), 400),
+                                         (Fault(200, "monitorstop", 0, 5.0), 600),
+                                         (Fault(200, "monitorstop", 0, 30.0), 2000)])
+def test_the_monitor_killed_or_paused_hands_over_and_a_later_crash_recovers(live, fault,
+                                                                             kill):
+    """Two monitors, as up starts them (agent.monitor_core.MonitorSeat): the acting one
+    killed (and started again) or stopped 1, 5 or 30 s; agent 1 killed afterwards is
+    convicted and replaced."""
+    r = _run(live, [fault, Fault(kill, "kill", 1)], steps=kill + 300)
+    assert [(f["agent"], f["cause"]) for f in r.summary["failures"]] == [(1, "crash")]
+    assert r.summary["recovered"] is True and r.violations() == []
+
+
+def test_with_every_monitor_gone_a_crash_is_reported_unrecovered(live):
+    r = _run(live, [Fault(200, "monitorsgone"), Fault(400, "kill", 1)], steps=700)
+    (f,) = r.summary["failures"]
+    assert (f["agent"], f["detected"]) == (1, False) and r.summary["recovered"] is False
+    assert r.recording.no_monitor_since is not None
