@@ -19,8 +19,9 @@ The model of the transport: every message takes ``latency_s`` plus a uniform jit
 nothing; a paused one receives its messages when it resumes. A liveliness token goes at
 once when its process dies (the kernel closes its sockets), ``lease_s`` after it stopped
 (zenoh's link lease), and comes back when a paused process resumes. Gains the monitor asks
-for come ``design_s`` after the request (designed at once in real time and cached across
-runs by configuration).
+for come ``design_s`` after the request; the failures of the configuration in force are
+precomputed as the monitor's worker does, one every ``precompute_s`` (designed at once in
+real time and cached across runs by configuration).
 
 Faults are ``up``'s (:class:`agent.local_run.Fault`, :data:`FAULT_KINDS`): ``crash``
 (the agent dies once it published step ``step - 1``, as ``up --kill STEP:AGENT``),
@@ -92,6 +93,7 @@ class SimConfig:
     tick_s: float = 0.01                 # the monitor's loop (monitor_process.TICK_S)
     roster_s: float = 1.0                # the roster re-published (monitor_process.ROSTER_S)
     design_s: float = 0.5                # a gain requested by the monitor comes this late
+    precompute_s: float = 0.3            # each precomputed failure's gain takes this long
     monitors: int = 2                    # as up: the first acts, the others stand by
     listen_s: float = LISTEN_S           # a (re)started monitor listens before it acts
     start_s: float = 0.5                 # the world's first step (agents heard each other)
@@ -128,6 +130,7 @@ class _GainDesigns:
     def __init__(self, runtime):
         self.rt = runtime
         self.ready: list = []
+        self.generation = 0
 
     def _answer(self, roster, kinds):
         from .monitor_core import design_gains_for
@@ -147,7 +150,23 @@ class _GainDesigns:
         pass                                   # the exact MSE of a fast gain: not needed here
 
     def precompute(self, roster):
-        pass                                   # unforeseen failures: every gain is requested
+        """The failures of ``roster`` planned (:func:`agent.gain_worker.plan_failures`,
+        as the monitor's worker does) and their fast gains answered one after the other,
+        ``precompute_s`` apart; a newer precompute abandons the rest of an older one."""
+        from .gain_worker import plan_failures
+
+        self.generation += 1
+        generation = self.generation
+        for i, (_, nxt) in enumerate(plan_failures(roster), start=1):
+            key = (GainSource.key(nxt), "fast")
+            if key not in self.cache:
+                from .monitor_core import design_gains_for
+
+                self.cache[key] = design_gains_for(nxt, "fast")
+            G, info = self.cache[key]
+            self.rt.after(i * self.rt.config.precompute_s,
+                          lambda G=G, info=info, nxt=nxt: generation == self.generation
+                          and self.ready.append((nxt, G, info)))
 
     def poll(self):
         out, self.ready = self.ready, []
@@ -527,6 +546,9 @@ class SimRuntime:
             self._monitor_event(m, kind, fields)
         m.seat.records.clear()
         m.seat.lines.clear()
+        if m.seat.precompute:
+            m.seat.precompute = False
+            m.designs.precompute(m.core.roster)
         if state != "act":
             return
         for msg in m.core.tick(self.now):
@@ -534,6 +556,8 @@ class SimRuntime:
         m.core.events.clear()
         for kind, fields in m.core.new_records():
             self._monitor_event(m, kind, fields)
+            if kind == "reassign":
+                m.designs.precompute(m.core.roster)
         roster = m.core.roster_message
         if roster is not None and self.now >= m.roster_at:
             self._roster_out(m, roster)
