@@ -103,6 +103,9 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: f
         if kind == "monitor":
             out.append(Fault(k, "monitor"))
             continue
+        if kind == "monitorstop":
+            out.append(Fault(k, "monitorstop", 0, float(np.round(rng.uniform(0.5, 6.0), 2))))
+            continue
         # keep at least two agents alive: one to measure, one to talk to
         if kind in ("kill", "hang") and len(alive) <= 2:
             kind = "stop" if "stop" in kinds else None
