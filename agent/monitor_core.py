@@ -1125,9 +1125,13 @@ class MonitorCore:
         return True
 
 
-#: a (re)started monitor listens this long (the roster is re-published every second)
+#: a (re)started monitor listens this long (the roster is re-published every ROSTER_S)
 #: before it acts, so that it acts on the configuration in force, not on its scenario
 LISTEN_S = 1.5
+#: the monitor's loop period, and how often the acting monitor re-publishes the roster in
+#: force (an agent coming back learns from it that it was replaced)
+TICK_S = 0.01
+ROSTER_S = 1.0
 
 
 class MonitorSeat:

@@ -37,8 +37,10 @@ from . import wire
 from .control_auth import SignatureError
 from .gain_worker import GainWorker
 from .memory import TRIM_S, heap_trimmer
-from .monitor_core import (
-    LISTEN_S,  # noqa: F401 - the listening time, defined with the seat it belongs to
+from .monitor_core import (  # noqa: F401 - LISTEN_S: defined with the seat it belongs to
+    LISTEN_S,
+    ROSTER_S,
+    TICK_S,
     Assignment,
     GainSource,
     MonitorConfig,
@@ -49,8 +51,6 @@ from .monitor_core import (
 
 __all__ = ["run_monitor", "TICK_S", "ROSTER_S"]
 
-TICK_S = 0.01
-ROSTER_S = 1.0
 
 
 class _Stop:

@@ -63,6 +63,8 @@ from . import wire
 from .core import AgentCore, AssignmentError, WorldCore, agent_config
 from .monitor_core import (
     LISTEN_S,
+    ROSTER_S,
+    TICK_S,
     Assignment,
     GainSource,
     MonitorConfig,
@@ -90,8 +92,8 @@ class SimConfig:
     jitter_s: float = 0.002
     lease_s: float = 1.0
     status_s: float = TIMING.status_s
-    tick_s: float = 0.01                 # the monitor's loop (monitor_process.TICK_S)
-    roster_s: float = 1.0                # the roster re-published (monitor_process.ROSTER_S)
+    tick_s: float = TICK_S               # the monitor's loop
+    roster_s: float = ROSTER_S           # the roster re-published
     design_s: float = 0.5                # a gain requested by the monitor comes this late
     precompute_s: float = 0.3            # each precomputed failure's gain takes this long
     monitors: int = 2                    # as up: the first acts, the others stand by
