@@ -105,7 +105,7 @@ class SimConfig:
 @dataclass
 class SimResult:
     """A simulated run: the recording (:class:`agent.recorder.Recording`), its summary
-    (the keys of a live run's ``summary.json``), the MSE per step, and the monitor core."""
+    (the keys of a live run's ``summary.json``), the MSE per step, and the monitors."""
 
     recording: object
     summary: dict
@@ -125,9 +125,18 @@ class SimResult:
 
 class _GainDesigns:
     """The monitor's gain worker under simulated time: a request is designed at once (in
-    real time, cached by configuration across runs) and answered ``design_s`` later."""
+    real time, cached by model and configuration across runs) and answered ``design_s``
+    later."""
 
     cache: dict = {}
+
+    def _design(self, roster, kind):
+        from .monitor_core import design_gains_for
+
+        key = (roster.scenario.A.tobytes(), GainSource.key(roster), kind)
+        if key not in self.cache:
+            self.cache[key] = design_gains_for(roster, kind)
+        return self.cache[key]
 
     def __init__(self, runtime):
         self.rt = runtime
@@ -135,13 +144,8 @@ class _GainDesigns:
         self.generation = 0
 
     def _answer(self, roster, kinds):
-        from .monitor_core import design_gains_for
-
         for kind in kinds:
-            key = (GainSource.key(roster), kind)
-            if key not in self.cache:
-                self.cache[key] = design_gains_for(roster, kind)
-            G, info = self.cache[key]
+            G, info = self._design(roster, kind)
             self.rt.after(self.rt.config.design_s,
                           lambda G=G, info=info: self.ready.append((roster, G, info)))
 
@@ -160,12 +164,7 @@ class _GainDesigns:
         self.generation += 1
         generation = self.generation
         for i, (_, nxt) in enumerate(plan_failures(roster), start=1):
-            key = (GainSource.key(nxt), "fast")
-            if key not in self.cache:
-                from .monitor_core import design_gains_for
-
-                self.cache[key] = design_gains_for(nxt, "fast")
-            G, info = self.cache[key]
+            G, info = self._design(nxt, "fast")
             self.rt.after(i * self.rt.config.precompute_s,
                           lambda G=G, info=info, nxt=nxt: generation == self.generation
                           and self.ready.append((nxt, G, info)))
