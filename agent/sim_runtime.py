@@ -74,7 +74,8 @@ from .monitor_core import (
 )
 from .timing import DEFAULT as TIMING
 
-__all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS"]
+__all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS", "run_schedules",
+           "report_lines"]
 
 #: The kinds of :class:`agent.local_run.Fault` a simulated run applies.
 FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop",
@@ -632,3 +633,72 @@ class SimRuntime:
                            hang_timeout=self.monitor_config.hang_timeout_s)
         summary, steps_done, mse = summarize(config, self.rec, rho, predicted)
         return SimResult(self.rec, summary, steps_done, mse, self.monitors, config)
+
+
+def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
+                  config: SimConfig | None = None, progress=None) -> dict:
+    """Chaos under simulated time: for each seed, a schedule drawn by
+    :func:`agent.chaos.draw_schedule`, run by :class:`SimRuntime` and checked by
+    :func:`agent.chaos.check_invariants`. Returns the report (``report_lines`` prints it):
+    runs and CPU seconds, faults by kind, verdicts by cause, detection steps after stop,
+    hang and kill faults and switch steps after the verdicts (median, min, max), and every
+    violation with its seed. ``progress(seed, violations)`` is called after each run."""
+    import time
+    from collections import Counter
+
+    from .chaos import draw_schedule
+
+    faults, verdicts, broken, runs_s = Counter(), Counter(), [], []
+    detection = {k: [] for k in ("kill", "hang", "stop")}
+    switch = []
+    for seed in seeds:
+        schedule = draw_schedule(scenario, seed, steps, kinds=kinds, rate=rate)
+        t = time.process_time()
+        result = SimRuntime(scenario, G, delays, seed=seed, faults=schedule,
+                            config=config).run(steps)
+        runs_s.append(time.process_time() - t)
+        faults.update(f.kind for f in schedule)
+        found = result.violations()
+        broken += [{"seed": seed, **v.to_dict()} for v in found]
+        for f in result.summary.get("failures", []):
+            verdicts[f.get("cause")] += 1
+            if f.get("detected_step") is None:
+                continue
+            fault = max((g for g in schedule if g.agent == f["agent"]
+                         and g.step <= f["detected_step"] + 5), key=lambda g: g.step,
+                        default=None)
+            if fault is not None and fault.kind in detection:
+                detection[fault.kind].append(f["detected_step"] - fault.step)
+            if f.get("activate_at") is not None:
+                switch.append(f["activate_at"] - f["detected_step"])
+        if progress is not None:
+            progress(seed, found)
+
+    def spread(values):
+        return [float(np.median(values)), min(values), max(values)] if values else None
+
+    return {"scenario": scenario.name, "seeds": [min(seeds), max(seeds) + 1], "steps": steps,
+            "kinds": list(kinds), "rate": rate, "runs": len(runs_s),
+            "cpu_s": float(np.sum(runs_s)), "cpu_s_median": float(np.median(runs_s)),
+            "faults": dict(faults), "verdicts": dict(verdicts),
+            "detection_steps": {k: spread(v) for k, v in detection.items() if v},
+            "switch_steps": spread(switch), "violations": broken}
+
+
+def report_lines(report: dict) -> list:
+    """The lines of a :func:`run_schedules` report, for terminals."""
+    lines = [f"{report['runs']} schedules of {report['steps']} steps, {report['cpu_s']:.1f} s "
+             f"of CPU ({report['cpu_s_median']:.2f} s a run, median)",
+             f"faults injected: {report['faults']}; verdicts: {report['verdicts']}"]
+    for kind, (median, low, high) in report["detection_steps"].items():
+        lines.append(f"  {kind}: detected {median:.0f} steps after the fault (median), "
+                     f"{low} to {high}")
+    if report["switch_steps"]:
+        median, low, high = report["switch_steps"]
+        lines.append(f"  roles in force {median:.0f} steps after the verdict (median), "
+                     f"{low} to {high}")
+    broken = report["violations"]
+    lines.append(f"violations: {len(broken)} in {len({v['seed'] for v in broken})} runs")
+    lines += [f"  seed {v['seed']}: {v['invariant']} at step {v['step']}: {v['evidence']}"
+              for v in broken[:30]]
+    return lines

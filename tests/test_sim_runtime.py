@@ -120,3 +120,21 @@ def test_with_every_monitor_gone_a_crash_is_reported_unrecovered(live):
     (f,) = r.summary["failures"]
     assert (f["agent"], f["detected"]) == (1, False) and r.summary["recovered"] is False
     assert r.recording.no_monitor_since is not None
+
+
+def test_socmon_chaos_simulated_reports_every_seed(tmp_path, capsys, live_gains):
+    import json
+
+    from agent.cli import main
+
+    code = main(["chaos", "paper-14-live", "--simulated", "7:9", "--duration", "600",
+                 "--faults", "kill,stop,monitor", "--rate", "5", "--gains", str(live_gains),
+                 "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == (1 if report["violations"] else 0)
+    assert report["runs"] == 2 and report["seeds"] == [7, 9] and report["steps"] == 600
+    assert report["schema_version"] == 1 and report["scenario"] == "paper-14-live"
+    assert report["delays"] == [[0, 0, 0]] * 3
+    assert sum(report["faults"].values()) >= 2
+    assert main(["chaos", "paper-14-live", "--simulated", "0:2", "--faults", "linkdown"]) == 2
+    assert "cannot be simulated" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""``socmon chaos SCENARIO --seed S``: a live run under a random fault schedule, checked."""
+"""``socmon chaos SCENARIO --seed S``: a live run under a random fault schedule, checked;
+``--simulated A:B``: seeds A..B-1 under simulated time (:mod:`agent.sim_runtime`)."""
 
 from __future__ import annotations
 
@@ -33,6 +34,11 @@ def add_arguments(parser) -> None:
                              "a folder holding an earlier run is refused")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the earlier run in --out (its files only)")
+    parser.add_argument("--simulated", metavar="A:B",
+                        help="no processes: run seeds A..B-1 under simulated time "
+                             "(agent.sim_runtime: world, agents and monitors in this process) "
+                             "and report them together; --faults may add slow, monitorstop "
+                             "and monitorsgone, without linkdown or worldstop")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
@@ -41,6 +47,42 @@ def run(args) -> int:
     from ._common import run_command
 
     return run_command(lambda: _chaos(args))
+
+
+def _simulated(args) -> int:
+    """``--simulated A:B``: many seeds under simulated time, one report."""
+    import json
+
+    from design.errors import ScenarioError
+    from design.scenario import resolve_delays
+
+    from ..sim_runtime import FAULT_KINDS, report_lines, run_schedules
+    from ._common import CommandError, load_scenario_arg, parse_int, to_jsonable, versioned
+    from .agent_cmd import gains_for
+
+    first, _, last = str(args.simulated).partition(":")
+    a = parse_int(first, "--simulated")
+    b = parse_int(last, "--simulated", lo=a + 1) if last else a + 1
+    kinds = tuple(k.strip() for k in args.faults.split(",") if k.strip())
+    bad = [k for k in kinds if k not in FAULT_KINDS or k == "crash"]
+    if bad or not kinds:
+        raise CommandError(f"--faults: {bad} cannot be simulated (simulated: "
+                           f"{', '.join(k for k in FAULT_KINDS if k != 'crash')})"
+                           if bad else "--faults: give at least one kind")
+    scenario = load_scenario_arg(args.scenario)
+    try:
+        delays = resolve_delays(scenario, args.delays)
+    except ScenarioError as exc:
+        raise CommandError(str(exc)) from None
+    G = gains_for(scenario, args.gains, delays, args.force_gains)
+    report = run_schedules(scenario, G, delays, range(a, b), args.duration, kinds, args.rate)
+    if args.json:
+        print(json.dumps(to_jsonable(versioned({**report, "delays": delays})), indent=2))
+    else:
+        print(f"{scenario.name} under simulated time, seeds {a}..{b - 1}, faults "
+              f"{','.join(kinds)}, rate {args.rate:g}")
+        print("\n".join(report_lines(report)))
+    return 1 if report["violations"] else 0
 
 
 def _chaos(args) -> int:
@@ -57,15 +99,17 @@ def _chaos(args) -> int:
     from ._common import CommandError, to_jsonable
     from .up import run_config
 
+    if not 0 <= args.rate <= 6.25:
+        raise CommandError(f"--rate: must be in [0, 6.25] faults per 1000 steps, got {args.rate}")
+    if args.duration < 100:
+        raise CommandError(f"--duration: must be >= 100 steps, got {args.duration}")
+    if args.simulated:
+        return _simulated(args)
     kinds = tuple(k.strip() for k in args.faults.split(",") if k.strip())
     bad = [k for k in kinds if k not in CHAOS_KINDS]
     if bad or not kinds:
         raise CommandError(f"--faults: unknown kinds {bad} (known: {', '.join(CHAOS_KINDS)})"
                            if bad else "--faults: give at least one kind")
-    if not 0 <= args.rate <= 6.25:
-        raise CommandError(f"--rate: must be in [0, 6.25] faults per 1000 steps, got {args.rate}")
-    if args.duration < 100:
-        raise CommandError(f"--duration: must be >= 100 steps, got {args.duration}")
 
     def say(text):
         if not args.quiet:
