@@ -31,7 +31,6 @@ import sys
 import time
 from collections import deque
 
-import numpy as np
 
 from broker_free_net import keys
 from broker_free_net.codec import MalformedMessage, MessageStats, shorten, try_decode
@@ -40,15 +39,13 @@ from broker_free_net.peer import DEFAULT_INBOX_BYTES, DEFAULT_INBOX_SIZE, Peer
 
 from . import wire
 from .control_auth import SignatureError
-from .core import (  # noqa: F401 - agent_config and initial_role: re-exported
-    MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError, Role, agent_config, initial_role,
-)
+from .core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError
 from .memory import TRIM_S, heap_trimmer
 from .ratelimit import LogLimiter
 from .timing import DEFAULT as TIMING
 from .timing import Timing
 
-__all__ = ["agent_config", "run_agent", "initial_role"]
+__all__ = ["run_agent"]
 
 
 

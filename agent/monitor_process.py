@@ -15,7 +15,7 @@ When the world's token goes, the run is ending: the agents leave with it, so not
 convicted while it is gone, and the monitor exits once the agents' tokens are gone too
 (:meth:`MonitorCore.run_ended`).
 
-A monitor listens for ``LISTEN_S`` before it acts. Several monitors may run on one run:
+A monitor listens for :data:`agent.monitor_core.LISTEN_S` before it acts. Several monitors may run on one run:
 the one with the smallest id whose token is alive acts, the others stay passive and watch;
 when the active one's token goes, the next one adopts the configuration in force from the
 roster it heard and the agents' statuses and goes on with epochs above every epoch it saw
@@ -37,8 +37,7 @@ from . import wire
 from .control_auth import SignatureError
 from .gain_worker import GainWorker
 from .memory import TRIM_S, heap_trimmer
-from .monitor_core import (  # noqa: F401 - LISTEN_S: defined with the seat it belongs to
-    LISTEN_S,
+from .monitor_core import (
     ROSTER_S,
     TICK_S,
     Assignment,

@@ -136,8 +136,8 @@ def main(count: int, step_ms: int, passes: int) -> int:
         finally:
             dep.close()
     print()
-    print(f"| class | bytes | counted | RSS before (MB) | RSS after (MB) | delta (MB) "
-          f"| steps meanwhile | s |")
+    print("| class | bytes | counted | RSS before (MB) | RSS after (MB) | delta (MB) "
+          "| steps meanwhile | s |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for name, size, counted, before, after, steps, secs, done in rows:
         flag = "" if done else " (timed out)"

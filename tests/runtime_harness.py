@@ -2,8 +2,7 @@
 
 import numpy as np
 
-from agent.agent_process import agent_config
-from agent.core import AgentCore, WorldCore
+from agent.core import AgentCore, WorldCore, agent_config
 from design import noise
 from design.estimator import NeighbourEstimate, PowerCache, estimator_step, role_from
 

@@ -62,7 +62,8 @@ def run(args) -> int:
         from design.errors import ScenarioError
         from design.scenario import resolve_delays
 
-        from ..agent_process import agent_config, run_agent
+        from ..agent_process import run_agent
+        from ..core import agent_config
         from ._common import check_run_flags, load_scenario_arg, net_config_arg
 
         check_run_flags(args)
