@@ -219,18 +219,18 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             # len() before drain(): most inboxes are empty at most wake-ups
             for ev in watch.drain() if len(watch) else ():
                 if ev.role == "world":
-                    if ev.alive and world_gone_at is not None and world_end is None:
+                    if ev.any_alive and world_gone_at is not None and world_end is None:
                         say(f"agent {me}: the world is back after "
                             f"{now - world_gone_at:.1f} s")
-                    elif not ev.alive and world_alive and world_end is None:
+                    elif not ev.any_alive and world_alive and world_end is None:
                         say(f"agent {me}: the world went silent after step {core.step} "
                             f"without its end (paused or cut off?); waiting up to "
                             f"{timing.world_silent_s:g} s for it")
-                    world_alive = ev.alive
-                    world_seen = world_seen or ev.alive
-                    world_gone_at = None if ev.alive else now
+                    world_alive = ev.any_alive
+                    world_seen = world_seen or ev.any_alive
+                    world_gone_at = None if ev.any_alive else now
                 elif ev.role == "agent" and ev.id in agent_ids:
-                    core.set_alive(int(ev.id), ev.alive)
+                    core.set_alive(int(ev.id), ev.any_alive)
             for item in ctl_in.drain() if len(ctl_in) else ():
                 msg = try_decode(item.payload, ctl_schema, stats)
                 if msg is None or not signed(msg):

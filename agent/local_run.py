@@ -420,7 +420,7 @@ class LocalRun:
                                      f"at step {k_now}; the run goes on")
                     for ev in alive_watch.drain():
                         if ev.role == "monitor" and world_end is None and c.monitor:
-                            change = recorder.on_monitor_liveliness(ev.id, ev.alive)
+                            change = recorder.on_monitor_liveliness(ev.id, ev.any_alive)
                             if change == "none":
                                 self.say(f"WARNING: no monitor alive at step {recorder.step}:"
                                          " a failure from now on is neither detected nor "

@@ -44,7 +44,9 @@ Examples
 >>> import numpy as np
 >>> s = load_scenario("paper-14")
 >>> core = MonitorCore(MonitorConfig(), s, [np.zeros((14, 1))] * 3, s.delays)
->>> core.on_liveliness("agent", 1, True, now=0.0); core.roster.ids
+>>> core.on_liveliness("agent", 1, True, now=0.0)
+True
+>>> core.roster.ids
 (1, 2, 3)
 """
 
@@ -100,6 +102,10 @@ class MonitorConfig:
     epoch_jump_max : int
         Epochs heard from the network (statuses, rosters) above the highest seen plus
         this are refused: every epoch comes from a monitor, one per reassignment.
+    step_ahead_s : float
+        A status whose step is more than this (in steps of ``step_s``) ahead of every
+        other agent's step, extrapolated from when it was reached, is refused
+        (``step``): one agent alone cannot ratchet the monitor's clock up.
     settle_s : float
         After a first verdict, wait this long for others (agents killed together: their
         tokens go within a few ms) so that one reassignment answers them all.
@@ -128,6 +134,7 @@ class MonitorConfig:
     settle_s: float = 0.01
     rejoin_s: float = TIMING.rejoin_s
     epoch_jump_max: int = TIMING.epoch_jump_max
+    step_ahead_s: float = TIMING.step_ahead_s
     world_gone_s: float = TIMING.monitor_world_gone_s
     world_silent_s: float = TIMING.monitor_world_silent_s
 
@@ -138,7 +145,7 @@ class MonitorConfig:
                    confirm_timeout_s=timing.confirm_timeout_s,
                    pause_guard_s=timing.pause_guard_s, rejoin_s=timing.rejoin_s,
                    epoch_jump_max=timing.epoch_jump_max,
-                   world_gone_s=timing.monitor_world_gone_s,
+                   step_ahead_s=timing.step_ahead_s, world_gone_s=timing.monitor_world_gone_s,
                    world_silent_s=timing.monitor_world_silent_s, **fields)
 
 
@@ -185,6 +192,9 @@ class _Agent:
     estimate_at: float | None = None     # when the monitor last heard one of its estimates
     sensor_last: int = -1
     status: dict = field(default_factory=dict)
+    token: str | None = None             # the session whose token is the agent's
+    claims: set = field(default_factory=set)    # other sessions holding a token for its id
+    contested_at: float | None = None    # its token went while another session held one
 
 
 class GainSource:
@@ -377,15 +387,32 @@ class MonitorCore:
                           "evidence_refused": 0, "waiting": None}   # see new_records
 
     # -- inputs --------------------------------------------------------------------
-    def on_liveliness(self, role: str, agent, alive: bool, now: float) -> None:
+    def on_liveliness(self, role: str, agent, alive: bool, now: float,
+                      session: str | None = None) -> bool | None:
+        """A liveliness token came or went; for an agent of the run, return whether its own
+        token is alive after it (None when the event changed nothing of it).
+
+        With ``session`` (the zid in the token's key), the first session seen holding agent
+        i's token is agent i's; a token of another session for the same id is refused
+        (``token``) and changes nothing. When the agent's own token goes while another
+        session still holds one for its id, the tokens no longer tell (zenoh resolves a
+        relayed token's end by an id, and two tokens for one agent id have been seen to
+        end the wrong one): the agent is then judged by the monitor's own observation,
+        convicted ``crash`` once no estimate of it came for ``silent_steps`` steps (a dead
+        agent cannot be hidden behind a token declared in its name, and an impostor
+        leaving cannot convict a live agent)."""
         if role == "world":
             self._on_world(bool(alive), now)
-            return
+            return None
         if role != "agent":
-            return
+            return None
         a = self._agent(agent)
         if a is None:
-            return
+            return None
+        if session is not None:
+            alive = self._token(a, int(agent), str(session), bool(alive), now)
+            if alive is None:
+                return None
         if a.alive and not alive and agent not in self.roster.ids \
                 and self.world_gone_at is None:
             # no role to hand over, but one failure fewer can be answered
@@ -397,6 +424,34 @@ class MonitorCore:
         a.alive = bool(alive)
         if alive and a.progress_at is None:
             a.progress_at = now
+        return a.alive
+
+    def _token(self, a: _Agent, agent: int, session: str, alive: bool,
+               now: float) -> bool | None:
+        """Whether agent ``agent``'s own token is alive after this event, or None when the
+        event is about another session's token for its id."""
+        if alive:
+            if a.token == session or (a.token is None and not a.claims):
+                a.token, a.contested_at = session, None
+                return True
+            a.claims.add(session)
+            self.reject("token", agent, f"a second liveliness token for agent {agent} "
+                        f"(session {session}; the agent's is {a.token}): another process "
+                        "claims its id, and its token is not taken for the agent's")
+            return None
+        if session == a.token:
+            a.token = None
+            if not a.claims:
+                return False
+            a.contested_at = now
+            self.events.append(f"agent {agent}'s liveliness token went while another process "
+                               f"holds one for its id: judged by its estimates from now on")
+            return None
+        a.claims.discard(session)
+        if a.token is None and not a.claims and a.contested_at is not None:
+            a.contested_at = None               # every token of its id is gone now
+            return False
+        return None
 
     def _on_world(self, alive: bool, now: float) -> None:
         """The world came or went. Without it the agents stop stepping: no verdict is made
@@ -491,6 +546,12 @@ class MonitorCore:
                         f"{self.config.epoch_jump_max} ({self.epoch_ceiling()})")
             return
         step = int(msg.get("step", -1))
+        ceiling = self.step_ceiling(now, exclude=msg["agent"])
+        if ceiling is not None and step > ceiling:
+            self.reject("step", msg["agent"], f"agent {msg['agent']}'s status reports step "
+                        f"{step}, more than {self.config.step_ahead_s:g} s ahead of the other "
+                        f"agents (step {ceiling} at most)")
+            return
         if step != a.step or a.progress_at is None:
             a.progress_at = now
             a.others_at_progress = self.newest_step(exclude=msg["agent"])
@@ -560,6 +621,20 @@ class MonitorCore:
         if step < 0:
             return step
         return step + max(0, int((now - t) / self.config.step_s))
+
+    def step_ceiling(self, now: float, exclude=None) -> int | None:
+        """The highest step a status may report now: the most advanced other agent's step
+        (``exclude``: the sender), extrapolated at ``step_s`` from when it was reached, plus
+        ``step_ahead_s``; None until another agent has reported. Taking the others' word
+        and not the sender's keeps one agent from ratcheting the clock up."""
+        best = None
+        for i, a in self.agents.items():
+            if i != exclude and a.step >= 0 and a.progress_at is not None:
+                at = a.step + max(0.0, now - a.progress_at) / self.config.step_s
+                best = at if best is None or at > best else best
+        if best is None:
+            return None
+        return int(best + self.config.step_ahead_s / self.config.step_s)
 
     @property
     def last_step_reported(self) -> int:
@@ -668,12 +743,18 @@ class MonitorCore:
         cfg = self.config
         found = []
         newest = self._clock[0]
+        silent_s = cfg.silent_steps * cfg.step_s
         for i in self.roster.ids:
             if i in self.failed:
                 continue
             a = self.agents[i]
             if not a.alive and a.progress_at is not None:
                 found.append(Verdict(i, "crash", "liveliness token deleted", now, newest))
+            elif a.contested_at is not None and a.token is None and now - max(
+                    a.contested_at, a.estimate_at or a.contested_at) > silent_s:
+                found.append(Verdict(i, "crash", "its liveliness token went, another process "
+                                     "holds one for its id, and no estimate of it for "
+                                     f"{cfg.silent_steps} steps", now, newest))
             elif a.progress_at is None and now - self._started > cfg.hang_timeout_s:
                 # a (re)started monitor never saw it: no token, no status, others advance
                 found.append(Verdict(i, "crash", "no liveliness token and no status since "

@@ -89,6 +89,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
 
         verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
     status_sender = keys.AgentKeyCache(run, "status", core.agents)
+    estimate_sender = keys.AgentKeyCache(run, "est", core.agents)
     trim_heap, trimmed = heap_trimmer(), [0.0, 0]   # time, messages dropped at the last trim
     out_file = open(events_out, "a") if events_out else None
     files = [out_file]                   # [the events file, None once a write failed]
@@ -123,9 +124,11 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
             publish.append(peer.put)
             status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
-            # no subscription to the estimates for the monitor's own observation
-            # (MonitorCore.on_estimate_seen): a paused monitor subscribed to them filled
-            # its links and stalled the agents' blocking estimate puts
+            # the monitor's own observation of who is heard (MonitorCore.on_estimate_seen,
+            # weighed against a lone listener's word): the key and arrival time only, never
+            # decoded; estimates go with congestion control DROP, so a paused monitor loses
+            # its own copies and holds no agent back (measured: docs/security.md)
+            estimates_in = peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=256)
             roster_in = peer.subscribe(keys.ctl_key(run, 0))
             end_in = peer.subscribe(keys.end_key(run), maxlen=16)
             watch = peer.watch_liveliness()
@@ -142,12 +145,13 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                                 for role, i in watch.alive())
                 for ev in watch.drain():
                     if ev.role == "agent" and ev.id.isdigit():
-                        core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival)
-                        if not ev.alive and first:
+                        own = core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival,
+                                                 session=ev.session)
+                        if own is False and first:
                             record("liveliness", agent=int(ev.id), alive=False)
                     elif ev.role == "world":
-                        core.on_liveliness("world", ev.id, ev.alive, ev.arrival)
-                        if not ev.alive and first:
+                        core.on_liveliness("world", ev.id, ev.any_alive, ev.arrival)
+                        if not ev.any_alive and first:
                             record("liveliness", process="world", alive=False,
                                    step=core.last_step_reported)
                 if stats.total_dropped - trimmed[1] > 1000 and now - trimmed[0] > TRIM_S:
@@ -162,6 +166,10 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                         stats.count_dropped("key")
                         continue
                     core.on_status(msg, now, sender=sender)
+                for item in estimates_in.drain():
+                    sender = estimate_sender.agent_of(item.key)
+                    if sender is not None:
+                        core.on_estimate_seen(sender, item.arrival)
                 for item in end_in.drain():
                     msg = try_decode(item.payload, wire.END_SCHEMA, stats)
                     if msg is not None:

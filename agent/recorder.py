@@ -410,8 +410,8 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 alive = alive_watch.alive()
                 for ev in alive_watch.drain():
                     if ev.role == "monitor" and world_gone is None:
-                        recorder.on_monitor_liveliness(ev.id, ev.alive)
-                    elif ev.role == "agent" and not ev.alive and world_gone is None:
+                        recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                    elif ev.role == "agent" and not ev.any_alive and world_gone is None:
                         recorder._event(process=f"agent-{ev.id}", liveliness=False,
                                         step=recorder.step)
                 if ("world", "0") in alive:

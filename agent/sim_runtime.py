@@ -355,6 +355,8 @@ class SimRuntime:
                 if b != a:
                     self._send(name, f"agent-{b}",
                                lambda b=b, payload=payload: self._on_est(b, payload))
+            for m in self.monitors.values():    # the monitor's own observation: the key
+                self._send(name, m.name, lambda m=m, a=a: m.core.on_estimate_seen(a, self.now))
             if crash_at is not None and step >= crash_at - 1 and core.active:
                 break
         if crash_at is not None and core.step >= crash_at - 1:

@@ -62,6 +62,10 @@ class Timing:
     #: Epochs heard (statuses, rosters) above the highest seen plus this are refused: a
     #: monitor adds one per reassignment, re-issue or gain upgrade, a few per failure.
     epoch_jump_max: int = 64
+    #: A status whose step is further ahead than this (at the run's step period) of every
+    #: other agent's, extrapolated, is refused: no honest agent is ahead of the world, and
+    #: one agent alone cannot ratchet the monitor's clock (activate_at) up.
+    step_ahead_s: float = 2.0
     #: The world must stay gone this long before an agent with nothing left to do leaves.
     world_grace_s: float = 5.0
     #: Once the world has left, an agent exits after this long even if messages keep coming.
@@ -135,6 +139,10 @@ class Timing:
             out.append(f"monitor_world_silent_s: {t.monitor_world_silent_s:g} s must exceed "
                        f"world_silent_s = {t.world_silent_s:g} s (the monitor outlasts the "
                        "agents' wait for a silent world)")
+        if t.step_ahead_s <= 2 * t.status_s:
+            out.append(f"step_ahead_s: {t.step_ahead_s:g} s must exceed 2 x status_s = "
+                       f"{2 * t.status_s:g} s (two honest agents' statuses are up to a status "
+                       "period apart)")
         if t.crash_flush_s >= t.hang_timeout_s:
             out.append(f"crash_flush_s: {t.crash_flush_s:g} s must be below hang_timeout_s = "
                        f"{t.hang_timeout_s:g} s (a scripted crash must not look like a hang "

@@ -9,7 +9,7 @@ Every key lives under ``socmon/<run>/``::
     socmon/<run>/truth                ground truth (world -> recorder; the monitor never reads it)
     socmon/<run>/end                  the world's last step, once it ends (world -> everyone)
     socmon/<run>/impair               impairment changes (socmon inject)
-    socmon/<run>/alive/<role>/<id>    liveliness token of a process
+    socmon/<run>/alive/<role>/<id>/<session>  liveliness token of a process (its zid)
 
 Agent ids are non-negative ints written in decimal without leading zeros.
 Run ids, labels, roles and liveliness ids are single key chunks: non-empty,
@@ -151,13 +151,20 @@ def monitor_events_key(run: str) -> str:
     return f"{run_prefix(run)}/monitor/events"
 
 
-def alive_key(run: str, role: str, id) -> str:
-    """Return the liveliness key ``socmon/<run>/alive/<role>/<id>``.
+def alive_key(run: str, role: str, id, session: str) -> str:
+    """Return the liveliness key ``socmon/<run>/alive/<role>/<id>/<session>``.
 
-    `id` may be a non-negative int or a key chunk.
+    `id` may be a non-negative int or a key chunk; `session` names the zenoh session that
+    declares the token (its zid). zenoh aggregates the tokens of one key: a second
+    process declaring the same key would be invisible, and the first one's end with it.
+    With the session in the key, two processes claiming one id are two tokens, seen.
+
+    >>> alive_key("r", "agent", 4, "a1b2")
+    'socmon/r/alive/agent/4/a1b2'
     """
     id_chunk = _agent_chunk(id) if isinstance(id, int) and not isinstance(id, bool) else validate_chunk(id, "id")
-    return f"{run_prefix(run)}/alive/{validate_chunk(role, 'role')}/{id_chunk}"
+    return (f"{run_prefix(run)}/alive/{validate_chunk(role, 'role')}/{id_chunk}/"
+            f"{validate_chunk(session, 'session')}")
 
 
 def alive_pattern(run: str) -> str:
@@ -189,13 +196,14 @@ def parse_agent_key(run: str, kind: str, key) -> int:
     return int(chunk)
 
 
-def parse_alive_key(run: str, key) -> tuple[str, str]:
-    """Extract ``(role, id)`` from ``socmon/<run>/alive/<role>/<id>``.
+def parse_alive_key(run: str, key) -> tuple[str, str, str]:
+    """Extract ``(role, id, session)`` from ``socmon/<run>/alive/<role>/<id>/<session>``.
 
     The id is returned as the str chunk; agents use ``int(id)``.
     """
-    role, id_chunk = _split(run, key, 2, "alive")
-    return validate_chunk(role, "role"), validate_chunk(id_chunk, "id")
+    role, id_chunk, session = _split(run, key, 3, "alive")
+    return (validate_chunk(role, "role"), validate_chunk(id_chunk, "id"),
+            validate_chunk(session, "session"))
 
 
 class AgentKeyCache:

@@ -50,13 +50,26 @@ class Received(NamedTuple):
 
 
 class LivelinessEvent(NamedTuple):
-    """A peer appeared (``alive=True``) or disappeared (``alive=False``)."""
+    """A process's token appeared (``alive=True``) or went (``alive=False``).
+
+    Every process declares its token under its own session's zid, so two processes
+    claiming one ``(role, id)`` are two tokens: ``sessions`` holds the zids whose token
+    for ``(role, id)`` is alive after this event, and :attr:`any_alive` says whether any
+    is (what a process that only wants to know "is agent 3 there" reads).
+    """
 
     role: str
     id: str
     alive: bool
     key: str
     arrival: float
+    session: str = ""
+    sessions: frozenset = frozenset()
+
+    @property
+    def any_alive(self) -> bool:
+        """Whether some process holds a token for ``(role, id)`` after this event."""
+        return bool(self.sessions)
 
 
 def _check_bound(name, value, lo):
@@ -193,33 +206,44 @@ class LivelinessWatch(Inbox):
     def __init__(self, run: str, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None):
         super().__init__(maxlen, wakeup)
         self.run = run
-        self._alive: set[tuple[str, str]] = set()
+        self._tokens: dict[tuple[str, str], frozenset] = {}   # (role, id) -> live sessions
 
     def _on_sample(self, sample) -> None:
         try:
             key = str(sample.key_expr)
             try:
-                role, id_ = keys.parse_alive_key(self.run, key)
+                role, id_, session = keys.parse_alive_key(self.run, key)
             except keys.InvalidKey:
                 self._ignore()
                 return
             alive = sample.kind == zenoh.SampleKind.PUT
             with self._cond:
-                (self._alive.add if alive else self._alive.discard)((role, id_))
-            self._push(LivelinessEvent(role, id_, alive, key, time.monotonic()))
+                sessions = self._tokens.get((role, id_), frozenset())
+                sessions = sessions | {session} if alive else sessions - {session}
+                if sessions:
+                    self._tokens[(role, id_)] = sessions
+                else:
+                    self._tokens.pop((role, id_), None)
+            self._push(LivelinessEvent(role, id_, alive, key, time.monotonic(), session,
+                                       sessions))
         except Exception:  # never raise into zenoh
             self._ignore()
 
     def alive(self) -> frozenset:
         """Return the set of ``(role, id)`` currently alive (ids are str)."""
         with self._cond:
-            return frozenset(self._alive)
+            return frozenset(self._tokens)
+
+    def sessions(self, role: str, id) -> frozenset:
+        """The zids of the sessions holding a token for ``(role, id)`` now."""
+        with self._cond:
+            return self._tokens.get((role, str(id)), frozenset())
 
     def wait_until(self, predicate: Callable[[frozenset], bool], timeout: float) -> bool:
         """Wait until ``predicate(alive_set)`` is true; return False on timeout."""
         deadline = time.monotonic() + timeout
         with self._cond:
-            while not predicate(frozenset(self._alive)):
+            while not predicate(frozenset(self._tokens)):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -243,7 +267,7 @@ class Peer:
     """A socmon process on the zenoh mesh.
 
     Opens one zenoh session in peer mode and declares the liveliness token
-    ``socmon/<run>/alive/<role>/<id>``. Closing (context manager exit,
+    ``socmon/<run>/alive/<role>/<id>/<zid>`` (the session's own zid). Closing (context manager exit,
     :meth:`close`, or interpreter exit) undeclares everything; it is
     idempotent.
 
@@ -277,7 +301,7 @@ class Peer:
         self.run = net.run
         self.role = role
         self.id = id
-        token_key = keys.alive_key(net.run, role, id)  # validates role and id
+        keys.alive_key(net.run, role, id, "0")  # validates role and id before opening
         self._pid = os.getpid()
         self._lock = threading.Lock()
         self._publishers: dict[str, tuple[zenoh.Publisher, bool]] = {}
@@ -290,7 +314,8 @@ class Peer:
         # process's receive threads to sleep until it returns (see linger.py)
         self._linger = LingerGuard()
         try:
-            self._token = self._session.liveliness().declare_token(token_key)
+            self._token = self._session.liveliness().declare_token(
+                keys.alive_key(net.run, role, id, str(self._session.zid())))
         except BaseException:
             self._linger.stop()
             self._session.close()

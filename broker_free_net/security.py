@@ -15,7 +15,8 @@ Processes and their names (the CN of their certificate)::
     recorder     puts nothing                       (socmon up's recorder, socmon watch)
 
 Everyone may subscribe to any key of the run and watch liveliness; a process may declare
-only its own liveliness token (``socmon/<run>/alive/<role>/<id>`` of its role).
+only its own liveliness token (``socmon/<run>/alive/<role>/<id>/<zid>`` of its role; the
+last chunk is the declaring session's zid, any value the identity chooses).
 
 Layout of a key directory made by :func:`make_run_keys`::
 
@@ -166,13 +167,13 @@ def token_keys(run: str, name: str) -> list[str]:
     """Liveliness tokens process `name` may declare.
 
     >>> token_keys("r", "agent-2"), token_keys("r", "operator")
-    (['socmon/r/alive/agent/2'], ['socmon/r/alive/inject/*', 'socmon/r/alive/operator/*'])
+    (['socmon/r/alive/agent/2/*'], ['socmon/r/alive/inject/*/*', 'socmon/r/alive/operator/*/*'])
     """
     _check_run(run)
     role, i = parse_identity(name)
     if role == "agent":
-        return [f"socmon/{run}/alive/agent/{i}"]
-    return [f"socmon/{run}/alive/{r}/*" for r in _TOKEN_ROLES[role]]
+        return [f"socmon/{run}/alive/agent/{i}/*"]
+    return [f"socmon/{run}/alive/{r}/*/*" for r in _TOKEN_ROLES[role]]
 
 
 def access_control(run: str, names) -> dict:

@@ -25,10 +25,19 @@ it (read from ``summary.json``): the agents convicted, the evidence the monitor 
 reason), the values refused as implausible, the highest epoch of any roster in force,
 whether the crash after it was recovered, and the steady MSE against its prediction.
 
+With ``--slow-subscriber``, ``socmon up paper-14-live`` runs once alone and once per
+placement with an outsider subscribed to every key of the run that sleeps
+``--sleep-s`` in its callback (zenoh's receive thread held, TCP back-pressure on whoever
+sends to it): connected as a peer to agent 1, to the world and to ``up``'s recorder, and as
+a client to agent 1 and to the recorder. It prints, per run, the messages the outsider
+took, the drops and late estimates, the convictions and the steady MSE (which, with the
+run's seed fixed, equals the run alone's when nobody was held back).
+
 Usage::
 
     python scripts/bench_hostile.py [--count 10000] [--step-ms 20] [--passes 2]
     python scripts/bench_hostile.py --live [--count 10000] [--attack-steps 500]
+    python scripts/bench_hostile.py --slow-subscriber [--steps 1500] [--sleep-s 0.5]
 """
 
 from __future__ import annotations
@@ -180,12 +189,33 @@ def _rss_all(pids: dict) -> dict:
     return out
 
 
+def _start_up(out: Path, steps: int, step_ms: int, *flags):
+    """``socmon up paper-14-live`` in its own process group; ``(process, run.json)`` once
+    the run folder names the run."""
+    import json
+    import os
+    import subprocess
+
+    up = subprocess.Popen(
+        [sys.executable, "-m", "agent.cli", "up", "paper-14-live", "--out", str(out), "--json",
+         "--quiet", "--steps", str(steps), "--step-ms", str(step_ms), *flags], cwd=ROOT,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    deadline = time.monotonic() + 120
+    while not (out / "run.json").is_file():
+        if up.poll() is not None or time.monotonic() > deadline:
+            if up.poll() is None:
+                os.killpg(up.pid, 9)
+            raise SystemExit(f"up did not start: {up.stderr.read()}")
+        time.sleep(0.05)
+    return up, json.loads((out / "run.json").read_text())
+
+
 def live(count: int, step_ms: int, attack_steps: int) -> int:
     """The ``--live`` benchmark (see the module docstring)."""
     import json
     import os
     import signal
-    import subprocess
 
     from agent.control_auth import ControlSigner
     from broker_free_net.codec import MessageStats
@@ -199,19 +229,8 @@ def live(count: int, step_ms: int, attack_steps: int) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         gains, out = Path(tmp) / "g.npz", Path(tmp) / "run"
         save_gains(gains, [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure], {"method": "bench"})
-        up = subprocess.Popen(
-            [sys.executable, "-m", "agent.cli", "up", "paper-14-live", "--gains", str(gains),
-             "--out", str(out), "--json", "--quiet", "--steps", str(steps), "--step-ms",
-             str(step_ms)], cwd=ROOT, stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE, text=True, start_new_session=True,
-            env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        up, run = _start_up(out, steps, step_ms, "--gains", str(gains))
         try:
-            deadline = time.monotonic() + 120
-            while not (out / "run.json").is_file():
-                if up.poll() is not None or time.monotonic() > deadline:
-                    raise SystemExit(f"up did not start: {up.stderr.read()}")
-                time.sleep(0.05)
-            run = json.loads((out / "run.json").read_text())
             pids = {name: p["pid"] for name, p in run["processes"].items() if p.get("pid")}
             pids["recorder (up)"] = up.pid
             rid = run["run"]
@@ -309,6 +328,59 @@ def live(count: int, step_ms: int, attack_steps: int) -> int:
     return 0
 
 
+def slow_subscriber(steps: int, step_ms: int, sleep_s: float) -> int:
+    """The ``--slow-subscriber`` benchmark (see the module docstring)."""
+    import json
+    import os
+
+    import zenoh
+
+    def run_once(target, mode, out):
+        up, run = _start_up(out, steps, step_ms)
+        session, taken = None, [0]
+        try:
+            deadline = time.monotonic() + 120
+            if target is not None:
+                cfg = zenoh.Config()
+                cfg.insert_json5("mode", json.dumps(mode))
+                cfg.insert_json5("connect/endpoints",
+                                 json.dumps([run["processes"][target]["endpoint"]]))
+                cfg.insert_json5("scouting/multicast/enabled", "false")
+                while session is None:       # the target may not listen yet
+                    try:
+                        session = zenoh.open(cfg)
+                    except zenoh.ZError:
+                        if time.monotonic() > deadline:
+                            raise
+                        time.sleep(0.2)
+
+                def slow(_sample):
+                    taken[0] += 1
+                    time.sleep(sleep_s)
+                session.declare_subscriber(f"socmon/{run['run']}/**", slow)
+            up.communicate(timeout=steps * step_ms / 1000 + 300)
+        finally:
+            if up.poll() is None:
+                os.killpg(up.pid, 9)
+        # the outsider's session is left open: closing it would wait for every sample
+        # queued behind its sleeping callback
+        return json.loads((out / "summary.json").read_text()), taken[0]
+
+    placements = [(None, None), ("agent-1", "peer"), ("world", "peer"),
+                  ("recorder", "peer"), ("agent-1", "client"), ("recorder", "client")]
+    print(f"paper-14-live, {steps} steps at {step_ms} ms, an outsider sleeping {sleep_s:g} s "
+          "per sample")
+    print(f"{'outsider':<18} {'taken':>6} {'drops':>6} {'late':>6} {'convicted':>10} "
+          f"{'mse_steady':>11}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for n, (target, mode) in enumerate(placements):
+            s, taken = run_once(target, mode, Path(tmp) / f"run{n}")
+            name = "none" if target is None else f"{mode} -> {target}"
+            print(f"{name:<18} {taken:>6} {s['drops']:>6} {s['late']:>6} "
+                  f"{len(s['failures']):>10} {s['mse_steady']:>11.4f}", flush=True)
+    os._exit(0)          # the outsiders' sessions hold sleeping callbacks
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--count", type=int, default=10_000, help="messages per class")
@@ -320,7 +392,14 @@ if __name__ == "__main__":
                              "the monitor and the recorder read); RSS of every process")
     parser.add_argument("--attack-steps", type=int, default=500,
                         help="--live: steps of forged evidence (one of each kind a step)")
+    parser.add_argument("--slow-subscriber", action="store_true",
+                        help="runs with an outsider reading every key slowly, per placement")
+    parser.add_argument("--steps", type=int, default=1500, help="--slow-subscriber: steps")
+    parser.add_argument("--sleep-s", type=float, default=0.5,
+                        help="--slow-subscriber: the outsider's sleep per sample")
     args = parser.parse_args()
+    if args.slow_subscriber:
+        sys.exit(slow_subscriber(args.steps, args.step_ms, args.sleep_s))
     if args.live:
         sys.exit(live(args.count, args.step_ms, args.attack_steps))
     sys.exit(main(args.count, args.step_ms, args.passes))

@@ -198,3 +198,42 @@ def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, l
     assert s["implausible"]["estimates"] > 50 and s["implausible"]["readings"] > 50, s
     assert s["sensor_future"] > 50 and s["steps"] == 500, s
     assert s["mse_steady"] < 3 * s["mse_steady_exact"], (s["mse_steady"], s["mse_steady_exact"])
+
+
+def test_a_dead_agent_is_not_hidden_behind_a_token_and_statuses_in_its_name(tmp_path,
+                                                                             live_gains):
+    """Plain mode: an outsider declares agent 1's liveliness token (in its own session)
+    and publishes statuses on agent 1's key that keep advancing; agent 1 is then killed.
+    Tokens carry the declaring session, so the monitor sees a second token for agent 1
+    (refused, ``token``) and the end of agent 1's own token: the crash is convicted and
+    recovered although the outsider's token and statuses go on."""
+    from agent import wire
+    from broker_free_net import keys
+    from broker_free_net.codec import MessageStats
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import Peer
+
+    with _attached(tmp_path, live_gains, "--kill", "300:1", steps=600) as (run, alive, result):
+        rid = run["run"]
+        net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
+        with Peer(net, "attacker", 0) as peer:
+            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
+            peer.publisher(keys.status_key(rid, 1))
+            stats, step, sent, token = MessageStats(), -1, 0, None
+            while step < 450:
+                assert alive(), step
+                step, heard = _step_of(truth_in, stats, step)
+                if not heard or step < 150:
+                    continue
+                if token is None:          # agent 1's id, in the outsider's own session
+                    token = peer.session.liveliness().declare_token(
+                        keys.alive_key(rid, "agent", 1, peer.zid()))
+                peer.put(keys.status_key(rid, 1), wire.encode_status(_status(1, step, 0)))
+                sent += 1
+            token.undeclare()
+    assert sent > 100
+    s = result["s"]
+    assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(1, "crash")], s["failures"]
+    assert s["recovered"] is True and s["rosters"][-1]["ids"] == [4, 2, 3], s["rosters"]
+    reasons = {(e["reason"], e["agent"]) for e in s["evidence_refused"]}
+    assert ("token", 1) in reasons, reasons

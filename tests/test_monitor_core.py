@@ -495,6 +495,81 @@ def test_a_status_on_one_agents_key_naming_another_is_refused(core):
     assert core.agents[1].step == 61
 
 
+def test_a_dead_agent_cannot_be_hidden_behind_a_token_declared_in_its_name(paper14):
+    """Tokens carry their session: the first session holding agent 1's token is agent 1's.
+    An outsider's token for agent 1 is refused (``token``) and reported once; when agent
+    1's own token goes, that is its crash although the outsider's token remains; the
+    outsider's token going is nobody's crash."""
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), paper14,
+                       G, paper14.delays)
+    for a in (1, 2, 3, 4):
+        assert core.on_liveliness("agent", a, True, 0.0, session=f"z{a}") is True
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    assert core.on_liveliness("agent", 2, True, 1.01, session="evil") is None
+    assert core.on_liveliness("agent", 1, True, 1.02, session="evil") is None
+    assert core.rejected == {"token": 2} and [a["agent"] for a in core.anomalies] == [2, 1]
+    assert "second liveliness token for agent 1" in core.anomalies[1]["detail"]
+    assert core.on_liveliness("agent", 2, False, 1.03, session="evil") is None
+    assert core.tick(1.03) == [] and core.verdicts == []      # the outsider leaving: nothing
+    # agent 1's own token goes while the outsider's remains: judged by its estimates
+    assert core.on_liveliness("agent", 1, False, 1.05, session="z1") is None
+    t = 1.05
+    while t < 2.0:                            # agent 2 still publishes, agent 1 does not
+        core.on_estimate_seen(2, t)
+        for a in (2, 3, 4):
+            core.on_status(_status(a, int(50 * t), active=a <= 3), t)
+        core.tick(t)
+        t += 0.05
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "crash")]
+    assert "no estimate of it" in core.verdicts[0].evidence
+    assert core.verdicts[0].at - 1.05 <= 25 * 0.02 + 0.1
+    # a process declaring the id once every token of it is gone is agent 1 again (a restart)
+    assert core.on_liveliness("agent", 1, False, 2.0, session="evil") is False
+    assert core.on_liveliness("agent", 1, True, 2.1, session="z1b") is True
+    assert core.rejected == {"token": 2}
+
+
+def test_a_live_agent_whose_token_is_ended_by_an_impostor_leaving_is_not_convicted(paper14):
+    """zenoh ended agent 2's own token when a second session holding agent 2's id left
+    (seen live under --secure with agent 2's certificate). While another token for its
+    id is alive, the agent is judged by its estimates: a live agent is not convicted."""
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), paper14,
+                       G, paper14.delays)
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0, session=f"z{a}")
+    core.on_liveliness("agent", 2, True, 0.5, session="insider")
+    core.on_liveliness("agent", 2, False, 1.0, session="z2")     # the wrong one ended
+    t = 0.0
+    while t < 4.0:
+        for a in (1, 2, 3):
+            core.on_estimate_seen(a, t)
+        for a in (1, 2, 3, 4):
+            core.on_status(_status(a, int(50 * t), active=a <= 3), t)
+        assert core.tick(t) == [], t
+        t += 0.05
+    assert core.verdicts == [] and core.agents[2].alive
+
+
+def test_a_step_far_ahead_of_every_other_agent_is_refused_and_moves_no_clock(core):
+    """An insider reporting a step past the others' (extrapolated) plus step_ahead_s is
+    refused (``step``): it cannot push ``activate_at`` of the next reassignment away, nor
+    ratchet the bound up by repeating; a step inside the bound is taken."""
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)                      # step 100 at 2.0 s
+    ceiling = core.step_ceiling(2.0, exclude=2)
+    assert 100 + 100 <= ceiling <= 100 + 101                      # 2 s at 20 ms a step
+    for k in range(5):                                            # the ratchet: refused
+        core.on_status(_status(2, ceiling + 1 + k * 100), 2.01 + k * 0.001, sender=2)
+    assert core.rejected == {"step": 5} and core.agents[2].step == 100
+    assert core.current_step(2.01) < 102
+    core.on_status(_status(2, 101), 2.02, sender=2)               # the genuine one counts
+    assert core.agents[2].step == 101
+    core.on_liveliness("agent", 1, False, 2.05)
+    (roster,) = [m for m in core.tick(2.05) if isinstance(m, RosterUpdate)]
+    assert roster.activate_at <= 102 + core.config.lead_steps + 1
+
+
 def test_epochs_far_above_the_highest_seen_are_refused_from_statuses_and_rosters(core):
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     bound = core.epoch_ceiling()

@@ -13,8 +13,8 @@ def test_builders():
     assert keys.sensors_key("r") == "socmon/r/sensors"
     assert keys.truth_key("r") == "socmon/r/truth"
     assert keys.impair_key("r") == "socmon/r/impair"
-    assert keys.alive_key("r", "agent", 4) == "socmon/r/alive/agent/4"
-    assert keys.alive_key("r", "world", "w") == "socmon/r/alive/world/w"
+    assert keys.alive_key("r", "agent", 4, "z1") == "socmon/r/alive/agent/4/z1"
+    assert keys.alive_key("r", "world", "w", "z2") == "socmon/r/alive/world/w/z2"
     assert keys.alive_pattern("r") == "socmon/r/alive/**"
     assert keys.any_agent_pattern("r", "est") == "socmon/r/est/*"
     with pytest.raises(InvalidKey):
@@ -24,8 +24,11 @@ def test_builders():
 @pytest.mark.parametrize("bad", ["", "a*", "a$b", "a/b", "#", "x?", "@x", "a b", "a\nb", 5, None])
 def test_bad_chunks(bad):
     with pytest.raises(InvalidKey) as info:
-        keys.alive_key("r", bad, 1)
+        keys.alive_key("r", bad, 1, "z")
     assert info.value.field == "role"
+    with pytest.raises(InvalidKey) as info:
+        keys.alive_key("r", "agent", 1, bad)
+    assert info.value.field == "session"
     with pytest.raises(InvalidKey) as info:
         keys.truth_key(bad)
     assert info.value.field == "run"
@@ -40,7 +43,7 @@ def test_bad_agent_ids(bad):
 
 def test_parsers():
     assert keys.parse_agent_key("r", "est", "socmon/r/est/7") == 7
-    assert keys.parse_alive_key("r", "socmon/r/alive/agent/7") == ("agent", "7")
+    assert keys.parse_alive_key("r", "socmon/r/alive/agent/7/ab") == ("agent", "7", "ab")
 
 
 @pytest.mark.parametrize("key", [
@@ -54,8 +57,9 @@ def test_parse_agent_rejects(key):
 
 
 @pytest.mark.parametrize("key", [
-    "socmon/r/alive/agent", "socmon/r/alive/agent/1/x", "socmon/r/alive//1", "socmon/r/alive/agent/*",
-    "socmon/r/alive/agent/@1", "socmon/q/alive/agent/1", "socmon/r/est/agent/1",
+    "socmon/r/alive/agent", "socmon/r/alive/agent/1", "socmon/r/alive/agent/1/x/y",
+    "socmon/r/alive//1/x", "socmon/r/alive/agent/*/x", "socmon/r/alive/agent/1/*",
+    "socmon/r/alive/agent/@1/x", "socmon/q/alive/agent/1/x", "socmon/r/est/agent/1/x",
 ])
 def test_parse_alive_rejects(key):
     with pytest.raises(InvalidKey):

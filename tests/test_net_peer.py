@@ -50,16 +50,31 @@ def test_liveliness_watch_tracks_alive_and_ignores_bad_keys():
     import zenoh
 
     watch = LivelinessWatch("r")
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.PUT))
+    watch._on_sample(FakeSample("socmon/r/alive/world/w/zw", zenoh.SampleKind.PUT))
     watch._on_sample(FakeSample("socmon/r/alive/agent/1", zenoh.SampleKind.PUT))
-    watch._on_sample(FakeSample("socmon/r/alive/world/w", zenoh.SampleKind.PUT))
-    watch._on_sample(FakeSample("socmon/r/alive/agent/1/extra", zenoh.SampleKind.PUT))
-    watch._on_sample(FakeSample("socmon/r/alive/agent/1", zenoh.SampleKind.DELETE))
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.DELETE))
     assert watch.alive() == {("world", "w")}
     assert watch.ignored == 1
-    assert [(e.role, e.id, e.alive) for e in watch.drain()] == [
-        ("agent", "1", True), ("world", "w", True), ("agent", "1", False)]
+    assert [(e.role, e.id, e.alive, e.any_alive) for e in watch.drain()] == [
+        ("agent", "1", True, True), ("world", "w", True, True), ("agent", "1", False, False)]
     assert watch.wait_until(lambda alive: ("world", "w") in alive, 0.01)
     assert not watch.wait_until(lambda alive: ("agent", "1") in alive, 0.01)
+
+
+def test_liveliness_watch_sees_two_sessions_claiming_one_id():
+    """zenoh aggregates the tokens of one key; with the session in the key, a second
+    process claiming agent 1 is a second token, and the first one's end is seen."""
+    import zenoh
+
+    watch = LivelinessWatch("r")
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.PUT))
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1/zb", zenoh.SampleKind.PUT))
+    watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.DELETE))
+    events = watch.drain()
+    assert [(e.session, e.alive, e.sessions) for e in events] == [
+        ("za", True, {"za"}), ("zb", True, {"za", "zb"}), ("za", False, {"zb"})]
+    assert watch.alive() == {("agent", "1")} and watch.sessions("agent", 1) == {"zb"}
 
 
 def test_peer_rejects_bad_role_and_config():

@@ -88,7 +88,7 @@ def test_access_control_denies_by_default_and_grants_each_its_own():
     assert _allowed(acl, "world", "put", "ingress") == ["socmon/r/end", "socmon/r/sensors",
                                                          "socmon/r/truth"]
     assert _allowed(acl, "recorder", "put", "ingress") == []
-    assert _allowed(acl, "agent-1", "liveliness_token", "ingress") == ["socmon/r/alive/agent/1"]
+    assert _allowed(acl, "agent-1", "liveliness_token", "ingress") == ["socmon/r/alive/agent/1/*"]
     for name in names:  # subscriptions in both directions, own puts and tokens out
         assert _allowed(acl, name, "declare_subscriber", "ingress") == ["socmon/r/**"]
         assert _allowed(acl, name, "declare_subscriber", "egress") == ["socmon/r/**"]

@@ -119,7 +119,7 @@ def test_insider_with_agent2_credentials_cannot_speak_for_others(child, keyset, 
     with Peer(secure(keyset, run_id, "agent-2", ep), "agent", 2) as insider:
         mine = insider.subscribe(f"{p}/**", maxlen=1 << 16, include_local=False)
         # a liveliness token in another agent's name, on the same link before the puts
-        forged_token = insider.session.liveliness().declare_token(f"{p}/alive/agent/3")
+        forged_token = insider.session.liveliness().declare_token(f"{p}/alive/agent/3/{insider.zid()}")
         for key in forbidden + allowed:
             insider.publisher(key, block=True)
         rounds = 0
