@@ -184,7 +184,8 @@ class _Agent:
     epoch: int = 0
     pending: int = 0
     active: bool = False
-    progress_at: float | None = None     # when its step last moved
+    progress_at: float | None = None     # when its step last moved (reset by a pause)
+    step_at: float | None = None         # when its step last moved, never reset
     status_at: float | None = None       # when its last status arrived
     gone_at: float | None = None         # when its token was last deleted
     others_at_progress: int = -1         # the others' newest step then
@@ -552,6 +553,8 @@ class MonitorCore:
                         f"{step}, more than {self.config.step_ahead_s:g} s ahead of the other "
                         f"agents (step {ceiling} at most)")
             return
+        if step != a.step or a.step_at is None:
+            a.step_at = now
         if step != a.step or a.progress_at is None:
             a.progress_at = now
             a.others_at_progress = self.newest_step(exclude=msg["agent"])
@@ -624,13 +627,14 @@ class MonitorCore:
 
     def step_ceiling(self, now: float, exclude=None) -> int | None:
         """The highest step a status may report now: the most advanced other agent's step
-        (``exclude``: the sender), extrapolated at ``step_s`` from when it was reached, plus
+        (``exclude``: the sender), extrapolated at ``step_s`` from when it was reached (not
+        from a pause's fresh start: after one the others are ahead by the pause), plus
         ``step_ahead_s``; None until another agent has reported. Taking the others' word
         and not the sender's keeps one agent from ratcheting the clock up."""
         best = None
         for i, a in self.agents.items():
-            if i != exclude and a.step >= 0 and a.progress_at is not None:
-                at = a.step + max(0.0, now - a.progress_at) / self.config.step_s
+            if i != exclude and a.step >= 0 and a.step_at is not None:
+                at = a.step + max(0.0, now - a.step_at) / self.config.step_s
                 best = at if best is None or at > best else best
         if best is None:
             return None

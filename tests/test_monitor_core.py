@@ -570,6 +570,20 @@ def test_a_step_far_ahead_of_every_other_agent_is_refused_and_moves_no_clock(cor
     assert roster.activate_at <= 102 + core.config.lead_steps + 1
 
 
+def test_after_the_monitors_own_pause_the_agents_steps_ahead_are_taken(core):
+    """A monitor paused 5 s finds every agent 250 steps further, and the world's token
+    gone and back (its links lapsed): that restarts the progress clocks; the step bound
+    still extrapolates from when the steps were reached, so nothing is refused (CI:
+    every status refused, the clock stuck, every agent convicted)."""
+    core.on_liveliness("world", "0", True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", "0", False, 7.0)                  # the pause: 2.0 -> 7.0
+    core.on_liveliness("world", "0", True, 7.0)
+    out = _advance(core, 7.0, 10.0, lambda t: 50 * t)
+    assert core.rejected == {} and core.verdicts == [] and out == []
+    assert core.agents[1].step >= 495
+
+
 def test_epochs_far_above_the_highest_seen_are_refused_from_statuses_and_rosters(core):
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     bound = core.epoch_ceiling()
