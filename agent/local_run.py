@@ -115,6 +115,7 @@ class RunConfig:
     #: and take over when it dies or is paused past the link lease)
     monitors: int = 2
     hang_timeout: float = TIMING.hang_timeout_s
+    hang_timeout_max: float = TIMING.hang_timeout_max_s
     drop: float = 0.0
     faults: tuple = ()
     start_timeout: float = TIMING.start_timeout_s
@@ -172,7 +173,8 @@ class LocalRun:
             out[f"agent-{a}"] = argv
         out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
                           "--gains", str(c.gains_path), "--delays", c.delays_spec,
-                          "--hang-timeout", str(c.hang_timeout), "--step-ms", str(c.step_ms),
+                          "--hang-timeout", str(c.hang_timeout),
+                          "--hang-timeout-max", str(c.hang_timeout_max), "--step-ms", str(c.step_ms),
                           "--events", str((c.out / "events.jsonl").resolve()),
                           "--control-key", str((c.out / "control.key").resolve())]
         return out

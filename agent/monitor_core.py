@@ -10,8 +10,12 @@ Detection (one verdict per cause, each with its evidence):
 
 - ``crash``: the liveliness token of an agent in the configuration was deleted;
 - ``hang``: its token is alive but its loop does not advance: its reported step has not
-  moved for ``hang_timeout_s`` while the other agents' steps moved on by more than
-  ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody);
+  moved for the hang timeout while the other agents' steps moved on by more than
+  ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody).
+  The timeout is ``hang_timeout_s`` on a machine that keeps the statuses' pace, and grows
+  with the pace observed (:class:`StatusPace`, phi accrual over every agent's status
+  intervals) up to ``hang_timeout_max_s``: a loaded machine whose loops stall now and then
+  delays detection instead of convicting healthy agents;
 - ``sensor``: its status says the readings of its nodes have not arrived for
   ``sensor_lag_steps`` steps while the others advance;
 - ``silent``: it looks alive and advances, but every agent that listens to it reports
@@ -54,6 +58,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +84,10 @@ class MonitorConfig:
     hang_timeout_s : float
         No progress of an agent's step for this long (while the others advance) is a hang.
         Lower detects faster; under ``hang_timeout_s`` a slow agent risks conviction.
+    hang_timeout_max_s, hang_phi : float
+        The timeout adapts to the statuses' pace (:class:`StatusPace`): the gap a healthy
+        loop's statuses exceed with probability ``10^-hang_phi`` under the pace observed,
+        never below ``hang_timeout_s`` nor above ``hang_timeout_max_s``.
     hang_lag_steps : int
         ... and the others must have advanced by more than this many steps meanwhile.
     sensor_lag_steps : int
@@ -123,6 +132,9 @@ class MonitorConfig:
     """
 
     hang_timeout_s: float = TIMING.hang_timeout_s
+    hang_timeout_max_s: float = TIMING.hang_timeout_max_s
+    hang_phi: float = TIMING.hang_phi
+    status_s: float = TIMING.status_s
     hang_lag_steps: int = 10
     sensor_lag_steps: int = 25
     silent_steps: int = 25
@@ -141,12 +153,64 @@ class MonitorConfig:
     @classmethod
     def from_timing(cls, timing: Timing, **fields) -> "MonitorConfig":
         """The monitor's thresholds with the periods and timeouts of ``timing``."""
-        return cls(hang_timeout_s=timing.hang_timeout_s, resend_s=timing.resend_s,
+        return cls(hang_timeout_s=timing.hang_timeout_s,
+                   hang_timeout_max_s=timing.hang_timeout_max_s, hang_phi=timing.hang_phi,
+                   status_s=timing.status_s,
+                   resend_s=timing.resend_s,
                    confirm_timeout_s=timing.confirm_timeout_s,
                    pause_guard_s=timing.pause_guard_s, rejoin_s=timing.rejoin_s,
                    epoch_jump_max=timing.epoch_jump_max,
                    step_ahead_s=timing.step_ahead_s, world_gone_s=timing.monitor_world_gone_s,
                    world_silent_s=timing.monitor_world_silent_s, **fields)
+
+
+class StatusPace:
+    """The pace of the agents' statuses, pooled over the network, and the hang timeout it
+    allows. Two estimates of how long a healthy loop's statuses may pause, the larger
+    taken:
+
+    - a phi accrual detector's (Hayashibara et al.; Pekko's ``PhiAccrualFailureDetector``):
+      an exponentially weighted mean and variance of the gaps between two statuses of one
+      agent, and the gap exceeded with probability ``10^-phi`` were gaps normal;
+    - ``margin`` times the longest gap a healthy agent showed lately (a maximum that
+      halves every ``half_life_s``): loaded machines stall loops in bursts, a tail no
+      normal fit follows.
+
+    Clamped to ``[floor, ceiling]``: on a machine that keeps the pace the timeout is the
+    floor. Gaps of agents convicted meanwhile are not given (the caller's part).
+
+    >>> pace = StatusPace(period=0.2)
+    >>> round(pace.timeout(8.0, floor=1.0, ceiling=5.0, now=0.0), 2)
+    1.0
+    >>> for k, gap in enumerate([0.2] * 50 + [0.9, 0.2, 1.1, 0.2, 0.2, 0.7] * 10):
+    ...     pace.add(gap, now=0.1 * k)
+    >>> round(pace.timeout(8.0, floor=1.0, ceiling=5.0, now=11.0), 2)   # 2 x 1.1 s, decayed
+    2.18
+    """
+
+    def __init__(self, period: float, alpha: float = 0.01, margin: float = 2.0,
+                 half_life_s: float = 30.0):
+        self.alpha, self.margin, self.half_life_s = alpha, margin, half_life_s
+        self.mean = float(period)
+        self.var = (float(period) / 4) ** 2       # a start a little scattered
+        self.peak, self.peak_at = float(period), 0.0
+        self.samples = 0
+
+    def add(self, gap: float, now: float) -> None:
+        d = gap - self.mean
+        self.mean += self.alpha * d
+        self.var = (1 - self.alpha) * (self.var + self.alpha * d * d)
+        if gap >= self._peak(now):
+            self.peak, self.peak_at = gap, now
+        self.samples += 1
+
+    def _peak(self, now: float) -> float:
+        return self.peak * 0.5 ** (max(0.0, now - self.peak_at) / self.half_life_s)
+
+    def timeout(self, phi: float, floor: float, ceiling: float, now: float) -> float:
+        z = statistics.NormalDist().inv_cdf(1.0 - 10.0 ** -phi)
+        wanted = max(self.mean + z * math.sqrt(self.var), self.margin * self._peak(now))
+        return min(ceiling, max(floor, wanted))
 
 
 @dataclass(frozen=True)
@@ -368,6 +432,8 @@ class MonitorCore:
         self._assigned_at: float | None = None
         self._roster_msg: RosterUpdate | None = None
         self._last_tick: float | None = None
+        self.pace = StatusPace(config.status_s)   # the statuses' pace: the hang timeout
+        self._hang_said = config.hang_timeout_s   # the hang timeout last logged
         self._suspended_until = -math.inf
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
         self.reissues: list = []          # [{epoch, activate_at, unconfirmed, reason}]
@@ -547,7 +613,12 @@ class MonitorCore:
                         f"{self.config.epoch_jump_max} ({self.epoch_ceiling()})")
             return
         step = int(msg.get("step", -1))
-        ceiling = self.step_ceiling(now, exclude=msg["agent"])
+        # no bound while this monitor has no fresh view: it was paused (its backlog holds
+        # statuses from before, which would anchor the bound in the past) or suspends its
+        # verdicts after a pause or the world's return
+        fresh = self._last_tick is not None and now - self._last_tick <= \
+            self.config.pause_guard_s and now >= self._suspended_until
+        ceiling = self.step_ceiling(now, exclude=msg["agent"]) if fresh else None
         if ceiling is not None and step > ceiling:
             self.reject("step", msg["agent"], f"agent {msg['agent']}'s status reports step "
                         f"{step}, more than {self.config.step_ahead_s:g} s ahead of the other "
@@ -559,6 +630,12 @@ class MonitorCore:
             a.progress_at = now
             a.others_at_progress = self.newest_step(exclude=msg["agent"])
         a.step = step
+        if a.status_at is not None and self._last_tick is not None \
+                and now - self._last_tick < self.config.pause_guard_s \
+                and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at:
+            # a healthy gap between two of its statuses: not across a pause of this
+            # monitor, nor across the agent's own conviction
+            self.pace.add(now - a.status_at, now)
         a.status_at = now
         if step >= self._clock[0]:
             self._clock = (step, now)
@@ -649,6 +726,15 @@ class MonitorCore:
         steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
         return max(steps, default=-1)
 
+    def hang_timeout(self, now: float | None = None) -> float:
+        """The hang timeout at ``now`` (default: the last tick): ``hang_timeout_s``, grown
+        with the statuses' observed pace (:class:`StatusPace`) up to
+        ``hang_timeout_max_s``."""
+        cfg = self.config
+        now = self._last_tick or 0.0 if now is None else now
+        return self.pace.timeout(cfg.hang_phi, cfg.hang_timeout_s, cfg.hang_timeout_max_s,
+                                 now)
+
     # -- the clock -----------------------------------------------------------------
     def tick(self, now: float) -> list:
         """Verdicts and reassignment at time ``now``; returns messages to publish now.
@@ -663,6 +749,13 @@ class MonitorCore:
         self._last_tick = now
         if self._started is None:
             self._started = now
+        hang_s = self.hang_timeout(now)
+        if abs(hang_s - self._hang_said) >= 0.25 * cfg.hang_timeout_s:
+            self._hang_said = hang_s
+            self.events.append(
+                f"hang timeout {hang_s:.2f} s: statuses come every {self.pace.mean:.2f} s "
+                f"+- {math.sqrt(self.pace.var):.2f} s (floor {cfg.hang_timeout_s:g}, "
+                f"ceiling {cfg.hang_timeout_max_s:g})")
         if self.world_gone_at is not None or self.behind:
             return []                      # the world is gone, or the roster is stale
         out = []
@@ -748,6 +841,7 @@ class MonitorCore:
         found = []
         newest = self._clock[0]
         silent_s = cfg.silent_steps * cfg.step_s
+        hang_s = self.hang_timeout(now)
         for i in self.roster.ids:
             if i in self.failed:
                 continue
@@ -763,11 +857,11 @@ class MonitorCore:
                 # a (re)started monitor never saw it: no token, no status, others advance
                 found.append(Verdict(i, "crash", "no liveliness token and no status since "
                                      "the monitor started", now, newest))
-            elif (a.progress_at is not None and now - a.progress_at > cfg.hang_timeout_s
+            elif (a.progress_at is not None and now - a.progress_at > hang_s
                   and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
                 # stuck: a quiet sensor if its loop still reports (statuses arrive) and its
                 # last reading is behind; otherwise its loop is hung
-                talking = a.status_at is not None and now - a.status_at < cfg.hang_timeout_s / 2
+                talking = a.status_at is not None and now - a.status_at < hang_s / 2
                 if talking and a.sensor_last >= 0 and newest - a.sensor_last > cfg.sensor_lag_steps:
                     found.append(Verdict(
                         i, "sensor", f"no reading since step {a.sensor_last} while the others "
@@ -776,7 +870,9 @@ class MonitorCore:
                     found.append(Verdict(
                         i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
                         f"others reached step {newest}"
-                        + ("" if talking else "; no status either"), now, newest))
+                        + ("" if talking else "; no status either")
+                        + (f" (hang timeout {hang_s:.2f} s at the statuses' pace)"
+                           if hang_s > cfg.hang_timeout_s else ""), now, newest))
             else:
                 ages = self._listener_ages(i)
                 if ages and min(ages.values()) > cfg.silent_steps \

@@ -49,6 +49,13 @@ class Timing:
     #: No progress of an agent's step for this long while the others advance is a hang;
     #: lower detects faster, and under it a slow agent risks conviction.
     hang_timeout_s: float = 1.0
+    #: The hang timeout adapts to the statuses' observed pace (phi accrual over the whole
+    #: network's status intervals) but never beyond this: a loaded machine delays
+    #: detection by at most this much, and a flood of late statuses cannot blind it.
+    hang_timeout_max_s: float = 5.0
+    #: Suspicion level of the adaptive timeout: a healthy loop's status gap exceeds it
+    #: with probability 10^-hang_phi under the pace observed (Pekko's default is 8).
+    hang_phi: float = 8.0
     #: A gap this long between two monitor ticks means the monitor itself was paused: its
     #: progress clocks are stale and hang-like verdicts wait for fresh evidence.
     pause_guard_s: float = 0.5
@@ -111,6 +118,10 @@ class Timing:
         if t.prestart_status_s > t.status_s:
             out.append(f"prestart_status_s: {t.prestart_status_s:g} s must not exceed status_s "
                        f"= {t.status_s:g} s (the start handshake is the faster heartbeat)")
+        if t.hang_timeout_max_s < t.hang_timeout_s:
+            out.append(f"hang_timeout_max_s: {t.hang_timeout_max_s:g} s must be at least "
+                       f"hang_timeout_s = {t.hang_timeout_s:g} s (the adaptive timeout starts "
+                       "there and only grows)")
         if t.pause_guard_s >= t.hang_timeout_s:
             out.append(f"pause_guard_s: {t.pause_guard_s:g} s must be below hang_timeout_s = "
                        f"{t.hang_timeout_s:g} s (a monitor paused longer than a hang would "

@@ -86,7 +86,8 @@ def false_positives(args, tmp):
     the re-issues and the period actually sustained (late and dropped estimates)."""
     scenario = seven_agents(tmp)
     print(f"{Path(scenario).stem}: 5 agents + 2 standbys, 20 ms steps, "
-          f"{args.healthy_steps} healthy steps per run, {args.busy} busy loops")
+          f"{args.healthy_steps} healthy steps per run, {args.busy} busy loops, hang timeout "
+          + ("fixed at 1 s" if args.fixed_timeout else "1 s growing with the statuses' pace"))
     print(f"{'run':>3} {'verdicts':>8} {'reissues':>8} {'epoch':>5} {'late':>6} "
           f"{'drops':>6} {'load':>5}  period")
     total_v = total_steps = 0
@@ -94,7 +95,9 @@ def false_positives(args, tmp):
         out = tmp / f"fp{r}"
         stop = busy_loops(args.busy)
         try:
-            s = up(out, "--seed", str(r), steps=args.healthy_steps, scenario=scenario)
+            fixed = ("--hang-timeout-max", "1") if args.fixed_timeout else ()
+            s = up(out, "--seed", str(r), *fixed, steps=args.healthy_steps,
+                   scenario=scenario)
         finally:
             load = os.getloadavg()[0]
             stop()
@@ -302,6 +305,9 @@ def main():
                     help="busy loops beside the --recovery and --false-positives runs")
     ap.add_argument("--false-positives", action="store_true",
                     help="healthy runs of 5 agents + 2 standbys: verdicts, re-issues, load")
+    ap.add_argument("--fixed-timeout", action="store_true",
+                    help="--false-positives with the hang timeout fixed at 1 s (the "
+                         "comparison: not grown with the statuses' pace)")
     ap.add_argument("--per-failure", action="store_true",
                     help="every single failure at each --taus delay bound")
     ap.add_argument("--taus", default="3,7,15",

@@ -59,6 +59,63 @@ def test_crash_is_convicted_and_the_standby_takes_node_8(core, paper14):
     assert asg[3].spec.neighbours == {4: paper14.W[2, 0]}
 
 
+def _stalling_run(core, t1, stalls, hung=None, seed=0):
+    """Statuses of agents 1-4 every 0.2 s from 0 to t1, each loop stalling now and then
+    (``stalls(t)``: the gaps drawn from at time t, as on a machine whose load rises);
+    ``hung``: ``(agent, from)``, an agent that stops for good. Steps follow the world
+    (50 a second)."""
+    rng = np.random.default_rng(seed)
+    due = {a: 0.0 for a in (1, 2, 3, 4)}
+    t, out = 0.0, []
+    while t <= t1:
+        for a in due:
+            if hung and a == hung[0] and t >= hung[1]:
+                continue
+            if t >= due[a]:
+                core.on_status(_status(a, int(50 * t), active=a <= 3), t)
+                due[a] = t + (float(rng.choice(stalls(t))) if rng.random() < 0.1 else 0.2)
+        out += core.tick(t)
+        t = round(t + 0.05, 6)
+    return out
+
+
+def test_the_hang_timeout_grows_with_the_statuses_pace_and_a_hang_is_still_caught(paper14):
+    """Loops that stall now and then, 0.5-0.9 s, then 0.8-1.4 s as the load rises: with the
+    timeout fixed at 1 s healthy agents are convicted; with the timeout following the
+    statuses' pace nobody is, and an agent that stops for good is convicted within the
+    ceiling."""
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+
+    def core_with(**kw):
+        c = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02, **kw),
+                        paper14, G, paper14.delays)
+        for a in (1, 2, 3, 4):
+            c.on_liveliness("agent", a, True, 0.0)
+        return c
+
+    def stalls(t):
+        return [0.5, 0.7, 0.9] if t < 15 else [0.8, 1.0, 1.2, 1.4]
+
+    fixed = core_with(hang_timeout_max_s=1.0)
+    _stalling_run(fixed, 60.0, stalls)
+    assert [v.cause for v in fixed.verdicts] and fixed.hang_timeout() == 1.0
+    for seed in range(4):
+        adaptive = core_with()
+        _stalling_run(adaptive, 60.0, stalls, seed=seed)
+        assert adaptive.verdicts == [] and 1.4 < adaptive.hang_timeout() < 5.0, seed
+    assert any("hang timeout" in e for e in adaptive.events)
+    hung = core_with()
+    _stalling_run(hung, 60.0, stalls, hung=(2, 40.0))
+    [v] = hung.verdicts
+    assert (v.agent, v.cause) == (2, "hang") and v.at - 40.0 <= 5.0 + 0.3
+    assert "at the statuses' pace" in v.evidence
+
+
+def test_a_steady_pace_keeps_the_hang_timeout_at_its_floor(core):
+    _advance(core, 0.0, 30.0, lambda t: 50 * t, dt=0.2)
+    assert core.hang_timeout() == core.config.hang_timeout_s
+
+
 def test_hang_needs_both_no_progress_and_the_others_moving_on(core):
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     out = _advance(core, 1.1, 1.9, lambda t: 50 * t, skip=(2,))
@@ -579,6 +636,8 @@ def test_after_the_monitors_own_pause_the_agents_steps_ahead_are_taken(core):
     _advance(core, 0.0, 2.0, lambda t: 50 * t)
     core.on_liveliness("world", "0", False, 7.0)                  # the pause: 2.0 -> 7.0
     core.on_liveliness("world", "0", True, 7.0)
+    for a in (1, 2, 3, 4):             # its backlog first: statuses from before the pause
+        core.on_status(_status(a, 103, active=a <= 3), 7.0)
     out = _advance(core, 7.0, 10.0, lambda t: 50 * t)
     assert core.rejected == {} and core.verdicts == [] and out == []
     assert core.agents[1].step >= 495

@@ -29,6 +29,7 @@ BROKEN = [
     ({"monitor_world_gone_s": 10.0}, "monitor_world_gone_s", "agent_world_gone_s"),
     ({"crash_flush_s": 1.0}, "crash_flush_s", "hang_timeout_s"),
     ({"step_ahead_s": 0.3}, "step_ahead_s", "2 x status_s"),
+    ({"hang_timeout_max_s": 0.5}, "hang_timeout_max_s", "hang_timeout_s"),
     ({"world_silent_s": 8.0}, "world_silent_s", "agent_world_gone_s"),
     ({"monitor_world_silent_s": 50.0}, "monitor_world_silent_s", "world_silent_s"),
 ]

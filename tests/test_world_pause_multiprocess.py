@@ -20,6 +20,7 @@ def _config(tmp_path, gains, steps, **extra):
         scenario="paper-14-live", steps=steps, gains=str(gains), seed=0, out=str(tmp_path),
         delays="scenario", step_ms=None, deadline_ms=None, start_timeout=60.0, quiet=True,
         no_monitor=False, drop=0.0, kill=[], stop=[], kill_monitor=None, hang_timeout=1.0,
+        hang_timeout_max=5.0,
         check_simulator=False, **extra)
     return run_config(args, lambda text: None)
 

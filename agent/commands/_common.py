@@ -132,7 +132,8 @@ def timing_arg(step_s: float | None = None, lead_steps: int | None = None, **fie
 
 
 #: Timing fields set by a flag of some command (the rest are the runtime's constants).
-_TIMING_FLAGS = {"hang_timeout_s": "--hang-timeout", "start_timeout_s": "--start-timeout"}
+_TIMING_FLAGS = {"hang_timeout_s": "--hang-timeout", "hang_timeout_max_s": "--hang-timeout-max",
+                 "start_timeout_s": "--start-timeout"}
 
 
 def _int_or_reason(text, lo: int, hi: int | None):

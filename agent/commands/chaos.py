@@ -122,7 +122,8 @@ def _chaos(args) -> int:
         out=out, delays=args.delays, step_ms=args.step_ms, deadline_ms=None,
         start_timeout=TIMING.start_timeout_s, quiet=args.quiet, no_monitor=False, monitors=2, drop=0.0,
         kill=[], stop=[],
-        kill_monitor=None, hang_timeout=args.hang_timeout, check_simulator=False,
+        kill_monitor=None, hang_timeout=args.hang_timeout,
+        hang_timeout_max=TIMING.hang_timeout_max_s, check_simulator=False,
         overwrite=args.overwrite)
     config = run_config(up_args, say, prog="chaos")
     schedule = draw_schedule(config.scenario, args.seed, args.duration, kinds, args.rate,

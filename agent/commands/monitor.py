@@ -36,6 +36,11 @@ def add_arguments(parser) -> None:
                              f"is a hang (default {TIMING.hang_timeout_s:g}; lower is faster "
                              "and risks convicting a slow agent; above twice the status "
                              f"period {TIMING.status_s:g} s)")
+    parser.add_argument("--hang-timeout-max", type=float, default=TIMING.hang_timeout_max_s,
+                        metavar="S",
+                        help="the hang timeout grows with the statuses' observed pace up to S "
+                             f"seconds (default {TIMING.hang_timeout_max_s:g}; equal to "
+                             "--hang-timeout keeps it fixed; docs/monitor.md)")
     parser.add_argument("--lead-steps", type=int, default=10,
                         help="activate a reassignment this many steps after the newest step "
                              "reported (default 10)")
@@ -102,7 +107,8 @@ def run(args) -> int:
         if not (math.isfinite(step_ms) and step_ms > 0):
             raise CommandError(f"--step-ms: must be > 0, got {step_ms}")
         timing = timing_arg(step_s=step_ms / 1000.0, lead_steps=args.lead_steps,
-                            hang_timeout_s=args.hang_timeout)
+                            hang_timeout_s=args.hang_timeout,
+                            hang_timeout_max_s=args.hang_timeout_max)
         config = MonitorConfig.from_timing(timing, lead_steps=args.lead_steps,
                                            step_s=step_ms / 1000.0)
         from ._common import load_signer

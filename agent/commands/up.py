@@ -68,6 +68,11 @@ def add_arguments(parser) -> None:
                         metavar="S", help="the monitor's hang timeout (default "
                         f"{TIMING.hang_timeout_s:g} s; above twice the status period "
                         f"{TIMING.status_s:g} s)")
+    parser.add_argument("--hang-timeout-max", type=float, default=TIMING.hang_timeout_max_s,
+                        metavar="S",
+                        help="the hang timeout grows with the statuses' observed pace up to S "
+                             f"seconds (default {TIMING.hang_timeout_max_s:g}; equal to "
+                             "--hang-timeout keeps it fixed; docs/monitor.md)")
     parser.add_argument("--run", default=None, metavar="ID",
                         help="run id (key prefix socmon/<ID>/; default a fresh one); printed "
                              "and written in RUN_FOLDER/run.json")
@@ -131,7 +136,8 @@ def run_config(args, say, prog="up"):
     if not 0 <= args.drop < 1:
         raise CommandError(f"--drop: must be a probability in [0, 1), got {args.drop}")
     timing_arg(step_s=step_ms / 1000.0, lead_steps=MonitorConfig.lead_steps,
-               hang_timeout_s=args.hang_timeout, start_timeout_s=args.start_timeout)
+               hang_timeout_s=args.hang_timeout, hang_timeout_max_s=args.hang_timeout_max,
+               start_timeout_s=args.start_timeout)
     if getattr(args, "router", False) and getattr(args, "netns", False):
         raise CommandError("--router: not with --netns (the router would need a host of its "
                            "own on the testbed)")
@@ -178,7 +184,7 @@ def run_config(args, say, prog="up"):
                      delays=delays, delays_spec=args.delays, steps=args.steps, seed=args.seed,
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
                      monitor=not args.no_monitor, monitors=getattr(args, "monitors", 2),
-                     hang_timeout=args.hang_timeout,
+                     hang_timeout=args.hang_timeout, hang_timeout_max=args.hang_timeout_max,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
                      secure=getattr(args, "secure", False), run_id=run_id, listen=listen,
                      router=getattr(args, "router", False))
