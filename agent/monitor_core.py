@@ -164,6 +164,10 @@ class MonitorConfig:
                    world_silent_s=timing.monitor_world_silent_s, **fields)
 
 
+#: Other sessions remembered as holding a token for one agent id (more are refused alike).
+MAX_CLAIMS = 16
+
+
 class StatusPace:
     """The pace of the agents' statuses, pooled over the network, and the hang timeout it
     allows. Two estimates of how long a healthy loop's statuses may pause, the larger
@@ -194,7 +198,6 @@ class StatusPace:
         self.mean = float(period)
         self.var = (float(period) / 4) ** 2       # a start a little scattered
         self.peak, self.peak_at = float(period), 0.0
-        self.samples = 0
 
     def add(self, gap: float, now: float) -> None:
         d = gap - self.mean
@@ -202,7 +205,6 @@ class StatusPace:
         self.var = (1 - self.alpha) * (self.var + self.alpha * d * d)
         if gap >= self._peak(now):
             self.peak, self.peak_at = gap, now
-        self.samples += 1
 
     def _peak(self, now: float) -> float:
         return self.peak * 0.5 ** (max(0.0, now - self.peak_at) / self.half_life_s)
@@ -501,7 +503,8 @@ class MonitorCore:
             if a.token == session or (a.token is None and not a.claims):
                 a.token, a.contested_at = session, None
                 return True
-            a.claims.add(session)
+            if len(a.claims) < MAX_CLAIMS:      # a flood of made-up sessions stays bounded
+                a.claims.add(session)
             self.reject("token", agent, f"a second liveliness token for agent {agent} "
                         f"(session {session}; the agent's is {a.token}): another process "
                         "claims its id, and its token is not taken for the agent's")

@@ -195,6 +195,11 @@ class Inbox:
                 pass  # session already closed
 
 
+#: Sessions a :class:`LivelinessWatch` tracks for one ``(role, id)``: a process declaring
+#: tokens under made-up session chunks cannot grow it beyond this.
+MAX_SESSIONS_PER_ID = 16
+
+
 class LivelinessWatch(Inbox):
     """Inbox of :class:`LivelinessEvent` that also tracks who is alive.
 
@@ -219,6 +224,9 @@ class LivelinessWatch(Inbox):
             alive = sample.kind == zenoh.SampleKind.PUT
             with self._cond:
                 sessions = self._tokens.get((role, id_), frozenset())
+                if alive and session not in sessions and len(sessions) >= MAX_SESSIONS_PER_ID:
+                    self.ignored += 1       # made-up sessions for one id: bounded
+                    return
                 sessions = sessions | {session} if alive else sessions - {session}
                 if sessions:
                     self._tokens[(role, id_)] = sessions

@@ -75,6 +75,9 @@ def test_liveliness_watch_sees_two_sessions_claiming_one_id():
     assert [(e.session, e.alive, e.sessions) for e in events] == [
         ("za", True, {"za"}), ("zb", True, {"za", "zb"}), ("za", False, {"zb"})]
     assert watch.alive() == {("agent", "1")} and watch.sessions("agent", 1) == {"zb"}
+    for k in range(100):                   # made-up sessions for one id: bounded
+        watch._on_sample(FakeSample(f"socmon/r/alive/agent/1/f{k}", zenoh.SampleKind.PUT))
+    assert len(watch.sessions("agent", 1)) == 16 and watch.ignored == 85
 
 
 def test_peer_rejects_bad_role_and_config():
