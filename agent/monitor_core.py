@@ -57,6 +57,7 @@ True
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import statistics
 from dataclasses import dataclass, field
@@ -168,6 +169,13 @@ class MonitorConfig:
 MAX_CLAIMS = 16
 
 
+@functools.lru_cache(maxsize=8)
+def _phi_quantile(phi: float) -> float:
+    """The standard normal quantile exceeded with probability ``10^-phi`` (asked at every
+    tick: computed once per phi)."""
+    return statistics.NormalDist().inv_cdf(1.0 - 10.0 ** -phi)
+
+
 class StatusPace:
     """The pace of the agents' statuses, pooled over the network, and the hang timeout it
     allows. Two estimates of how long a healthy loop's statuses may pause, the larger
@@ -210,7 +218,7 @@ class StatusPace:
         return self.peak * 0.5 ** (max(0.0, now - self.peak_at) / self.half_life_s)
 
     def timeout(self, phi: float, floor: float, ceiling: float, now: float) -> float:
-        z = statistics.NormalDist().inv_cdf(1.0 - 10.0 ** -phi)
+        z = _phi_quantile(phi)
         wanted = max(self.mean + z * math.sqrt(self.var), self.margin * self._peak(now))
         return min(ceiling, max(floor, wanted))
 
@@ -734,7 +742,8 @@ class MonitorCore:
         with the statuses' observed pace (:class:`StatusPace`) up to
         ``hang_timeout_max_s``."""
         cfg = self.config
-        now = self._last_tick or 0.0 if now is None else now
+        if now is None:
+            now = self._last_tick if self._last_tick is not None else 0.0
         return self.pace.timeout(cfg.hang_phi, cfg.hang_timeout_s, cfg.hang_timeout_max_s,
                                  now)
 
