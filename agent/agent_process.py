@@ -45,8 +45,11 @@ from .ratelimit import LogLimiter
 from .timing import DEFAULT as TIMING
 from .timing import Timing
 
-__all__ = ["run_agent"]
+#: Readings this many steps past the newest one heard when the world's token went are the
+#: world back, its token's return seen or not
+WORLD_BACK_STEPS = 10
 
+__all__ = ["run_agent"]
 
 
 def _inbox_bytes(max_payload: int, maxlen: int = DEFAULT_INBOX_SIZE) -> int:
@@ -130,6 +133,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         world_seen = world_alive = False
         world_gone_at = None
         world_end = None                   # the world's last step, once its end is heard
+        world_heard = [-1, -1]             # newest reading's step; the newest when it went
         others = set(config.agents) - {me}
         started_at = time.monotonic()
         next_word = started_at           # the start: say whom it waits for, then every 5 s
@@ -187,6 +191,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                              now_step=max(core.step, 0), window=wire.STAMP_WINDOW)
             if msg is not None:
                 core.on_sensors(msg["step"], msg["x"], now=item.arrival)
+                world_heard[0] = max(world_heard[0], msg["step"])
 
         est_sender = keys.AgentKeyCache(run, "est", senders)
 
@@ -229,6 +234,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     world_alive = ev.any_alive
                     world_seen = world_seen or ev.any_alive
                     world_gone_at = None if ev.any_alive else now
+                    world_heard[1] = world_heard[0]
                 elif ev.role == "agent" and ev.id in agent_ids:
                     core.set_alive(int(ev.id), ev.any_alive)
             for item in ctl_in.drain() if len(ctl_in) else ():
@@ -311,6 +317,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 publish_status()
                 next_status = now + (timing.status_s if core.step >= 0
                                      else timing.prestart_status_s)
+            if world_gone_at is not None and world_end is None \
+                    and world_heard[0] > world_heard[1] + WORLD_BACK_STEPS:
+                # its readings come again though its token's return was missed (links
+                # that lapsed and came back may miss it)
+                say(f"agent {me}: the world is back after {now - world_gone_at:.1f} s "
+                    f"(its readings reach step {world_heard[0]}; its token was not seen)")
+                world_alive, world_gone_at = True, None
             if world_seen and not world_alive and world_gone_at is not None:
                 gone = now - world_gone_at
                 if world_end is not None and (

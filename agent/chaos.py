@@ -172,13 +172,13 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     taken_out = []
     for f in c.faults:
         # a stop is convicted after the hang timeout (from its last status, a status period
-        # before the stop); a partition after its listeners' ages pass the silent bound and
-        # then the hang timeout
+        # before the stop); a partition after its listeners' ages pass the silent bound
+        # (the link's delay plus silent_steps) and then the hang timeout
         if f.kind in ("kill", "crash", "hang") or (
                 f.kind == "stop" and f.seconds > c.hang_timeout + TIMING.status_s
                 + VERDICT_SLACK_S) or (
                 f.kind in ("partition", "sensor") and f.seconds > 2 * c.hang_timeout
-                + MonitorConfig.silent_steps * step_s):
+                + (MonitorConfig.silent_steps + int(table.max())) * step_s):
             taken_out.append(f)
     for f in taken_out:
         in_force = _roster_at(rec.rosters, f.step)

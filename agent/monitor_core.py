@@ -94,8 +94,8 @@ class MonitorConfig:
     sensor_lag_steps : int
         An agent whose last reading is this many steps behind the others' steps.
     silent_steps : int
-        Age (steps) of the freshest estimate its listeners hold from an agent beyond which
-        it counts as silent.
+        Age (steps) of the freshest estimate its listeners hold from an agent, beyond the
+        link's delay, past which it counts as silent.
     lead_steps : int
         ``activate_at`` = the newest step reported + this (the assignment's head start).
     resend_s : float
@@ -445,6 +445,7 @@ class MonitorCore:
         self.pace = StatusPace(config.status_s)   # the statuses' pace: the hang timeout
         self._hang_said = config.hang_timeout_s   # the hang timeout last logged
         self._suspended_until = -math.inf
+        self._watching_since = -math.inf  # the last fresh start (a pause, the world back)
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
         self.reissues: list = []          # [{epoch, activate_at, unconfirmed, reason}]
         self._clock = (-1, 0.0)           # (newest step reported, when)
@@ -456,6 +457,8 @@ class MonitorCore:
         self.rho_learned = None
         self.world_seen = False
         self.world_gone_at: float | None = None   # the world's token went
+        self._world_gone_step = -1                 # the newest step reported then
+        self._stepped_since_world: set = set()     # agents reporting a step past it
         self.world_end: int | None = None          # its last step, once its end is heard
         #: the agents report an epoch this monitor did not issue: :meth:`adopt` before acting
         self.behind = False
@@ -531,18 +534,23 @@ class MonitorCore:
             return False
         return None
 
-    def _on_world(self, alive: bool, now: float) -> None:
+    def _on_world(self, alive: bool, now: float, how: str = "") -> None:
         """The world came or went. Without it the agents stop stepping: no verdict is made
         while it is gone (whether it ended, or was paused or cut off: the agents wait for
-        it); when it comes back, verdicts wait for fresh evidence."""
+        it); when it comes back, verdicts wait for fresh evidence. It is back when its
+        token is, or when most agents of the configuration report steps ``hang_lag_steps``
+        past the newest reported when it went (they step on its readings only: its
+        token's return was missed, as a monitor whose links lapsed may miss it)."""
         if alive:
             if self.world_gone_at is not None:
                 self._fresh_evidence(now)
-                self.events.append("the world is back: verdicts resume after "
+                self.events.append(f"the world is back{how}: verdicts resume after "
                                    f"{self.config.hang_timeout_s:g} s of fresh evidence")
             self.world_seen, self.world_gone_at = True, None
         elif self.world_seen and self.world_gone_at is None:
             self.world_gone_at = now
+            self._world_gone_step = self.last_step_reported
+            self._stepped_since_world = set()
             if self.world_end is None:
                 self.events.append(
                     f"the world went silent after step {self.last_step_reported} without "
@@ -577,6 +585,7 @@ class MonitorCore:
     def _fresh_evidence(self, now: float) -> None:
         """Forget the progress clocks: verdicts wait ``hang_timeout_s`` of new evidence."""
         self._suspended_until = now + self.config.hang_timeout_s
+        self._watching_since = now
         for a in self.agents.values():
             a.progress_at = now
             a.others_at_progress = self.newest_step()
@@ -635,17 +644,28 @@ class MonitorCore:
                         f"{step}, more than {self.config.step_ahead_s:g} s ahead of the other "
                         f"agents (step {ceiling} at most)")
             return
+        if self.world_gone_at is not None and self.world_end is None \
+                and step > self._world_gone_step + self.config.hang_lag_steps \
+                and msg["agent"] in self.roster.ids:
+            self._stepped_since_world.add(msg["agent"])
+            if 2 * len(self._stepped_since_world) > len(self.roster.ids):
+                self._on_world(True, now, how=" (agents "
+                               f"{sorted(self._stepped_since_world)} step past "
+                               f"{self._world_gone_step}; its token was not seen back)")
         if step != a.step or a.step_at is None:
             a.step_at = now
         if step != a.step or a.progress_at is None:
             a.progress_at = now
             a.others_at_progress = self.newest_step(exclude=msg["agent"])
         a.step = step
-        if a.status_at is not None and self._last_tick is not None \
+        if a.status_at is not None and a.status_at >= self._watching_since \
+                and self._last_tick is not None \
                 and now - self._last_tick < self.config.pause_guard_s \
                 and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at:
-            # a healthy gap between two of its statuses: not across a pause of this
-            # monitor, nor across the agent's own conviction
+            # a healthy gap between two of its statuses: one this monitor watched whole
+            # (not across its own pause, nor the world's absence: after either, the
+            # backlog's first status of each agent closes a gap as long as the pause), nor
+            # across the agent's own conviction
             self.pace.add(now - a.status_at, now)
         a.status_at = now
         if step >= self._clock[0]:
@@ -887,8 +907,8 @@ class MonitorCore:
                            if hang_s > cfg.hang_timeout_s else ""), now, newest))
             else:
                 ages = self._listener_ages(i)
-                if ages and min(ages.values()) > cfg.silent_steps \
-                        and self._hearsay_holds(i, ages, now):
+                if ages and min(age - self._link_delay(j, i) for j, age in ages.items()) \
+                        > cfg.silent_steps and self._hearsay_holds(i, ages, now):
                     since = self._silent_since.setdefault(i, now)
                     if now - since > cfg.hang_timeout_s:
                         found.append(Verdict(
@@ -942,6 +962,18 @@ class MonitorCore:
                 return {}
             out[j] = age
         return out
+
+    def _link_delay(self, receiver: int, sender: int) -> int:
+        """The delay of link ``sender -> receiver`` in force: the configuration's, or the
+        one the receiver learned when larger (an estimate that old is on time)."""
+        D = self.roster.delays
+        tau = int(D[self.roster.row_of(receiver), self.roster.row_of(sender)])
+        learned = self.agents[receiver].status.get("delays")
+        if isinstance(learned, dict):
+            got = learned.get(sender, learned.get(str(sender)))
+            if isinstance(got, int) and not isinstance(got, bool):
+                tau = max(tau, got)
+        return tau
 
     def scenario_link(self, link) -> bool:
         """True iff ``(receiver, sender)`` is a link of the configuration in force."""

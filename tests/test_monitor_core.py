@@ -116,6 +116,26 @@ def test_a_steady_pace_keeps_the_hang_timeout_at_its_floor(core):
     assert core.hang_timeout() == core.config.hang_timeout_s
 
 
+def test_a_pause_of_the_monitor_or_the_world_does_not_grow_the_hang_timeout(core):
+    """The backlog a paused monitor reads after its first tick closes, for each agent, a
+    gap as long as the pause: not a healthy loop's gap. Nor is the world's absence."""
+    _advance(core, 0.0, 2.0, lambda t: 50 * t, dt=0.2)
+    core.tick(7.0)                                     # back from a 5 s pause
+    _advance(core, 7.01, 12.0, lambda t: 50 * t, dt=0.2)
+    assert core.hang_timeout() == core.config.hang_timeout_s
+    core.on_liveliness("world", 0, True, 12.0)
+    core.on_liveliness("world", 0, False, 12.1)
+    core.tick(12.2)
+    core.on_liveliness("world", 0, True, 16.0)         # the world paused 4 s
+    _advance(core, 16.0, 20.0, lambda t: 50 * t, dt=0.2)
+    assert core.hang_timeout() == core.config.hang_timeout_s
+    # the monitor ticking throughout, every loop stalls 3 s: that gap grows it
+    for k in range(1, 30):
+        core.tick(20.0 + 0.1 * k)
+    _advance(core, 23.0, 23.0, lambda t: 50 * t)
+    assert core.hang_timeout() == core.config.hang_timeout_max_s and core.verdicts == []
+
+
 def test_hang_needs_both_no_progress_and_the_others_moving_on(core):
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     out = _advance(core, 1.1, 1.9, lambda t: 50 * t, skip=(2,))
@@ -201,6 +221,34 @@ def test_silent_agent_is_convicted_from_its_listeners_ages(core, paper14):
         t += 0.1
     (v,) = core.verdicts
     assert (v.agent, v.cause) == (2, "silent") and "40 steps (agent 1)" in v.evidence
+
+
+def test_the_silent_bound_counts_from_the_links_delay(paper14):
+    """On 15-step links an estimate 35 steps old is 20 steps late, not silent; one 45 steps
+    old is (the bound once ignored the delay: a loaded run at 15-step delays convicted a
+    healthy agent whose estimates came 10 steps later than the delay)."""
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    D = np.where(paper14.W > 0, 15, 0)
+    np.fill_diagonal(D, 0)
+
+    def run(age):
+        c = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02),
+                        paper14, G, D)
+        for a in (1, 2, 3, 4):
+            c.on_liveliness("agent", a, True, 0.0)
+        t = 0.0
+        while t < 3.0:
+            for a in (1, 2, 3):
+                nbrs = [b + 1 for b in paper14.neighbours[a - 1]]
+                ages = {b: (age if b == 2 and t > 0.5 else 15) for b in nbrs}
+                c.on_status({**_status(a, int(50 * t)), "ages": ages}, t)
+            c.on_status(_status(4, int(50 * t), active=False), t)
+            c.tick(t)
+            t = round(t + 0.1, 6)
+        return [(v.agent, v.cause) for v in c.verdicts]
+
+    assert run(35) == []
+    assert run(45) == [(2, "silent")]
 
 
 def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
@@ -308,6 +356,23 @@ def test_verdicts_resume_when_the_world_comes_back(core):
     assert core.verdicts == []
     core.on_liveliness("agent", 1, False, 6.05)
     core.tick(6.05)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "crash")]
+
+
+def test_the_world_is_back_when_the_agents_step_on_though_its_token_was_missed(core):
+    """A monitor whose links lapsed may never see the world's token return: the agents
+    stepping well past the step reached when it went are the world back, and a crash
+    after it is answered (it used to wait ``world_silent_s`` with no verdict at all)."""
+    core.on_liveliness("world", 0, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("world", 0, False, 2.0)
+    _advance(core, 2.1, 3.0, lambda t: 100 + 5 * (t - 2.0))   # in flight: a few steps more
+    assert core.world_gone_at is not None
+    _advance(core, 3.1, 5.0, lambda t: 100 + 50 * (t - 3.0))
+    assert core.world_gone_at is None
+    assert any(e.startswith("the world is back (agents [1, 2") for e in core.events)
+    core.on_liveliness("agent", 1, False, 5.05)
+    _advance(core, 5.1, 6.5, lambda t: 100 + 50 * (t - 3.0), skip=(1,))
     assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "crash")]
 
 

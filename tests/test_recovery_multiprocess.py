@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from tests.test_runtime_multiprocess import _socmon
+from tests.test_runtime_multiprocess import _socmon, monitor_story
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
@@ -21,6 +21,7 @@ def test_a_kill_at_15_step_delays_recovers_and_equals_the_simulator(tmp_path, ag
                              "--out", str(tmp_path / "run"), "--json", timeout=420)
     assert code == 0, err
     s = json.loads(out)
+    assert len(s["failures"]) == 1, (s["failures"], monitor_story(tmp_path / "run"))
     (f,) = s["failures"]
     assert (f["agent"], f["cause"]) == (agent, "crash")
     assert s["recovered"] is True and s["diverged_at"] is None

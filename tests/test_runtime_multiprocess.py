@@ -62,6 +62,14 @@ def _socmon(*argv, timeout=UP_TIMEOUT):
     return proc.returncode, out, err
 
 
+def monitor_story(folder, lines=40) -> str:
+    """The end of a run folder's monitor log (what a failing assertion shows: CI keeps no
+    run folder)."""
+    logs = sorted(Path(folder).glob("logs/monitor*.log"))
+    return "\n".join(f"{log.name}:\n" + "\n".join(log.read_text(errors="replace")
+                                                  .splitlines()[-lines:]) for log in logs)
+
+
 def _processes_with(text):
     """pids whose command line contains ``text``."""
     pids = []

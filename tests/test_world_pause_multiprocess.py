@@ -8,7 +8,7 @@ import re
 import pytest
 
 from agent.local_run import LocalRun
-from tests.test_runtime_multiprocess import _socmon
+from tests.test_runtime_multiprocess import _socmon, monitor_story
 
 pytestmark = [pytest.mark.multiprocess]
 
@@ -70,10 +70,11 @@ def test_a_paused_monitor_stays_and_recovers_a_crash_after_it(tmp_path, live_gai
     kill = 400 + 50 * seconds          # 20 ms steps: well after the monitor resumed
     code, out, err = _up(tmp_path, live_gains, "--steps", str(kill + 200),
                          "--fault", f"monitorstop:100::{seconds}", "--kill", f"{kill}:1")
-    assert code == 0, err
+    assert code == 0, (err, monitor_story(tmp_path))
     summary = json.loads(out)
     failures = summary["failures"]
-    assert [(f["agent"], f["cause"]) for f in failures] == [(1, "crash")], failures
+    assert [(f["agent"], f["cause"]) for f in failures] == [(1, "crash")], \
+        (failures, monitor_story(tmp_path))
     assert failures[0]["replacement"]["agent"] == 4 and summary["recovered"] is True
     monitor = (tmp_path / "logs" / "monitor.log").read_text()
     assert "monitor paused" in monitor and "exiting" not in monitor.split("verdict")[0]
