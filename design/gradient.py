@@ -127,11 +127,13 @@ class LoopModel:
         return ClosedLoop(self.A, self.W, self.delays, self.measure, self.unpack(x))
 
     # -- spectral radius --------------------------------------------------------------
-    def _top_eigenpairs(self, M, k):
-        """Top-``k`` eigenvalues by modulus with right (columns) and left vectors."""
+    def _top_eigenpairs(self, M, k, dense=None):
+        """Top-``k`` eigenvalues by modulus with right (columns) and left vectors (``M``:
+        a matrix or a LinearOperator; ``dense``: a function giving it dense, for the
+        fallback)."""
         order = M.shape[0]
         if order <= DENSE_SPECTRUM_MAX_ORDER or order - 2 <= k or self.dense_only:
-            return _dense_top_eigenpairs(M, k)
+            return _dense_top_eigenpairs(M if dense is None else dense(), k)
         want = k
         k = min(max(k, 6), order - 2)             # Arnoldi converges better on a few
         ncv = min(order - 1, max(3 * k + 1, 30))
@@ -144,7 +146,7 @@ class LoopModel:
             # eigenvalues of nearly equal modulus (typical near a minimum of the radius):
             # Arnoldi stalls; dense from now on for this model
             self.dense_only = True
-            return _dense_top_eigenpairs(M, want)
+            return _dense_top_eigenpairs(M if dense is None else dense(), want)
         idx = np.argsort(-np.abs(lam), kind="stable")[:want]
         lam, vr = lam[idx], vr[:, idx]
         # left vectors: M^T y = mu y  <=>  u = conj(y) satisfies u^H M = mu u^H
@@ -169,9 +171,14 @@ class LoopModel:
             (the returned value is then that soft maximum).
         """
         loop = self.closed_loop(x)
-        M = loop.F(0) if self.taubar == 0 else loop.companion()
-        kk = max(1, min(k if smooth > 0 else 1, M.shape[0]))
-        lam, vr, vl = self._top_eigenpairs(M, kk)
+        kk = max(1, min(k if smooth > 0 else 1, loop.order))
+        if loop.order <= DENSE_SPECTRUM_MAX_ORDER or self.dense_only:
+            M = loop.F(0) if self.taubar == 0 else loop.companion(sparse=False)
+            lam, vr, vl = self._top_eigenpairs(M, kk)
+        else:
+            # through the loop's sparse and low-rank factors (design.structured)
+            lam, vr, vl = self._top_eigenpairs(loop.operator.linear_operator(), kk,
+                                               dense=lambda: loop.companion(sparse=False))
         mod = np.abs(lam)
         rho = float(mod.max())
         if smooth > 0:
@@ -294,11 +301,16 @@ class LoopModel:
         if getattr(self, "_imp", None) is not None:
             return self._imp
         n, m, N, T = self.n, self.m, self.N, self.taubar
+        # sparse: W's links times A's pattern (never a dense nN x nN block per lag)
         R = {}
-        for i in range(N):
-            for (j, tau, w) in self.links[i]:
-                blk = R.setdefault(tau, np.zeros((m, m)))
-                blk[i * n:(i + 1) * n, j * n:(j + 1) * n] += w * self.A_powers[tau + 1]
+        for tau in sorted({tau for lk in self.links for (_, tau, _) in lk}):
+            Wr = np.zeros((N, N))
+            for i in range(N):
+                for (j, t, w) in self.links[i]:
+                    if t == tau:
+                        Wr[i, j] += w
+            R[tau] = sp.kron(sp.csr_matrix(Wr), sp.csr_matrix(self.A_powers[tau + 1]),
+                             format="csr")
         Q = []
         for s in range(T + 1):
             Qs = np.zeros((m, n))
@@ -309,7 +321,7 @@ class LoopModel:
             Q.append(Qs)
         rows = np.array([i * n + v for i, mi in enumerate(self.measure) for v in mi], dtype=int)
         lags = sorted(R)
-        self._imp = {"R": [(r, R[r], np.ascontiguousarray(R[r].T)) for r in lags],
+        self._imp = {"R": [(r, R[r], R[r].T.tocsr()) for r in lags],
                      "Q": Q, "rows": rows}
         return self._imp
 
@@ -334,14 +346,10 @@ class LoopModel:
         rows, Rl, Q = imp["rows"], imp["R"], imp["Q"]
         G = self.unpack(x)
         p = rows.size
-        Lb = np.eye(m)
-        Gb = np.zeros((m, p))
-        col = 0
-        for i, g in enumerate(G):
-            pi = g.shape[1]
-            Lb[i * n:(i + 1) * n, rows[col:col + pi]] -= g
-            Gb[i * n:(i + 1) * n, col:col + pi] = g
-            col += pi
+        # L = I - Gb Hb applied as such (Hb picks the measured rows): O(n p) a column
+        Gs = sp.block_diag([sp.csr_matrix(g) for g in G], format="csr")
+        GsT = Gs.T.tocsr()
+        Gb = Gs.toarray()
         sig = np.concatenate([np.full(n, q), np.full(p, r)])
         h0 = np.zeros((m, n + p))
         h0[:, n:] = -Gb
@@ -359,7 +367,7 @@ class LoopModel:
                     u += Rr @ H[t - 1 - lag]
             if t - 1 <= T:
                 u[:, :n] += Q[t - 1]
-            h = Lb @ u
+            h = u - Gs @ u[rows]
             H.append(h)
             U.append(u[rows])               # only the measured rows enter the gradient
             e = float(np.sum(h * h * sig))
@@ -374,7 +382,6 @@ class LoopModel:
                 return np.inf, None, t
         J = total / m
         # adjoint: lam_t = (2/m) h_t S + sum_r R_r^T mu_(t+1+r),  mu_t = L^T lam_t
-        LbT = Lb.T
         mu = [None] * (t + 1)
         acc = np.zeros((m, p))
         lam = None
@@ -384,7 +391,8 @@ class LoopModel:
                 if s + 1 + lag <= t:
                     lam += RrT @ mu[s + 1 + lag]
             if s >= 1:
-                mu[s] = LbT @ lam
+                mu[s] = lam.copy()
+                mu[s][rows] -= GsT @ lam
                 acc += lam @ U[s].T
         gradGb = -acc - lam[:, n:]           # lam is lam_0 here
         grad = np.zeros(self.size)

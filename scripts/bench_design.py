@@ -312,6 +312,89 @@ def run_case(case, method, cap, target=None, memory_gb=MEMORY_GB):
     return json.loads(lines[-1])
 
 
+# -- --scale: large networks (communities-32, a generated 64-agent one) ----------------
+SCALE_CASES = ("communities-32 stabilising", "communities-32 refined",
+               "communities-32 precompute fast", "communities-32 precompute refined",
+               "communities-64 stabilising", "communities-64 refined")
+#: the issue's targets, seconds
+SCALE_TARGETS = {"communities-32 stabilising": 30, "communities-32 refined": 120,
+                 "communities-64 stabilising": 120, "communities-64 refined": 480,
+                 "communities-32 precompute": 300}
+
+
+def _scale_scenario(name: str):
+    if name == "communities-64":
+        from design.generate import communities_scenario
+        from design.scenario import scenario_from_dict
+
+        return scenario_from_dict(communities_scenario(64, seed=64), source="communities-64")
+    return load(name)
+
+
+def scale_child(case: str) -> None:
+    """One --scale case in this process: prints a JSON row."""
+    from agent.gain_worker import plan_failures, precompute_single_failures
+    from agent.monitor_core import GainSource
+    from design.gain_design import design_gains
+    from design.reconfigure import fast_recovery_gains
+    from design.roster import Roster
+
+    name, what = case.rsplit(" ", 1) if "precompute" not in case else (case.split()[0],
+                                                                        case.split(" ", 1)[1])
+    s = _scale_scenario(name)
+    row = {"case": case, "nN": s.n * s.N}
+    t0 = time.perf_counter()
+    if what == "stabilising":
+        res = fast_recovery_gains(s, "scenario")
+        row.update(rho=res.rho, stable=res.stable, status=res.status)
+    elif what == "refined":
+        res = design_gains(s, objective="mse")
+        row.update(rho=res.rho, stable=res.stable, mse=res.mse_steady, status=res.status)
+    else:
+        roster = Roster.initial(s)
+        gains = GainSource()
+        refined = what.endswith("refined")
+        if refined:      # the fast pass first, untimed: the refined pass follows it
+            precompute_single_failures(roster, gains, passes=(False,))
+            t0 = time.perf_counter()
+        done = precompute_single_failures(roster, gains, passes=(refined,))
+        infos = [gains.info(nxt) for _, nxt in plan_failures(roster)]
+        rhos = [i.get("rho") for i in infos if i.get("rho") is not None]
+        row.update(failures=len(infos), designed=done, rho=max(rhos) if rhos else None,
+                   stable=bool(rhos) and max(rhos) < 1, status=f"{done} gains designed")
+    row["seconds"] = time.perf_counter() - t0
+    row["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps(row))
+
+
+def run_scale(cap: float) -> list:
+    rows = []
+    for case in SCALE_CASES:
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--scale-child", case]
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        t0 = time.perf_counter()
+        try:
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=cap, env=env,
+                                 cwd=str(ROOT))
+            lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+            row = json.loads(lines[-1]) if out.returncode == 0 and lines else {
+                "case": case, "failed": (out.stderr.strip().splitlines() or ["?"])[-1][:160]}
+        except subprocess.TimeoutExpired:
+            row = {"case": case, "failed": f"stopped after {cap:.0f} s",
+                   "seconds": time.perf_counter() - t0}
+        target = SCALE_TARGETS.get(case, SCALE_TARGETS.get(case.rsplit(" ", 1)[0]))
+        row["target_s"] = target
+        rows.append(row)
+        if "failed" in row:
+            print(f"| {case} | - | - | - | - | {target} | {row['failed']} |", flush=True)
+            continue
+        mse = f"{row['mse']:.5g}" if row.get("mse") is not None else "-"
+        rho = f"{row['rho']:.4f}" if row.get("rho") is not None else "-"
+        print(f"| {case} | {row['nN']} | {row['seconds']:.1f} | {rho} | {mse} | {target} | "
+              f"{row['peak_mb']:.0f} MB; {row['status']} |", flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cap", type=float, default=600.0, help="seconds per case (default 600)")
@@ -330,7 +413,25 @@ def main(argv=None) -> int:
                     help="--targets: run the baseline rows from this checkout of the old code")
     ap.add_argument("--target-child", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--legacy", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--scale", action="store_true",
+                    help="large networks: communities-32 and a generated 64-agent scenario "
+                         "(stabilising and refined gains, the monitor's precompute of every "
+                         "single failure), each case in a child, --cap seconds at most")
+    ap.add_argument("--scale-child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.scale_child:
+        scale_child(args.scale_child)
+        return 0
+    if args.scale:
+        print(f"# bench_design --scale: {os.cpu_count()} cores, load "
+              f"{os.getloadavg()[0]:.2f}, BLAS one thread", flush=True)
+        print("| case | nN | seconds | rho (exact, worst) | steady MSE (exact) | target s | "
+              "note |")
+        print("| --- | ---: | ---: | ---: | ---: | ---: | --- |")
+        rows = run_scale(args.cap)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1))
+        return 0
     if args.target_child:
         target_child(args.target_child, args.legacy)
         return 0

@@ -1,0 +1,100 @@
+"""The loop applied through its sparse and low-rank factors (design.structured) agrees with
+the dense loop: products, radius and steady MSE, with heterogeneous delays."""
+
+import numpy as np
+import pytest
+
+import design.closed_loop as cl
+import design.gradient as gr
+from design.closed_loop import ClosedLoop
+from design.generate import communities_scenario
+from design.scenario import load_scenario, scenario_from_dict
+from design.structured import LoopOperator, impulse_mse
+
+
+def _communities(N, seed=0):
+    return scenario_from_dict(communities_scenario(N, seed=seed))
+
+
+def _delayed_loop(s, seed=1, gain=0.6):
+    """Heterogeneous delays 0-3 on W's links and seeded gains."""
+    rng = np.random.default_rng(seed)
+    D = np.where(s.W > 0, rng.integers(0, 4, s.W.shape), 0)
+    np.fill_diagonal(D, 0)
+    G = [gain * np.eye(s.n)[:, list(m)] + 0.05 * rng.standard_normal((s.n, len(m)))
+         for m in s.measure]
+    return ClosedLoop(s.A, s.W, D, s.measure, G)
+
+
+def test_the_products_are_the_dense_companions_and_the_noise_systems():
+    loop = _delayed_loop(_communities(4))
+    op = LoopOperator(loop)
+    M = loop.companion(sparse=False)
+    X = np.random.default_rng(2).standard_normal((loop.order, 3))
+    np.testing.assert_allclose(op.matvec(X), M @ X, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(op.rmatvec(X), M.T @ X, rtol=1e-13, atol=1e-13)
+    Ma, B, _ = loop.noise_state_space(0.3, 0.7)
+    Y = np.random.default_rng(3).standard_normal((Ma.shape[0], 2))
+    np.testing.assert_allclose(op.aug_matvec(Y), Ma @ Y, rtol=1e-13, atol=1e-13)
+    Bs = op.noise_input(0.3, 0.7)
+    np.testing.assert_allclose(Bs @ Bs.T, B @ B.T, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("delays", ["none", "heterogeneous"])
+def test_radius_and_mse_agree_with_the_dense_solves(monkeypatch, delays):
+    s = _communities(8 if delays == "heterogeneous" else 16)
+    loop = _delayed_loop(s) if delays == "heterogeneous" else ClosedLoop(
+        s.A, s.W, s.delays, s.measure, [0.6 * np.eye(s.n)[:, list(m)] for m in s.measure])
+    q, r = s.process_noise, s.measurement_noise
+    op = LoopOperator(loop)
+    rho_dense = float(np.max(np.abs(np.linalg.eigvals(loop.companion(sparse=False)))))
+    rho = cl.spectral_radius(op.linear_operator(), dense=lambda: loop.companion(sparse=False))
+    assert rho == pytest.approx(rho_dense, rel=1e-10)
+    Ma, B, C = loop.noise_state_space(q, r)
+    mse_dense = float(np.trace(C @ cl._solve_lyapunov(Ma, B @ B.T) @ C.T)) / (s.n * s.N)
+    assert impulse_mse(op, q, r) == pytest.approx(mse_dense, rel=1e-10)
+    # ClosedLoop takes the structured path above STRUCTURED_MIN_ORDER
+    monkeypatch.setattr(cl, "STRUCTURED_MIN_ORDER", 10)
+    again = ClosedLoop(loop.A, loop.W, loop.delays, loop.measure, loop.G)
+    assert again.sparse_links
+    assert again.spectral_radius() == pytest.approx(rho_dense, rel=1e-10)
+    assert again.mse_steady(q, r) == pytest.approx(mse_dense, rel=1e-10)
+
+
+def test_an_unstable_loop_has_no_impulse_mse():
+    s = _communities(4)
+    loop = ClosedLoop(s.A * 1.2 / 0.95, s.W, s.delays, s.measure,
+                      [np.zeros((s.n, len(m))) for m in s.measure])
+    assert loop.spectral_radius() > 1
+    with pytest.raises(ValueError, match="not stable|not settled"):
+        impulse_mse(LoopOperator(loop), 0.1, 0.1, max_steps=5000)
+
+
+def test_the_gradient_through_the_operator_is_the_dense_one(monkeypatch):
+    """LoopModel's radius gradient from ARPACK on the structured loop (above
+    DENSE_SPECTRUM_MAX_ORDER) equals the dense eigenvectors' one."""
+    s = _communities(8)
+    loop = _delayed_loop(s)
+    model = gr.LoopModel(s.A, s.W, loop.delays, s.measure)
+    x = model.pack(loop.G)
+    monkeypatch.setattr(gr, "DENSE_SPECTRUM_MAX_ORDER", 10 ** 6)
+    rho_d, g_d = model.spectral_radius_and_gradient(x)
+    monkeypatch.setattr(gr, "DENSE_SPECTRUM_MAX_ORDER", 10)
+    model = gr.LoopModel(s.A, s.W, loop.delays, s.measure)
+    rho_s, g_s = model.spectral_radius_and_gradient(x)
+    assert not model.dense_only
+    assert rho_s == pytest.approx(rho_d, rel=1e-10)
+    np.testing.assert_allclose(g_s, g_d, rtol=1e-6, atol=1e-8 * np.abs(g_d).max())
+
+
+def test_a_design_on_communities_16_returns_a_certified_gain():
+    """The first stabilising gain the monitor asks for (few iterations); its radius is the
+    dense one."""
+    from design.reconfigure import fast_recovery_gains
+
+    s = load_scenario("communities-16")
+    res = fast_recovery_gains(s, "scenario", max_iter=5)
+    assert res.stable
+    dense = ClosedLoop(s.A, s.W, s.delays, s.measure, res.G).companion(sparse=False)
+    assert res.rho == pytest.approx(float(np.max(np.abs(np.linalg.eigvals(dense)))),
+                                    rel=1e-10)
