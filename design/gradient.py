@@ -137,10 +137,15 @@ class LoopModel:
         want = k
         k = min(max(k, 6), order - 2)             # Arnoldi converges better on a few
         ncv = min(order - 1, max(3 * k + 1, 30))
+        # fixed first starts: without one ARPACK draws a random vector, and a design
+        # (a BFGS path through a nonsmooth radius) would differ from run to run
+        start = np.cos(np.arange(order) + 0.5) + 1.0
         try:
-            lam, vr = spla.eigs(M, k=k, which="LM", ncv=ncv, tol=1e-10, v0=self._v0,
+            lam, vr = spla.eigs(M, k=k, which="LM", ncv=ncv, tol=1e-10,
+                                v0=start if self._v0 is None else self._v0,
                                 maxiter=ARPACK_MAX_RESTARTS)
-            mu, vl = spla.eigs(M.T, k=k, which="LM", ncv=ncv, tol=1e-10, v0=self._u0,
+            mu, vl = spla.eigs(M.T, k=k, which="LM", ncv=ncv, tol=1e-10,
+                               v0=start if self._u0 is None else self._u0,
                                maxiter=ARPACK_MAX_RESTARTS)
         except spla.ArpackNoConvergence:
             # eigenvalues of nearly equal modulus (typical near a minimum of the radius):
