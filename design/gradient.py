@@ -53,7 +53,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .closed_loop import ClosedLoop
+from .closed_loop import DENSE_FALLBACK_MAX_ORDER, ClosedLoop
+from .errors import SocmonError
 from .gap import gap_detectability, gap_weights
 
 __all__ = ["LoopModel", "bfgs_minimise", "OptimResult", "DENSE_SPECTRUM_MAX_ORDER"]
@@ -61,6 +62,9 @@ __all__ = ["LoopModel", "bfgs_minimise", "OptimResult", "DENSE_SPECTRUM_MAX_ORDE
 #: Up to this companion order the spectrum is computed densely (all eigenpairs);
 #: above it, ARPACK computes a few eigenpairs of largest modulus, warm started.
 DENSE_SPECTRUM_MAX_ORDER = 400
+#: Up to this nN the impulse-response MSE uses dense lag and gain matrices (sparse
+#: products cost more than they save on small blocks).
+SPARSE_IMPULSE_MIN_ORDER = 300
 #: ARPACK restarts before falling back to the dense eigensolver for good.
 ARPACK_MAX_RESTARTS = 60
 
@@ -140,16 +144,26 @@ class LoopModel:
         # fixed first starts: without one ARPACK draws a random vector, and a design
         # (a BFGS path through a nonsmooth radius) would differ from run to run
         start = np.cos(np.arange(order) + 0.5) + 1.0
-        try:
-            lam, vr = spla.eigs(M, k=k, which="LM", ncv=ncv, tol=1e-10,
-                                v0=start if self._v0 is None else self._v0,
-                                maxiter=ARPACK_MAX_RESTARTS)
-            mu, vl = spla.eigs(M.T, k=k, which="LM", ncv=ncv, tol=1e-10,
-                               v0=start if self._u0 is None else self._u0,
-                               maxiter=ARPACK_MAX_RESTARTS)
-        except spla.ArpackNoConvergence:
-            # eigenvalues of nearly equal modulus (typical near a minimum of the radius):
-            # Arnoldi stalls; dense from now on for this model
+        # eigenvalues of nearly equal modulus (typical near a minimum of the radius) stall
+        # Arnoldi: once more with three times the Arnoldi vectors, then dense from now on
+        # for this model (where the order allows it: dense is O(order^3))
+        for wide in (1, 3):
+            n_cv = min(order - 1, wide * ncv)
+            try:
+                lam, vr = spla.eigs(M, k=k, which="LM", ncv=n_cv, tol=1e-10,
+                                    v0=start if self._v0 is None else self._v0,
+                                    maxiter=ARPACK_MAX_RESTARTS * wide)
+                mu, vl = spla.eigs(M.T, k=k, which="LM", ncv=n_cv, tol=1e-10,
+                                   v0=start if self._u0 is None else self._u0,
+                                   maxiter=ARPACK_MAX_RESTARTS * wide)
+                break
+            except spla.ArpackNoConvergence:
+                continue
+        else:
+            if order > DENSE_FALLBACK_MAX_ORDER:
+                raise SocmonError(f"the radius's eigenvectors: ARPACK did not converge on "
+                                  f"the loop of order {order} (dense fallback is limited "
+                                  f"to order {DENSE_FALLBACK_MAX_ORDER})")
             self.dense_only = True
             return _dense_top_eigenpairs(M if dense is None else dense(), want)
         idx = np.argsort(-np.abs(lam), kind="stable")[:want]
@@ -326,7 +340,10 @@ class LoopModel:
             Q.append(Qs)
         rows = np.array([i * n + v for i, mi in enumerate(self.measure) for v in mi], dtype=int)
         lags = sorted(R)
-        self._imp = {"R": [(r, R[r], R[r].T.tocsr()) for r in lags],
+        if m <= SPARSE_IMPULSE_MIN_ORDER:       # small: dense products cost less
+            R = {r: R[r].toarray() for r in lags}
+        self._imp = {"R": [(r, R[r], R[r].T.copy() if isinstance(R[r], np.ndarray)
+                            else R[r].T.tocsr()) for r in lags],
                      "Q": Q, "rows": rows}
         return self._imp
 
@@ -353,8 +370,10 @@ class LoopModel:
         p = rows.size
         # L = I - Gb Hb applied as such (Hb picks the measured rows): O(n p) a column
         Gs = sp.block_diag([sp.csr_matrix(g) for g in G], format="csr")
-        GsT = Gs.T.tocsr()
         Gb = Gs.toarray()
+        if m <= SPARSE_IMPULSE_MIN_ORDER:
+            Gs = Gb
+        GsT = Gs.T.copy() if isinstance(Gs, np.ndarray) else Gs.T.tocsr()
         sig = np.concatenate([np.full(n, q), np.full(p, r)])
         h0 = np.zeros((m, n + p))
         h0[:, n:] = -Gb
