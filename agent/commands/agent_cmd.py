@@ -33,9 +33,10 @@ def add_arguments(parser) -> None:
     add_net_arguments(parser)
 
 
-def gains_for(scenario, gains_path, delays, force: bool = False):
+def gains_for(scenario, gains_path, delays, force: bool = False, progress=None):
     """Load ``gains_path`` (``force``: even when designed for another scenario) or design the
-    default gain; CommandError when impossible."""
+    default gain (``progress``: as for :func:`design.gain_design.design_gains`);
+    CommandError when impossible."""
     from ._common import CommandError, load_gains_arg
 
     if gains_path:
@@ -46,7 +47,7 @@ def gains_for(scenario, gains_path, delays, force: bool = False):
     try:
         # the error users see: steady MSE (certified stable), bounded by iterations, not
         # by the clock, so that every process of a run designs the same gain
-        result = design_gains(scenario, delays=delays, objective="mse")
+        result = design_gains(scenario, delays=delays, objective="mse", progress=progress)
     except SocmonError as exc:   # not observable / not detectable, bad delays
         raise CommandError(f"gain design: {exc}") from None
     if not result.rho < 1:

@@ -169,7 +169,14 @@ def run_config(args, say, prog="up"):
         method = "file"
     else:
         say("designing gains with the default method ...")
-        G = gains_for(scenario, None, delays)
+        from ._progress import ProgressLine
+
+        line = ProgressLine("up", enabled=not (getattr(args, "quiet", False)
+                                              or getattr(args, "json", False)))
+        try:
+            G = gains_for(scenario, None, delays, progress=line.design)
+        finally:
+            line.close()
         method = "default"
     from design.gap import gap_warnings
 
