@@ -98,3 +98,22 @@ def test_a_design_on_communities_16_returns_a_certified_gain():
     dense = ClosedLoop(s.A, s.W, s.delays, s.measure, res.G).companion(sparse=False)
     assert res.rho == pytest.approx(float(np.max(np.abs(np.linalg.eigvals(dense)))),
                                     rel=1e-10)
+
+
+@pytest.mark.parametrize("segment", [1, 3, 32])
+def test_the_checkpointed_impulse_gradient_is_the_stored_ones(monkeypatch, segment):
+    """A large loop keeps its impulse response only at checkpoints and recomputes it for
+    the backward pass: the same operations, so the same MSE and gradient to the bit."""
+    s = _communities(4)
+    loop = _delayed_loop(s)
+    model = gr.LoopModel(s.A, s.W, loop.delays, s.measure)
+    x = model.pack(loop.G)
+    monkeypatch.setattr(gr, "SPARSE_IMPULSE_MIN_ORDER", 10 ** 6)   # everything stored
+    J0, g0, t0 = model.mse_impulse(x, 0.3, 0.7)
+    monkeypatch.setattr(gr, "SPARSE_IMPULSE_MIN_ORDER", 1)
+    monkeypatch.setattr(gr, "IMPULSE_SEGMENT", segment)
+    model = gr.LoopModel(s.A, s.W, loop.delays, s.measure)
+    J1, g1, t1 = model.mse_impulse(x, 0.3, 0.7)
+    assert t1 == t0 > 3 * segment and loop.taubar >= 2
+    assert J1 == pytest.approx(J0, rel=1e-13)
+    np.testing.assert_allclose(g1, g0, rtol=1e-10, atol=1e-13 * np.abs(g0).max())
