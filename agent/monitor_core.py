@@ -965,14 +965,16 @@ class MonitorCore:
 
     def _link_delay(self, receiver: int, sender: int) -> int:
         """The delay of link ``sender -> receiver`` in force: the configuration's, or the
-        one the receiver learned when larger (an estimate that old is on time)."""
+        one the receiver learned when larger (an estimate that old is on time), by at
+        most ``silent_steps`` (a larger one is the ``delay`` verdict's matter, and a
+        listener claiming a huge one must not silence the bound)."""
         D = self.roster.delays
         tau = int(D[self.roster.row_of(receiver), self.roster.row_of(sender)])
         learned = self.agents[receiver].status.get("delays")
         if isinstance(learned, dict):
             got = learned.get(sender, learned.get(str(sender)))
             if isinstance(got, int) and not isinstance(got, bool):
-                tau = max(tau, got)
+                tau = max(tau, min(got, tau + self.config.silent_steps))
         return tau
 
     def scenario_link(self, link) -> bool:

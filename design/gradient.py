@@ -56,6 +56,7 @@ import scipy.sparse.linalg as spla
 from .closed_loop import DENSE_FALLBACK_MAX_ORDER, ClosedLoop
 from .errors import SocmonError
 from .gap import gap_detectability, gap_weights
+from .structured import block_gain, lag_blocks, noise_blocks
 
 __all__ = ["LoopModel", "bfgs_minimise", "OptimResult", "DENSE_SPECTRUM_MAX_ORDER"]
 
@@ -321,25 +322,10 @@ class LoopModel:
         """x-independent blocks: ``R_r = W_r (x) A^(r+1)`` per lag and ``Q_s = c_s (x) A^s``."""
         if getattr(self, "_imp", None) is not None:
             return self._imp
-        n, m, N, T = self.n, self.m, self.N, self.taubar
+        n, m = self.n, self.m
         # sparse: W's links times A's pattern (never a dense nN x nN block per lag)
-        R = {}
-        for tau in sorted({tau for lk in self.links for (_, tau, _) in lk}):
-            Wr = np.zeros((N, N))
-            for i in range(N):
-                for (j, t, w) in self.links[i]:
-                    if t == tau:
-                        Wr[i, j] += w
-            R[tau] = sp.kron(sp.csr_matrix(Wr), sp.csr_matrix(self.A_powers[tau + 1]),
-                             format="csr")
-        Q = []
-        for s in range(T + 1):
-            Qs = np.zeros((m, n))
-            for i in range(N):
-                c = sum(w for (_, tau, w) in self.links[i] if tau >= s)
-                if c:
-                    Qs[i * n:(i + 1) * n] = c * self.A_powers[s]
-            Q.append(Qs)
+        R = lag_blocks(self.W, self.delays, self.A_powers)
+        Q = [C.toarray() for C in noise_blocks(self.W, self.delays, self.A_powers)]
         rows = np.array([i * n + v for i, mi in enumerate(self.measure) for v in mi], dtype=int)
         lags = sorted(R)
         if m <= SPARSE_IMPULSE_MIN_ORDER:       # small: dense products cost less
@@ -371,7 +357,7 @@ class LoopModel:
         G = self.unpack(x)
         p = rows.size
         # L = I - Gb Hb applied as such (Hb picks the measured rows): O(n p) a column
-        Gs = sp.block_diag([sp.csr_matrix(g) for g in G], format="csr")
+        Gs = block_gain(G)
         Gb = Gs.toarray()
         if m <= SPARSE_IMPULSE_MIN_ORDER:
             Gs = Gb

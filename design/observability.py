@@ -18,6 +18,7 @@ Examples
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -216,8 +217,8 @@ def distributed_detectability(A, W, measure, tol=None) -> PairObservability:
     """
     if sp.issparse(A):
         return pair_observability(*distributed_pair(A, W, measure), tol)
-    A, W = np.asarray(A, dtype=float), np.asarray(W, dtype=float)
-    key = (A.shape, A.tobytes(), W.shape, W.tobytes(),
+    A, W = np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(W, dtype=float)
+    key = (A.shape, hashlib.blake2b(A.data).digest(), W.shape, W.tobytes(),
            tuple(tuple(int(v) for v in m) for m in measure), tol)
     hit = _DETECTABILITY.get(key)
     if hit is None:

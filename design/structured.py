@@ -34,12 +34,40 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["LoopOperator", "impulse_mse", "IMPULSE_TOL", "IMPULSE_MAX_STEPS"]
+__all__ = ["LoopOperator", "impulse_mse", "lag_blocks", "noise_blocks", "block_gain",
+           "IMPULSE_TOL", "IMPULSE_MAX_STEPS"]
 
 #: The impulse sum stops once the state left holds less than this share of the sum.
 IMPULSE_TOL = 1e-15
 #: ... or after this many steps (a loop this slow is reported as not settled).
 IMPULSE_MAX_STEPS = 200_000
+
+
+def lag_blocks(W, delays, A_powers) -> dict:
+    """``{r: K_r}``, ``K_r = W_r (x) A^(r+1)`` sparse (CSR), for every delay r on W's
+    links (``A_powers[k] = A^k``)."""
+    W, D = np.asarray(W, dtype=float), np.asarray(delays, dtype=int)
+    links = W > 0
+    return {int(r): sp.kron(sp.csr_matrix(np.where(links & (D == r), W, 0.0)),
+                            sp.csr_matrix(A_powers[int(r) + 1]), format="csr")
+            for r in np.unique(D[links])}
+
+
+def noise_blocks(W, delays, A_powers) -> list:
+    """``[C_0, ..., C_T]``, ``C_s = c_s (x) A^s`` sparse (nN x n), ``c_s[i]`` the weight
+    of agent i's links delayed by s or more: how the process noise of the delay window
+    enters."""
+    W, D = np.asarray(W, dtype=float), np.asarray(delays, dtype=int)
+    links = W > 0
+    T = int(D.max()) if D.size else 0
+    return [sp.kron(sp.csr_matrix(np.where(links & (D >= s), W, 0.0).sum(axis=1)[:, None]),
+                    sp.csr_matrix(A_powers[s]), format="csr") for s in range(T + 1)]
+
+
+def block_gain(G):
+    """The block-diagonal gain ``Gb`` (nN x p) of the per-agent ``G_i`` (n x p_i), CSR."""
+    return sp.block_diag([sp.csr_matrix(np.asarray(g, dtype=float)) for g in G],
+                         format="csr")
 
 
 class LoopOperator:
@@ -56,27 +84,15 @@ class LoopOperator:
         self.n, self.N, self.T, self.m = n, N, T, m
         self.order = (T + 1) * m
         self.aug_order = self.order + T * n
-        W, D = loop.W, loop.delays
-        links = W > 0
-        self.K = {}
-        for r in loop.lags:
-            Wr = np.where(links & (D == r), W, 0.0)
-            self.K[r] = sp.kron(sp.csr_matrix(Wr), sp.csr_matrix(loop.A_powers[r + 1]),
-                                format="csr")
+        self.K = lag_blocks(loop.W, loop.delays, loop.A_powers)
         self.KT = {r: K.T.tocsr() for r, K in self.K.items()}
         # process noise entering through the window: C_s = c_s (x) A^s, s = 0..T
-        self.C = []
-        for s in range(T + 1):
-            c = np.where(links & (D >= s), W, 0.0).sum(axis=1)
-            self.C.append(sp.kron(sp.csr_matrix(c[:, None]), sp.csr_matrix(loop.A_powers[s]),
-                                  format="csr"))
+        self.C = noise_blocks(loop.W, loop.delays, loop.A_powers)
         # L = I - Gb Hb: Hb picks each agent's measured rows of its own block
         self.rows = np.array([i * n + v for i, mi in enumerate(loop.measure) for v in mi],
                              dtype=int)
-        blocks = [sp.csr_matrix(g) for g in loop.G]
         self.p = int(self.rows.size)
-        self.Gb = (sp.block_diag(blocks, format="csr") if blocks
-                   else sp.csr_matrix((m, 0)))
+        self.Gb = block_gain(loop.G) if loop.G else sp.csr_matrix((m, 0))
         self.GbT = self.Gb.T.tocsr()
 
     # -- L and its transpose --------------------------------------------------------
