@@ -684,6 +684,21 @@ def plottable(mse) -> np.ndarray:
     return np.isfinite(mse) & (mse > 0) & (mse < 1e250)
 
 
+def gain_changes(summary) -> list:
+    """Steps at which a configuration took effect that no failure explains (new gains for
+    the same roles: a refined gain, gains for learned delays), as ``mse.png`` marks them
+    (the first was once drawn unlabelled when a failure's came before it).
+
+    >>> gain_changes({"rosters": [{"activate_at": 0}, {"activate_at": 174},
+    ...                           {"activate_at": 307}],
+    ...               "failures": [{"activate_at": 174}]})
+    [307]
+    """
+    failed_at = {f.get("activate_at") for f in summary.get("failures", [])}
+    return [r["activate_at"] for r in summary.get("rosters", [])[1:]
+            if r.get("activate_at") not in failed_at]
+
+
 def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
     """The run folder's summary, MSE per step, assignments heard and ``mse.png``; every
     file written atomically (:func:`agent.run_folder.write_atomic`), the summary first.
@@ -737,11 +752,9 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
             ax.axvline(r["activate_at"], color="tab:orange", lw=0.8, ls="-.",
                        label=None if reason in labelled else f"roles re-issued: {reason}")
             labelled.add(reason)
-    for i, r in enumerate(summary.get("rosters", [])[1:]):
-        if not any(f.get("activate_at") == r["activate_at"]
-                   for f in summary.get("failures", [])):
-            ax.axvline(r["activate_at"], color="tab:green", lw=0.8, ls="--",
-                       label="new gains in force (same roles)" if i == 0 else None)
+    for i, k in enumerate(gain_changes(summary)):
+        ax.axvline(k, color="tab:green", lw=0.8, ls="--",
+                   label="new gains in force (same roles)" if i == 0 else None)
     if summary.get("diverged_at") is not None:
         ax.axvline(summary["diverged_at"], color="tab:red", lw=1.5,
                    label="DIVERGED")
