@@ -250,24 +250,11 @@ class ClosedLoop:
     def noise_input(self, q: float, r: float):
         """``(B, Gz)``: process-noise blocks ``B_s`` (nN x n, s = 0..taubar) and ``G``.
 
-        ``B[s] = L (c_s (x) A^s)`` with ``c_s[i] = sum_{j: tau_ij >= s} w_ij``.
+        ``B[s] = L (c_s (x) A^s)`` with ``c_s[i] = sum_{j: tau_ij >= s} w_ij`` (the blocks
+        of :mod:`design.structured`, made dense).
         """
-        n, N = self.n, self.N
-        B = []
-        for s in range(self.taubar + 1):
-            Bs = np.zeros((n * N, n))
-            for i in range(N):
-                c = sum(self.W[i, j] for j in range(N) if self.W[i, j] > 0 and self.delays[i, j] >= s)
-                if c:
-                    Bs[i * n:(i + 1) * n] = c * (self.L[i] @ self.A_powers[s])
-            B.append(Bs)
-        p = sum(len(m) for m in self.measure)
-        Gz = np.zeros((n * N, p))
-        col = 0
-        for i, g in enumerate(self.G):
-            Gz[i * n:(i + 1) * n, col:col + g.shape[1]] = g
-            col += g.shape[1]
-        return B, Gz
+        op = self.operator
+        return [op.apply_L(C.toarray()) for C in op.C], op.Gb.toarray()
 
     def noise_state_space(self, q: float, r: float):
         """``(M, B, C)``: the error as a linear system driven by unit-variance white noise.
