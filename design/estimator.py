@@ -192,7 +192,7 @@ def neighbour_input(weight: float, k: int, stamp, x, max_age: int, need=None):
     """The one neighbour policy: what an estimate stamped ``stamp`` gives at step ``k``.
 
     Used by the simulator (per group of trials holding the same stamp) and by
-    :class:`agent.core.AgentCore` alike. ``stamp`` is the stamp of the estimate the agent
+    :class:`agent.node.core.AgentCore` alike. ``stamp`` is the stamp of the estimate the agent
     uses from this neighbour (the needed one ``k - 1 - tau`` if held, else the freshest
     held, at most ``k - 1``), None or negative when it holds nothing; ``need`` is the
     needed stamp, only to tell fresh from held.
@@ -234,7 +234,7 @@ def continued_stamp(stamp: int, first_own: int) -> bool:
     as on any link. Without it the link from r was empty for ``tau`` steps and its weight
     went to the receiver's own prediction, whose loop can be unstable (the MSE after a
     recovery at 15-step delays peaked at 1.9e5 on paper-14). The simulator
-    (:func:`design.simulate.simulate`) and :class:`agent.core.AgentCore` both ask this.
+    (:func:`design.simulate.simulate`) and :class:`agent.node.core.AgentCore` both ask this.
 
     >>> continued_stamp(173, first_own=174), continued_stamp(174, first_own=174)
     (True, False)

@@ -333,8 +333,8 @@ def _scale_scenario(name: str):
 
 def scale_child(case: str) -> None:
     """One --scale case in this process: prints a JSON row."""
-    from agent.gain_worker import plan_failures, precompute_single_failures
-    from agent.monitor_core import GainSource
+    from agent.monitor.gain_worker import plan_failures, precompute_single_failures
+    from agent.monitor.core import GainSource
     from design.gain_design import design_gains
     from design.reconfigure import fast_recovery_gains
     from design.roster import Roster

@@ -53,7 +53,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent import wire  # noqa: E402
+from agent.protocol import wire  # noqa: E402
 from broker_free_net import keys  # noqa: E402
 from broker_free_net.codec import MAX_PAYLOAD_BYTES  # noqa: E402
 from design.gains import save_gains  # noqa: E402
@@ -217,7 +217,7 @@ def live(count: int, step_ms: int, attack_steps: int) -> int:
     import os
     import signal
 
-    from agent.control_auth import ControlSigner
+    from agent.protocol.control_auth import ControlSigner
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
     from broker_free_net.peer import Peer

@@ -65,7 +65,7 @@ def main():
     ap.add_argument("--out", help="keep the run folders here (default: a temporary folder)")
     args = ap.parse_args()
     sys.path.insert(0, str(ROOT))
-    from agent.netns import unavailable_reason
+    from agent.testbed.netns import unavailable_reason
 
     why = unavailable_reason()
     if why is not None:

@@ -100,10 +100,10 @@ if _out and len(sys.argv) > 1 and sys.argv[1] == "agent":
         return wrapper
 
     class _Wrap(importlib.abc.MetaPathFinder):
-        """Wraps agent.agent_process.run_agent once the module is loaded."""
+        """Wraps agent.node.process.run_agent once the module is loaded."""
 
         def find_spec(self, name, path, target=None):
-            if name != "agent.agent_process":
+            if name != "agent.node.process":
                 return None
             spec = importlib.machinery.PathFinder.find_spec(name, path)
             exec_module = spec.loader.exec_module
@@ -533,7 +533,7 @@ def main(argv=None) -> int:
         for i, b in enumerate(args.baseline)]
     for tree, _ in trees:
         if not (tree / "agent" / "cli.py").is_file():
-            print(f"bench_runtime: {tree}: not a socmon source tree (no agent/cli.py)",
+            print(f"bench_runtime: {tree}: not a socmon source tree (no agent/cli/main.py)",
                   file=sys.stderr)
             return 2
 

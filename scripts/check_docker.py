@@ -166,7 +166,7 @@ def substitute(value: str, env: dict) -> str:
 def check_compose(problems: list, env: dict, path: Path = COMPOSE) -> dict:
     import yaml
 
-    from agent.cli import build_parser
+    from agent.cli.main import build_parser
 
     try:
         doc = yaml.safe_load(path.read_text())

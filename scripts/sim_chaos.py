@@ -1,10 +1,10 @@
 """Many fault schedules under simulated time: the invariants of ``socmon chaos`` checked
-on every run of :class:`agent.sim_runtime.SimRuntime` (prints a report).
+on every run of :class:`agent.run.simulated.SimRuntime` (prints a report).
 
-Each seed draws a schedule with :func:`agent.chaos.draw_schedule` (the kinds a simulated
+Each seed draws a schedule with :func:`agent.run.chaos.draw_schedule` (the kinds a simulated
 run applies: kill, stop, hang), runs it in one process under simulated time (world, agent
 and monitor cores, the codec, up's recorder and summary), and checks it with
-:func:`agent.chaos.check_invariants`: recovery within its bound, fencing, the error after
+:func:`agent.run.chaos.check_invariants`: recovery within its bound, fencing, the error after
 each switch, and convictions (only faulted agents, every dead agent that held a role).
 
 Usage::
@@ -26,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent.sim_runtime import FAULT_KINDS, SimConfig, report_lines, run_schedules  # noqa: E402
+from agent.run.simulated import FAULT_KINDS, SimConfig, report_lines, run_schedules  # noqa: E402
 from design.gain_design import design_gains  # noqa: E402
 from design.scenario import load_scenario, resolve_delays  # noqa: E402
 

@@ -2,7 +2,7 @@
 
 One live run cannot tell a recovery's transient from the noise: a healthy run's largest
 step is several times its exact level. This script runs the whole runtime
-(:class:`agent.sim_runtime.SimRuntime`: world, agents, standby, two monitors, the codec,
+(:class:`agent.run.simulated.SimRuntime`: world, agents, standby, two monitors, the codec,
 ``up``'s recorder and summary; the monitor's own verdicts, reassignments, gain requests and
 continuity at the switch) ``--runs`` times per case, each with its own noise seed, and
 averages the per-step MSE over the runs. For each delay bound T (``--delays uniform:T``,
@@ -35,9 +35,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agent.local_run import Fault  # noqa: E402
-from agent.run_summary import predicted_mse  # noqa: E402
-from agent.sim_runtime import SimConfig, SimRuntime  # noqa: E402
+from agent.run.local import Fault  # noqa: E402
+from agent.run.summary import predicted_mse  # noqa: E402
+from agent.run.simulated import SimConfig, SimRuntime  # noqa: E402
 from design.gain_design import design_gains  # noqa: E402
 from design.scenario import load_scenario, resolve_delays  # noqa: E402
 

@@ -6,7 +6,7 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 # Tests run many small dense decompositions; on a loaded 2-core machine BLAS threads only
-# contend (see agent/cli.py). Limit the pool for the whole session.
+# contend (see agent/cli/main.py). Limit the pool for the whole session.
 _BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
 
 ROOT = Path(__file__).resolve().parents[1]

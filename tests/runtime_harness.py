@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from agent.core import AgentCore, WorldCore, agent_config
+from agent.node.core import AgentCore, agent_config
+from agent.world.core import WorldCore
 from design import noise
 from design.estimator import NeighbourEstimate, PowerCache, estimator_step, role_from
 

@@ -1,6 +1,6 @@
 """A live deployment for multi-process tests: world + agents as OS processes on loopback.
 
-Children are started by :class:`agent.launcher.Children` (own process groups) and always
+Children are started by :class:`agent.run.launcher.Children` (own process groups) and always
 stopped by the fixture, even when the test fails. The test process joins the mesh as a
 ``monitor`` peer and reads statuses and estimates. Every wait has a deadline.
 """
@@ -12,8 +12,8 @@ import sys
 import time
 from pathlib import Path
 
-from agent import wire
-from agent.launcher import ROOT, Children
+from agent.protocol import wire
+from agent.run.launcher import ROOT, Children
 from broker_free_net.ports import listen_port
 from broker_free_net import keys
 from broker_free_net.codec import MessageStats, try_decode

@@ -10,7 +10,7 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent.cli import main
+from agent.cli.main import main
 from design.analysis import analyze, structural_analysis
 from design.graph import influence_structure
 from design.observability import distributed_detectability, observability_rank, unobservable_modes

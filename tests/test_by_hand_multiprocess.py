@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from agent.launcher import ROOT
+from agent.run.launcher import ROOT
 from broker_free_net.ports import listen_port
 
 pytestmark = [pytest.mark.multiprocess]

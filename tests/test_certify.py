@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from agent.cli import main
+from agent.cli.main import main
 from design.certificates import CertifyError, certify, find_tau_star, paper_formula
 from design.closed_loop import ClosedLoop
 from design.errors import GainsError

@@ -10,8 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from agent.chaos import Bounds, check_invariants, draw_schedule
-from agent.local_run import Fault, Recording, RunConfig
+from agent.run.chaos import Bounds, check_invariants, draw_schedule
+from agent.run.local import Fault, Recording, RunConfig
 from design.scenario import load_scenario
 from tests.test_runtime_multiprocess import _socmon
 

@@ -5,8 +5,8 @@ import time
 import numpy as np
 import pytest
 
-from agent import wire
-from agent.control_auth import ControlSigner, ControlVerifier, SignatureError
+from agent.protocol import wire
+from agent.protocol.control_auth import ControlSigner, ControlVerifier, SignatureError
 
 
 @pytest.fixture

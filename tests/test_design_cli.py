@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.cli import main
+from agent.cli.main import main
 from design.closed_loop import ClosedLoop
 from design.gains import load_gains
 from design.scenario import load_scenario, resolve_delays
@@ -105,7 +105,7 @@ def test_mse_objective_from_the_cli(capsys, tmp_path):
 def test_progress_line_only_on_a_terminal():
     import io
 
-    from agent.commands._progress import ProgressLine
+    from agent.cli._progress import ProgressLine
     from design.gain_design import DesignProgress
 
     class Terminal(io.StringIO):

@@ -28,7 +28,7 @@ def test_the_docker_files_pass_every_check_without_an_engine():
 
 def test_the_build_context_holds_the_sources_only():
     files = list(check_docker.context_files(ROOT, check_docker.read_ignore()))
-    assert "agent/cli.py" in files and "pyproject.toml" in files
+    assert "agent/cli/main.py" in files and "pyproject.toml" in files
     assert not [f for f in files if f.startswith((".venv/", ".git/", "runs/", "tests/"))
                 or "__pycache__" in f]
 

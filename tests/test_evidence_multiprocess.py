@@ -42,7 +42,7 @@ def _attached(tmp_path, gains, *flags, steps):
 def _step_of(truth_in, stats, step):
     """The newest step of the truth heard (``step`` if none came within 0.5 s) and
     whether any came."""
-    from agent import wire
+    from agent.protocol import wire
     from broker_free_net.codec import try_decode
 
     item = truth_in.get(timeout=0.5)
@@ -65,8 +65,8 @@ def _status(agent, step, epoch):
 
 def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_path,
                                                                             live_gains):
-    from agent import wire
-    from agent.control_auth import ControlSigner
+    from agent.protocol import wire
+    from agent.protocol.control_auth import ControlSigner
     from broker_free_net import keys
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
@@ -118,7 +118,7 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
     own status claiming to listen to agent 1 with the same stale age, and agent 3 (which
     it does listen to) 500 steps stale. Nothing of it is
     taken: no healthy agent is convicted and a later crash of agent 1 is recovered."""
-    from agent import wire
+    from agent.protocol import wire
     from broker_free_net import keys
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
@@ -165,7 +165,7 @@ def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, l
     stamped 99,998 and 99,999 steps ahead, for 150 steps. Every agent refuses them
     (counted ``implausible`` and ``sensor_future``), nobody is convicted, the agents do
     not race ahead, and the run's steady MSE stays within 3x of the exact prediction."""
-    from agent import wire
+    from agent.protocol import wire
     from broker_free_net import keys
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
@@ -207,7 +207,7 @@ def test_a_dead_agent_is_not_hidden_behind_a_token_and_statuses_in_its_name(tmp_
     Tokens carry the declaring session, so the monitor sees a second token for agent 1
     (refused, ``token``) and the end of agent 1's own token: the crash is convicted and
     recovered although the outsider's token and statuses go on."""
-    from agent import wire
+    from agent.protocol import wire
     from broker_free_net import keys
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig

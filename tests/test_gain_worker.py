@@ -1,12 +1,12 @@
-"""agent.gain_worker: the design processes answer requests and precompute every single
+"""agent.monitor.gain_worker: the design processes answer requests and precompute every single
 failure of the configuration in force (real spawned processes, no network)."""
 
 import time
 
 import pytest
 
-from agent.gain_worker import GainWorker, plan_failures
-from agent.monitor_core import GainSource
+from agent.monitor.gain_worker import GainWorker, plan_failures
+from agent.monitor.core import GainSource
 from design.roster import Roster, replan
 from design.scenario import load_scenario, resolve_delays
 

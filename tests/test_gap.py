@@ -43,7 +43,7 @@ def test_an_agent_alone_on_an_unstable_own_loop_makes_the_gap_diverge():
 
 
 def test_certify_reports_every_gap(capsys, live_gains):
-    from agent.cli import main
+    from agent.cli.main import main
 
     assert main(["certify", "paper-14-live", "--gains", str(live_gains), "--json"]) == 0
     import json
@@ -177,7 +177,7 @@ def test_nothing_changes_when_the_nominal_design_keeps_the_gaps_stable():
 def test_analyze_design_and_certify_speak_of_the_gaps(tmp_path, capsys):
     import json
 
-    from agent.cli import main
+    from agent.cli.main import main
 
     out = tmp_path / "g.npz"
     assert main(["design", "paper-14-live", "--delays", "uniform:3", "--target", "0.95",

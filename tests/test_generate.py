@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from agent.cli import main
+from agent.cli.main import main
 from design.analysis import structural_analysis
 from design.generate import communities_scenario
 from design.observability import distributed_detectability, pair_observability

@@ -15,8 +15,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agent import wire
-from agent.core import (
+from agent.protocol import wire
+from agent.node.core import (
     MAX_POLL_STEPS,
     SENSOR_GAP,
     SENSOR_HELD,
@@ -26,7 +26,7 @@ from agent.core import (
     AssignmentError,
     Role,
 )
-from agent.ratelimit import LogLimiter
+from agent.shell.ratelimit import LogLimiter
 from broker_free_net.codec import (
     MAX_DEPTH,
     MAX_ERROR_CHARS,

@@ -6,7 +6,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from agent import wire
+from agent.protocol import wire
 from broker_free_net import keys
 from broker_free_net.codec import MAX_ERROR_CHARS, MAX_PAYLOAD_BYTES
 from design.gains import save_gains

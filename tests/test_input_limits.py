@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from agent.cli import main
+from agent.cli.main import main
 from design.closed_loop import ClosedLoop
 from design.errors import GainsError, ScenarioError
 from design.gains import load_gains, save_gains

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.cli import main
-from agent.jsonable import SCHEMA_VERSION
+from agent.cli.main import main
+from agent.run.jsonable import SCHEMA_VERSION
 from design.gains import gains_meta, save_gains
 
 ROOT = Path(__file__).resolve().parents[1]

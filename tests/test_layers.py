@@ -2,8 +2,8 @@
 
 Rules (stated in the package docstrings): inside ``design`` a module imports only from
 its own layer or lower (``design.LAYERS``); ``design`` and ``broker_free_net`` never import
-each other nor ``agent``; inside ``agent`` only the command line (``agent.cli``,
-``agent.commands``) imports the command line.
+each other nor ``agent``; inside ``agent`` only the command line (``agent.cli.main``,
+``agent.cli``) imports the command line.
 """
 
 import ast
@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+import agent
 import design
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -61,9 +62,12 @@ def violations(module: str, target: str):
                 return (f"layer {src_layer} module imports {parts[1]} of layer "
                         f"{design.LAYERS[parts[1]]}")
     if top == "agent":
-        is_cli = module == "agent.cli" or module.startswith("agent.commands")
-        if not is_cli and (target == "agent.cli" or target.startswith("agent.commands")):
-            return "only the command line imports the command line"
+        src, parts = module.split("."), target.split(".")
+        if len(src) > 1 and len(parts) > 1 and parts[1] in agent.LAYERS:
+            src_layer, dest_layer = agent.LAYERS[src[1]], agent.LAYERS[parts[1]]
+            if dest_layer > src_layer:
+                return (f"agent.{src[1]} (layer {src_layer}) imports agent.{parts[1]} "
+                        f"(layer {dest_layer})")
     return None
 
 
@@ -73,6 +77,13 @@ ALL = list(modules())
 def test_every_design_module_has_a_layer():
     names = {m.split(".")[1] for m, _ in ALL if m.startswith("design.")}
     assert names == set(design.LAYERS), names ^ set(design.LAYERS)
+
+
+def test_every_agent_module_is_in_a_sub_package_with_a_layer():
+    loose = [m for m, p in ALL if m.startswith("agent.") and p.parent == ROOT / "agent"]
+    assert not loose, f"modules outside agent's sub-packages: {loose}"
+    subs = {p.name for p in (ROOT / "agent").iterdir() if (p / "__init__.py").exists()}
+    assert subs == set(agent.LAYERS), subs ^ set(agent.LAYERS)
 
 
 @pytest.mark.parametrize("module, path", ALL, ids=[m for m, _ in ALL])
@@ -85,12 +96,17 @@ def test_no_upward_import(module, path):
 def test_the_checker_sees_upward_imports():
     assert violations("design.graph", "design.analysis.analyze")
     assert violations("design.scenario", "design.observability")
-    assert violations("design.simulate", "agent.core")
+    assert violations("design.simulate", "agent.node.core")
     assert violations("broker_free_net.peer", "design.scenario")
-    assert violations("agent.core", "agent.commands._common")
+    assert violations("agent.node.core", "agent.cli._common")
+    assert violations("agent.monitor.core", "agent.run.summary")
+    assert violations("agent.protocol.wire", "agent.node.core")
+    assert violations("agent.run.local", "agent.cli.up")
+    assert not violations("agent.run.simulated", "agent.monitor.core")
+    assert not violations("agent.cli.up", "agent.run.local")
     assert not violations("design.analysis", "design.graph")
-    assert not violations("agent.commands.plan", "design.recovery")
-    assert not violations("agent.core", "broker_free_net.impair")
+    assert not violations("agent.cli.plan", "design.recovery")
+    assert not violations("agent.node.core", "broker_free_net.impair")
 
 
 def test_no_import_cycle_between_project_modules():
@@ -115,8 +131,8 @@ def test_no_import_cycle_between_project_modules():
             visit(m, [])
 
 
-@pytest.mark.parametrize("module", ["agent.core", "agent.monitor_core", "agent.timing",
-                                    "agent.sim_runtime",
+@pytest.mark.parametrize("module", ["agent.node.core", "agent.monitor.core", "agent.protocol.timing",
+                                    "agent.run.simulated",
                                     "broker_free_net.codec", "broker_free_net.impair"])
 def test_the_pure_side_does_not_load_the_native_transport(module):
     """The state machines and the codec run without zenoh: only a session loads it."""

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from agent.monitor_core import Assignment, MonitorConfig, MonitorCore, RosterUpdate
+from agent.monitor.core import Assignment, MonitorConfig, MonitorCore, RosterUpdate
 
 
 def _status(agent, step, epoch=0, active=True, pending=0, sensor_last=None):
@@ -427,7 +427,7 @@ def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_th
     detection goes on meanwhile; ``activate_at`` counts from when the gains came back (it
     used to be fixed before a design of seconds, and was past when sent); a fast gain in
     force is replaced by the refined one under a later epoch."""
-    from agent.monitor_core import GainSource, design_gains_for
+    from agent.monitor.core import GainSource, design_gains_for
 
     from design.scenario import load_scenario
 
@@ -474,7 +474,7 @@ def test_a_crash_is_answered_while_the_monitors_own_pause_suspends_verdicts(core
     """The pause guard suspends the verdicts that read clocks (a status looks old because
     the monitor slept), never a deleted token: agent 2's crash during the monitor's own
     pause is convicted within CRASH_SETTLE_S, not hang_timeout_s later."""
-    from agent.monitor_core import CRASH_SETTLE_S
+    from agent.monitor.core import CRASH_SETTLE_S
 
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     core.on_status(_status(1, 200), 4.0)                 # the monitor slept 3 s
@@ -506,8 +506,8 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     """A failure before the background refined its configuration switches at once on the
     precomputed fast gain; the refined one, when the worker sends it, is put in force
     under a later epoch, and the record says which gain is in force each time."""
-    from agent.gain_worker import plan_failures
-    from agent.monitor_core import GainSource, design_gains_for
+    from agent.monitor.gain_worker import plan_failures
+    from agent.monitor.core import GainSource, design_gains_for
 
     from design.scenario import load_scenario
 
@@ -536,7 +536,7 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     for a in roster.ids:
         core.on_status(_status(a, 110, epoch=1), 2.2)
     assert core.tick(2.2) == []                           # in force; no refined gain yet
-    from agent.gain_worker import steady_mse_of
+    from agent.monitor.gain_worker import steady_mse_of
 
     mse = steady_mse_of(roster, fast_G)                   # what the worker sends back
     assert mse > 0

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from agent.launcher import Children
+from agent.run.launcher import Children
 from broker_free_net.ports import listen_port
 from tests.test_runtime_multiprocess import UP_TIMEOUT, _socmon
 
@@ -129,8 +129,8 @@ def test_forged_control_messages_are_rejected_and_the_monitor_still_commands(tmp
     import threading
     import time
 
-    from agent import wire
-    from agent.control_auth import ControlSigner
+    from agent.protocol import wire
+    from agent.protocol.control_auth import ControlSigner
     from broker_free_net import keys
     from broker_free_net.codec import MessageStats, try_decode
     from broker_free_net.config import NetConfig

@@ -145,7 +145,7 @@ def test_bad_config_file_is_named_at_construction_in_one_line(tmp_path, text):
 
 @pytest.mark.parametrize("content", [None, "{ nope"])
 def test_cli_reports_zenoh_config_in_one_line_exit_2(tmp_path, capsys, content):
-    from agent.cli import main
+    from agent.cli.main import main
 
     path = tmp_path / "z.json5"
     if content is not None:

@@ -1,7 +1,7 @@
 """Runs across network namespaces: every process on its own host, real IP links.
 
 ``socmon up --netns`` puts the recorder, the world, each agent and the monitor in a network
-namespace of their own, wired to a bridge in a switch namespace (agent/netns.py); a
+namespace of their own, wired to a bridge in a switch namespace (agent/testbed/netns.py); a
 ``linkdown`` fault brings a host's bridge port down (a real partition) and up again.
 Namespace names carry a prefix unique to the test, and a finalizer deletes whatever is left
 under it, also when ``socmon up`` was killed. Skipped, with the reason, where namespaces
@@ -16,7 +16,7 @@ import subprocess
 
 import pytest
 
-from agent import netns
+from agent.testbed import netns
 from tests.test_runtime_multiprocess import _socmon
 
 _serial = itertools.count()
@@ -170,7 +170,7 @@ def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, l
     (["--netns", "--netns-prefix", "a-b"], "--netns-prefix: prefix: expected 1-12 lower-case"),
 ])
 def test_netns_flags_are_checked_before_anything_starts(tmp_path, capsys, flags, message):
-    from agent.cli import main
+    from agent.cli.main import main
 
     assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), *flags]) == 2
     assert message in capsys.readouterr().err

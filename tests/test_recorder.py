@@ -6,15 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from agent import wire
-from agent.cli import main
-from agent.commands.up import check_run_endpoint
-from agent.commands._common import CommandError
-from agent.live_view import LiveView, format_lines
-from agent.local_run import RunConfig
-from agent.recorder import Recorder
-from agent.run_folder import InvalidRunFolder, read_run_info, write_run_json
-from agent.run_summary import mse_by_step, summarize
+from agent.protocol import wire
+from agent.cli.main import main
+from agent.cli.up import check_run_endpoint
+from agent.cli._common import CommandError
+from agent.run.live_view import LiveView, format_lines
+from agent.run.local import RunConfig
+from agent.run.recorder import Recorder
+from agent.run.folder import InvalidRunFolder, read_run_info, write_run_json
+from agent.run.summary import mse_by_step, summarize
 from broker_free_net import keys
 from broker_free_net.ports import listen_port
 
@@ -200,7 +200,7 @@ def test_last_complete_step_ignores_agents_that_stopped(fed):
 
 
 def test_with_the_run_control_key_only_signed_rosters_are_recorded():
-    from agent.control_auth import ControlSigner
+    from agent.protocol.control_auth import ControlSigner
 
     signer, other = ControlSigner.generate(), ControlSigner.generate()
     r = Recorder(RUN, n=1, N=1, M=2, control_public=signer.public_bytes())
@@ -217,9 +217,9 @@ def test_with_the_run_control_key_only_signed_rosters_are_recorded():
 def test_watch_takes_the_control_key_from_the_runs_manifest(tmp_path):
     """``watch --manifest`` (or ``--attach``): the recorder drops rosters not signed with the
     manifest's control key; a manifest of another scenario is refused by name."""
-    from agent.commands.watch import _control_key
-    from agent.control_auth import ControlSigner
-    from agent.manifest import write_manifest
+    from agent.cli.watch import _control_key
+    from agent.protocol.control_auth import ControlSigner
+    from agent.protocol.manifest import write_manifest
     from design.scenario import load_scenario
 
     s, other = load_scenario("paper-14-live"), load_scenario("paper-14")
@@ -256,9 +256,9 @@ def test_link_impairments_taking_effect_are_recorded_as_events(fed):
 
 
 def test_a_status_with_an_epoch_far_above_any_seen_is_not_recorded():
-    from agent.recorder import Recorder
-    from agent.timing import DEFAULT as TIMING
-    from agent import wire as w
+    from agent.run.recorder import Recorder
+    from agent.protocol.timing import DEFAULT as TIMING
+    from agent.protocol import wire as w
     from broker_free_net import keys as k
 
     r = Recorder("demo", n=2, N=1, M=1)

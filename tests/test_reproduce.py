@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import design.experiments as rep
-from agent.cli import main
+from agent.cli.main import main
 from design.closed_loop import closed_loop_for
 from design.gain_design import design_gains
 from design.scenario import load_scenario, uniform_delays

@@ -15,9 +15,9 @@ import time
 
 import pytest
 
-from agent.cli import main
-from agent.launcher import ROOT, Children
-from agent.local_run import RunFailed, _through_router, _wait_listening
+from agent.cli.main import main
+from agent.run.launcher import ROOT, Children
+from agent.run.local import RunFailed, _through_router, _wait_listening
 from broker_free_net import keys
 from broker_free_net.config import (
     CLIENT_CONNECT_TIMEOUT_MS,

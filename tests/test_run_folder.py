@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from agent.run_folder import InvalidRunFolder, prepare_run_folder, write_atomic
+from agent.run.folder import InvalidRunFolder, prepare_run_folder, write_atomic
 
 
 def test_a_folder_holding_an_earlier_run_is_refused_naming_what_it_holds(tmp_path):
@@ -52,7 +52,7 @@ def test_an_atomic_write_that_fails_keeps_the_old_file_and_leaves_no_temporary(t
 
 
 def test_up_refuses_an_earlier_runs_folder_before_doing_anything(tmp_path, capsys, live_gains):
-    from agent.cli import main
+    from agent.cli.main import main
 
     (tmp_path / "events.jsonl").write_text('{"kind": "verdict", "agent": 1}\n')
     assert main(["up", "paper-14-live", "--steps", "5", "--gains", str(live_gains),
@@ -68,8 +68,8 @@ def test_a_full_disk_names_the_file_and_what_was_written_whole(tmp_path, monkeyp
     RunFolderError names that file and the summary, which is whole; no temporary stays."""
     import json
 
-    from agent.run_folder import RunFolderError
-    from agent.run_summary import write_run_folder
+    from agent.run.folder import RunFolderError
+    from agent.run.summary import write_run_folder
 
     calls = {"n": 0}
     real = os.fsync
@@ -92,8 +92,8 @@ def test_a_full_disk_names_the_file_and_what_was_written_whole(tmp_path, monkeyp
 
 
 def test_a_command_whose_run_folder_cannot_be_written_says_so_in_one_line(capsys):
-    from agent.commands._common import run_command
-    from agent.run_folder import EXIT_FOLDER, RunFolderError
+    from agent.cli._common import run_command
+    from agent.run.folder import EXIT_FOLDER, RunFolderError
 
     def body():
         raise RunFolderError("/r/mse.png", OSError(errno.ENOSPC, "No space left on device"),
@@ -106,11 +106,11 @@ def test_a_command_whose_run_folder_cannot_be_written_says_so_in_one_line(capsys
 
 
 def test_a_log_on_a_full_disk_loses_lines_not_the_process():
-    """agent.cli.LossyStream: writes that fail for want of room are counted and dropped;
+    """agent.cli.main.LossyStream: writes that fail for want of room are counted and dropped;
     a broken pipe still raises (``socmon certify | head`` stops)."""
     import io
 
-    from agent.cli import LossyStream
+    from agent.cli.main import LossyStream
 
     class Full(io.StringIO):
         def write(self, text):

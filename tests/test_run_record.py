@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from agent.recorder import Recording
-from agent.run_summary import (
+from agent.run.recorder import Recording
+from agent.run.summary import (
     DIVERGED_FACTOR,
     _failures,
     diverged_at,
@@ -68,7 +68,7 @@ def test_steady_mse_and_divergence_are_one_definition():
     # the last quarter, steps nobody estimated left out: the live record and the simulator
     assert steady_mse([9.0] * 6 + [math.nan, 3.0]) == 3.0
     assert steady_mse([9.0] * 6 + [1.0, math.inf]) == math.inf
-    from agent import run_summary
+    from agent.run import summary as run_summary
     from design import metrics
     assert run_summary.steady_mse is metrics.steady_mse
     mse = [0.3, 0.4, 0.28 * DIVERGED_FACTOR * 1.01, 1e30]
@@ -123,7 +123,7 @@ def test_final_roles_mark_killed_and_fenced_agents():
     """A killed agent's last status still says active: the record says dead, not active;
     an agent that dropped its role and lives is fenced; tokens that go at the run's end
     are no death."""
-    from agent.run_summary import final_roles
+    from agent.run.summary import final_roles
 
     last = {1: {"active": True, "epoch": 0, "measure": ["1"]},
             2: {"active": False, "epoch": 2, "measure": ["2"]},

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from agent import wire
+from agent.protocol import wire
 from design import noise
-from agent.core import AssignmentError
+from agent.node.core import AssignmentError
 from tests.runtime_harness import Mesh, reference
 
 STEPS = 40

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent import wire
-from agent.launcher import ROOT
+from agent.protocol import wire
+from agent.run.launcher import ROOT
 from broker_free_net import keys
 from design.closed_loop import closed_loop_for
 from design.gains import save_gains

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.cli import main
+from agent.cli.main import main
 from design.errors import ScenarioError
 from design.scenario import (
     MAX_DELAY,

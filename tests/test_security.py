@@ -199,7 +199,7 @@ def test_netconfig_with_keys(keyset):
 
 
 def test_keys_cli(tmp_path, capsys):
-    from agent.cli import main
+    from agent.cli.main import main
 
     assert main(["keys", "init", str(tmp_path / "k"), "--scenario", "paper-14", "--run", "demo", "--json"]) == 0
     manifest = json.loads(capsys.readouterr().out)

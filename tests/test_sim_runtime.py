@@ -1,14 +1,14 @@
-"""The whole runtime under simulated time (agent.sim_runtime): what it computes equals the
+"""The whole runtime under simulated time (agent.run.simulated): what it computes equals the
 design simulator through a failure, its verdict, the reassignment and the switch, and the
 invariants of ``socmon chaos`` hold over random fault schedules."""
 
 import numpy as np
 import pytest
 
-from agent.chaos import draw_schedule
-from agent.local_run import Fault
-from agent.run_summary import compare_simulator
-from agent.sim_runtime import SimConfig, SimRuntime
+from agent.run.chaos import draw_schedule
+from agent.run.local import Fault
+from agent.run.summary import compare_simulator
+from agent.run.simulated import SimConfig, SimRuntime
 from design.scenario import load_scenario, resolve_delays
 
 
@@ -80,7 +80,7 @@ def test_an_agent_convicted_twice_is_paired_with_each_fault_and_reassignment(liv
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", range(8))
 def test_random_fault_schedules_keep_the_chaos_invariants(live, seed):
-    """kill, stop and hang drawn by agent.chaos.draw_schedule (3 faults per 1000 steps,
+    """kill, stop and hang drawn by agent.run.chaos.draw_schedule (3 faults per 1000 steps,
     1500 steps): recovery within its bound, fencing, error, convictions."""
     s, G = live
     schedule = draw_schedule(s, seed, 1500, kinds=("kill", "stop", "hang"), rate=3)
@@ -92,7 +92,7 @@ def test_random_fault_schedules_keep_the_chaos_invariants(live, seed):
 def test_short_schedules_of_every_kind_keep_the_chaos_invariants(live, seed):
     """800 steps, every fault kind a simulated run applies (crash and kill, stop, hang,
     stuck sensor, partition, delay, drop, slow), 5 faults per 1000 steps."""
-    from agent.sim_runtime import FAULT_KINDS
+    from agent.run.simulated import FAULT_KINDS
 
     s, G = live
     schedule = draw_schedule(s, seed, 800, kinds=tuple(k for k in FAULT_KINDS if k != "crash"),
@@ -107,7 +107,7 @@ def test_short_schedules_of_every_kind_keep_the_chaos_invariants(live, seed):
                                          (Fault(200, "monitorstop", 0, 30.0), 2000)])
 def test_the_monitor_killed_or_paused_hands_over_and_a_later_crash_recovers(live, fault,
                                                                              kill):
-    """Two monitors, as up starts them (agent.monitor_core.MonitorSeat): the acting one
+    """Two monitors, as up starts them (agent.monitor.core.MonitorSeat): the acting one
     killed (and started again) or stopped 1, 5 or 30 s; agent 1 killed afterwards is
     convicted and replaced."""
     r = _run(live, [fault, Fault(kill, "kill", 1)], steps=kill + 300)
@@ -125,7 +125,7 @@ def test_with_every_monitor_gone_a_crash_is_reported_unrecovered(live):
 def test_socmon_chaos_simulated_reports_every_seed(tmp_path, capsys, live_gains):
     import json
 
-    from agent.cli import main
+    from agent.cli.main import main
 
     code = main(["chaos", "paper-14-live", "--simulated", "7:9", "--duration", "600",
                  "--faults", "kill,stop,monitor", "--rate", "5", "--gains", str(live_gains),

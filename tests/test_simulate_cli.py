@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from agent.cli import main
-from agent.commands.simulate import format_text
+from agent.cli.main import main
+from agent.cli.simulate import format_text
 from design.gains import gains_meta, save_gains
 
 from design.gain_design import design_gains

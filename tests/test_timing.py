@@ -4,9 +4,9 @@ import math
 
 import pytest
 
-from agent.commands._common import CommandError, timing_arg
-from agent.monitor_core import MonitorConfig
-from agent.timing import DEFAULT, Timing, TimingError
+from agent.cli._common import CommandError, timing_arg
+from agent.monitor.core import MonitorConfig
+from agent.protocol.timing import DEFAULT, Timing, TimingError
 
 
 def test_the_defaults_are_consistent_and_are_what_the_monitor_uses():
@@ -66,7 +66,7 @@ def test_a_flag_that_breaks_a_relation_is_named_by_its_flag():
 
 
 def test_up_refuses_a_hang_timeout_below_twice_the_status_period(capsys):
-    from agent.cli import main
+    from agent.cli.main import main
 
     assert main(["up", "paper-14-live", "--steps", "5", "--hang-timeout", "0.3"]) == 2
     err = capsys.readouterr().err
@@ -74,7 +74,7 @@ def test_up_refuses_a_hang_timeout_below_twice_the_status_period(capsys):
 
 
 def test_monitor_refuses_a_hang_timeout_below_twice_the_status_period(capsys, live_gains):
-    from agent.cli import main
+    from agent.cli.main import main
 
     assert main(["monitor", "paper-14-live", "--run", "t", "--gains", str(live_gains),
                  "--hang-timeout", "0.3"]) == 2

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.cli import EXIT_BROKEN_PIPE, main
-from agent.run_summary import MAX_LOG_WARNINGS, log_warnings
+from agent.cli.main import EXIT_BROKEN_PIPE, main
+from agent.run.summary import MAX_LOG_WARNINGS, log_warnings
 from design.gains import gains_meta, save_gains
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,7 +131,7 @@ def test_closed_stdout_ends_quietly():
 
 _SLOW_EXIT = """
 import signal, sys, time
-import agent.cli as cli
+import agent.cli.main as cli
 signal.signal(signal.SIGTERM, lambda *_: None)   # as the world and the agents do
 cli.main = lambda: 3                               # the command's work is done
 

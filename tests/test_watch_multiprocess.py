@@ -1,7 +1,7 @@
 """``socmon watch`` on a run started by hand and on an ``up`` run; ``inject --attach``.
 
 Loopback only, ports from ``listen_port()``, waits on conditions with deadlines, children
-in their own process groups (``agent.launcher.Children``), always stopped.
+in their own process groups (``agent.run.launcher.Children``), always stopped.
 """
 
 import csv
@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from agent.launcher import Children
+from agent.run.launcher import Children
 from broker_free_net.ports import listen_port
 from design.closed_loop import closed_loop_for
 from design.gains import load_gains

@@ -7,14 +7,14 @@ import re
 
 import pytest
 
-from agent.local_run import LocalRun
+from agent.run.local import LocalRun
 from tests.test_runtime_multiprocess import _socmon, monitor_story
 
 pytestmark = [pytest.mark.multiprocess]
 
 
 def _config(tmp_path, gains, steps, **extra):
-    from agent.commands.up import run_config
+    from agent.cli.up import run_config
 
     args = argparse.Namespace(
         scenario="paper-14-live", steps=steps, gains=str(gains), seed=0, out=str(tmp_path),

@@ -1,0 +1,319 @@
+"""Helpers shared by the subcommands: scenario/gains loading with clean errors, JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import warnings
+
+from agent.run.jsonable import to_jsonable, versioned  # noqa: F401 - re-exported for the commands
+
+from design.errors import GainsError, ScenarioError
+from design.gains import load_gains
+from design.scenario import load_scenario
+
+EXIT_OK, EXIT_NEGATIVE, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class CommandError(Exception):
+    """Abort a command with a message and an exit status (2 = bad input)."""
+
+    def __init__(self, message: str, status: int = EXIT_BAD_INPUT):
+        super().__init__(message)
+        self.status = status
+
+
+def add_scenario_argument(parser) -> None:
+    parser.add_argument("scenario", help="scenario TOML file or built-in name (e.g. paper-14)")
+
+
+def add_manifest_argument(parser) -> None:
+    """``--manifest FILE`` of the processes of a run (agent.protocol.manifest)."""
+    parser.add_argument("--manifest", metavar="FILE",
+                        help="the run's manifest.json (socmon up writes one): refuse to start "
+                             "when the scenario, gains, seed or delays differ from the run's")
+
+
+def add_gains_argument(parser) -> None:
+    """The required ``--gains FILE`` flag of the commands that evaluate a given gain."""
+    parser.add_argument("--gains", required=True, metavar="FILE",
+                        help="gains file (.npz with K1..KN and meta)")
+    add_force_gains_argument(parser)
+
+
+def add_force_gains_argument(parser) -> None:
+    """``--force-gains``: accept a gains file designed for another scenario."""
+    parser.add_argument("--force-gains", action="store_true",
+                        help="accept a gains file whose scenario digest is not this "
+                             "scenario's (by default that is an error, exit 2)")
+
+
+def load_scenario_arg(spec):
+    """Load a scenario; a ScenarioError becomes a CommandError (exit 2).
+
+    Warnings (e.g. rank-deficient A) are printed to stderr, not raised.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            scenario = load_scenario(spec)
+        except ScenarioError as exc:
+            raise CommandError(f"bad scenario: {exc}") from None
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    return scenario
+
+
+def load_gains_arg(path, scenario, force: bool = False, flag: str = "--gains"):
+    """Load the gains file of ``flag`` for ``scenario``; CommandError (exit 2) naming the flag
+    when it cannot be read, does not fit, or was designed for another scenario (its meta's
+    ``scenario_digest`` is not ``scenario.digest()``) unless ``force`` (``--force-gains``),
+    which prints a warning instead. A file without a digest (written by hand) is accepted."""
+    try:
+        gains = load_gains(path, scenario)
+    except GainsError as exc:
+        raise CommandError(f"{flag}: {exc}") from None
+    problem = gains_scenario_mismatch(gains.meta, scenario)
+    if problem is not None:
+        if not force:
+            raise CommandError(f"{flag}: {path}: {problem} (--force-gains to use it anyway)")
+        print(f"warning: {flag}: {path}: {problem}", file=sys.stderr)
+    return gains
+
+
+def gains_scenario_mismatch(meta: dict, scenario) -> str | None:
+    """Why the gains of ``meta`` were not designed for ``scenario``, or None when they were
+    (or when the file does not say)."""
+    digest = meta.get("scenario_digest")
+    if digest is None or digest == scenario.digest():
+        return None
+    return (f"gains designed for scenario {meta.get('scenario', '?')!s} (digest {digest}), "
+            f"not for scenario {scenario.name} (digest {scenario.digest()})")
+
+
+def net_config_arg(args, identity: str):
+    """The :class:`broker_free_net.NetConfig` of the transport flags; CommandError (exit 2)
+    naming the flag (``--zenoh-config``, ``--listen``, ...) when a value is bad."""
+    from broker_free_net.config import InvalidNetConfig, net_config_from_args
+
+    try:
+        return net_config_from_args(args, identity=identity)
+    except InvalidNetConfig as exc:
+        message = str(exc)
+        if message.startswith(f"{exc.field}: "):
+            message = message[len(exc.field) + 2:]
+        raise CommandError(f"--{exc.field.replace('_', '-')}: {message}") from None
+
+
+def timing_arg(step_s: float | None = None, lead_steps: int | None = None, **fields):
+    """The run's :class:`agent.protocol.timing.Timing` from flag values; CommandError naming the flag
+    and the broken relation otherwise (``fields``: Timing field -> value, None = default).
+
+    >>> timing_arg(hang_timeout_s=2.0).hang_timeout_s
+    2.0
+    >>> timing_arg(hang_timeout_s=0.4)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    agent.cli._common.CommandError: --hang-timeout: 0.4 s must exceed 2 x status_s = 0.4 s (...); pause_guard_s: 0.5 s must be below hang_timeout_s = 0.4 s (...)
+    """
+    from agent.protocol.timing import DEFAULT
+
+    timing = DEFAULT.replace(**{k: v for k, v in fields.items() if v is not None})
+    problems = timing.problems(step_s=step_s, lead_steps=lead_steps)
+    if problems:
+        lines = []
+        for line in problems:
+            field, _, reason = line.partition(": ")
+            flag = _TIMING_FLAGS.get(field)
+            lines.append(f"{flag}: {reason}" if flag and field in fields else line)
+        raise CommandError("; ".join(lines))
+    return timing
+
+
+#: Timing fields set by a flag of some command (the rest are the runtime's constants).
+_TIMING_FLAGS = {"hang_timeout_s": "--hang-timeout", "hang_timeout_max_s": "--hang-timeout-max",
+                 "start_timeout_s": "--start-timeout"}
+
+
+def _int_or_reason(text, lo: int, hi: int | None):
+    """``(value, None)`` for an ASCII decimal integer in ``lo..hi``, else ``(None, reason)``.
+
+    ``int`` alone also takes '1_000' and non-ASCII digits such as '١'; ``str.isdigit``
+    takes '²', which ``int`` rejects: only an optional sign and ASCII digits pass here.
+    """
+    part = str(text).strip()
+    body = part[1:] if part[:1] in ("-", "+") else part
+    if not (body.isascii() and body.isdigit()):
+        return None, f"expected an integer, got {part!r}"
+    value = int(part)
+    if value < lo or (hi is not None and value > hi):
+        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+        return None, f"must be an integer {rng}, got {value}"
+    return value, None
+
+
+def parse_int(text, flag: str, lo: int = 0, hi: int | None = None) -> int:
+    """A decimal integer in ``lo..hi`` from a flag; CommandError naming the flag otherwise.
+
+    The one integer parser of the command line (``int_flag`` and ``parse_int_list`` are
+    built on it).
+
+    >>> parse_int(" 12 ", "--steps", lo=1)
+    12
+    >>> parse_int("²", "--steps")
+    Traceback (most recent call last):
+    ...
+    agent.cli._common.CommandError: --steps: expected an integer, got '²'
+    >>> parse_int("0", "--trials", lo=1)
+    Traceback (most recent call last):
+    ...
+    agent.cli._common.CommandError: --trials: must be an integer >= 1, got 0
+    """
+    value, reason = _int_or_reason(text, lo, hi)
+    if reason is not None:
+        raise CommandError(f"{flag}: {reason}")
+    return value
+
+
+def int_flag(lo: int = 0, hi: int | None = None):
+    """An argparse ``type=`` for an integer flag in ``lo..hi`` (argparse names the flag).
+
+    A bad value ends the command with exit status 2 and ``argument --flag: <reason>``.
+
+    >>> int_flag(lo=1)("7")
+    7
+    """
+    import argparse
+
+    def convert(text):
+        value, reason = _int_or_reason(text, lo, hi)
+        if reason is not None:
+            raise argparse.ArgumentTypeError(reason)
+        return value
+
+    convert.__name__ = "integer"
+    return convert
+
+
+def parse_int_list(text, flag: str, lo: int = 0, hi: int | None = None, *,
+                   what: str = "expected comma-separated integers", item: str = "value",
+                   out_of_range: str | None = None, unique: bool = False,
+                   allow_empty: bool = False) -> list:
+    """``"1, 2,3"`` -> ``[1, 2, 3]``: comma-separated ASCII integers in ``lo..hi``.
+
+    Messages name the flag: a token that is not a non-negative integer gives
+    ``"{flag}: {what}, got 'x'"``; a value out of range ``out_of_range`` (formatted with
+    ``value``, ``lo``, ``hi``); a repeated one (``unique``) ``"{item} V listed twice"``;
+    an empty list (unless ``allow_empty``) ``"give at least one {item}"``.
+
+    >>> parse_int_list("3, 1", "--taus", hi=10)
+    [3, 1]
+    >>> parse_int_list("1,1", "--fail", lo=1, item="agent", unique=True)
+    Traceback (most recent call last):
+    ...
+    agent.cli._common.CommandError: --fail: agent 1 listed twice
+    """
+    out = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if not (part.isascii() and part.isdigit()):
+            raise CommandError(f"{flag}: {what}, got {part!r}")
+        value = int(part)
+        if value < lo or (hi is not None and value > hi):
+            rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+            msg = (out_of_range or "{value} is not in {rng}").format(
+                value=value, lo=lo, hi=hi, rng=rng)
+            raise CommandError(f"{flag}: {msg}")
+        if unique and value in out:
+            raise CommandError(f"{flag}: {item} {value} listed twice")
+        out.append(value)
+    if not out and not allow_empty:
+        raise CommandError(f"{flag}: give at least one {item}")
+    return out
+
+
+def check_run_flags(args) -> None:
+    """Flags shared by the live-run commands: ``--seed`` >= 0, ``--start-timeout`` > 0."""
+    seed = getattr(args, "seed", None)
+    if seed is not None and seed < 0:
+        raise CommandError(f"--seed: must be a non-negative integer, got {seed}")
+    timeout = getattr(args, "start_timeout", None)
+    if timeout is not None and not (math.isfinite(timeout) and timeout > 0):
+        raise CommandError(f"--start-timeout: must be a positive number of seconds, got {timeout}")
+
+
+def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:
+    """``"1,2"`` -> ``[0, 1]`` (0-based rows), checking each id names an active agent."""
+    ids = parse_int_list(text, flag, lo=1, hi=scenario.N, unique=True, item="agent",
+                         what="agent ids are positive integers",
+                         out_of_range="no agent {value} (agents are 1..{hi})")
+    return [a - 1 for a in ids]
+
+
+def print_json(obj) -> None:
+    """Print a command's ``--json`` record (with ``schema_version``, docs/json.md)."""
+    json.dump(to_jsonable(versioned(obj) if isinstance(obj, dict) else obj), sys.stdout,
+              indent=2)
+    sys.stdout.write("\n")
+
+
+def load_signer(path, flag: str = "--control-key"):
+    """An :class:`agent.protocol.control_auth.ControlSigner` from a 32-byte key file; CommandError
+    (exit 2) naming ``flag`` when it cannot be read or is not a key."""
+    from agent.protocol.control_auth import ControlSigner
+
+    try:
+        with open(path, "rb") as f:
+            return ControlSigner(f.read())
+    except OSError as exc:
+        raise CommandError(f"{flag}: cannot read {str(path)!r}: {exc.strerror}") from None
+    except ValueError:
+        raise CommandError(f"{flag}: {str(path)!r} is not a 32-byte Ed25519 private key") \
+            from None
+
+
+def run_command(body):
+    """Run ``body()`` and turn a CommandError into its message and exit status, and a
+    run folder that could not be written (:class:`agent.run.folder.RunFolderError`) into
+    one line and :data:`agent.run.folder.EXIT_FOLDER`."""
+    from agent.run.folder import EXIT_FOLDER, RunFolderError
+
+    try:
+        return body()
+    except CommandError as exc:
+        print(f"socmon: {exc}", file=sys.stderr)
+        return exc.status
+    except RunFolderError as exc:      # a full disk: one line, the files written stay whole
+        print(f"socmon: run folder: {exc}", file=sys.stderr)
+        return EXIT_FOLDER
+
+
+def add_attach_argument(parser, takes: str = "") -> None:
+    """``--attach RUN_DIR``: a run's coordinates from its ``run.json`` (agent.run.folder)."""
+    parser.add_argument("--attach", metavar="RUN_DIR",
+                        help="the folder of a running `socmon up`: take the run id, the "
+                             "endpoint to connect to and, for a --secure run, the keys "
+                             f"from its run.json{takes}; a flag given here wins")
+
+
+def attach_run(args):
+    """Fill ``--run``, ``--connect`` and ``--keys`` not given from ``--attach RUN_DIR``;
+    returns the :class:`agent.run.folder.RunInfo` (None without ``--attach``)."""
+    if not getattr(args, "attach", None):
+        return None
+    from agent.run.folder import InvalidRunFolder, read_run_info
+
+    try:
+        info = read_run_info(args.attach)
+    except InvalidRunFolder as exc:
+        raise CommandError(f"--attach: {exc}") from None
+    if args.run is None:
+        args.run = info.run
+    if not args.connect:
+        args.connect = [info.connect]
+    if getattr(args, "keys", None) is None and info.keys is not None:
+        args.keys = str(info.keys)
+    return info

@@ -1,0 +1,85 @@
+"""``socmon keys``: make and inspect the key material of a secured run.
+
+``socmon keys init DIR --scenario S --run R`` makes a CA, a certificate and key for every
+process of the run (world, agent-1..agent-M with M = N + standby, monitor, operator,
+recorder) and each process's zenoh config (TLS with mutual authentication, access control
+with default deny). Processes then take ``--keys DIR``. Make a new DIR for every run: the
+CA's private key is not kept, so a key set cannot be extended or reused by mistake.
+
+Examples::
+
+    socmon keys init run7-keys --scenario paper-14 --run run7
+    socmon keys init run7-keys --scenario paper-14 --run run7 --host 10.0.0.5 --port-base 7500
+    socmon keys show run7-keys
+"""
+
+from __future__ import annotations
+
+HELP = "make (init) or show the certificates and zenoh security configs of a run"
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    p = sub.add_parser("init", help="make a new key set for one run",
+                       description="Make a new key set for one run (see docs/security.md).")
+    p.add_argument("dir", metavar="DIR", help="directory to create (must not exist or be empty)")
+    p.add_argument("--scenario", required=True,
+                   help="scenario TOML file or built-in name: fixes the agents 1..N+standby")
+    p.add_argument("--run", default="default", help="run id the keys are for (default 'default')")
+    p.add_argument("--host", action="append", metavar="ADDR",
+                   help="address of a machine of the run, written into the certificates "
+                        "(repeatable; default 127.0.0.1); the first is the host of --port-base")
+    p.add_argument("--port-base", type=int, default=None, metavar="PORT",
+                   help="write endpoints into each config: process k listens on "
+                        "tls/HOST:PORT+k and connects to the world's (default: endpoints "
+                        "come from --listen/--connect)")
+    p.add_argument("--valid-days", type=int, default=30,
+                   help="validity of the certificates in days (default 30)")
+    p.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    p = sub.add_parser("show", help="print the manifest of a key set")
+    p.add_argument("dir", metavar="DIR")
+    p.add_argument("--json", action="store_true", help="print the manifest as JSON")
+
+
+def run(args) -> int:
+    from agent.cli._common import CommandError, run_command
+
+    def body():
+        import json
+        from pathlib import Path
+
+        from broker_free_net.security import InvalidKeys, load_key_set, make_run_keys, run_identities
+
+        flag = {"dir": "DIR", "run": "--run", "hosts": "--host", "port_base": "--port-base",
+                "valid_days": "--valid-days", "keys": "DIR"}
+        try:
+            if args.action == "init":
+                from agent.cli._common import load_scenario_arg
+
+                scenario = load_scenario_arg(args.scenario)
+                ks = make_run_keys(args.dir, args.run, run_identities(scenario.N + scenario.standby),
+                                   hosts=tuple(args.host or ("127.0.0.1",)), port_base=args.port_base,
+                                   valid_days=args.valid_days)
+            else:
+                ks = load_key_set(args.dir)
+        except InvalidKeys as exc:
+            message = str(exc).removeprefix(f"{exc.field}: ")
+            raise CommandError(f"{flag.get(exc.field, exc.field)}: {message}") from None
+        manifest = json.loads((Path(ks.dir) / "keys.json").read_text())
+        manifest["dir"] = str(ks.dir)
+        if args.json:
+            from agent.cli._common import print_json
+
+            print_json(manifest)
+            return 0
+        agents = [n for n in ks.names if n.startswith("agent-")]
+        print(f"key set of run {ks.run} in {ks.dir}")
+        print(f"  CA sha256 {ks.ca_fingerprint}, certificates valid until {ks.not_after}")
+        print(f"  processes: world, {agents[0]}..{agents[-1]}, monitor, operator, recorder"
+              if agents else f"  processes: {', '.join(ks.names)}")
+        for name, ep in (manifest.get("endpoints") or {}).items():
+            print(f"  {name:>10} listens on {ep}")
+        print(f"  start each process with --keys {ks.dir} (its own credentials are chosen by role)")
+        return 0
+
+    return run_command(body)

@@ -1,0 +1,61 @@
+"""``socmon world SCENARIO``: the social system and the clock of a live run."""
+
+from __future__ import annotations
+
+from agent.protocol.timing import DEFAULT as TIMING
+
+HELP = "run the world: simulate the social system and publish sensor readings (the clock)"
+
+
+def add_arguments(parser) -> None:
+    from broker_free_net.config import add_net_arguments
+
+    from agent.cli._common import add_manifest_argument, add_scenario_argument, int_flag
+
+    add_scenario_argument(parser)
+    parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="run seed (default 0)")
+    parser.add_argument("--steps", type=int_flag(lo=0), default=None,
+                        help="last step to publish (default: run until stopped)")
+    parser.add_argument("--step-ms", type=float, default=None,
+                        help="period of one step in ms (default: the scenario's step_ms)")
+    parser.add_argument("--wait-agents", default=None, metavar="IDS",
+                        help="agent ids to wait for before the clock starts, e.g. 1,2,3 "
+                             "(default: every active and standby agent of the scenario)")
+    parser.add_argument("--start-timeout", type=float, default=TIMING.start_timeout_s,
+                        help="seconds to wait for the agents "
+                             f"(default {TIMING.start_timeout_s:g})")
+    add_manifest_argument(parser)
+    add_net_arguments(parser)
+
+
+def run(args) -> int:
+    from agent.cli._common import CommandError, run_command
+
+    def body():
+
+        from agent.world.process import run_world
+        from agent.cli._common import check_run_flags, load_scenario_arg, net_config_arg, parse_int_list
+
+        check_run_flags(args)
+        scenario = load_scenario_arg(args.scenario)
+        if args.manifest:
+            from agent.protocol.manifest import ManifestMismatch, check_manifest
+
+            try:
+                check_manifest(args.manifest, scenario, None, args.seed, None)
+            except ManifestMismatch as exc:
+                raise CommandError(str(exc)) from None
+        if args.step_ms is not None and not args.step_ms > 0:
+            raise CommandError(f"--step-ms: must be > 0, got {args.step_ms}")
+        M = scenario.N + scenario.standby
+        wait = None
+        if args.wait_agents is not None:
+            wait = parse_int_list(args.wait_agents, "--wait-agents", lo=1, hi=M,
+                                  item="agent", allow_empty=True,
+                                  what="expected comma-separated agent ids",
+                                  out_of_range="no agent {value} (agents are 1..{hi})")
+        net = net_config_arg(args, identity="world")
+        return run_world(scenario, net, seed=args.seed, steps=args.steps, step_ms=args.step_ms,
+                         wait_agents=wait, start_timeout=args.start_timeout)
+
+    return run_command(body)

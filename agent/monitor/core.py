@@ -1,0 +1,1438 @@
+"""The monitor's protocol as a state machine that never touches a socket.
+
+:class:`MonitorCore` takes in the agents' liveliness events and statuses with the time
+they arrived, and gives out verdicts and the control messages that hand a failed
+agent's role to an observationally equivalent replacement. The process shell
+(:mod:`agent.monitor.process`) only feeds it from a :class:`broker_free_net.Peer`; unit
+tests step it by hand, so tests control time.
+
+Detection (one verdict per cause, each with its evidence):
+
+- ``crash``: the liveliness token of an agent in the configuration was deleted;
+- ``hang``: its token is alive but its loop does not advance: its reported step has not
+  moved for the hang timeout while the other agents' steps moved on by more than
+  ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody).
+  The timeout is ``hang_timeout_s`` on a machine that keeps the statuses' pace, and grows
+  with the pace observed (:class:`StatusPace`, phi accrual over every agent's status
+  intervals) up to ``hang_timeout_max_s``: a loaded machine whose loops stall now and then
+  delays detection instead of convicting healthy agents;
+- ``sensor``: its status says the readings of its nodes have not arrived for
+  ``sensor_lag_steps`` steps while the others advance;
+- ``silent``: it looks alive and advances, but every agent that listens to it reports
+  that the freshest estimate it holds from it is more than ``silent_steps`` old, for
+  ``hang_timeout_s`` (its estimates no longer reach the network: a partition, a broken
+  publisher); a single listener's report stands only when the monitor's own observation
+  (the estimates it hears) or that listener's impaired link agrees;
+- ``delay``: the delays the agents learned on their links exceed the ones the gains were
+  designed for and the exact closed loop with the learned delays is no longer stable
+  (radius >= 1). Nobody is removed: the monitor designs gains for the learned delays and
+  assigns them under a new epoch (same roles).
+
+The monitor guards against its own pauses: when two calls of :meth:`tick` are more than
+``pause_guard_s`` apart, it suspends verdicts and restarts every progress clock (it has
+no fresh evidence), as Cassandra's failure detector does.
+
+Reassignment (see docs/monitor.md): on a verdict the monitor plans the failure on the
+configuration in force (:func:`design.roster.replan`), takes the gains precomputed for
+that failure (or designs a first stabilising gain), and publishes, under one new epoch
+and one ``activate_at`` a few steps ahead, an assignment to every agent whose role
+changes and a roster (the ids in force from ``activate_at``) to everyone. Every
+receiver fences: from ``activate_at`` it ignores estimates of ids outside the roster,
+and an agent that finds itself outside it drops its role and becomes a standby. The
+monitor re-sends until each assigned agent's status shows the epoch, and treats a
+replacement that does not confirm within ``confirm_timeout_s`` as failed.
+
+Examples
+--------
+>>> from design.scenario import load_scenario
+>>> import numpy as np
+>>> s = load_scenario("paper-14")
+>>> core = MonitorCore(MonitorConfig(), s, [np.zeros((14, 1))] * 3, s.delays)
+>>> core.on_liveliness("agent", 1, True, now=0.0)
+True
+>>> core.roster.ids
+(1, 2, 3)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import statistics
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agent.protocol.timing import DEFAULT as TIMING
+from agent.protocol.timing import Timing
+
+__all__ = ["MonitorConfig", "MonitorCore", "Verdict", "Assignment", "RosterUpdate",
+           "GainSource"]
+
+
+#: While the monitor's own pause suspends its verdicts, a deleted token is believed once
+#: it has been gone this long (seconds) without the other tokens going with it.
+CRASH_SETTLE_S = 0.1
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """Thresholds of the monitor (defaults and the trade-off: docs/monitor.md).
+
+    Parameters
+    ----------
+    hang_timeout_s : float
+        No progress of an agent's step for this long (while the others advance) is a hang.
+        Lower detects faster; under ``hang_timeout_s`` a slow agent risks conviction.
+    hang_timeout_max_s, hang_phi : float
+        The timeout adapts to the statuses' pace (:class:`StatusPace`): the gap a healthy
+        loop's statuses exceed with probability ``10^-hang_phi`` under the pace observed,
+        never below ``hang_timeout_s`` nor above ``hang_timeout_max_s``.
+    hang_lag_steps : int
+        ... and the others must have advanced by more than this many steps meanwhile.
+    sensor_lag_steps : int
+        An agent whose last reading is this many steps behind the others' steps.
+    silent_steps : int
+        Age (steps) of the freshest estimate its listeners hold from an agent, beyond the
+        link's delay, past which it counts as silent.
+    lead_steps : int
+        ``activate_at`` = the newest step reported + this (the assignment's head start).
+    resend_s : float
+        Re-send unconfirmed assignments this often.
+    confirm_timeout_s : float
+        A replacement that has not confirmed by then is treated as failed.
+    pause_guard_s : float
+        A gap between two ticks longer than this suspends verdicts (the monitor itself
+        was paused) until ``hang_timeout_s`` of fresh evidence has passed.
+    rejoin_s : float
+        Probation: a convicted agent that came back (fenced into a standby) rejoins the
+        standby pool once it has been healthy (:meth:`MonitorCore.healthy_standby`) for
+        this long without a break.
+    epoch_jump_max : int
+        Epochs heard from the network (statuses, rosters) above the highest seen plus
+        this are refused: every epoch comes from a monitor, one per reassignment.
+    step_ahead_s : float
+        A status whose step is more than this (in steps of ``step_s``) ahead of every
+        other agent's step, extrapolated from when it was reached, is refused
+        (``step``): one agent alone cannot ratchet the monitor's clock up.
+    settle_s : float
+        After a first verdict, wait this long for others (agents killed together: their
+        tokens go within a few ms) so that one reassignment answers them all.
+    step_s : float
+        The run's step period: the current step is extrapolated from the newest status
+        (statuses come every ``Timing.status_s``, ten steps at 20 ms).
+    world_gone_s : float
+        Once the world's token is gone, the agents leave with it (within
+        ``Timing.agent_world_gone_s``) and nothing
+        is convicted; once the world's end was heard, :meth:`MonitorCore.run_ended` says
+        the run is over when no agent's token is left, or this long after the world left.
+    world_silent_s : float
+        A world whose token went without its end (paused, cut off; or this monitor was)
+        is waited for this long before the run counts as over.
+    """
+
+    hang_timeout_s: float = TIMING.hang_timeout_s
+    hang_timeout_max_s: float = TIMING.hang_timeout_max_s
+    hang_phi: float = TIMING.hang_phi
+    status_s: float = TIMING.status_s
+    hang_lag_steps: int = 10
+    sensor_lag_steps: int = 25
+    silent_steps: int = 25
+    lead_steps: int = 10
+    resend_s: float = TIMING.resend_s
+    confirm_timeout_s: float = TIMING.confirm_timeout_s
+    pause_guard_s: float = TIMING.pause_guard_s
+    step_s: float = 0.02
+    settle_s: float = 0.01
+    rejoin_s: float = TIMING.rejoin_s
+    epoch_jump_max: int = TIMING.epoch_jump_max
+    step_ahead_s: float = TIMING.step_ahead_s
+    world_gone_s: float = TIMING.monitor_world_gone_s
+    world_silent_s: float = TIMING.monitor_world_silent_s
+
+    @classmethod
+    def from_timing(cls, timing: Timing, **fields) -> "MonitorConfig":
+        """The monitor's thresholds with the periods and timeouts of ``timing``."""
+        return cls(hang_timeout_s=timing.hang_timeout_s,
+                   hang_timeout_max_s=timing.hang_timeout_max_s, hang_phi=timing.hang_phi,
+                   status_s=timing.status_s,
+                   resend_s=timing.resend_s,
+                   confirm_timeout_s=timing.confirm_timeout_s,
+                   pause_guard_s=timing.pause_guard_s, rejoin_s=timing.rejoin_s,
+                   epoch_jump_max=timing.epoch_jump_max,
+                   step_ahead_s=timing.step_ahead_s, world_gone_s=timing.monitor_world_gone_s,
+                   world_silent_s=timing.monitor_world_silent_s, **fields)
+
+
+#: Other sessions remembered as holding a token for one agent id (more are refused alike).
+MAX_CLAIMS = 16
+
+
+@functools.lru_cache(maxsize=8)
+def _phi_quantile(phi: float) -> float:
+    """The standard normal quantile exceeded with probability ``10^-phi`` (asked at every
+    tick: computed once per phi)."""
+    return statistics.NormalDist().inv_cdf(1.0 - 10.0 ** -phi)
+
+
+class StatusPace:
+    """The pace of the agents' statuses, pooled over the network, and the hang timeout it
+    allows. Two estimates of how long a healthy loop's statuses may pause, the larger
+    taken:
+
+    - a phi accrual detector's (Hayashibara et al.; Pekko's ``PhiAccrualFailureDetector``):
+      an exponentially weighted mean and variance of the gaps between two statuses of one
+      agent, and the gap exceeded with probability ``10^-phi`` were gaps normal;
+    - ``margin`` times the longest gap a healthy agent showed lately (a maximum that
+      halves every ``half_life_s``): loaded machines stall loops in bursts, a tail no
+      normal fit follows.
+
+    Clamped to ``[floor, ceiling]``: on a machine that keeps the pace the timeout is the
+    floor. Gaps of agents convicted meanwhile are not given (the caller's part).
+
+    >>> pace = StatusPace(period=0.2)
+    >>> round(pace.timeout(8.0, floor=1.0, ceiling=5.0, now=0.0), 2)
+    1.0
+    >>> for k, gap in enumerate([0.2] * 50 + [0.9, 0.2, 1.1, 0.2, 0.2, 0.7] * 10):
+    ...     pace.add(gap, now=0.1 * k)
+    >>> round(pace.timeout(8.0, floor=1.0, ceiling=5.0, now=11.0), 2)   # 2 x 1.1 s, decayed
+    2.18
+    """
+
+    def __init__(self, period: float, alpha: float = 0.01, margin: float = 2.0,
+                 half_life_s: float = 30.0):
+        self.alpha, self.margin, self.half_life_s = alpha, margin, half_life_s
+        self.mean = float(period)
+        self.var = (float(period) / 4) ** 2       # a start a little scattered
+        self.peak, self.peak_at = float(period), 0.0
+
+    def add(self, gap: float, now: float) -> None:
+        d = gap - self.mean
+        self.mean += self.alpha * d
+        self.var = (1 - self.alpha) * (self.var + self.alpha * d * d)
+        if gap >= self._peak(now):
+            self.peak, self.peak_at = gap, now
+
+    def _peak(self, now: float) -> float:
+        return self.peak * 0.5 ** (max(0.0, now - self.peak_at) / self.half_life_s)
+
+    def timeout(self, phi: float, floor: float, ceiling: float, now: float) -> float:
+        z = _phi_quantile(phi)
+        wanted = max(self.mean + z * math.sqrt(self.var), self.margin * self._peak(now))
+        return min(ceiling, max(floor, wanted))
+
+
+@dataclass(frozen=True)
+class Verdict:
+    agent: int
+    cause: str           # crash, hang, sensor, unconfirmed
+    evidence: str
+    at: float            # monitor time of the verdict
+    step: int            # newest step reported by any agent then
+
+
+@dataclass(frozen=True, eq=False)
+class Assignment:
+    """One role for one agent, under ``epoch`` from step ``activate_at``."""
+
+    agent: int
+    epoch: int
+    activate_at: int
+    spec: object         # design.roster.RoleSpec
+
+
+@dataclass(frozen=True)
+class RosterUpdate:
+    """The ids in force from ``activate_at`` under ``epoch`` (the fencing token)."""
+
+    epoch: int
+    activate_at: int
+    ids: tuple
+
+
+@dataclass
+class _Agent:
+    alive: bool = False
+    step: int = -1
+    epoch: int = 0
+    pending: int = 0
+    active: bool = False
+    progress_at: float | None = None     # when its step last moved (reset by a pause)
+    step_at: float | None = None         # when its step last moved, never reset
+    status_at: float | None = None       # when its last status arrived
+    gone_at: float | None = None         # when its token was last deleted
+    others_at_progress: int = -1         # the others' newest step then
+    healthy_since: float | None = None   # convicted, on probation: healthy since then
+    estimate_at: float | None = None     # when the monitor last heard one of its estimates
+    sensor_last: int = -1
+    status: dict = field(default_factory=dict)
+    token: str | None = None             # the session whose token is the agent's
+    claims: set = field(default_factory=set)    # other sessions holding a token for its id
+    contested_at: float | None = None    # its token went while another session held one
+
+
+class GainSource:
+    """The gains known for each configuration, and how to get the ones missing.
+
+    Each entry is ``(G, info)``: ``G`` the list of G_i by row, ``info`` what
+    :func:`design_gains_for` says of it (``kind``: ``"fast"`` a first certified gain,
+    ``"refined"`` the gain of least steady MSE, ``"initial"`` the run's own; ``rho``, the
+    exact radius of the delayed loop; ``mse``, its exact steady MSE). A refined entry is
+    never replaced by a fast one.
+
+    With a ``worker`` (:class:`agent.monitor.gain_worker.GainWorker`, the monitor process) nothing
+    is designed here: :meth:`ready` asks the worker once and says False until its answer
+    has been :meth:`put`; without one (unit tests, tools) :meth:`ready` designs a fast
+    gain at once with ``design``.
+    """
+
+    def __init__(self, design=None, worker=None):
+        self._cache: dict = {}            # key -> (G, info)
+        self._none: set = set()           # keys for which no stabilising gain was found
+        self._requested: set = set()
+        self._design = design or design_gains_for
+        self.worker = worker
+
+    @staticmethod
+    def key(roster) -> tuple:
+        s = roster.scenario
+        return (tuple(roster.ids), s.W.tobytes(), tuple(tuple(m) for m in s.measure),
+                np.asarray(roster.delays).tobytes())
+
+    def put(self, roster, G, info=None) -> None:
+        """A design's answer for ``roster`` (``G`` None: no stabilising gain)."""
+        k = self.key(roster)
+        info = dict(info or {})
+        if G is None:
+            if k not in self._cache:
+                self._none.add(k)
+            return
+        old = self._cache.get(k)
+        if old is not None and old[1].get("kind") == "refined" and info.get("kind") == "fast":
+            return
+        self._cache[k] = ([np.asarray(g, dtype=float) for g in G], info)
+        self._none.discard(k)
+
+    def has(self, roster) -> bool:
+        return self.key(roster) in self._cache
+
+    def info(self, roster) -> dict:
+        entry = self._cache.get(self.key(roster))
+        return dict(entry[1]) if entry is not None else {}
+
+    def ready(self, roster) -> bool:
+        """True once gains for ``roster`` are known, or known not to exist."""
+        k = self.key(roster)
+        if k in self._cache or k in self._none:
+            return True
+        if self.worker is None:
+            self.put(roster, *self._design(roster, "fast"))
+            return True
+        if k not in self._requested:
+            self._requested.add(k)
+            self._requested.add(("asked",) + k)      # its refined gain is on the way too
+            self.worker.request(roster)
+        return False
+
+    def refine(self, roster) -> None:
+        """Ask the worker (once) for the refined gain of ``roster``, in force on a fast one,
+        then for the exact steady MSE of that fast gain (a Lyapunov solve of seconds at
+        large delays: the fast gain is sent without it, the MSE follows)."""
+        k = ("refine",) + self.key(roster)
+        if self.worker is not None and k not in self._requested:
+            self._requested.add(k)
+            if ("asked",) + self.key(roster) not in self._requested:
+                self.worker.request(roster, kinds=("refined",))
+            G, info = self.get(roster)
+            if G is not None and info.get("kind") == "fast" and info.get("mse") is None:
+                self.worker.assess(roster, G, info)
+
+    def get(self, roster):
+        """``(G, info)``, or ``(None, {})`` when none is known (see :meth:`ready`)."""
+        entry = self._cache.get(self.key(roster))
+        return (entry[0], dict(entry[1])) if entry is not None else (None, {})
+
+    def design(self, roster, refined: bool = False):
+        """Design gains for ``roster`` now (no cache): ``(G or None, info)``."""
+        return self._design(roster, "refined" if refined else "fast")
+
+
+def _gain_record(info: dict) -> dict:
+    """The keys a history record (and the monitor's events) keep of a gain's ``info``."""
+    return {"gains": info.get("kind", "unknown"), "gains_rho": info.get("rho"),
+            "gains_mse": info.get("mse")}
+
+
+def _gain_words(info: dict) -> str:
+    """``fast gains, exact radius 0.8123, steady MSE 0.4567`` (what is known)."""
+    words = f"{info.get('kind', 'unknown')} gains"
+    if info.get("rho") is not None:
+        words += f", exact radius {info['rho']:.4f}"
+    if info.get("mse") is not None:
+        words += f", steady MSE {info['mse']:.4g}"
+    return words
+
+
+def design_gains_for(roster, kind: str = "fast", progress=None):
+    """``(G, info)`` for the configuration ``roster``, designed against its delays.
+
+    ``kind="fast"``: :func:`design.reconfigure.fast_recovery_gains`, a first stabilising
+    gain (a target radius, few iterations); ``"refined"``:
+    :func:`design.reconfigure.refined_recovery_gains` (least steady MSE), falling back to
+    the fast one when it is not stable. Bounded by iterations, not by the clock
+    (``progress``: called at every iteration, see :func:`design.gain_design.design_gains`). ``G`` is
+    None when no stabilising gain was found; ``info`` holds ``kind``, the exact radius
+    ``rho``, the exact steady MSE ``mse`` and the design's ``seconds``.
+    """
+    from design.errors import SocmonError
+    from design.reconfigure import fast_recovery_gains, refined_recovery_gains
+
+    design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
+    try:
+        res = design(roster.scenario, roster.delays, progress=progress)
+    except SocmonError:
+        res = None
+    if res is None or not res.stable:
+        return design_gains_for(roster, "fast", progress) if kind == "refined" else (None, {})
+    return list(res.G), {"kind": kind, "rho": float(res.rho),
+                         "mse": None if res.mse_steady is None else float(res.mse_steady),
+                         "seconds": float(res.seconds)}
+
+
+class MonitorCore:
+    """The monitor's protocol, stepped by the caller with explicit times (seconds).
+
+    Feed it with :meth:`on_liveliness` and :meth:`on_status`; call :meth:`tick` to get
+    the verdicts found and the control messages to publish now.
+    """
+
+    def __init__(self, config: MonitorConfig, scenario, G, delays, gains: GainSource = None,
+                 epoch: int = 0):
+        from design.roster import Roster, role_specs
+
+        self.config = config
+        self.scenario = scenario
+        self.roster = Roster.initial(scenario, delays)
+        self.G = [np.asarray(g, dtype=float) for g in G]
+        self.specs = role_specs(self.roster, self.G)
+        self.gains = gains or GainSource()
+        self.gain_info = {"kind": "initial"}   # what the gains in force are
+        self.gain_notes: list = []             # exact MSEs of fast gains, known later
+        self.gains.put(self.roster, self.G, self.gain_info)
+        self._pending: dict | None = None     # a reassignment waiting for its gains
+        self._delay_pending: dict | None = None   # a delay verdict waiting for its gains
+        self.epoch = int(epoch)
+        self.agents: dict = {a: _Agent() for a in
+                             range(1, scenario.N + scenario.standby + 1)}
+        self.verdicts: list = []
+        self.events: list = []            # human-readable log lines, drained by the shell
+        self.failed: set = set()          # ids convicted and not healthy again since
+        self.convicted_at: dict = {}      # id -> when it was last convicted
+        self.on_probation: set = set()    # convicted, not yet healthy for rejoin_s
+        self.rejected: dict = {}          # reason -> evidence refused (see reject)
+        self.anomalies: list = []         # the first refusal of each reason and agent
+        self._rejected_seen: set = set()
+        self._epoch_seen = 0              # the highest epoch accepted from the network
+        self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
+        self.unrecoverable = False
+        self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
+        self._unconfirmed: dict = {}      # agent -> Assignment awaiting its status
+        self._sent_at: float | None = None
+        self._assigned_at: float | None = None
+        self._roster_msg: RosterUpdate | None = None
+        self._last_tick: float | None = None
+        self.pace = StatusPace(config.status_s)   # the statuses' pace: the hang timeout
+        self._hang_said = config.hang_timeout_s   # the hang timeout last logged
+        self._suspended_until = -math.inf
+        self._watching_since = -math.inf  # the last fresh start (a pause, the world back)
+        self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
+        self.reissues: list = []          # [{epoch, activate_at, unconfirmed, reason}]
+        self._clock = (-1, 0.0)           # (newest step reported, when)
+        self._started = None              # the first tick
+        self._first_verdict_at = None     # the settle window of simultaneous failures
+        self._first_seen: dict = {}       # agent -> when its verdict was first found
+        self._silent_since: dict = {}     # agent -> when all its listeners first lost it
+        self._delays_checked = None       # learned delays last certified
+        self.rho_learned = None
+        self.world_seen = False
+        self.world_gone_at: float | None = None   # the world's token went
+        self._world_gone_step = -1                 # the newest step reported then
+        self._stepped_since_world: set = set()     # agents reporting a step past it
+        self.world_end: int | None = None          # its last step, once its end is heard
+        #: the agents report an epoch this monitor did not issue: :meth:`adopt` before acting
+        self.behind = False
+        self._adopt_wait = None            # the last reason an adoption had to wait
+        self._recorded = {"verdicts": 0, "history": 0, "gains": 0, "reissue": 0, "rejoin": 0,
+                          "evidence_refused": 0, "waiting": None}   # see new_records
+
+    # -- inputs --------------------------------------------------------------------
+    def on_liveliness(self, role: str, agent, alive: bool, now: float,
+                      session: str | None = None) -> bool | None:
+        """A liveliness token came or went; for an agent of the run, return whether its own
+        token is alive after it (None when the event changed nothing of it).
+
+        With ``session`` (the zid in the token's key), the first session seen holding agent
+        i's token is agent i's; a token of another session for the same id is refused
+        (``token``) and changes nothing. When the agent's own token goes while another
+        session still holds one for its id, the tokens no longer tell (zenoh resolves a
+        relayed token's end by an id, and two tokens for one agent id have been seen to
+        end the wrong one): the agent is then judged by the monitor's own observation,
+        convicted ``crash`` once no estimate of it came for ``silent_steps`` steps (a dead
+        agent cannot be hidden behind a token declared in its name, and an impostor
+        leaving cannot convict a live agent)."""
+        if role == "world":
+            self._on_world(bool(alive), now)
+            return None
+        if role != "agent":
+            return None
+        a = self._agent(agent)
+        if a is None:
+            return None
+        if session is not None:
+            alive = self._token(a, int(agent), str(session), bool(alive), now)
+            if alive is None:
+                return None
+        if a.alive and not alive and agent not in self.roster.ids \
+                and self.world_gone_at is None:
+            # no role to hand over, but one failure fewer can be answered
+            left = len(self.standby_pool(now, exclude=(agent,)))
+            self.events.append(f"standby agent {agent} gone (its token went): {left} "
+                               f"standby left to replace a failed agent")
+        if a.alive and not alive:
+            a.gone_at = now
+        a.alive = bool(alive)
+        if alive and a.progress_at is None:
+            a.progress_at = now
+        return a.alive
+
+    def _token(self, a: _Agent, agent: int, session: str, alive: bool,
+               now: float) -> bool | None:
+        """Whether agent ``agent``'s own token is alive after this event, or None when the
+        event is about another session's token for its id."""
+        if alive:
+            if a.token == session or (a.token is None and not a.claims):
+                a.token, a.contested_at = session, None
+                return True
+            if len(a.claims) < MAX_CLAIMS:      # a flood of made-up sessions stays bounded
+                a.claims.add(session)
+            self.reject("token", agent, f"a second liveliness token for agent {agent} "
+                        f"(session {session}; the agent's is {a.token}): another process "
+                        "claims its id, and its token is not taken for the agent's")
+            return None
+        if session == a.token:
+            a.token = None
+            if not a.claims:
+                return False
+            a.contested_at = now
+            self.events.append(f"agent {agent}'s liveliness token went while another process "
+                               f"holds one for its id: judged by its estimates from now on")
+            return None
+        a.claims.discard(session)
+        if a.token is None and not a.claims and a.contested_at is not None:
+            a.contested_at = None               # every token of its id is gone now
+            return False
+        return None
+
+    def _on_world(self, alive: bool, now: float, how: str = "") -> None:
+        """The world came or went. Without it the agents stop stepping: no verdict is made
+        while it is gone (whether it ended, or was paused or cut off: the agents wait for
+        it); when it comes back, verdicts wait for fresh evidence. It is back when its
+        token is, or when most agents of the configuration report steps ``hang_lag_steps``
+        past the newest reported when it went (they step on its readings only: its
+        token's return was missed, as a monitor whose links lapsed may miss it)."""
+        if alive:
+            if self.world_gone_at is not None:
+                self._fresh_evidence(now)
+                self.events.append(f"the world is back{how}: verdicts resume after "
+                                   f"{self.config.hang_timeout_s:g} s of fresh evidence")
+            self.world_seen, self.world_gone_at = True, None
+        elif self.world_seen and self.world_gone_at is None:
+            self.world_gone_at = now
+            self._world_gone_step = self.last_step_reported
+            self._stepped_since_world = set()
+            if self.world_end is None:
+                self.events.append(
+                    f"the world went silent after step {self.last_step_reported} without "
+                    f"its end (paused or cut off, or this monitor was): no verdicts while "
+                    f"it is gone; waiting up to {self.config.world_silent_s:g} s")
+            else:
+                self.events.append(f"the world left after step {self.world_end}: no "
+                                   "verdicts while it is gone")
+
+    def on_world_end(self, step: int) -> None:
+        """The world's end message: the run is over after ``step``."""
+        if self.world_end is None:
+            self.world_end = int(step)
+            self.events.append(f"the world ended after step {self.world_end}")
+
+    def run_ended(self, now: float) -> bool:
+        """True once the world has ended (its end heard) and its token gone, and the agents
+        have left too (no agent token is alive) or ``world_gone_s`` has passed; or once a
+        world whose token went *without* its end has stayed silent ``world_silent_s``.
+
+        A monitor that was itself paused or cut off sees every token go at once, the
+        world's included, but heard no end: it waits for the network to come back instead
+        of leaving a live run.
+        """
+        if self.world_gone_at is None:
+            return False
+        gone = now - self.world_gone_at
+        if self.world_end is None:
+            return gone >= self.config.world_silent_s
+        return not any(a.alive for a in self.agents.values()) or gone >= self.config.world_gone_s
+
+    def _fresh_evidence(self, now: float) -> None:
+        """Forget the progress clocks: verdicts wait ``hang_timeout_s`` of new evidence."""
+        self._suspended_until = now + self.config.hang_timeout_s
+        self._watching_since = now
+        for a in self.agents.values():
+            a.progress_at = now
+            a.others_at_progress = self.newest_step()
+
+    # -- evidence ------------------------------------------------------------------------
+    def epoch_ceiling(self) -> int:
+        """The largest epoch accepted from the network now: the highest seen (this monitor's
+        own, adopted ones included) plus :attr:`MonitorConfig.epoch_jump_max`."""
+        return max(self.epoch, self._epoch_seen) + self.config.epoch_jump_max
+
+    def reject(self, reason: str, agent, detail: str) -> None:
+        """Evidence refused (counted in :attr:`rejected` by reason; the first of each
+        reason and agent is an event and an entry of :attr:`anomalies`)."""
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        key = (reason, agent)
+        if key not in self._rejected_seen and len(self._rejected_seen) < 1024:
+            self._rejected_seen.add(key)
+            self.anomalies.append({"reason": reason, "agent": agent, "detail": detail})
+            self.events.append(f"evidence refused ({reason}): {detail}")
+
+    def accept_roster(self, msg: dict) -> bool:
+        """A roster heard on the wire (already signature-checked by the caller when the
+        run signs) is taken for adoption only within :meth:`epoch_ceiling`."""
+        if int(msg["epoch"]) > self.epoch_ceiling():
+            self.reject("epoch", 0, f"a roster with epoch {msg['epoch']}, above the highest "
+                        f"epoch seen plus {self.config.epoch_jump_max} ({self.epoch_ceiling()})")
+            return False
+        self._epoch_seen = max(self._epoch_seen, int(msg["epoch"]))
+        return True
+
+    def on_status(self, msg: dict, now: float, sender: int | None = None) -> None:
+        """An agent's status; ``sender``: the agent id of the key it came on (the shell
+        parses it). A status whose payload names another agent than its key, or carries
+        an epoch above :meth:`epoch_ceiling`, is refused (:meth:`reject`)."""
+        if sender is not None and msg.get("agent") != sender:
+            self.reject("sender", sender, f"a status on agent {sender}'s key names agent "
+                        f"{msg.get('agent')}")
+            return
+        a = self._agent(msg.get("agent"))
+        if a is None:
+            return
+        if int(msg.get("epoch", 0)) > self.epoch_ceiling():
+            self.reject("epoch", msg["agent"], f"agent {msg['agent']}'s status carries epoch "
+                        f"{msg.get('epoch')}, above the highest epoch seen plus "
+                        f"{self.config.epoch_jump_max} ({self.epoch_ceiling()})")
+            return
+        step = int(msg.get("step", -1))
+        # no bound while this monitor has no fresh view: it was paused (its backlog holds
+        # statuses from before, which would anchor the bound in the past) or suspends its
+        # verdicts after a pause or the world's return
+        fresh = self._last_tick is not None and now - self._last_tick <= \
+            self.config.pause_guard_s and now >= self._suspended_until
+        ceiling = self.step_ceiling(now, exclude=msg["agent"]) if fresh else None
+        if ceiling is not None and step > ceiling:
+            self.reject("step", msg["agent"], f"agent {msg['agent']}'s status reports step "
+                        f"{step}, more than {self.config.step_ahead_s:g} s ahead of the other "
+                        f"agents (step {ceiling} at most)")
+            return
+        if self.world_gone_at is not None and self.world_end is None \
+                and step > self._world_gone_step + self.config.hang_lag_steps \
+                and msg["agent"] in self.roster.ids:
+            self._stepped_since_world.add(msg["agent"])
+            if 2 * len(self._stepped_since_world) > len(self.roster.ids):
+                self._on_world(True, now, how=" (agents "
+                               f"{sorted(self._stepped_since_world)} step past "
+                               f"{self._world_gone_step}; its token was not seen back)")
+        if step != a.step or a.step_at is None:
+            a.step_at = now
+        if step != a.step or a.progress_at is None:
+            a.progress_at = now
+            a.others_at_progress = self.newest_step(exclude=msg["agent"])
+        a.step = step
+        if a.status_at is not None and a.status_at >= self._watching_since \
+                and self._last_tick is not None \
+                and now - self._last_tick < self.config.pause_guard_s \
+                and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at:
+            # a healthy gap between two of its statuses: one this monitor watched whole
+            # (not across its own pause, nor the world's absence: after either, the
+            # backlog's first status of each agent closes a gap as long as the pause), nor
+            # across the agent's own conviction
+            self.pace.add(now - a.status_at, now)
+        a.status_at = now
+        if step >= self._clock[0]:
+            self._clock = (step, now)
+        a.epoch = int(msg.get("epoch", 0))
+        self._epoch_seen = max(self._epoch_seen, a.epoch)
+        a.active = bool(msg.get("active", False))
+        ctl = msg.get("ctl") if isinstance(msg.get("ctl"), dict) else {}
+        a.pending = int(ctl.get("pending", 0) or 0)
+        sensor = msg.get("sensor") if isinstance(msg.get("sensor"), dict) else {}
+        last = sensor.get("last_step", -1)
+        a.sensor_last = int(last) if isinstance(last, int) else -1
+        a.status = msg
+        if self.epoch < a.epoch:          # a restarted monitor continues above every epoch
+            # ... and the configuration it holds is not the one in force: another monitor
+            # acted while this one was away (restarted, paused, cut off)
+            self.epoch = a.epoch
+            self.behind = True
+
+    @property
+    def roster_message(self):
+        """The :class:`RosterUpdate` in force (re-published by the shell), or None."""
+        return self._roster_msg
+
+    def new_records(self) -> list:
+        """``(kind, fields)`` of what happened since the last call, for the run's record
+        (``events.jsonl`` and the monitor's events on the wire; docs/monitor.md): every
+        ``verdict``, ``reassign``, ``gains`` note, ``reissue``, ``rejoin``,
+        ``evidence_refused``, and ``confirmed`` once every agent of a reassignment runs
+        its epoch. Times are this core's (``mono``: the caller's monotonic clock)."""
+        seen = self._recorded
+        out = []
+        for v in self.verdicts[seen["verdicts"]:]:
+            out.append(("verdict", {"agent": v.agent, "cause": v.cause, "evidence": v.evidence,
+                                    "step": v.step, "mono": v.at}))
+        for h in self.history[seen["history"]:]:
+            out.append(("reassign", {**{k: v for k, v in h.items()
+                                        if k not in ("decided_at", "sent_at")},
+                                     "mono": h["decided_at"], "mono_sent": h["sent_at"]}))
+        for name, items in (("gains", self.gain_notes), ("reissue", self.reissues),
+                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies)):
+            out += [(name, dict(r)) for r in items[seen[name]:]]
+        for name, items in (("verdicts", self.verdicts), ("history", self.history),
+                            ("gains", self.gain_notes), ("reissue", self.reissues),
+                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies)):
+            seen[name] = len(items)
+        if self.history and not self.confirmed():
+            seen["waiting"] = self.epoch
+        elif seen["waiting"] is not None and self.confirmed():
+            out.append(("confirmed", {"epoch": self.epoch, "waited_for": seen["waiting"]}))
+            seen["waiting"] = None
+        return out
+
+    def _agent(self, agent):
+        try:
+            agent = int(agent)
+        except (TypeError, ValueError):
+            return None
+        return self.agents.get(agent)
+
+    def current_step(self, now: float) -> int:
+        """The newest step reported, extrapolated to ``now`` at the run's step period."""
+        step, t = self._clock
+        if step < 0:
+            return step
+        return step + max(0, int((now - t) / self.config.step_s))
+
+    def step_ceiling(self, now: float, exclude=None) -> int | None:
+        """The highest step a status may report now: the most advanced other agent's step
+        (``exclude``: the sender), extrapolated at ``step_s`` from when it was reached (not
+        from a pause's fresh start: after one the others are ahead by the pause), plus
+        ``step_ahead_s``; None until another agent has reported. Taking the others' word
+        and not the sender's keeps one agent from ratcheting the clock up."""
+        best = None
+        for i, a in self.agents.items():
+            if i != exclude and a.step >= 0 and a.step_at is not None:
+                at = a.step + max(0.0, now - a.step_at) / self.config.step_s
+                best = at if best is None or at > best else best
+        if best is None:
+            return None
+        return int(best + self.config.step_ahead_s / self.config.step_s)
+
+    @property
+    def last_step_reported(self) -> int:
+        """The newest step any agent reported (-1 before the first)."""
+        return self._clock[0]
+
+    def newest_step(self, exclude=None) -> int:
+        steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
+        return max(steps, default=-1)
+
+    def hang_timeout(self, now: float | None = None) -> float:
+        """The hang timeout at ``now`` (default: the last tick): ``hang_timeout_s``, grown
+        with the statuses' observed pace (:class:`StatusPace`) up to
+        ``hang_timeout_max_s``."""
+        cfg = self.config
+        if now is None:
+            now = self._last_tick if self._last_tick is not None else 0.0
+        return self.pace.timeout(cfg.hang_phi, cfg.hang_timeout_s, cfg.hang_timeout_max_s,
+                                 now)
+
+    # -- the clock -----------------------------------------------------------------
+    def tick(self, now: float) -> list:
+        """Verdicts and reassignment at time ``now``; returns messages to publish now.
+
+        Nothing while :attr:`behind` (the configuration held is not the one in force:
+        the caller rebuilds it with :meth:`adopt` first)."""
+        cfg = self.config
+        if self._last_tick is not None and now - self._last_tick > cfg.pause_guard_s:
+            self._fresh_evidence(now)
+            self.events.append(f"monitor paused {now - self._last_tick:.2f} s: verdicts "
+                               f"suspended for {cfg.hang_timeout_s:g} s")
+        self._last_tick = now
+        if self._started is None:
+            self._started = now
+        hang_s = self.hang_timeout(now)
+        if abs(hang_s - self._hang_said) >= 0.25 * cfg.hang_timeout_s:
+            self._hang_said = hang_s
+            self.events.append(
+                f"hang timeout {hang_s:.2f} s: statuses come every {self.pace.mean:.2f} s "
+                f"+- {math.sqrt(self.pace.var):.2f} s (floor {cfg.hang_timeout_s:g}, "
+                f"ceiling {cfg.hang_timeout_max_s:g})")
+        if self.world_gone_at is not None or self.behind:
+            return []                      # the world is gone, or the roster is stale
+        out = []
+        self._check_confirmations(now)
+        suspended = now < self._suspended_until
+        if not suspended:
+            self._probation(now)
+            out += self._retry_unanswered(now)
+        if self._pending is not None:
+            out += self._emit_reassign(now)     # its gains came back from the worker
+        self._note_gain_mse()
+        if not suspended and self._clock[0] >= 0 and not self._unconfirmed \
+                and self._pending is None:
+            out += self.check_delays(now)
+            if not out:
+                out += self._upgrade_gains(now)
+        if self._clock[0] >= 0:
+            # a deleted token is evidence of its own: even while the monitor's own pause
+            # suspends the verdicts that read clocks, a crash is answered
+            found = self._crash_verdicts(now) if suspended else self._detect(now)
+            # when its verdict was first found, while the evidence holds: an agent convicted
+            # again later (it came back, rejoined, failed again) starts a new time
+            self._first_seen = {a: t for a, t in self._first_seen.items()
+                                if any(v.agent == a for v in found)}
+            for v in found:
+                self._first_seen.setdefault(v.agent, now)
+            found = [dataclasses.replace(v, at=self._first_seen[v.agent]) for v in found]
+            if found and self._first_verdict_at is None:
+                self._first_verdict_at = now
+            if found and now - self._first_verdict_at >= cfg.settle_s:
+                self._first_verdict_at = None
+                out += self._reassign(found, now)
+        if self._unconfirmed and self._roster_msg is not None \
+                and self.current_step(now) >= self._roster_msg.activate_at - 1:
+            out += self._reissue(now)
+        elif self._unconfirmed and self._sent_at is not None and now - self._sent_at >= cfg.resend_s:
+            out += list(self._unconfirmed.values())
+            if self._roster_msg is not None:
+                out.append(self._roster_msg)
+            self._sent_at = now
+        return out
+
+    def _reissue(self, now: float) -> list:
+        """``activate_at`` passed before every agent confirmed: the same roles again under
+        a new epoch, every agent of the configuration, a later ``activate_at``."""
+        late = sorted(self._unconfirmed)
+        self.epoch += 1
+        at = self.current_step(now) + self.config.lead_steps
+        out = []
+        self._unconfirmed = {}
+        for agent, spec in self.specs.items():
+            asg = Assignment(agent, self.epoch, at, spec)
+            out.append(asg)
+            self._unconfirmed[agent] = asg
+        self._roster_msg = RosterUpdate(self.epoch, at, tuple(self.roster.ids))
+        out.append(self._roster_msg)
+        self._sent_at = now
+        if self.history:
+            self.history[-1] = {**self.history[-1], "epoch": self.epoch, "activate_at": at,
+                                "reissued": self.history[-1].get("reissued", 0) + 1}
+        self.reissues.append({"epoch": self.epoch, "activate_at": at, "unconfirmed": late,
+                              "reason": f"activate_at passed before agents {late} confirmed"})
+        self.events.append(f"epoch {self.epoch}: activate_at passed before agents {late} "
+                           f"confirmed; re-issued from step {at}")
+        return out
+
+    def _crash_verdicts(self, now: float) -> list:
+        """The ``crash`` verdicts that hold while verdicts are suspended: a token deleted
+        :data:`CRASH_SETTLE_S` ago or more, while fewer than half of the configuration's
+        tokens are gone (when this monitor was paused or cut off, its links lapse and every
+        token seems to go at once: that is no crash)."""
+        gone = [i for i in self.roster.ids if not self.agents[i].alive]
+        if 2 * len(gone) >= len(self.roster.ids):
+            return []
+        return [Verdict(i, "crash", "liveliness token deleted", now, self._clock[0])
+                for i in gone if i not in self.failed
+                and self.agents[i].progress_at is not None
+                and self.agents[i].gone_at is not None
+                and now - self.agents[i].gone_at >= CRASH_SETTLE_S]
+
+    def _detect(self, now: float) -> list:
+        cfg = self.config
+        found = []
+        newest = self._clock[0]
+        silent_s = cfg.silent_steps * cfg.step_s
+        hang_s = self.hang_timeout(now)
+        for i in self.roster.ids:
+            if i in self.failed:
+                continue
+            a = self.agents[i]
+            if not a.alive and a.progress_at is not None:
+                found.append(Verdict(i, "crash", "liveliness token deleted", now, newest))
+            elif a.contested_at is not None and a.token is None and now - max(
+                    a.contested_at, a.estimate_at or a.contested_at) > silent_s:
+                found.append(Verdict(i, "crash", "its liveliness token went, another process "
+                                     "holds one for its id, and no estimate of it for "
+                                     f"{cfg.silent_steps} steps", now, newest))
+            elif a.progress_at is None and now - self._started > cfg.hang_timeout_s:
+                # a (re)started monitor never saw it: no token, no status, others advance
+                found.append(Verdict(i, "crash", "no liveliness token and no status since "
+                                     "the monitor started", now, newest))
+            elif (a.progress_at is not None and now - a.progress_at > hang_s
+                  and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
+                # stuck: a quiet sensor if its loop still reports (statuses arrive) and its
+                # last reading is behind; otherwise its loop is hung
+                talking = a.status_at is not None and now - a.status_at < hang_s / 2
+                if talking and a.sensor_last >= 0 and newest - a.sensor_last > cfg.sensor_lag_steps:
+                    found.append(Verdict(
+                        i, "sensor", f"no reading since step {a.sensor_last} while the others "
+                        f"reached step {newest}; its loop still reports", now, newest))
+                else:
+                    found.append(Verdict(
+                        i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
+                        f"others reached step {newest}"
+                        + ("" if talking else "; no status either")
+                        + (f" (hang timeout {hang_s:.2f} s at the statuses' pace)"
+                           if hang_s > cfg.hang_timeout_s else ""), now, newest))
+            else:
+                ages = self._listener_ages(i)
+                if ages and min(age - self._link_delay(j, i) for j, age in ages.items()) \
+                        > cfg.silent_steps and self._hearsay_holds(i, ages, now):
+                    since = self._silent_since.setdefault(i, now)
+                    if now - since > cfg.hang_timeout_s:
+                        found.append(Verdict(
+                            i, "silent", "its listeners hold nothing fresher than "
+                            + ", ".join(f"{age} steps (agent {r})" for r, age in sorted(ages.items())),
+                            now, newest))
+                else:
+                    self._silent_since.pop(i, None)
+        return found
+
+    def on_estimate_seen(self, agent, now: float) -> None:
+        """The monitor's own observation: an estimate of ``agent`` arrived at ``now`` (the
+        shell tells it from the key alone, without decoding)."""
+        a = self._agent(agent)
+        if a is not None:
+            a.estimate_at = now
+
+    def _hearsay_holds(self, agent: int, ages: dict, now: float) -> bool:
+        """One listener's word is not enough to convict: a ``silent`` verdict from a single
+        listener stands only if the monitor's own observation agrees (it has heard no
+        estimate of ``agent`` for ``silent_steps`` steps) or that listener's status shows
+        the link from ``agent`` impaired. Otherwise its hearsay is discounted (an
+        anomaly: :meth:`reject` ``hearsay``)."""
+        if len(ages) >= 2:
+            return True
+        (j,) = ages
+        links = self.agents[j].status.get("links")
+        if isinstance(links, dict) and str(agent) in links:
+            return True
+        seen = self.agents[agent].estimate_at
+        window = self.config.silent_steps * self.config.step_s
+        if seen is None or now - seen > window:
+            return True
+        self.reject("hearsay", j, f"agent {j} reports agent {agent} silent ({ages[j]} steps) "
+                    f"but the monitor heard agent {agent}'s estimates {now - seen:.2f} s ago "
+                    "and no impaired link: not convicted on one listener's word")
+        return False
+
+    def _listener_ages(self, agent: int) -> dict:
+        """``{listener: age of the freshest estimate of agent it holds}`` (-1: none yet
+        counts as not silent; listeners without a status are left out). The listeners are
+        those of the configuration in force (its W), not whoever claims to listen."""
+        out = {}
+        W, col = self.roster.scenario.W, self.roster.row_of(agent)
+        for j in self.roster.ids:
+            st = self.agents[j].status
+            if j == agent or not st or not W[self.roster.row_of(j), col] > 0:
+                continue
+            age = st.get("ages", {}).get(agent)
+            if age is None or age < 0:
+                return {}
+            out[j] = age
+        return out
+
+    def _link_delay(self, receiver: int, sender: int) -> int:
+        """The delay of link ``sender -> receiver`` in force: the configuration's, or the
+        one the receiver learned when larger (an estimate that old is on time), by at
+        most ``silent_steps`` (a larger one is the ``delay`` verdict's matter, and a
+        listener claiming a huge one must not silence the bound)."""
+        D = self.roster.delays
+        tau = int(D[self.roster.row_of(receiver), self.roster.row_of(sender)])
+        learned = self.agents[receiver].status.get("delays")
+        if isinstance(learned, dict):
+            got = learned.get(sender, learned.get(str(sender)))
+            if isinstance(got, int) and not isinstance(got, bool):
+                tau = max(tau, min(got, tau + self.config.silent_steps))
+        return tau
+
+    def scenario_link(self, link) -> bool:
+        """True iff ``(receiver, sender)`` is a link of the configuration in force."""
+        a, b = link
+        i, j = self.roster.row_of(a), self.roster.row_of(b)
+        return i != j and self.roster.scenario.W[i, j] > 0
+
+    def learned_delays(self) -> dict:
+        """``{(receiver, sender): tau}`` from the statuses of the agents in force."""
+        out = {}
+        for a in self.roster.ids:
+            for b, tau in self.agents[a].status.get("delays", {}).items():
+                out[(a, int(b))] = int(tau)
+        return out
+
+    def check_delays(self, now: float) -> list:
+        """The ``delay`` verdict: learned delays above the design and the exact loop with
+        them unstable -> gains designed for the learned delays, same roles, new epoch
+        (sent when the gains are known: the gain worker designs them)."""
+        from design.closed_loop import closed_loop_for
+
+        if self._delay_pending is not None:
+            p = self._delay_pending
+            if not self.gains.ready(p["roster"]):
+                return []
+            self._delay_pending = None
+            G, info = self.gains.get(p["roster"])
+            if G is None:
+                self.events.append("no stabilising gain for the learned delays: keeping the "
+                                   "gains in force")
+                return []
+            return self._assign_all(p["roster"], G, info, now, p["record"],
+                                    "gains for the learned delays")
+        learned = self.learned_delays()
+        # links whose learned delay differs from the one the gains were designed for
+        # (stability is not monotone in the delays: shorter ones are checked too)
+        above = {k: v for k, v in learned.items()
+                 if k[1] in self.roster.ids and self.scenario_link(k) and v != self.roster.delays[
+                     self.roster.row_of(k[0]), self.roster.row_of(k[1])]}
+        key = tuple(sorted(above.items()))
+        if not above or key == self._delays_checked or self.G is None:
+            return []
+        self._delays_checked = key
+        new = self.roster.with_delays(above)
+        rho = closed_loop_for(new.scenario, self.G, new.delays).spectral_radius()
+        self.rho_learned = rho
+        evidence = ", ".join(f"link {b}->{a}: {t} steps (designed {self.roster.delays[self.roster.row_of(a), self.roster.row_of(b)]})"
+                             for (a, b), t in sorted(above.items()))
+        if rho < 1:
+            self.events.append(f"learned delays differ from the design ({evidence}) but the "
+                               f"exact loop is still stable (radius {rho:.4f})")
+            return []
+        v = Verdict(0, "delay", f"{evidence}; exact radius {rho:.4f} >= 1", now,
+                    self._clock[0])
+        self.verdicts.append(v)
+        self.events.append(f"verdict: delay ({v.evidence})")
+        self._delay_pending = {"roster": new, "record": {
+            "causes": {"0": "delay"}, "delays": {f"{b}->{a}": t for (a, b), t
+                                                in sorted(above.items())}}}
+        return self.check_delays(now)
+
+    def _check_confirmations(self, now: float) -> None:
+        for agent, asg in list(self._unconfirmed.items()):
+            a = self.agents[agent]
+            if a.epoch >= asg.epoch or a.pending >= asg.epoch:
+                del self._unconfirmed[agent]
+                self.events.append(f"agent {agent} confirmed epoch {asg.epoch}")
+        if (self._unconfirmed and self._assigned_at is not None
+                and now - self._assigned_at > self.config.confirm_timeout_s):
+            for agent in sorted(self._unconfirmed):
+                a = self.agents[agent]
+                stale = a.progress_at is None or now - a.progress_at > self.config.confirm_timeout_s
+                if stale and agent in self.roster.ids and agent not in self.failed:
+                    a.alive = False      # convicted at the next detection as 'crash'
+                    self.events.append(f"agent {agent} did not confirm epoch "
+                                       f"{self._unconfirmed[agent].epoch} and reports no "
+                                       "progress: treated as failed")
+                    del self._unconfirmed[agent]
+
+    # -- reassignment ----------------------------------------------------------------
+    def _reassign(self, verdicts: list, now: float, unanswered=()) -> list:
+        """Record the verdicts, plan the failure on the configuration in force and emit
+        the new roles as soon as their gains are known (:meth:`_emit_reassign`). Verdicts
+        found while an earlier plan still waits for its gains join that plan.
+        ``unanswered``: agents convicted earlier whose recovery was impossible then (no
+        standby), planned again now that the pool has one."""
+        from design.errors import SocmonError
+        from design.roster import replan
+
+        self.verdicts += verdicts
+        failed = sorted({v.agent for v in verdicts} | set(unanswered))
+        self.failed |= set(failed)
+        for a in failed:
+            self.convicted_at[a] = now
+            self.on_probation.add(a)
+            self.agents[a].healthy_since = None
+        for v in verdicts:
+            self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
+        if self._pending is not None:
+            verdicts = self._pending["verdicts"] + verdicts
+            failed = sorted(set(self._pending["failed"]) | set(failed))
+        roster = dataclasses.replace(self.roster, standby_ids=self.standby_pool(now, failed))
+        try:
+            plan, nxt = replan(roster, failed)
+        except SocmonError as exc:
+            nxt, plan = None, None
+            self.events.append(f"no recovery plan: {exc}")
+        if nxt is None or not plan.structurally_observable_after:
+            self._pending = None
+            self.unrecoverable = True
+            self.events.append(
+                f"RECOVERY IMPOSSIBLE after the failure of {failed}: no equivalent agent or "
+                "connected network left; keeping the configuration in force and monitoring")
+            return []
+        self.failed -= set(nxt.ids)       # a returned agent taken again is healthy
+        self._pending = {"verdicts": verdicts, "failed": failed, "roster": roster,
+                         "plan": plan, "nxt": nxt, "at": now, "asked": False}
+        return self._emit_reassign(now)
+
+    def _emit_reassign(self, now: float) -> list:
+        """The pending reassignment, once its gains are known; ``activate_at`` counts from
+        now (not from the verdict), so it is never already past when it is sent."""
+        from design.roster import role_specs
+
+        p = self._pending
+        nxt, plan, roster = p["nxt"], p["plan"], p["roster"]
+        if not self.gains.ready(nxt):
+            if not p["asked"]:
+                p["asked"] = True
+                self.events.append(f"gains for ids {list(nxt.ids)} not precomputed: designing "
+                                   "them in the gain worker; detection goes on meanwhile")
+            return []
+        self._pending = None
+        G, info = self.gains.get(nxt)
+        if G is None:
+            self.unrecoverable = True
+            self.events.append("no stabilising gain for the new configuration; keeping the "
+                               "configuration in force")
+            return []
+        precomputed = not p["asked"]
+        take_over = {r.by: roster.ids[r.failed] for r in plan.replacements if r.by_standby}
+        specs = role_specs(nxt, G, take_over=take_over)
+        self.epoch += 1
+        activate_at = max(self.current_step(now), 0) + self.config.lead_steps
+        # a reassignment still waiting for its activate_at is superseded at the same step
+        # (agents replace a pending assignment by a newer one): no agent runs the older
+        # configuration for a step while another runs the newer one
+        prev = self._roster_msg
+        if prev is not None and prev.activate_at >= max(self.current_step(now), 0) \
+                + self.config.lead_steps // 2:
+            activate_at = min(activate_at, prev.activate_at)
+        self._unconfirmed = {a: asg for a, asg in self._unconfirmed.items() if a in nxt.ids}
+        out = []
+        for agent, spec in specs.items():
+            if not spec.same_as(self.specs.get(agent)) or spec.take_over:
+                asg = Assignment(agent, self.epoch, activate_at, spec)
+                out.append(asg)
+                self._unconfirmed[agent] = asg
+        roster_msg = RosterUpdate(self.epoch, activate_at, tuple(nxt.ids))
+        out.append(roster_msg)
+        self._roster_msg = roster_msg
+        self._sent_at = self._assigned_at = now
+        verdicts = p["verdicts"]
+        self.history.append({
+            "epoch": self.epoch, "activate_at": activate_at, "failed": p["failed"],
+            "causes": {v.agent: v.cause for v in verdicts}, "ids": list(nxt.ids),
+            "replacements": [{"failed": roster.ids[r.failed], "by": r.by,
+                              "from": self.scenario.labels[r.node_from],
+                              "to": self.scenario.labels[r.node_to]} for r in plan.replacements],
+            "added_links": [list(x) for x in plan.added_links],
+            "precomputed": precomputed, "decided_at": p["at"], "sent_at": now,
+            **_gain_record(info),
+        })
+        self.events.append(
+            f"epoch {self.epoch}: {', '.join(f'{r.by} measures {self.scenario.labels[r.node_to]}' for r in plan.replacements) or 'no replacement needed'}"
+            f"; ids {list(nxt.ids)} from step {activate_at}"
+            + (" (precomputed gains" if precomputed else
+               f" (gains designed in {now - p['at']:.2f} s") + f", {_gain_words(info)})")
+        self.roster, self.G, self.specs, self.gain_info = nxt, G, specs, info
+        if info.get("kind") == "fast":
+            self.gains.refine(nxt)             # replaced under a new epoch when it is ready
+        return out
+
+    def _assign_all(self, new, G, info, now: float, record: dict, why: str) -> list:
+        """The same roles with new gains (or delays) under a new epoch: every agent of
+        ``new`` gets an assignment."""
+        from design.roster import role_specs
+
+        self.roster, self.G, self.gain_info = new, G, info
+        self.specs = role_specs(new, G)
+        self.epoch += 1
+        at = max(self.current_step(now), 0) + self.config.lead_steps
+        out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
+        self._unconfirmed = {m.agent: m for m in out}
+        self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
+        out.append(self._roster_msg)
+        self._sent_at = self._assigned_at = now
+        self.history.append({"epoch": self.epoch, "activate_at": at, "failed": [],
+                             "ids": list(new.ids), "replacements": [], "added_links": [],
+                             "precomputed": False, "decided_at": now, "sent_at": now,
+                             **record, **_gain_record(info)})
+        self.events.append(f"epoch {self.epoch}: {why} from step {at} ({_gain_words(info)})")
+        return out
+
+    def _note_gain_mse(self) -> None:
+        """The fast gain in force went out without its exact steady MSE; when the worker
+        sends it, it is said (an event, and a note in :attr:`gain_notes`)."""
+        if self.gain_info.get("kind") != "fast" or self.gain_info.get("mse") is not None:
+            return
+        info = self.gains.info(self.roster)
+        if info.get("kind") != "fast" or info.get("mse") is None \
+                or info.get("rho") != self.gain_info.get("rho"):
+            return
+        self.gain_info = {**self.gain_info, "mse": info["mse"]}
+        self.gain_notes.append({"epoch": self.epoch, **_gain_record(self.gain_info)})
+        self.events.append(f"epoch {self.epoch}: in force: {_gain_words(self.gain_info)}")
+
+    def _upgrade_gains(self, now: float) -> list:
+        """The configuration in force runs a fast gain and its refined gain has come back:
+        the same roles with the refined gain, under a new epoch."""
+        if self.gain_info.get("kind") != "fast" or self.G is None:
+            return []
+        G, info = self.gains.get(self.roster)
+        if G is None or info.get("kind") != "refined":
+            return []
+        return self._assign_all(self.roster, G, info, now, {"causes": {"0": "refined"}},
+                                "refined gains for the configuration in force")
+
+    def healthy_standby(self, agent: int, now: float) -> bool:
+        """What probation asks of a convicted agent, at ``now``: its token is up, it holds
+        no role, its step moved within half the hang timeout and is within the hold
+        window (``lead_steps``) of the network's newest, its sensor readings (if it
+        wants any) are no older than that window, and no status (its own or a
+        neighbour's) shows a link into or out of it cut (partitioned, or dropping half
+        or more; a delay is no cut)."""
+        cfg, st = self.config, self.agents[agent]
+        if not st.alive or st.progress_at is None or st.status.get("active"):
+            return False
+        if now - st.progress_at > cfg.hang_timeout_s / 2:
+            return False
+        window = max(cfg.lead_steps, 1)
+        if self.newest_step() - st.step > window:
+            return False
+        sensor = st.status.get("sensor") if isinstance(st.status.get("sensor"), dict) else {}
+        if sensor.get("labels") and st.step - st.sensor_last > window:
+            return False
+        me = str(agent)
+        for b, other in self.agents.items():
+            links = other.status.get("links")
+            if not isinstance(links, dict):
+                continue
+            for src, p in links.items():
+                cut = isinstance(p, dict) and (p.get("partition") or
+                                               float(p.get("drop", 0) or 0) >= 0.5)
+                if cut and (b == agent or src == me):    # a delay is no cut
+                    return False
+        return True
+
+    def _probation(self, now: float) -> None:
+        """Agents on probation that stayed healthy for ``rejoin_s`` rejoin the standby pool
+        (an event and an entry of :attr:`rejoins`); a break starts the probation over."""
+        for a in sorted(self.on_probation):
+            st = self.agents[a]
+            if a in self.roster.ids:
+                if a not in self.failed:            # taken again meanwhile
+                    self.on_probation.discard(a)
+                continue        # still in the roster: its reassignment waits for gains
+            if not self.healthy_standby(a, now):
+                st.healthy_since = None
+                continue
+            if st.healthy_since is None:
+                st.healthy_since = now
+            if now - st.healthy_since >= self.config.rejoin_s:
+                self.on_probation.discard(a)
+                self.failed.discard(a)
+                pool = self.standby_pool(now)
+                self.rejoins.append({"agent": a, "step": self.current_step(now),
+                                     "healthy_s": round(now - st.healthy_since, 3),
+                                     "standby": list(pool)})
+                self.events.append(
+                    f"agent {a} rejoined as a standby after {now - st.healthy_since:.1f} s of "
+                    f"probation (progressing, sensor fresh, no impaired link): standbys "
+                    f"{list(pool)}, {len(pool)} failure(s) can be answered by a replacement")
+
+    def _retry_unanswered(self, now: float) -> list:
+        """A failure whose recovery was impossible (no standby then) is planned again as
+        soon as the pool has an agent (one that passed probation, or a new standby)."""
+        stuck = [a for a in self.roster.ids if a in self.failed]
+        if not (self.unrecoverable and stuck and self._pending is None
+                and not self._unconfirmed and self.standby_pool(now)):
+            return []
+        self.unrecoverable = False
+        self.events.append(f"a standby is available again: planning the recovery of "
+                           f"{stuck} (impossible when they failed)")
+        return self._reassign([], now, unanswered=stuck)
+
+    def standby_pool(self, now: float, exclude=()) -> tuple:
+        """Ids that can take a role now: alive, advancing as standbys (no role), and not
+        on probation after a conviction. A replaced agent that came back (SIGCONT, a
+        healed partition) and was fenced into a standby rejoins the pool after probation
+        (:meth:`_probation`)."""
+        cfg = self.config
+        out = []
+        for a in sorted(self.agents):
+            st = self.agents[a]
+            if a in self.roster.ids or a in exclude or not st.alive or st.progress_at is None:
+                continue
+            if st.status.get("active") or now - st.progress_at > cfg.hang_timeout_s:
+                continue
+            if a in self.on_probation:
+                continue
+            out.append(a)
+        first = [a for a in self.roster.standby_ids if a in out]
+        return tuple(first + [a for a in out if a not in first])
+
+    def confirmed(self) -> bool:
+        return not self._unconfirmed
+
+    # -- state from the network ------------------------------------------------------
+    def adopt(self, ids=None, epoch: int = 0) -> bool:
+        """Rebuild the configuration in force from the agents' statuses.
+
+        A monitor that was (re)started, or that takes over from another one, knows
+        nothing of past reassignments: the roster it heard (``ids``, ``epoch``) or, if
+        none, the agents whose status says they are active, and each one's measured
+        nodes and neighbour weights from its status, are the configuration in force.
+        Agents of the scenario outside it count as failed; live agents without a role
+        are the standbys. Epochs continue above every epoch seen. Returns False while a
+        status is missing.
+        """
+        from design.errors import SocmonError
+        from design.roster import Roster
+
+        s = self.scenario
+        if ids is None:
+            ids = sorted(a for a, st in self.agents.items()
+                         if st.alive and st.status.get("active"))
+        rows = [int(a) for a in ids]
+        if not rows or any(not self.agents[a].status.get("active") for a in rows):
+            return False
+        W = np.zeros((len(rows), len(rows)))
+        measure = []
+        for i, a in enumerate(rows):
+            st = self.agents[a].status
+            for b, w in st["neighbours"].items():
+                if b in rows and b != a:
+                    W[i, rows.index(b)] = w
+            W[i, i] = 1.0 - W[i].sum()
+            measure.append(tuple(s.index_of(label) for label in st["measure"]))
+        standby = tuple(a for a, st in sorted(self.agents.items())
+                        if a not in rows and st.alive and not st.status.get("active")
+                        and a not in self.failed)
+        table = self.roster.table
+        D = table[np.ix_([a - 1 for a in rows], [a - 1 for a in rows])]
+        D = np.where((W > 0) & ~np.eye(len(rows), dtype=bool), D, 0)
+        try:
+            scen = s.replace(W=W, measure=tuple(measure), delays=D, standby=len(standby))
+        except SocmonError as exc:
+            # statuses from before and after a change, or a token not yet seen again:
+            # wait for a consistent picture rather than act on this one
+            line = (f"adoption waits: the statuses of {rows} do not form a configuration "
+                    f"yet ({str(exc)[:120]})")
+            if line != self._adopt_wait:          # said once per distinct reason
+                self.events.append(line)
+                self._adopt_wait = line
+            return False
+        self.roster = Roster(scen, tuple(rows), standby, table, D)
+        self.failed |= {a for a in range(1, s.N + 1) if a not in rows}
+        self.G, self.specs = None, {}
+        self.epoch = max([self.epoch, int(epoch)] + [st.epoch for st in self.agents.values()])
+        self.behind = False
+        self.events.append(f"adopted the configuration in force: ids {rows}, standby "
+                           f"{list(standby)}, epoch {self.epoch}")
+        return True
+
+
+#: a (re)started monitor listens this long (the roster is re-published every ROSTER_S)
+#: before it acts, so that it acts on the configuration in force, not on its scenario
+LISTEN_S = 1.5
+#: the monitor's loop period, and how often the acting monitor re-publishes the roster in
+#: force (an agent coming back learns from it that it was replaced)
+TICK_S = 0.01
+ROSTER_S = 1.0
+
+
+class MonitorSeat:
+    """Which of several monitors acts, and what a monitor that (re)takes the seat adopts
+    first: the policy of the monitor process and of the simulated runtime.
+
+    The monitor with the smallest id whose token is alive acts, once it has listened
+    ``listen_s``; the others stay passive and watch. A monitor that becomes active adopts
+    the configuration in force from the newest roster it heard (:meth:`on_roster`) or from
+    the agents' statuses (:meth:`MonitorCore.adopt`), and does so again whenever the agents
+    run an epoch it never issued (another monitor acted while it was paused or cut off).
+
+    :meth:`decide` returns ``"act"`` (tick the core), ``"idle"`` (passive) or ``"wait"``
+    (an adoption waits for more of the network); what it did is in :attr:`records`
+    (``active``, ``adopted``: the run's record), :attr:`lines` (for the log) and
+    :attr:`precompute` (the configuration in force changed), which the caller drains.
+    """
+
+    def __init__(self, core: MonitorCore, monitor_id: int, now: float,
+                 listen_s: float = LISTEN_S):
+        self.core, self.id = core, int(monitor_id)
+        self.listen_until = now + listen_s
+        self.heard_roster: dict | None = None
+        self.active = False
+        self.records: list = []
+        self.lines: list = []
+        self.precompute = False
+
+    def on_roster(self, msg: dict) -> None:
+        """A roster heard on ``ctl/0`` (its signature already checked by the caller)."""
+        if self.core.accept_roster(msg) and (self.heard_roster is None
+                                             or msg["epoch"] > self.heard_roster["epoch"]):
+            self.heard_roster = msg
+
+    def _adopt_heard(self) -> bool:
+        core, heard = self.core, self.heard_roster
+        if heard is not None and heard["epoch"] >= core.epoch:
+            return core.adopt(heard["ids"], heard["epoch"])
+        return core.adopt(None, core.epoch)
+
+    def decide(self, now: float, monitors_alive) -> str:
+        """``monitors_alive``: the ids of the monitors whose token is up."""
+        core = self.core
+        others = sorted(int(i) for i in monitors_alive if int(i) != self.id)
+        should = (not others or self.id < others[0]) and now >= self.listen_until
+        if should and not self.active:
+            seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
+                       + [st.epoch for st in core.agents.values()])
+            if core.history and not core.behind:
+                pass                     # it acted before and nobody acted since
+            elif core.history:
+                # another monitor acted while this one was away (paused, cut off): the
+                # configuration in force is the agents'
+                if not self._adopt_heard():
+                    return "wait"
+            elif self.heard_roster is not None:
+                if not core.adopt(self.heard_roster["ids"], self.heard_roster["epoch"]):
+                    return "wait"
+            elif seen > 0 and not core.adopt(None, seen):
+                # roles were reassigned before this monitor started: the agents' statuses
+                # say which; wait until every active one has reported
+                return "wait"
+            self.lines.append("active")
+            self.records.append(("active", {"monitor": self.id, "epoch": core.epoch}))
+            self.active = self.precompute = True
+        elif not should and self.active:
+            self.lines.append(f"another monitor ({others[0]}) is active; passive")
+            self.active = False
+        if self.active and core.behind:
+            # the agents run an epoch this monitor never issued: another monitor acted while
+            # this one was paused or cut off; rebuild from the network first
+            if not self._adopt_heard():
+                return "wait"
+            self.records.append(("adopted", {"monitor": self.id, "epoch": core.epoch}))
+            self.precompute = True
+        return "act" if self.active else "idle"
+

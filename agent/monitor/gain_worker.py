@@ -1,0 +1,324 @@
+"""Gain design for the monitor, in processes of its own: the monitor's loop never designs.
+
+A design takes from a tenth of a second (a first stabilising gain) to seconds (the gain of
+least steady MSE); under the GIL a design thread starved the monitor's loop, whose pause
+guard then suspended its verdicts, and a design made inside the loop left every agent
+waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
+
+- the *urgent* one designs, on request and nothing else, the first gain of a
+  configuration nobody foresaw: a certified gain (stable for the configuration's delays,
+  exact radius < 1), sent at once; its refined gain follows from the precompute process;
+- the *precompute* one designs the refined gain of a configuration put in force on a
+  fast gain, and a fast gain for every single failure (and pairs, for
+  small networks) of the configuration in force, so that a foreseen failure has its first
+  gain within seconds even on a loaded machine (at the monitor's priority: niced, it got
+  too little CPU beside two busy loops); it pauses at its next design iteration while the
+  urgent one designs a first gain (when both shared one process, a request waited for the
+  precompute design in progress: 1.6 s from verdict to roles beside two busy loops);
+- the *background* one refines the precomputed ones (the gain of least steady MSE, seconds each), and
+  computes the exact steady MSE of a fast gain put in force (:meth:`GainWorker.assess`:
+  the fast design does not compute it, a Lyapunov solve of seconds); a newer
+  configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
+  that on a loaded machine the monitor's loop, the agents and the urgent designs go first
+  (at nice 10 beside two busy loops it got too little CPU to finish even the fast pass
+  in the first 3 s of a run).
+
+Results come back as ``(roster, G, info)``, ``info`` as
+:func:`agent.monitor.core.design_gains_for` gives it (``kind`` ``"fast"`` or ``"refined"``,
+the exact radius and steady MSE; G is None when no stabilising gain was found); the monitor's loop drains them with
+:meth:`GainWorker.poll` between ticks and hands them to its
+:class:`agent.monitor.core.GainSource`. The processes are started with ``spawn`` (the
+monitor's zenoh session and its threads are not forked) and import only ``design``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import queue
+import sys
+
+__all__ = ["GainWorker", "BACKGROUND_NICE", "precompute_single_failures"]
+
+#: Niceness of the background (refining) process.
+BACKGROUND_NICE = 10
+#: pairs of failures are precomputed too when the configuration has at most this many agents
+PAIRS_UP_TO = 4
+
+
+class GainWorker:
+    """Two design processes and their queues; :meth:`close` ends them."""
+
+    def __init__(self, start: bool = False):
+        self._ctx = multiprocessing.get_context("spawn")
+        self._procs: list = []           # started now, or at the first request (a standby
+        self._generation = 0             # monitor that never acts never starts them)
+        if start:
+            self._start()
+
+    def _start(self) -> None:
+        if self._procs:
+            return
+        ctx = self._ctx
+        self._urgent, self._background, self._results = ctx.Queue(), ctx.Queue(), ctx.Queue()
+        # kept: a semaphore collected before the children unpickle it is gone for them
+        self._fast, self._idle = ctx.Queue(), ctx.Event()
+        idle = self._idle
+        idle.set()
+        self._procs = [
+            ctx.Process(target=_serve_urgent, args=(self._urgent, self._results, idle),
+                        name="socmon-gains-urgent", daemon=True),
+            ctx.Process(target=_serve_precompute, args=(self._fast, self._results, idle),
+                        name="socmon-gains-precompute", daemon=True),
+            ctx.Process(target=_serve_background, args=(self._background, self._results),
+                        name="socmon-gains-background", daemon=True),
+        ]
+        for p in self._procs:
+            p.start()
+
+    def request(self, roster, kinds=("fast", "refined")) -> None:
+        """Design the gains of ``roster`` now: a fast certified gain (the urgent process),
+        then a refined one (the precompute process, before its fast pass) (``kinds``: only
+        the refined one, for a configuration in force on a fast gain)."""
+        self._start()
+        if "fast" in kinds:
+            self._urgent.put(("request", roster, ("fast",)))
+        if "refined" in kinds:
+            self._fast.put(("refine", roster))
+
+    def assess(self, roster, G, info) -> None:
+        """The exact steady MSE of the gain ``G`` (``info`` its design's) for ``roster``,
+        sent back as ``(roster, G, info + mse)``. The background process computes it
+        between two refinements: a solve of up to tens of seconds at large delays must not
+        hold an unforeseen failure's first gain back."""
+        self._start()
+        self._background.put(("assess", roster, list(G), dict(info)))
+
+    def precompute(self, roster) -> None:
+        """Precompute the failures of ``roster`` (the configuration now in force); any
+        earlier precompute still running is abandoned."""
+        self._start()
+        self._generation += 1
+        self._fast.put(("precompute", roster))
+        self._background.put((self._generation, roster))
+
+    def poll(self) -> list:
+        """Every result ready now: ``[(roster, G or None, info)]``."""
+        out = []
+        if not self._procs:
+            return out
+        while True:
+            try:
+                out.append(self._results.get_nowait())
+            except (queue.Empty, EOFError, OSError):
+                return out
+
+    def alive(self) -> bool:
+        return all(p.is_alive() for p in self._procs)
+
+    def close(self) -> None:
+        if not self._procs:
+            return
+        for q in (self._urgent, self._fast, self._background):
+            try:
+                q.put(None)
+            except (OSError, ValueError):
+                pass
+        for p in self._procs:
+            p.join(timeout=1.0)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout=1.0)
+        for q in (self._urgent, self._fast, self._background, self._results):
+            q.close()
+            q.cancel_join_thread()
+
+
+def _quiet_signals():
+    """A design process ends with its queue's sentinel or its parent, not with the
+    terminal's Ctrl-C (the monitor handles that and closes the worker)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _serve_urgent(requests, results, idle) -> None:
+    """Requests only: a configuration nobody foresaw is designed at once (no precompute
+    design is ahead of it in this process). ``idle`` is clear while a request is being
+    designed: the precompute process waits at its next iteration meanwhile."""
+    from agent.monitor.core import design_gains_for
+
+    _quiet_signals()
+    while True:
+        item = requests.get()
+        if item is None:
+            idle.set()
+            return
+        _, roster, kinds = item
+        for kind in kinds:
+            if kind == "fast":          # a first gain: the precompute waits meanwhile
+                idle.clear()
+            try:
+                results.put((roster, *design_gains_for(roster, kind)))
+            finally:
+                idle.set()
+
+
+def _serve_precompute(requests, results, idle) -> None:
+    """At the monitor's priority, pausing at every design iteration while the urgent
+    process designs a first gain (``idle`` clear): the refined gain of a configuration
+    put in force on a fast one first, then the fast pass of the newest precompute (so
+    that a foreseen failure has a first gain within seconds even on a loaded machine);
+    a newer configuration supersedes that pass."""
+    from collections import deque
+
+    from agent.monitor.core import design_gains_for
+
+    _quiet_signals()
+
+    def yield_to_urgent(_progress) -> None:
+        while not idle.wait(timeout=1.0):
+            pass
+
+    refine, fast = deque(), deque()    # configurations still to design
+    while True:
+        try:
+            item = requests.get() if not (refine or fast) else requests.get_nowait()
+        except queue.Empty:
+            idle.wait()
+            if refine:
+                nxt, kind = refine.popleft(), "refined"
+            else:
+                nxt, kind = fast.popleft()[1], "fast"
+            results.put((nxt, *design_gains_for(nxt, kind, progress=yield_to_urgent)))
+            continue
+        if item is None:
+            return
+        if item[0] == "refine":
+            refine.append(item[1])
+        else:
+            fast = deque(plan_failures(item[1]))
+
+
+def steady_mse_of(roster, G):
+    """The exact steady MSE of gain ``G`` on the configuration ``roster`` with its delays
+    (:func:`design.closed_loop.exact_performance`; None when it has none)."""
+    import numpy as np
+
+    from design.closed_loop import exact_performance
+
+    return exact_performance(roster.scenario, [np.asarray(g, dtype=float) for g in G],
+                             np.asarray(roster.delays)).mse
+
+
+def _assess(item, results) -> None:
+    _, roster, G, info = item
+    results.put((roster, G, {**info, "mse": steady_mse_of(roster, G)}))
+
+
+def plan_failures(roster) -> list:
+    """``[(failed ids, next configuration)]`` for the failure of each single agent of
+    ``roster`` (and of each pair when it has at most :data:`PAIRS_UP_TO` agents)."""
+    import itertools
+
+    from design.errors import SocmonError
+    from design.roster import replan
+
+    sets = [[a] for a in roster.ids]
+    if len(roster.ids) <= PAIRS_UP_TO:
+        sets += [list(p) for p in itertools.combinations(roster.ids, 2)]
+    planned = []
+    for a in sets:
+        try:
+            _, nxt = replan(roster, a)
+        except SocmonError:
+            continue
+        if nxt is not None:
+            planned.append((a, nxt))
+    return planned
+
+
+def precompute_single_failures(roster, gains, stop=lambda: False, log=None,
+                               passes=(False, True)) -> int:
+    """Plan (:func:`plan_failures`) and design gains for the failures of ``roster``.
+
+    Two passes: a fast stabilising gain for every set first (tenths of a second each, so
+    that a failure soon after start-up is already foreseen on a loaded machine), then the
+    MSE-refined gain for every set, which replaces it (``passes``: which of the two,
+    ``False`` for the fast one)."""
+    planned = plan_failures(roster)
+    done = 0
+    for refined in passes:
+        for a, nxt in planned:
+            if stop():
+                return done
+            if not refined and gains.has(nxt):
+                continue
+            G, info = gains.design(nxt, refined=refined)
+            gains.put(nxt, G, info)
+            if G is not None:
+                done += refined
+            if log is not None and (refined or G is None):
+                print(f"monitor: precomputed the failure of agents {a}: "
+                      f"{'refined gains ready' if G is not None else 'no stabilising gain'}",
+                      file=log, flush=True)
+    return done
+
+
+class _Sink:
+    """What :func:`precompute_single_failures` designs into: results go
+    back to the monitor as they come."""
+
+    def __init__(self, results):
+        self.results = results
+        self.sent: set = set()
+
+    def has(self, roster) -> bool:
+        from agent.monitor.core import GainSource
+
+        return GainSource.key(roster) in self.sent
+
+    def design(self, roster, refined: bool = False):
+        from agent.monitor.core import design_gains_for
+
+        return design_gains_for(roster, "refined" if refined else "fast")
+
+    def put(self, roster, G, info=None) -> None:
+        from agent.monitor.core import GainSource
+
+        self.sent.add(GainSource.key(roster))
+        self.results.put((roster, G, info or {}))
+
+
+def _serve_background(requests, results) -> None:
+    _quiet_signals()
+    try:
+        os.nice(BACKGROUND_NICE)
+    except OSError:
+        pass
+    pending = None
+    while True:
+        item = pending if pending is not None else requests.get()
+        pending = None
+        if item is None:
+            return
+        if item[0] == "assess":
+            _assess(item, results)
+            continue
+        generation, roster = item
+
+        def superseded() -> bool:
+            nonlocal pending
+            while True:
+                try:
+                    newer = requests.get_nowait()
+                except queue.Empty:
+                    return False
+                if newer is not None and newer[0] == "assess":
+                    _assess(newer, results)        # between two refinements
+                    continue
+                pending = newer
+                return True
+
+        precompute_single_failures(roster, _Sink(results), stop=superseded, log=sys.stderr,
+                                   passes=(True,))

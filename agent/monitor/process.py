@@ -1,0 +1,247 @@
+"""The monitor process: feeds an :class:`agent.monitor.core.MonitorCore` from a zenoh peer.
+
+It joins the run as the peer ``monitor/<id>``, reads every agent's liveliness and status,
+ticks the core every ``TICK_S``, and publishes what the core decides: assignments on
+``ctl/<agent>`` and the roster (the fence) on ``ctl/0``, the roster again every
+``ROSTER_S`` so that an agent coming back learns it was replaced. At start-up a
+background process precomputes the plan and the gains of every single failure of the
+configuration in force (again after every reassignment), so that a foreseen failure is
+answered without designing anything. Designs run in the processes of an
+:class:`agent.monitor.gain_worker.GainWorker`, never in this loop: a configuration nobody foresaw
+waits for its gains while detection goes on, and a fast gain in force is replaced by the
+refined one under a new epoch when it comes back.
+
+When the world's token goes, the run is ending: the agents leave with it, so nothing is
+convicted while it is gone, and the monitor exits once the agents' tokens are gone too
+(:meth:`MonitorCore.run_ended`).
+
+A monitor listens for :data:`agent.monitor.core.LISTEN_S` before it acts. Several monitors may run on one run:
+the one with the smallest id whose token is alive acts, the others stay passive and watch;
+when the active one's token goes, the next one adopts the configuration in force from the
+roster it heard and the agents' statuses and goes on with epochs above every epoch it saw
+(:class:`agent.monitor.core.MonitorSeat`, the policy the simulated runtime runs too).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+
+from broker_free_net import keys
+from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.peer import Peer
+
+from agent.protocol import wire
+from agent.protocol.control_auth import SignatureError
+from agent.monitor.gain_worker import GainWorker
+from agent.shell.memory import TRIM_S, heap_trimmer
+from agent.monitor.core import (
+    ROSTER_S,
+    TICK_S,
+    Assignment,
+    GainSource,
+    MonitorConfig,
+    MonitorCore,
+    MonitorSeat,
+    RosterUpdate,
+)
+
+__all__ = ["run_monitor", "TICK_S", "ROSTER_S"]
+
+
+
+class _Stop:
+    def __init__(self):
+        self.flag = False
+
+    def __call__(self, *_):
+        self.flag = True
+
+
+
+
+def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorConfig = None,
+                log=sys.stderr, stop=None, events_out=None, precompute: bool = True,
+                signer=None) -> int:
+    """Run the monitor until stopped (SIGTERM/SIGINT). Returns the exit status.
+
+    ``events_out``: a path; every verdict and reassignment is appended as one JSON line.
+    """
+    stop = stop or _Stop()
+    if isinstance(stop, _Stop):
+        signal.signal(signal.SIGTERM, stop)
+        signal.signal(signal.SIGINT, stop)
+    # the first monitor starts its design processes at once (their imports overlap its
+    # listening time and the start handshake); a standby monitor when it first acts
+    worker = GainWorker(start=monitor_id == 1)
+    gains = GainSource(worker=worker)
+    core = MonitorCore(config or MonitorConfig(), scenario, G, delays, gains=gains)
+    stats = MessageStats()
+    run = net.run
+    ctl_schema = wire.roster_schema()
+    # a roster heard is adopted only with the run's control signature (the monitors share
+    # the control key) and within the epoch bound (MonitorCore.accept_roster)
+    verifier = None
+    if signer is not None:
+        from agent.protocol.control_auth import ControlVerifier
+
+        verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
+    status_sender = keys.AgentKeyCache(run, "status", core.agents)
+    estimate_sender = keys.AgentKeyCache(run, "est", core.agents)
+    trim_heap, trimmed = heap_trimmer(), [0.0, 0]   # time, messages dropped at the last trim
+    out_file = open(events_out, "a") if events_out else None
+    files = [out_file]                   # [the events file, None once a write failed]
+    publish = []              # the peer's put, once it is open: watchers hear every event
+
+    def record(kind, **fields):
+        event = {"kind": kind, "t": time.time(), **fields}
+        if files[0] is not None:
+            try:
+                files[0].write(json.dumps(event) + "\n")
+                files[0].flush()
+            except OSError as exc:       # a full disk: the events go on on the wire only
+                files[0] = None
+                print(f"monitor {monitor_id}: warning: cannot write {events_out}: "
+                      f"{exc.strerror}; events are published only from now on", file=log,
+                      flush=True)
+        for put in publish:
+            put(keys.monitor_events_key(run), wire.encode_monitor_event(event))
+
+    precomputing = [None]
+
+    def precompute_for(roster):
+        if precompute and precomputing[0] is not roster:
+            precomputing[0] = roster
+            worker.precompute(roster)
+
+    if monitor_id == 1:
+        precompute_for(core.roster)  # the scenario's configuration: at once, not once active
+
+    try:
+        with Peer(net, "monitor", monitor_id) as peer:
+            peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
+            publish.append(peer.put)
+            status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+            # the monitor's own observation of who is heard (MonitorCore.on_estimate_seen,
+            # weighed against a lone listener's word): the key and arrival time only, never
+            # decoded; estimates go with congestion control DROP, so a paused monitor loses
+            # its own copies and holds no agent back (measured: docs/security.md)
+            estimates_in = peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=256)
+            roster_in = peer.subscribe(keys.ctl_key(run, 0))
+            end_in = peer.subscribe(keys.end_key(run), maxlen=16)
+            watch = peer.watch_liveliness()
+            seat = MonitorSeat(core, monitor_id, time.monotonic())
+            next_roster = 0.0
+            print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
+            while not stop.flag:
+                for roster, G_new, info in worker.poll():
+                    gains.put(roster, G_new, info)
+                now = time.monotonic()
+                # the events file is written by one monitor: the smallest live id (the one
+                # that acts, or will once it has listened)
+                first = not any(role == "monitor" and i.isdigit() and int(i) < monitor_id
+                                for role, i in watch.alive())
+                for ev in watch.drain():
+                    if ev.role == "agent" and ev.id.isdigit():
+                        own = core.on_liveliness("agent", int(ev.id), ev.alive, ev.arrival,
+                                                 session=ev.session)
+                        if own is False and first:
+                            record("liveliness", agent=int(ev.id), alive=False)
+                    elif ev.role == "world":
+                        core.on_liveliness("world", ev.id, ev.any_alive, ev.arrival)
+                        if not ev.any_alive and first:
+                            record("liveliness", process="world", alive=False,
+                                   step=core.last_step_reported)
+                if stats.total_dropped - trimmed[1] > 1000 and now - trimmed[0] > TRIM_S:
+                    trim_heap()          # after a burst of malformed input: memory back
+                    trimmed[:] = [now, stats.total_dropped]
+                for item in status_in.drain():
+                    msg = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
+                    if msg is None:
+                        continue
+                    sender = status_sender.agent_of(item.key)
+                    if sender is None:
+                        stats.count_dropped("key")
+                        continue
+                    core.on_status(msg, now, sender=sender)
+                for item in estimates_in.drain():
+                    sender = estimate_sender.agent_of(item.key)
+                    if sender is not None:
+                        core.on_estimate_seen(sender, item.arrival)
+                for item in end_in.drain():
+                    msg = try_decode(item.payload, wire.END_SCHEMA, stats)
+                    if msg is not None:
+                        core.on_world_end(msg["step"])
+                for item in roster_in.drain():
+                    msg = try_decode(item.payload, ctl_schema, stats)
+                    if msg is None:
+                        continue
+                    if verifier is not None:
+                        try:
+                            verifier.check(msg, replay=False)
+                        except SignatureError as exc:
+                            core.reject("signature", 0, f"a roster (epoch {msg['epoch']}) "
+                                        f"without the run's control signature ({exc})")
+                            continue
+                    seat.on_roster(msg)
+                state = seat.decide(now, [int(i) for role, i in watch.alive()
+                                          if role == "monitor" and i.isdigit()])
+                for line in seat.lines:
+                    print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                for kind, fields in seat.records:
+                    record(kind, **fields)
+                if seat.precompute:
+                    precompute_for(core.roster)
+                seat.lines.clear()
+                seat.records.clear()
+                seat.precompute = False
+                if state == "wait":
+                    peer.wait(timeout=0.05)
+                    continue
+                active = state == "act"
+                if active:
+                    for m in core.tick(now):
+                        if isinstance(m, Assignment):
+                            sp = m.spec
+                            peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
+                                m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
+                                sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
+                                continues=sp.continues,
+                                run=run))
+                        elif isinstance(m, RosterUpdate):
+                            peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                                m.epoch, m.activate_at, m.ids, signer=signer, run=run))
+                            next_roster = now + ROSTER_S
+                    for line in core.events:
+                        print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                    core.events.clear()
+                    for kind, fields in core.new_records():
+                        if kind == "verdict":      # wall-clock time of the detection
+                            fields["detected_t"] = time.time() - (time.monotonic()
+                                                                  - fields["mono"])
+                        record(kind, **fields)
+                        if kind == "reassign":
+                            precompute_for(core.roster)
+                    if core.roster_message is not None and now >= next_roster:
+                        m = core.roster_message
+                        peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                            m.epoch, m.activate_at, m.ids, signer=signer, run=run))
+                        next_roster = now + ROSTER_S
+                if core.run_ended(now):
+                    for line in core.events:
+                        print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                    print(f"monitor {monitor_id}: the world left after step {core.last_step_reported} "
+                          "and the agents with it; exiting", file=log, flush=True)
+                    break
+                peer.wait(timeout=TICK_S)
+    finally:
+        worker.close()
+        if out_file is not None:
+            try:
+                out_file.close()
+            except OSError:              # the last buffered line did not fit either
+                pass
+    return 0
+

@@ -1,0 +1,7 @@
+"""Whole runs: :mod:`~agent.run.local` a live run on this machine and its faults,
+:mod:`~agent.run.launcher` its child processes, :mod:`~agent.run.simulated` the same
+runtime in one process under simulated time, :mod:`~agent.run.recorder` what a peer hears
+of a run, :mod:`~agent.run.folder` the run folder and its atomic writes,
+:mod:`~agent.run.summary` what the record says, :mod:`~agent.run.chaos` random fault
+schedules and the invariants a run must keep, :mod:`~agent.run.watch` attaching to a
+run."""

@@ -1,0 +1,292 @@
+"""Chaos runs: a random fault schedule drawn from a seed, and the invariants a run must keep.
+
+:func:`draw_schedule` turns ``(scenario, seed, duration, kinds, rate)`` into a list of
+:class:`agent.run.local.Fault` (the same seed gives the same schedule, on any machine);
+``socmon chaos`` runs it live with the monitor (:class:`agent.run.local.LocalRun`) and
+:func:`check_invariants` reads the recording. Every violation names the invariant, the
+step and the evidence.
+
+Invariants (the bounds are in :class:`Bounds`):
+
+- ``recovery``: after a fault that takes an agent of the configuration in force out
+  (kill, crash, a stop or partition longer than the hang timeout), whenever the plan on
+  that configuration says recovery is possible with the standbys of that moment (not
+  dead, hung, or convicted and not yet rejoined), a configuration without it that
+  measures every parent SCC is in force within ``recovery_steps``;
+- ``fencing``: no estimate that a receiver would accept comes from an agent outside the
+  configuration in force (at most one agent acts for a role at any epoch): an outsider
+  may only publish under an older epoch, which every receiver drops;
+- ``processes``: only processes that were killed exit with a non-zero status; none is
+  left running;
+- ``error``: outside ``settle_steps`` after each fault or reassignment, the mean MSE over
+  ``window`` steps stays below ``error_factor`` times the exact steady MSE of the
+  configuration in force (its gains, the run's delays);
+- ``convictions``: the monitor convicts only agents that were made faulty (killed,
+  stopped, hung, silenced sensors, partitioned), and every agent that dies holding a role.
+
+Examples
+--------
+>>> from design.scenario import load_scenario
+>>> s = load_scenario("paper-14-live")
+>>> a = draw_schedule(s, seed=3, duration=600, kinds=("kill", "stop", "monitor"), rate=4)
+>>> a == draw_schedule(s, seed=3, duration=600, kinds=("kill", "stop", "monitor"), rate=4)
+True
+>>> all(f.kind in ("kill", "stop", "monitor") for f in a)
+True
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.run.local import Fault
+from agent.monitor.core import MonitorConfig
+from agent.protocol.timing import DEFAULT as TIMING
+
+#: Scheduling slack (s) beyond a fault's verdict time before the checker requires a verdict.
+VERDICT_SLACK_S = 0.3
+
+__all__ = ["CHAOS_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
+
+#: the fault kinds ``socmon chaos`` draws from (``crash`` is the scripted variant of up)
+CHAOS_KINDS = ("kill", "stop", "hang", "sensor", "monitor", "partition", "delay", "drop")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """The stated bounds of the invariants (steps of the run)."""
+
+    recovery_steps: int = 150       # 3 s at 20 ms: hang timeout + lead + confirmations
+    settle_steps: int = 150         # error is judged this long after a fault or activation
+    window: int = 50
+    error_factor: float = 5.0
+    warmup: int = 80                # no fault before this step
+    gap: int = 160                  # at least this many steps between two faults
+
+
+@dataclass(frozen=True)
+class Violation:
+    invariant: str
+    step: int
+    evidence: str
+
+    def to_dict(self) -> dict:
+        return {"invariant": self.invariant, "step": self.step, "evidence": self.evidence}
+
+
+def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: float = 3.0,
+                  step_ms: float = 20.0, bounds: Bounds = Bounds()) -> list:
+    """A fault schedule for ``duration`` steps: about ``rate`` faults per 1000 steps.
+
+    Faults are at least ``bounds.gap`` steps apart, after ``bounds.warmup``; a killed
+    agent is never a target again; at least one agent of each parent SCC's measurers or
+    a standby is left alive (the schedule never kills the last agents), so recovery stays
+    possible. Durations (stop, partition, delay, drop) are drawn in seconds.
+    """
+    rng = np.random.default_rng([int(seed), 0xC4A05])
+    kinds = tuple(kinds)
+    if not kinds:
+        return []
+    M = scenario.N + scenario.standby
+    alive = list(range(1, M + 1))
+    count = rng.poisson(rate * duration / 1000.0)
+    slots = list(range(bounds.warmup, max(bounds.warmup, duration - bounds.gap // 2),
+                       bounds.gap))
+    rng.shuffle(slots)
+    steps = sorted(s + int(rng.integers(0, bounds.gap // 4)) for s in slots[:count])
+    out = []
+    for k in steps:
+        kind = kinds[int(rng.integers(len(kinds)))]
+        if kind == "monitor":
+            out.append(Fault(k, "monitor"))
+            continue
+        if kind == "monitorstop":
+            out.append(Fault(k, "monitorstop", 0, float(np.round(rng.uniform(0.5, 6.0), 2))))
+            continue
+        # keep at least two agents alive: one to measure, one to talk to
+        if kind in ("kill", "hang") and len(alive) <= 2:
+            kind = "stop" if "stop" in kinds else None
+        if kind is None:
+            continue
+        agent = int(alive[int(rng.integers(len(alive)))])
+        if kind in ("kill", "hang"):
+            alive.remove(agent)
+            out.append(Fault(k, kind, agent))
+        elif kind == "sensor":
+            out.append(Fault(k, "sensor", agent, float(np.round(rng.uniform(1.0, 4.0), 2))))
+        elif kind == "stop":
+            out.append(Fault(k, "stop", agent, float(np.round(rng.uniform(0.3, 3.0), 2))))
+        elif kind == "partition":
+            out.append(Fault(k, "partition", agent, float(np.round(rng.uniform(1.0, 4.0), 2))))
+        elif kind == "delay":
+            out.append(Fault(k, "delay", agent, float(np.round(rng.uniform(1.0, 2.5), 2)),
+                             float(int(rng.integers(1, 6)))))
+        elif kind == "slow":            # simulated runs only (agent.run.simulated)
+            out.append(Fault(k, "slow", agent, float(np.round(rng.uniform(1.0, 4.0), 2)),
+                             float(np.round(rng.uniform(0.5, 3.0), 2))))
+        elif kind == "drop":
+            out.append(Fault(k, "drop", agent, float(np.round(rng.uniform(1.0, 2.5), 2)),
+                             float(np.round(rng.uniform(0.1, 0.5), 2))))
+    return out
+
+
+def _roster_at(rosters, k):
+    return [r for r in rosters if r[0] <= k][-1]
+
+
+def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()) -> list:
+    """Every violation of the module's invariants in one recorded run."""
+    from design.closed_loop import exact_performance
+    from design.errors import SocmonError
+    from design.graph import influence_structure
+    from design.roster import Roster, link_delay_table, replan, roster_from_specs
+
+    from agent.run.summary import specs_in_force
+
+    c = config
+    s = c.scenario
+    out = []
+    step_s = c.step_ms / 1000.0
+    structure = influence_structure(s.A)
+    parents = {int(p) for p in structure.parents}
+    table = link_delay_table(s, c.delays)
+
+    # the configurations in force, as the recorder heard them, with their roles
+    configs = []
+    for at, ids, epoch in rec.rosters:
+        _, specs = specs_in_force(rec.rosters, rec.assigns, s, c.G, epoch=epoch)
+        try:
+            new, G, D = roster_from_specs(s, table, ids, specs)
+        except SocmonError:
+            # the recorder missed an assignment of this epoch: nothing to judge it by
+            continue
+        covered = {int(structure.labels[v]) for m in new.measure for v in m}
+        configs.append({"at": at, "ids": tuple(ids), "epoch": epoch, "scenario": new, "G": G,
+                        "D": D, "covers": parents <= covered})
+
+    # -- recovery ------------------------------------------------------------------------
+    last = steps[-1] if steps else -1
+    taken_out = []
+    for f in c.faults:
+        # a stop is convicted after the hang timeout (from its last status, a status period
+        # before the stop); a partition after its listeners' ages pass the silent bound
+        # (the link's delay plus silent_steps) and then the hang timeout
+        if f.kind in ("kill", "crash", "hang") or (
+                f.kind == "stop" and f.seconds > c.hang_timeout + TIMING.status_s
+                + VERDICT_SLACK_S) or (
+                f.kind in ("partition", "sensor") and f.seconds > 2 * c.hang_timeout
+                + (MonitorConfig.silent_steps + int(table.max())) * step_s):
+            taken_out.append(f)
+    for f in taken_out:
+        in_force = _roster_at(rec.rosters, f.step)
+        if f.agent not in in_force[1]:
+            continue
+        cfg = next((x for x in configs if x["epoch"] == in_force[2]), None)
+        if cfg is None:
+            continue
+        # the standbys then: not dead or hung, and not convicted without having rejoined
+        # since (a convicted agent is on probation: the monitor does not take it back)
+        roster = Roster(cfg["scenario"], cfg["ids"], tuple(
+            a for a in range(1, c.M + 1) if a not in cfg["ids"]
+            and not any(g.kind in ("kill", "crash", "hang") and g.agent == a
+                        and g.step <= f.step for g in c.faults)
+            and not any(v.get("agent") == a and v.get("detected_step") is not None
+                        and v["detected_step"] <= f.step
+                        and (v.get("rejoined_step") or math.inf) > f.step
+                        for v in summary.get("failures", []))), table, cfg["D"])
+        try:
+            plan, nxt = replan(roster, [f.agent])
+        except SocmonError:
+            continue
+        if nxt is None or not plan.structurally_observable_after:
+            continue
+        if f.step + bounds.recovery_steps > last:
+            continue
+        ok = any(x["at"] <= f.step + bounds.recovery_steps and x["at"] > f.step
+                 and f.agent not in x["ids"] and x["covers"] for x in configs)
+        if not ok:
+            out.append(Violation("recovery", f.step, f"{f.kind} of agent {f.agent}: no "
+                                 f"configuration without it measuring every parent SCC within "
+                                 f"{bounds.recovery_steps} steps"))
+
+    # -- fencing ---------------------------------------------------------------------------
+    # an agent outside the configuration in force may still publish (a stopped agent that
+    # resumes catches up on its old role before it hears the roster), but only under an
+    # older epoch, which every receiver drops; the estimate a replacement takes over is
+    # published stamped activate_at - 1 under the new epoch
+    starts = {(a, at - 1) for at, ids, _ in rec.rosters[1:] for a in ids}
+    for a, by_step in rec.est.items():
+        for k in sorted(by_step):
+            at, ids, epoch = _roster_at(rec.rosters, k)
+            e = rec.est_epoch[a].get(k, 0)
+            if a not in ids and e >= epoch and (a, k) not in starts:
+                out.append(Violation("fencing", k, f"agent {a} published step {k} under epoch "
+                                     f"{e}, outside the configuration of epoch {epoch} "
+                                     f"{list(ids)} (in force from step {at})"))
+                break
+        epochs = [rec.est_epoch[a][k] for k in sorted(rec.est_epoch.get(a, {}))]
+        down = next((i for i in range(1, len(epochs)) if epochs[i] < epochs[i - 1]), None)
+        if down is not None:
+            out.append(Violation("fencing", sorted(rec.est_epoch[a])[down],
+                                 f"agent {a}'s epoch went down from {epochs[down - 1]} to "
+                                 f"{epochs[down]}"))
+    rosters_epochs = [ep for _, _, ep in rec.rosters]
+    if rosters_epochs != sorted(set(rosters_epochs)):
+        out.append(Violation("fencing", -1, f"roster epochs not increasing: {rosters_epochs}"))
+    # -- processes -------------------------------------------------------------------------
+    killed = {f"agent-{f.agent}" for f in c.faults if f.kind in ("kill", "crash")}
+    monitors = {name for name in summary["exit_status"] if name.startswith("monitor")}
+    for name, code in summary["exit_status"].items():
+        if code not in (0, None) and name not in killed and not (
+                name in monitors and any(f.kind in ("monitor", "monitorsgone")
+                                         for f in c.faults)):
+            out.append(Violation("processes", -1, f"{name} exited with status {code}"))
+    for name in summary["orphans"]:
+        out.append(Violation("processes", -1, f"{name} was still running at the end"))
+
+    # -- error -----------------------------------------------------------------------------
+    marks = sorted([f.step for f in c.faults] + [x["at"] for x in configs[1:]]
+                   + [v["detected_step"] for v in summary.get("failures", [])
+                      if v.get("detected_step") is not None])
+    mse_at = dict(zip(steps, mse))
+    predicted = {}
+    for x in configs:
+        try:
+            predicted[x["epoch"]] = exact_performance(x["scenario"], x["G"],
+                                                      x["D"]).mse_or_inf
+        except (SocmonError, ValueError):
+            predicted[x["epoch"]] = math.inf
+    k = 0
+    while k + bounds.window <= last:
+        span = range(k, k + bounds.window)
+        quiet = all(not (m <= j < m + bounds.settle_steps) for j in span for m in marks) \
+            and k >= bounds.settle_steps
+        if quiet:
+            epochs = {_roster_at(rec.rosters, j)[2] for j in span}
+            if len(epochs) == 1:
+                e = epochs.pop()
+                vals = [mse_at[j] for j in span if j in mse_at and math.isfinite(mse_at[j])]
+                bound = bounds.error_factor * predicted.get(e, math.inf)
+                if vals and np.mean(vals) > bound:
+                    out.append(Violation("error", k, f"mean MSE {np.mean(vals):.4g} over steps "
+                                         f"{k}..{k + bounds.window - 1} > {bounds.error_factor:g}"
+                                         f" x exact {predicted[e]:.4g} (epoch {e})"))
+        k += bounds.window
+
+    # -- convictions -------------------------------------------------------------------------
+    faulty = {f.agent for f in c.faults
+              if f.kind in ("kill", "crash", "stop", "hang", "sensor", "partition")}
+    for v in summary.get("failures", []):
+        if v.get("detected") is False:
+            if v.get("role") == "active":
+                out.append(Violation("convictions", v["died_step"],
+                                     f"agent {v['agent']} died holding a role and was never "
+                                     f"convicted ({v['why']})"))
+        elif v["agent"] and v["agent"] not in faulty:
+            out.append(Violation("convictions", v["detected_step"],
+                                 f"agent {v['agent']} convicted ({v['cause']}: "
+                                 f"{v.get('evidence')}) but no fault was injected into it"))
+    return out

@@ -1,0 +1,591 @@
+"""A whole live run on this machine: its configuration, its processes, its faults, its record.
+
+:class:`RunConfig` is everything a run is (frozen, checked by the command that builds
+it); :class:`LocalRun` starts the world, one process per agent and the monitor (each in
+its own process group, :class:`agent.run.launcher.Children`), joins the mesh as the
+recorder (:class:`agent.run.recorder.Recorder`, which ``socmon watch`` uses too), injects
+the scheduled :class:`Fault` s at their steps, and returns a :class:`Recording`;
+:func:`agent.run.summary.summarize` turns that into the summary. ``socmon up`` and
+``socmon chaos`` are both this.
+
+The run folder gets ``manifest.json`` (what every child checks: the scenario's digest,
+the gains file's digest, delays, seed; see :mod:`agent.protocol.manifest`) before the children
+start, and ``run.json`` (:mod:`agent.run.folder`: run id, every process's endpoint and
+PID, keys) once they are up, so that other tools can attach (``--attach RUN_DIR``).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from broker_free_net import keys
+from broker_free_net.config import NetConfig
+from broker_free_net.impair import encode_impairment
+from broker_free_net.peer import Peer
+
+from broker_free_net.ports import listen_port
+
+from agent.run.launcher import Children
+from agent.testbed.netns import host_names, host_of
+from agent.run.recorder import Recorder, Recording
+from agent.protocol.timing import DEFAULT as TIMING
+
+__all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS",
+           "PROCESS_FAULTS"]
+
+#: crash: the agent SIGKILLs itself after publishing step STEP-1 (reproducible);
+#: kill: SIGKILL from outside at STEP; stop: SIGSTOP for ``seconds`` then SIGCONT;
+#: monitor: SIGKILL the monitor and start it again; partition: every link out of the
+#: agent cut for ``seconds``; delay: ``value`` steps of delay on every link into the
+#: agent for ``seconds``; drop: drop probability ``value`` on every link into the agent
+#: for ``seconds``.
+#: hang: the agent's loop stops for good (SIGUSR1) while its token stays; sensor: the
+#: agent's sensor readings stop (the world's link into it cut) for ``seconds``.
+#: linkdown: the agent's host's link brought down for ``seconds`` (a real partition; a run
+#: on a testbed of network namespaces only, :mod:`agent.testbed.netns`).
+#: monitorsgone: every monitor (active and standby) SIGKILLed, none started again.
+FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
+               "drop", "linkdown", "worldstop", "monitorstop", "monitorsgone")
+#: The kinds that act on a process other than an agent (no AGENT in ``--fault``).
+PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop", "monitorsgone")
+
+
+@dataclass(frozen=True, order=True)
+class Fault:
+    step: int
+    kind: str
+    agent: int = 0
+    seconds: float = 0.0
+    value: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"step": self.step, "kind": self.kind, "agent": self.agent,
+                "seconds": self.seconds, "value": self.value}
+
+    def describe(self) -> str:
+        """What a scheduled fault does, for the progress lines.
+
+        >>> Fault(500, "monitor").describe()
+        'monitor killed (SIGKILL), started again'
+        >>> Fault(300, "delay", 2, 5.0, 3.0).describe()
+        'links into agent 2 delayed by 3 steps for 5 s'
+        """
+        what = {
+            "crash": "agent {a} crashes (scripted)",
+            "kill": "agent {a} killed (SIGKILL)",
+            "hang": "agent {a} loop hung (SIGUSR1)",
+            "stop": "agent {a} stopped (SIGSTOP)",
+            "sensor": "agent {a} sensor readings cut",
+            "monitor": "monitor killed (SIGKILL), started again",
+            "partition": "agent {a} partitioned (its outgoing links cut)",
+            "delay": "links into agent {a} delayed by {v:g} steps",
+            "drop": "links into agent {a} drop a fraction {v:g}",
+            "linkdown": "agent {a} host link down",
+            "worldstop": "world stopped (SIGSTOP)",
+            "monitorstop": "monitor stopped (SIGSTOP)",
+            "monitorsgone": "every monitor killed (SIGKILL), none started again",
+        }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
+        return what + (f" for {self.seconds:g} s" if self.seconds else "")
+
+
+@dataclass(frozen=True, eq=False)
+class RunConfig:
+    """Everything a local run is; built and checked by the command line."""
+
+    scenario: object
+    scenario_arg: str
+    G: list
+    gains_path: Path
+    delays: np.ndarray
+    delays_spec: str
+    steps: int
+    seed: int
+    step_ms: float
+    deadline_ms: float
+    out: Path
+    monitor: bool = True
+    #: monitors started (ids 1..monitors; the smallest live id acts, the others stand by
+    #: and take over when it dies or is paused past the link lease)
+    monitors: int = 2
+    hang_timeout: float = TIMING.hang_timeout_s
+    hang_timeout_max: float = TIMING.hang_timeout_max_s
+    drop: float = 0.0
+    faults: tuple = ()
+    start_timeout: float = TIMING.start_timeout_s
+    secure: bool = False
+    #: an :class:`agent.testbed.netns.Testbed` (made and removed by the caller) with the hosts of
+    #: :func:`agent.testbed.netns.host_names`: each process, the recorder included, on its own host
+    testbed: object = None
+    run_id: str | None = None        # default: a fresh id
+    listen: str | None = None        # the recorder's endpoint (every child connects to it)
+    #: one ``socmon router`` process; every other process is its client (no peer mesh)
+    router: bool = False
+
+    @property
+    def M(self) -> int:
+        return self.scenario.N + self.scenario.standby
+
+    @property
+    def abort_on_exit(self) -> bool:
+        """Without a monitor or scripted faults a dead process ends the run."""
+        return not self.monitor and not self.faults
+
+
+class RunFailed(Exception):
+    pass
+
+
+class LocalRun:
+    """Start, fault, record and stop one run; :meth:`run` returns a :class:`Recording`."""
+
+    def __init__(self, config: RunConfig, say=lambda text: None):
+        self.config = config
+        self.say = say
+
+    # -- argv of the children ----------------------------------------------------------
+    def _argv(self, rec, ep):
+        c = self.config
+        common = ["--run", rec.run_id, "--connect", ep[0], "--seed", str(c.seed),
+                  "--manifest", str((c.out / "manifest.json").resolve())]
+        if c.secure:
+            common += ["--keys", str((c.out / "keys").resolve())]
+        crash_at = {f.agent: f.step for f in c.faults if f.kind == "crash"}
+        out = {"world": ["world", c.scenario_arg, *common, "--listen", ep[1],
+                         "--steps", str(c.steps), "--step-ms", str(c.step_ms),
+                         "--start-timeout", str(c.start_timeout)]}
+        for a in range(1, c.M + 1):
+            argv = ["agent", c.scenario_arg, "--id", str(a), *common, "--listen", ep[a + 1],
+                    "--connect", ep[1], "--delays", c.delays_spec,
+                    "--deadline-ms", str(c.deadline_ms)]
+            if a <= c.scenario.N:
+                argv += ["--gains", str(c.gains_path)]
+            if c.drop:
+                argv += ["--drop", repr(c.drop)]
+            if a in crash_at:
+                argv += ["--crash-at", str(crash_at[a])]
+            out[f"agent-{a}"] = argv
+        out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
+                          "--gains", str(c.gains_path), "--delays", c.delays_spec,
+                          "--hang-timeout", str(c.hang_timeout),
+                          "--hang-timeout-max", str(c.hang_timeout_max), "--step-ms", str(c.step_ms),
+                          "--events", str((c.out / "events.jsonl").resolve()),
+                          "--control-key", str((c.out / "control.key").resolve())]
+        return out
+
+    # -- the run -------------------------------------------------------------------------
+    def run(self) -> Recording:
+        if self.config.testbed is None:
+            return self._run()
+        with self.config.testbed.inside("recorder"):     # the recorder's peer is there
+            return self._run()
+
+    def _host_ip(self, process):
+        tb = self.config.testbed
+        return "127.0.0.1" if tb is None else tb.ip(host_of(process))
+
+    def _wrap(self, process):
+        tb = self.config.testbed
+        return () if tb is None else tb.exec_prefix(host_of(process))
+
+    def _run(self) -> Recording:
+        from agent.protocol.manifest import write_manifest
+
+        c = self.config
+        K, N, M = c.steps, c.scenario.N, c.M
+        from agent.protocol.control_auth import ControlSigner
+        from design.plausibility import StateScale
+
+        signer = ControlSigner.generate()       # the run's control key: the monitor's
+        # the recorder keeps only the rosters and assignments this key signed
+        recorder = Recorder(c.run_id or f"up{os.getpid()}x{random.randrange(10**6)}",
+                            c.scenario.n, N, M,
+                            ports=[listen_port() for _ in range(
+                                M + 3 + c.router + max(c.monitors - 1, 0))],
+                            control_public=signer.public_bytes(),
+                            scale=StateScale(c.scenario.A, c.scenario.process_noise,
+                                             c.scenario.measurement_noise))
+        rec = recorder.recording
+        scheme = "tls" if c.secure else "tcp"
+        ep = [f"{scheme}/{self._host_ip(name)}:{p}"
+              for name, p in zip(host_names(M), rec.ports)]
+        if c.router:                   # the router listens on loopback (not with --netns)
+            ep.append(f"{scheme}/127.0.0.1:{rec.ports[M + 3]}")
+        # standby monitors: on the monitor's host, after the router's endpoint
+        standby_ep = [f"{scheme}/{self._host_ip('monitor')}:{p}"
+                      for p in rec.ports[M + 3 + c.router:]]
+        if c.listen:
+            ep[0] = c.listen
+        net_extra = {}
+        if c.secure:
+            from broker_free_net.security import make_run_keys, run_identities
+
+            make_run_keys(c.out / "keys", rec.run_id, run_identities(M))
+            net_extra = {"keys": str((c.out / "keys").resolve()), "identity": "recorder"}
+        operator = ControlSigner.generate()     # the operator's (impairments): this run's
+        for name, key in (("control.key", signer), ("operator.key", operator)):
+            key_path = c.out / name
+            key_path.touch(mode=0o600)
+            key_path.write_bytes(key.private_bytes())
+        write_manifest(c.out / "manifest.json", c.scenario, c.gains_path, c.seed,
+                       c.delays_spec, c.delays, rec.run_id, signer.public_bytes(),
+                       operator.public_bytes())
+        children = rec.children = Children(c.out / "logs")
+        argv = self._argv(rec, ep)
+        router_ep = ep[M + 3] if c.router else None
+        if c.router:
+            argv = {name: _through_router(a, router_ep) for name, a in argv.items()}
+            net_extra = {"mode": "client", "connect": (router_ep,)}
+        pending = sorted(c.faults)
+        undo = []                      # (time, action) of faults that end after seconds
+        restarts = 0
+
+        def on_term(*_):
+            raise KeyboardInterrupt
+
+        old_term = signal.signal(signal.SIGTERM, on_term)
+        # Ctrl-C must stop the run even when SIGINT was inherited as ignored (a background
+        # job of a non-interactive shell starts that way, and Python keeps an inherited
+        # SIG_IGN)
+        old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+        t_begin = time.monotonic()
+        try:
+            if c.router:        # up before its clients, which try it for 10 s only
+                children.start("router", ["router", "--listen", router_ep])
+                _wait_listening(children, "router", c.start_timeout)
+            with Peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
+                      "recorder", 0) as peer:
+                recorder.subscribe(peer)
+                alive_watch = peer.watch_liveliness()
+                impair_key = keys.impair_key(rec.run_id)
+                peer.publisher(impair_key, block=True)
+                children.start("world", argv["world"], self._wrap("world"))
+                for a in range(1, M + 1):
+                    children.start(f"agent-{a}", argv[f"agent-{a}"], self._wrap(f"agent-{a}"))
+                if c.monitor:
+                    children.start("monitor", argv["monitor"], self._wrap("monitor"))
+                    for i, sep in enumerate(standby_ep, start=2):
+                        children.start(f"monitor.{i}", _standby_monitor(argv["monitor"], i,
+                                                                        sep),
+                                       self._wrap("monitor"))
+                self._write_run_json(rec, ep)
+                self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}): "
+                         f"world + {N} agents + {c.scenario.standby} standby"
+                         + (f" + {c.monitors} monitors (1 active, {c.monitors - 1} standing "
+                            "by)" if c.monitor and c.monitors > 1
+                            else " + monitor" if c.monitor else "")
+                         + " started; waiting for all to be "
+                         f"ready (clock starts then), {K} steps of {c.step_ms:g} ms")
+
+                drain = recorder.drain
+
+                def event(**fields):
+                    rec.events.append({**fields, "t": time.time()})
+
+                def impair(src, dst, **params):
+                    peer.put(impair_key, encode_impairment(
+                        "set", src, dst, sign=lambda m: operator.sign(m, rec.run_id), **params))
+
+                def impair_links(agent, outgoing, **params):
+                    """Every link out of (``outgoing``) or into ``agent``."""
+                    for b in range(1, M + 1):
+                        if b != agent:
+                            impair(*((agent, b) if outgoing else (b, agent)), **params)
+
+                def inject(f, k_now, now):
+                    name = f"agent-{f.agent}"
+                    if f.kind == "kill":
+                        _signal(children, name, signal.SIGKILL)
+                        event(process=name, signal="SIGKILL", step=k_now)
+                    elif f.kind == "hang":
+                        _signal(children, name, signal.SIGUSR1)
+                        event(process=name, signal="SIGUSR1", step=k_now)
+                    elif f.kind == "sensor":
+                        impair(0, f.agent, partition=True)
+                        event(process=name, impair="sensor cut", step=k_now)
+                        undo.append((now + f.seconds, f))
+                    elif f.kind == "stop":
+                        _signal(children, name, signal.SIGSTOP)
+                        event(process=name, signal="SIGSTOP", step=k_now)
+                        undo.append((now + f.seconds, f))
+                    elif f.kind in ("worldstop", "monitorstop"):
+                        proc = "world" if f.kind == "worldstop" else (
+                            "monitor" if not restarts else f"monitor-{restarts + 1}")
+                        _signal(children, proc, signal.SIGSTOP)
+                        event(process=proc, signal="SIGSTOP", step=k_now)
+                        undo.append((now + f.seconds, f))
+                    elif f.kind == "monitorsgone":
+                        for ch in children.running():
+                            if ch.name.startswith("monitor"):
+                                _signal(children, ch.name, signal.SIGKILL)
+                                event(process=ch.name, signal="SIGKILL", step=k_now)
+                    elif f.kind == "monitor" and c.monitor:
+                        _signal(children, "monitor" if not restarts else
+                                f"monitor-{restarts + 1}", signal.SIGKILL)
+                        event(process="monitor", signal="SIGKILL", step=k_now)
+                        undo.append((now, f))        # start it again at once
+                    elif f.kind in ("partition", "delay", "drop"):
+                        if f.kind == "partition":
+                            impair_links(f.agent, True, partition=True)
+                        elif f.kind == "delay":
+                            impair_links(f.agent, False, delay_steps=int(f.value))
+                        else:
+                            impair_links(f.agent, False, drop=float(f.value))
+                        event(process=name, step=k_now, impair=f.kind if f.kind == "partition"
+                              else f"{f.kind} {f.value:g}")
+                        undo.append((now + f.seconds, f))
+                    elif f.kind == "linkdown":
+                        c.testbed.set_link(name, up=False)
+                        event(process=name, link="down", step=k_now)
+                        undo.append((now + f.seconds, f))
+                    self.say(f"step {k_now}: {f.describe()}")
+
+                def end(f, k_now):
+                    nonlocal restarts
+                    name = f"agent-{f.agent}"
+                    if f.kind == "stop":
+                        _signal(children, name, signal.SIGCONT)
+                        event(process=name, signal="SIGCONT", step=k_now)
+                    elif f.kind in ("worldstop", "monitorstop"):
+                        proc = "world" if f.kind == "worldstop" else (
+                            "monitor" if not restarts else f"monitor-{restarts + 1}")
+                        _signal(children, proc, signal.SIGCONT)
+                        event(process=proc, signal="SIGCONT", step=k_now)
+                    elif f.kind == "monitor":
+                        old = "monitor" if not restarts else f"monitor-{restarts + 1}"
+                        if not _wait_exit(children, old, 10.0):
+                            raise RunFailed(f"{old} did not exit within 10 s of SIGKILL; "
+                                            "not starting a second monitor beside it")
+                        restarts += 1
+                        children.start(f"monitor-{restarts + 1}", argv["monitor"],
+                                       self._wrap("monitor"))
+                        event(process=f"monitor-{restarts + 1}", started=True, step=k_now)
+                    elif f.kind == "sensor":
+                        impair(0, f.agent, partition=False)
+                        event(process=name, impair="sensor restored", step=k_now)
+                    elif f.kind == "partition":
+                        impair_links(f.agent, True, partition=False)
+                        event(process=name, impair="healed", step=k_now)
+                    elif f.kind == "linkdown":
+                        c.testbed.set_link(name, up=True)
+                        event(process=name, link="up", step=k_now)
+                    elif f.kind in ("delay", "drop"):
+                        from design.roster import link_delay_table
+
+                        table = link_delay_table(c.scenario, c.delays)
+                        for b in range(1, M + 1):
+                            if b != f.agent:
+                                impair(b, f.agent, delay_steps=int(table[f.agent - 1, b - 1]),
+                                       drop=0.0)
+                        event(process=name, impair="restored", step=k_now)
+
+                world_end = None
+                next_progress, disk_warned = time.monotonic() + 1.0, False
+                silence_said = False
+                start_deadline = time.monotonic() + c.start_timeout + 30.0
+                while True:
+                    peer.wait(timeout=0.05)
+                    drain()
+                    for child in children.reap():
+                        if child.name == "world" and child.returncode == 0:
+                            world_end = time.monotonic()
+                        elif child.name in ("world", "router") or (world_end is None
+                                                                   and c.abort_on_exit) \
+                                or not rec.truth:
+                            # before the clock starts every child is needed: the world
+                            # would wait its whole start timeout for this one
+                            when = "the end of the run" if rec.truth else "the clock started"
+                            raise RunFailed(f"{child.name} exited with status "
+                                            f"{child.returncode} before {when}; "
+                                            f"its log ends:\n{children.tail(child.name)}")
+                        elif world_end is None and child.name.startswith("agent-") and \
+                                child.returncode == 1 and \
+                                _world_silent_for(recorder) > TIMING.agent_world_gone_s:
+                            # the agents leave a world silent for Timing.world_silent_s
+                            silent = _world_silent_for(recorder)
+                            rec.world_silent = {"step": recorder.step, "seconds": silent}
+                            raise RunFailed(
+                                f"the world went silent after step {recorder.step} and stayed "
+                                f"so {silent:.0f} s (paused or cut off); {child.name} left it "
+                                f"(Timing.world_silent_s = {TIMING.world_silent_s:g} s): the "
+                                "run ends there")
+                        elif world_end is None:
+                            k_now = recorder.step
+                            event(process=child.name, exit_status=child.returncode, step=k_now)
+                            self.say(f"{child.name} exited with status {child.returncode} "
+                                     f"at step {k_now}; the run goes on")
+                    for ev in alive_watch.drain():
+                        if ev.role == "monitor" and world_end is None and c.monitor:
+                            change = recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                            if change == "none":
+                                self.say(f"WARNING: no monitor alive at step {recorder.step}:"
+                                         " a failure from now on is neither detected nor "
+                                         "recovered")
+                            elif change == "back":
+                                self.say(f"a monitor is alive again at step {recorder.step}")
+                    now = time.monotonic()
+                    k_now = recorder.step
+                    while pending and k_now >= pending[0].step:
+                        f = pending.pop(0)
+                        if f.kind != "crash":
+                            inject(f, k_now, now)
+                    for item in sorted(u for u in undo if u[0] <= now):
+                        undo.remove(item)
+                        end(item[1], k_now)
+                    if not rec.truth and now > start_deadline:
+                        raise RunFailed(f"the clock did not start within {c.start_timeout:g} s;"
+                                        f" world log:\n{children.tail('world')}")
+                    running = {ch.name for ch in children.running()}
+                    in_force = set(rec.rosters[-1][1])
+                    active = [a for a in range(1, M + 1) if f"agent-{a}" in running
+                              and a in in_force and rec.status.get(a, {}).get("active", a <= N)]
+                    done = K in rec.truth and all(K in rec.est[a] for a in active)
+                    if done or (world_end is not None and now - world_end > 5.0):
+                        break
+                    if now >= next_progress and rec.truth:
+                        next_progress = now + 1.0
+                        silent = _world_silent_for(recorder)
+                        if silent > TIMING.agent_world_gone_s and not silence_said:
+                            silence_said = True
+                            self.say(f"WARNING: the world has been silent since step "
+                                     f"{recorder.step} ({silent:.0f} s): paused or cut off; "
+                                     f"the agents wait up to {TIMING.world_silent_s:g} s")
+                        elif silent < 1.0 and silence_said:
+                            silence_said = False
+                            self.say(f"the world is back at step {recorder.step}")
+                        if c.out is not None and not disk_warned and _disk_full(c.out):
+                            disk_warned = True
+                            self.say(f"WARNING: the disk of {str(c.out)!r} is full at step "
+                                     f"{k_now}: the processes' logs lose lines and the run "
+                                     "folder may not be written at the end; the run goes on")
+                        st = rec.status.values()
+                        self.say(f"step {k_now}/{K}  drops {sum(s['drops'] for s in st)}  "
+                                 f"late {sum(s['late'] for s in st)}")
+                for _, f in list(undo):           # faults still in force end with the run
+                    if f.kind != "monitor":
+                        end(f, recorder.step)
+                # final statuses: ask the agents to stop, then read what they said last
+                # (the router last: the final statuses pass through it)
+                last = [ch.name for ch in children.running() if ch.name != "router"]
+                for sig in (signal.SIGCONT, signal.SIGTERM):
+                    for name in last:
+                        _signal(children, name, sig)
+                deadline = time.monotonic() + 5.0
+                while ({ch.name for ch in children.running()} - {"router"}
+                       and time.monotonic() < deadline):
+                    peer.wait(timeout=0.1)
+                    drain()
+                drain()
+        except KeyboardInterrupt:
+            rec.interrupted = True
+            rec.failure = "interrupted"
+        except RunFailed as exc:
+            rec.failure = str(exc)
+        finally:
+            children.signal_all(signal.SIGCONT)      # a stopped child cannot act on SIGTERM
+            children.stop_all()
+            signal.signal(signal.SIGTERM, old_term)
+            signal.signal(signal.SIGINT, old_int)
+        rec.wall = time.monotonic() - t_begin
+        return rec
+
+    def _write_run_json(self, rec, ep):
+        from agent.run.folder import write_run_json
+
+        c = self.config
+        names = host_names(c.M) + (["router"] if c.router else [])
+        procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)
+                 if not c.router or name == "router"}     # clients do not listen
+        for name, child in rec.children.children.items():
+            procs.setdefault(name, {})["pid"] = child.proc.pid
+            args = list(child.proc.args)       # socmon's own argv: after ... -m agent.cli
+            procs[name]["argv"] = args[args.index("agent.cli") + 1:] if "agent.cli" in args \
+                else args
+        if c.testbed is not None:         # attach with `ip netns exec NETNS socmon ...`
+            for name in procs:
+                procs[name]["netns"] = c.testbed.namespace(host_of(name))
+        write_run_json(c.out, run=rec.run_id, connect=ep[-1] if c.router else ep[0],
+                       processes=procs, scenario=c.scenario.name, scenario_arg=c.scenario_arg,
+                       keys=c.out / "keys" if c.secure else None,
+                       operator_key=c.out / "operator.key", control_key=c.out / "control.key",
+                       manifest=c.out / "manifest.json", gains=c.gains_path, seed=c.seed,
+                       delays=c.delays_spec, steps=c.steps, step_ms=c.step_ms)
+
+
+def _world_silent_for(recorder) -> float:
+    """Seconds since the newest step of the truth came (0 before the clock starts)."""
+    at = recorder.truth_at
+    return 0.0 if at is None else time.monotonic() - at
+
+
+def _disk_full(folder, room: int = 1 << 20) -> bool:
+    """True when the file system of ``folder`` has less than ``room`` bytes free."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < room
+
+
+def _through_router(argv, router_ep):
+    """The argv of a child of a routed run: no --listen, one --connect (the router)."""
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("--listen", "--connect"):
+            skip = True
+        else:
+            out.append(arg)
+    return out + ["--mode", "client", "--connect", router_ep]
+
+
+def _wait_listening(children, name, timeout):
+    """Wait until child ``name`` logs that it listens (``socmon router`` prints it)."""
+    child = children.children[name]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        children.reap()
+        if "listening on" in child.log_path.read_text(errors="replace"):
+            return
+        if child.returncode is not None:
+            raise RunFailed(f"{name} exited with status {child.returncode} before it listened;"
+                            f" its log ends:\n{children.tail(name)}")
+        time.sleep(0.05)
+    raise RunFailed(f"{name} did not listen within {timeout:g} s; its log ends:\n"
+                    f"{children.tail(name)}")
+
+
+def _standby_monitor(argv, monitor_id: int, listen: str) -> list:
+    """The argv of standby monitor ``monitor_id``: the monitor's, with its own id and
+    listen endpoint (a router run rewrites it like every other child's)."""
+    out = list(argv)
+    if "--listen" in out:
+        out[out.index("--listen") + 1] = listen
+    return out[:2] + ["--id", str(monitor_id)] + out[2:]      # after "monitor SCENARIO"
+
+
+def _signal(children, name, sig):
+    child = children.children.get(name)
+    if child is not None and child.returncode is None:
+        try:
+            os.killpg(child.proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def _wait_exit(children, name, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        children.reap()
+        child = children.children.get(name)
+        if child is None or child.returncode is not None:
+            return True
+        time.sleep(0.01)
+    return False

@@ -1,0 +1,707 @@
+"""The whole runtime in one process under simulated time: world, agents and monitor cores
+wired by an event queue, with link latency, crashes, hangs and pauses, and no zenoh.
+
+What runs is what the processes run: :class:`agent.node.core.AgentCore`,
+:class:`agent.world.core.WorldCore` and :class:`agent.monitor.core.MonitorCore`, fed with
+messages that go through the same codec (:mod:`agent.protocol.wire`, encoded by the sender and
+decoded by the receiver) at the times the simulated network delivers them. The monitor's
+record is :meth:`MonitorCore.new_records`, as the monitor process writes it, and the run is
+summarised by :func:`agent.run.summary.summarize`, the code that writes a live run's
+``summary.json``: ``recovered``, the rosters in force and the MSE after recovery are read
+from what the simulated agents computed, as they are for a live run.
+
+A run of 600 steps of paper-14-live takes well under a second of CPU once the gains it
+needs are designed, so thousands of fault schedules can be checked
+(``tests/test_sim_runtime.py``, ``scripts/sim_chaos.py``).
+
+The model of the transport: every message takes ``latency_s`` plus a uniform jitter of
+``jitter_s`` per link, in order per link (zenoh's links are TCP); a dead process receives
+nothing; a paused one receives its messages when it resumes. A liveliness token goes at
+once when its process dies (the kernel closes its sockets), ``lease_s`` after it stopped
+(zenoh's link lease), and comes back when a paused process resumes. Gains the monitor asks
+for come ``design_s`` after the request; the failures of the configuration in force are
+precomputed as the monitor's worker does, one every ``precompute_s`` (designed at once in
+real time and cached across runs by configuration).
+
+Faults are ``up``'s (:class:`agent.run.local.Fault`, :data:`FAULT_KINDS`): ``crash``
+(the agent dies once it published step ``step - 1``, as ``up --kill STEP:AGENT``),
+``kill`` (SIGKILL when the world reaches ``step``), ``hang``
+(at the world's ``step`` the agent's loop stops for good; its token stays), ``stop``
+(SIGSTOP for ``seconds``: the token lapses after ``lease_s`` and comes back, the backlog is
+processed at once), and the impairments of ``up --fault`` for ``seconds`` (``sensor``: the
+world's link into the agent cut; ``partition``: every link out of it; ``delay``/``drop``:
+every link into it delayed by ``value`` steps or dropping a fraction ``value``), sent as
+impairment messages the agents apply themselves; and ``slow`` (simulated only: a process
+short of CPU, as beside busy loops): for ``seconds``, every message the agent handles costs
+``value`` ms of its time, one after the other, so its steps come late once the messages of
+a step cost more than the step.
+
+>>> from design.scenario import load_scenario
+>>> import numpy as np
+>>> s = load_scenario("paper-14-live")
+>>> G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+>>> from agent.run.local import Fault
+>>> result = SimRuntime(s, G, s.delays, seed=1, faults=[Fault(150, "crash", 1)]).run(400)
+>>> [(f["agent"], f["cause"]) for f in result.summary["failures"]], result.summary["recovered"]
+([(1, 'crash')], True)
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from broker_free_net import keys
+from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.impair import decode_impairment, encode_impairment
+
+from agent.protocol import wire
+from agent.node.core import AgentCore, AssignmentError, agent_config
+from agent.world.core import WorldCore
+from agent.monitor.core import (
+    LISTEN_S,
+    ROSTER_S,
+    TICK_S,
+    Assignment,
+    GainSource,
+    MonitorConfig,
+    MonitorCore,
+    MonitorSeat,
+    RosterUpdate,
+)
+from agent.protocol.timing import DEFAULT as TIMING
+
+__all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS", "run_schedules",
+           "report_lines"]
+
+#: The kinds of :class:`agent.run.local.Fault` a simulated run applies.
+FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop",
+               "slow", "monitor", "monitorstop", "monitorsgone")
+#: The kinds that act on the monitors (the acting one, or all for ``monitorsgone``).
+MONITOR_FAULTS = ("monitor", "monitorstop", "monitorsgone")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated network and process periods (seconds)."""
+
+    step_s: float = 0.02
+    latency_s: float = 0.001
+    jitter_s: float = 0.002
+    lease_s: float = 1.0
+    status_s: float = TIMING.status_s
+    tick_s: float = TICK_S               # the monitor's loop
+    roster_s: float = ROSTER_S           # the roster re-published
+    design_s: float = 0.5                # a gain requested by the monitor comes this late
+    precompute_s: float = 0.3            # each precomputed failure's gain takes this long
+    monitors: int = 2                    # as up: the first acts, the others stand by
+    listen_s: float = LISTEN_S           # a (re)started monitor listens before it acts
+    start_s: float = 0.5                 # the world's first step (agents heard each other)
+    deadline_s: float | None = None      # agents' deadline; default one step
+
+
+@dataclass
+class SimResult:
+    """A simulated run: the recording (:class:`agent.run.recorder.Recording`), its summary
+    (the keys of a live run's ``summary.json``), the MSE per step, and the monitors."""
+
+    recording: object
+    summary: dict
+    steps: list
+    mse: list
+    monitors: dict                       # id -> the newest monitor of that id (core, seat)
+    config: object = None                # the run as an agent.run.local.RunConfig
+
+    def violations(self, bounds=None) -> list:
+        """:func:`agent.run.chaos.check_invariants` of this run (what ``socmon chaos``
+        checks on a live run)."""
+        from agent.run.chaos import Bounds, check_invariants
+
+        return check_invariants(self.config, self.recording, self.summary, self.steps,
+                                self.mse, bounds or Bounds())
+
+
+class _GainDesigns:
+    """The monitor's gain worker under simulated time: a request is designed at once (in
+    real time, cached by model and configuration across runs) and answered ``design_s``
+    later."""
+
+    cache: dict = {}
+
+    def _design(self, roster, kind):
+        from agent.monitor.core import design_gains_for
+
+        key = (roster.scenario.A.tobytes(), GainSource.key(roster), kind)
+        if key not in self.cache:
+            self.cache[key] = design_gains_for(roster, kind)
+        return self.cache[key]
+
+    def __init__(self, runtime):
+        self.rt = runtime
+        self.ready: list = []
+        self.generation = 0
+
+    def _answer(self, roster, kinds):
+        for kind in kinds:
+            G, info = self._design(roster, kind)
+            self.rt.after(self.rt.config.design_s,
+                          lambda G=G, info=info: self.ready.append((roster, G, info)))
+
+    def request(self, roster, kinds=("fast",)):
+        self._answer(roster, kinds)
+
+    def assess(self, roster, G, info):
+        pass                                   # the exact MSE of a fast gain: not needed here
+
+    def precompute(self, roster):
+        """The failures of ``roster`` planned (:func:`agent.monitor.gain_worker.plan_failures`,
+        as the monitor's worker does) and their fast gains answered one after the other,
+        ``precompute_s`` apart; a newer precompute abandons the rest of an older one."""
+        from agent.monitor.gain_worker import plan_failures
+
+        self.generation += 1
+        generation = self.generation
+        for i, (_, nxt) in enumerate(plan_failures(roster), start=1):
+            G, info = self._design(nxt, "fast")
+            self.rt.after(i * self.rt.config.precompute_s,
+                          lambda G=G, info=info, nxt=nxt: generation == self.generation
+                          and self.ready.append((nxt, G, info)))
+
+    def poll(self):
+        out, self.ready = self.ready, []
+        return out
+
+
+class _SimMonitor:
+    """One monitor process of a simulated run: its core, gain worker and seat."""
+
+    def __init__(self, runtime, monitor_id: int, listen_s: float):
+        self.id = int(monitor_id)
+        self.name = f"monitor-{self.id}"
+        self.designs = _GainDesigns(runtime)
+        self.gains = GainSource(worker=self.designs)
+        self.core = MonitorCore(runtime.monitor_config, runtime.s, runtime.G,
+                                runtime.delays, gains=self.gains)
+        self.seat = MonitorSeat(self.core, self.id, runtime.now, listen_s=listen_s)
+        self.roster_at = 0.0
+
+
+class SimRuntime:
+    """One run of ``scenario`` with gains ``G`` and link ``delays`` (steps), ``faults``
+    applied, in simulated time. :meth:`run` returns a :class:`SimResult`."""
+
+    def __init__(self, scenario, G, delays, seed: int = 0, faults=(), config: SimConfig = None,
+                 monitor: MonitorConfig | None = None):
+        self.s = scenario
+        self.G = [np.asarray(g, dtype=float) for g in G]
+        self.delays = np.asarray(delays, dtype=int)
+        self.seed = int(seed)
+        self.faults = sorted(faults)
+        for f in self.faults:
+            on_agent = f.kind not in MONITOR_FAULTS
+            if f.kind not in FAULT_KINDS or (
+                    on_agent and not 1 <= f.agent <= scenario.N + scenario.standby):
+                raise ValueError(f"a simulated run applies {FAULT_KINDS}, the agent ones to "
+                                 f"an agent, got {f}")
+        self._crash_at = {f.agent: f.step for f in self.faults if f.kind == "crash"}
+        self.config = config or SimConfig()
+        c = self.config
+        self.M = scenario.N + scenario.standby
+        self.now = 0.0
+        self._queue: list = []
+        self._seq = itertools.count()
+        self._rng = np.random.default_rng([self.seed, 7])
+        self._link_free: dict = {}
+        deadline = c.step_s if c.deadline_s is None else c.deadline_s
+        self.agents = {a: AgentCore(agent_config(scenario, a, self.G, self.seed, self.delays,
+                                                 deadline))
+                       for a in range(1, self.M + 1)}
+        self.world = WorldCore(scenario.A, self.seed, scenario.process_noise)
+        self.dead: set = set()                 # processes that died ("agent-3", ...)
+        self.hung: set = set()
+        self.paused_until: dict = {}           # name -> resume time
+        self._backlog: dict = {}               # name -> [callables] held while paused
+        self._wake_at: dict = {}
+        self.slow: dict = {}                   # name -> (until, seconds a message costs)
+        self._busy_until: dict = {}
+        self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s)
+        self.monitors: dict = {}               # id -> _SimMonitor (the newest of that id)
+        self.monitors_alive: set = set()       # ids whose token is up
+        self._token_gone: set = set()          # agents whose token is down
+        self._restarts = 0
+        self.stats = MessageStats()
+        self._schemas = {"est": wire.est_schema(scenario.n), "ctl": wire.ctl_schema(scenario.n),
+                         "roster": wire.roster_schema(),
+                         "sensors": wire.sensors_schema(scenario.n)}
+        from agent.run.recorder import Recorder
+
+        self.run_id = f"sim{self.seed}"
+        self.recorder = Recorder(self.run_id, scenario.n, scenario.N, self.M,
+                                 clock=lambda: self.now)
+        self.rec = self.recorder.recording
+        self.rec.monitor_seen = True
+        self._roster_at = 0.0
+
+    def _record(self, src: str, key: str, payload: bytes) -> None:
+        """The recorder (``up``'s) hears ``payload`` on ``key``, as on the wire."""
+        self._send(src, "recorder", lambda: self.recorder.feed(key, payload))
+
+    # -- the event queue -------------------------------------------------------------
+    def after(self, dt: float, fn) -> None:
+        heapq.heappush(self._queue, (self.now + dt, next(self._seq), fn))
+
+    def _send(self, src: str, dst: str, handle) -> None:
+        """Deliver ``handle()`` at ``dst`` after the link's latency, in order per link."""
+        c = self.config
+        at = self.now + c.latency_s + c.jitter_s * float(self._rng.random())
+        at = max(at, self._link_free.get((src, dst), 0.0))
+        self._link_free[(src, dst)] = at
+        heapq.heappush(self._queue, (at, next(self._seq), lambda: self._arrive(dst, handle)))
+
+    def _arrive(self, dst: str, handle) -> None:
+        if dst in self.dead:
+            return
+        cost = self.slow.get(dst)
+        if cost is not None:             # short of CPU: messages are served one at a time
+            until, per = cost
+            if self.now < until:
+                start = max(self.now, self._busy_until.get(dst, 0.0))
+                self._busy_until[dst] = start + per
+                heapq.heappush(self._queue, (start + per, next(self._seq),
+                                             lambda: self._serve(dst, handle)))
+                return
+        self._serve(dst, handle)
+
+    def _serve(self, dst: str, handle) -> None:
+        if dst in self.dead:
+            return
+        if dst in self.hung or self.paused_until.get(dst, -1.0) > self.now:
+            self._backlog.setdefault(dst, []).append(handle)
+            if dst in self.hung and len(self._backlog[dst]) > 10_000:
+                del self._backlog[dst][0]
+            return
+        handle()
+        if dst.startswith("agent-"):
+            self._agent_poll(int(dst.split("-")[1]))
+
+    def _alive(self, name: str) -> bool:
+        return name not in self.dead and name not in self.hung and \
+            self.paused_until.get(name, -1.0) <= self.now
+
+    # -- the world -------------------------------------------------------------------
+    def _world_step(self) -> None:
+        w = self.world
+        k = w.step
+        self._record("world", keys.truth_key(self.run_id), wire.encode_truth(k, w.x))
+        payload = wire.encode_sensors(k, w.x)
+        for a in self.agents:
+            self._send("world", f"agent-{a}", lambda a=a: self._on_sensors(a, payload))
+        for f in [f for f in self.faults if f.step == k and f.kind != "crash"]:
+            self._fault(f)
+        if k < self._steps:
+            w.advance()
+            self.after(self.config.step_s, self._world_step)
+
+    # -- the agents ------------------------------------------------------------------
+    def _on_sensors(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["sensors"], self.stats)
+        if msg is not None:
+            self.agents[a].on_sensors(msg["step"], msg["x"], now=self.now)
+
+    def _impair(self, src: int, dst: int, **params) -> None:
+        """An impairment change of link ``src -> dst`` (0: the world's), published by
+        ``up`` (the operator) to every agent, as ``up --fault`` does."""
+        payload = encode_impairment("set", src, dst, **params)
+        for a in self.agents:
+            self._send("up", f"agent-{a}", lambda a=a: self._on_impairment(a, payload))
+
+    def _on_impairment(self, a: int, payload: bytes) -> None:
+        if self.agents[a].on_impairment(decode_impairment(payload)):
+            self._agent_status(a)
+
+    def _on_est(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["est"], self.stats)
+        if msg is not None:
+            self.agents[a].on_estimate(msg["agent"], msg["step"], msg["x"], self.now)
+
+    def _on_ctl(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["ctl"], self.stats)
+        if msg is None:
+            return
+        try:
+            self.agents[a].on_assignment(msg)
+        except AssignmentError:
+            pass
+        self._agent_status(a)
+
+    def _on_roster(self, a: int, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["roster"], self.stats)
+        if msg is not None and self.agents[a].on_roster(msg):
+            self._agent_status(a)
+
+    def _agent_poll(self, a: int) -> None:
+        name = f"agent-{a}"
+        if not self._alive(name):
+            return
+        core = self.agents[a]
+        crash_at = self._crash_at.get(a)
+        for step, x, epoch in core.poll(self.now):
+            payload = wire.encode_est(a, step, x, epoch, self.now)
+            self._record(name, keys.est_key(self.run_id, a), payload)
+            for b in self.agents:
+                if b != a:
+                    self._send(name, f"agent-{b}",
+                               lambda b=b, payload=payload: self._on_est(b, payload))
+            for m in self.monitors.values():    # the monitor's own observation: the key
+                self._send(name, m.name, lambda m=m, a=a: m.core.on_estimate_seen(a, self.now))
+            if crash_at is not None and step >= crash_at - 1 and core.active:
+                break
+        if crash_at is not None and core.step >= crash_at - 1:
+            self._agent_status(a)                # the scripted crash's last status
+            self._crash(a, crash_at)
+            return
+        wake = core.next_wakeup(self.now)
+        if wake is not None and wake > self.now and self._wake_at.get(a, math.inf) > wake:
+            self._wake_at[a] = wake
+            heapq.heappush(self._queue, (wake, next(self._seq), lambda: self._woken(a, wake)))
+
+    def _woken(self, a: int, at: float) -> None:
+        if self._wake_at.get(a) == at:
+            del self._wake_at[a]
+        self._agent_poll(a)
+
+    def _agent_status(self, a: int) -> None:
+        name = f"agent-{a}"
+        if not self._alive(name):
+            return
+        st = self.agents[a].status()
+        st.update(malformed=0, malformed_reasons={}, overflows=0)
+        payload = wire.encode_status(st)
+        for m in self.monitors.values():
+            self._send(name, m.name, lambda m=m: self._on_status(m, payload))
+        self._record(name, keys.status_key(self.run_id, a), payload)
+
+    def _status_loop(self, a: int) -> None:
+        if f"agent-{a}" in self.dead:
+            return
+        self._agent_status(a)
+        self.after(self.config.status_s, lambda: self._status_loop(a))
+
+    # -- liveliness and faults ---------------------------------------------------------
+    def _token(self, a: int, alive: bool) -> None:
+        """Agent ``a``'s token went (or came back): every other process learns it."""
+        (self._token_gone.discard if alive else self._token_gone.add)(a)
+        for m in self.monitors.values():
+            if self._alive(m.name):
+                m.core.on_liveliness("agent", a, alive, self.now)
+        for b, core in self.agents.items():
+            if b != a:
+                core.set_alive(a, alive)
+        if not alive:
+            self.rec.events.append({"process": f"agent-{a}", "liveliness": False,
+                                    "step": self.world.step, "t": self.now})
+
+    def _crash(self, a: int, step: int) -> None:
+        name = f"agent-{a}"
+        self.dead.add(name)
+        self.rec.events.append({"process": name, "exit_status": -9, "step": self.world.step,
+                                "t": self.now})
+        # the kernel closes a killed process's sockets: its peers see its links (and its
+        # token) go at once; the lease matters only for a stopped process
+        self.after(2 * self.config.latency_s, lambda: self._token(a, False))
+
+    def _fault(self, f) -> None:
+        if f.kind in MONITOR_FAULTS:
+            self._monitor_fault(f)
+            return
+        name = f"agent-{f.agent}"
+        lease = self.config.lease_s
+        if f.kind == "kill":
+            if name not in self.dead:
+                self._crash(f.agent, f.step)
+        elif f.kind in ("sensor", "partition", "delay", "drop"):
+            self._impairment(f, True)
+            self.after(f.seconds, lambda: self._impairment(f, False))
+        elif f.kind == "slow":
+            self.slow[name] = (self.now + f.seconds, f.value / 1000.0)
+            self.rec.events.append({"process": name, "slow_ms": f.value, "step": f.step,
+                                    "t": self.now})
+        elif f.kind == "hang":
+            self.hung.add(name)
+            self.rec.events.append({"process": name, "signal": "SIGUSR1", "step": f.step, "t": self.now})
+        else:
+            self.paused_until[name] = self.now + f.seconds
+            self.rec.events.append({"process": name, "signal": "SIGSTOP", "step": f.step, "t": self.now})
+            if f.seconds > lease:
+                self.after(lease, lambda: self._token(f.agent, False))
+            self.after(f.seconds, lambda: self._resume(f.agent, f.seconds > lease))
+
+    def _impairment(self, f, on: bool) -> None:
+        """Impairment faults as ``up`` injects them (agent.run.local): ``sensor`` cuts the
+        world's link into the agent, ``partition`` every link out of it, ``delay`` and
+        ``drop`` impair every link into it; at the end the scenario's delays come back."""
+        a, M = f.agent, self.M
+        others = [b for b in range(1, M + 1) if b != a]
+        name = f"agent-{a}"
+        if f.kind == "sensor":
+            self._impair(0, a, partition=on)
+            what = "sensor cut" if on else "sensor restored"
+        elif f.kind == "partition":
+            for b in others:
+                self._impair(a, b, partition=on)
+            what = "partition" if on else "healed"
+        elif on:
+            for b in others:
+                self._impair(b, a, **({"delay_steps": int(f.value)} if f.kind == "delay"
+                                      else {"drop": float(f.value)}))
+            what = f"{f.kind} {f.value:g}"
+        else:
+            from design.roster import link_delay_table
+
+            table = link_delay_table(self.s, self.delays)
+            for b in others:
+                self._impair(b, a, delay_steps=int(table[a - 1, b - 1]), drop=0.0)
+            what = "restored"
+        self.rec.events.append({"process": name, "impair": what, "step": self.world.step,
+                                "t": self.now})
+
+    def _resume(self, a: int, token_lapsed: bool) -> None:
+        name = f"agent-{a}"
+        if name in self.dead:
+            return
+        self.rec.events.append({"process": name, "signal": "SIGCONT",
+                                "step": self.world.step, "t": self.now})
+        if token_lapsed:
+            self._token(a, True)
+        for handle in self._backlog.pop(name, []):
+            handle()
+        self._agent_poll(a)
+        self._agent_status(a)
+
+    # -- the monitors ------------------------------------------------------------------
+    def _start_monitor(self, monitor_id: int, listen_s: float) -> None:
+        """A monitor process (a fresh one when restarted): its core, its gain worker and
+        its seat (:class:`MonitorSeat`: which monitor acts, what it adopts)."""
+        m = _SimMonitor(self, monitor_id, listen_s)
+        self.monitors[monitor_id] = m
+        self.dead.discard(m.name)
+        m.core.on_liveliness("world", "1", True, self.now)
+        for a in self.agents:
+            alive = f"agent-{a}" not in self.dead and a not in self._token_gone
+            m.core.on_liveliness("agent", a, alive, self.now)
+        self._monitor_token(monitor_id, True)
+        self.after(0.0, lambda: self._monitor_tick(m))
+
+    def _monitor_token(self, monitor_id: int, alive: bool) -> None:
+        (self.monitors_alive.add if alive else self.monitors_alive.discard)(monitor_id)
+        self.recorder.on_monitor_liveliness(str(monitor_id), alive)
+
+    def _on_status(self, m, payload: bytes) -> None:
+        msg = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
+        if msg is not None:
+            m.core.on_status(msg, self.now, sender=msg["agent"])
+
+    def _on_monitor_roster(self, m, payload: bytes) -> None:
+        msg = try_decode(payload, self._schemas["roster"], self.stats)
+        if msg is not None:
+            m.seat.on_roster(msg)
+
+    def _publish(self, src, msg) -> None:
+        if isinstance(msg, Assignment):
+            sp = msg.spec
+            payload = wire.encode_ctl(msg.agent, msg.epoch, msg.activate_at, sp.measure,
+                                      sp.neighbours, sp.self_weight, sp.gain,
+                                      take_over=sp.take_over, continues=sp.continues)
+            self._record(src.name, keys.ctl_key(self.run_id, msg.agent), payload)
+            self._send(src.name, f"agent-{msg.agent}",
+                       lambda a=msg.agent: self._on_ctl(a, payload))
+        elif isinstance(msg, RosterUpdate):
+            self._roster_out(src, msg)
+
+    def _roster_out(self, src, msg) -> None:
+        payload = wire.encode_roster(msg.epoch, msg.activate_at, msg.ids)
+        self._record(src.name, keys.ctl_key(self.run_id, 0), payload)
+        for a in self.agents:
+            self._send(src.name, f"agent-{a}", lambda a=a: self._on_roster(a, payload))
+        for other in self.monitors.values():
+            if other is not src:
+                self._send(src.name, other.name,
+                           lambda o=other: self._on_monitor_roster(o, payload))
+        src.roster_at = self.now + self.config.roster_s
+
+    def _monitor_event(self, src, kind: str, fields: dict) -> None:
+        self._record(src.name, keys.monitor_events_key(self.run_id),
+                     wire.encode_monitor_event({"kind": kind, "t": self.now, **fields}))
+
+    def _monitor_tick(self, m) -> None:
+        if self.monitors.get(m.id) is not m or m.name in self.dead:
+            return                                   # killed (perhaps started again)
+        if self.now < self._end_at:
+            self.after(self.config.tick_s, lambda: self._monitor_tick(m))
+        if not self._alive(m.name):
+            return                                   # stopped: its ticks resume after
+        for roster, G, info in m.designs.poll():
+            m.gains.put(roster, G, info)
+        state = m.seat.decide(self.now, self.monitors_alive)
+        for kind, fields in m.seat.records:
+            self._monitor_event(m, kind, fields)
+        m.seat.records.clear()
+        m.seat.lines.clear()
+        if m.seat.precompute:
+            m.seat.precompute = False
+            m.designs.precompute(m.core.roster)
+        if state != "act":
+            return
+        for msg in m.core.tick(self.now):
+            self._publish(m, msg)
+        m.core.events.clear()
+        for kind, fields in m.core.new_records():
+            self._monitor_event(m, kind, fields)
+            if kind == "reassign":
+                m.designs.precompute(m.core.roster)
+        roster = m.core.roster_message
+        if roster is not None and self.now >= m.roster_at:
+            self._roster_out(m, roster)
+
+    def _monitor_fault(self, f) -> None:
+        """``monitor``: the acting monitor killed and started again at once (as ``up``
+        does); ``monitorstop``: it is stopped ``seconds``; ``monitorsgone``: every one
+        killed for good."""
+        acting = min(self.monitors_alive, default=None)
+        if f.kind == "monitorsgone":
+            targets = list(self.monitors_alive)
+        else:
+            targets = [] if acting is None else [acting]
+        for monitor_id in targets:
+            m = self.monitors[monitor_id]
+            if f.kind == "monitorstop":
+                self.paused_until[m.name] = self.now + f.seconds
+                self.rec.events.append({"process": "monitor", "signal": "SIGSTOP",
+                                        "step": f.step, "t": self.now})
+                if f.seconds > self.config.lease_s:
+                    self.after(self.config.lease_s,
+                               lambda i=monitor_id: self._monitor_token(i, False))
+                self.after(f.seconds, lambda m=m: self._monitor_resume(m))
+                continue
+            self.dead.add(m.name)
+            self.rec.events.append({"process": "monitor", "signal": "SIGKILL",
+                                    "step": f.step, "t": self.now})
+            self._monitor_token(monitor_id, False)
+            if f.kind == "monitor":
+                self._restarts += 1
+                self.rec.events.append({"process": f"monitor-{self._restarts + 1}",
+                                        "started": True, "step": f.step, "t": self.now})
+                self._start_monitor(monitor_id, self.config.listen_s)
+
+    def _monitor_resume(self, m) -> None:
+        if m.name in self.dead or self.monitors.get(m.id) is not m:
+            return
+        self.rec.events.append({"process": "monitor", "signal": "SIGCONT",
+                                "step": self.world.step, "t": self.now})
+        self._monitor_token(m.id, True)
+        for handle in self._backlog.pop(m.name, []):
+            handle()
+
+    # -- the run -------------------------------------------------------------------------
+    def run(self, steps: int) -> SimResult:
+        """Run ``steps`` steps of the world (and the agents until they computed them)."""
+        from agent.run.local import RunConfig
+        from agent.run.summary import predicted_mse, summarize
+
+        c = self.config
+        self._steps = int(steps)
+        self._end_at = c.start_s + (steps + 20) * c.step_s + 2.0
+        for monitor_id in range(1, c.monitors + 1):
+            # the first acts at once (the run's start: nothing to adopt), the others stand by
+            self._start_monitor(monitor_id, 0.0 if monitor_id == 1 else c.listen_s)
+        for a in self.agents:
+            self.after(0.01 * a / self.M, lambda a=a: self._status_loop(a))
+        self.after(c.start_s, self._world_step)
+        while self._queue:
+            t, _, fn = heapq.heappop(self._queue)
+            if t > self._end_at:
+                break
+            self.now = t
+            fn()
+        rho, predicted = predicted_mse(self.s, self.G, self.delays)
+        config = RunConfig(scenario=self.s, scenario_arg=self.s.name, G=self.G,
+                           gains_path=None, delays=self.delays, delays_spec="sim",
+                           steps=self._steps, seed=self.seed, step_ms=1e3 * c.step_s,
+                           deadline_ms=None, out=None, monitor=True, drop=0.0,
+                           run_id=self.rec.run_id, faults=tuple(self.faults),
+                           hang_timeout=self.monitor_config.hang_timeout_s)
+        summary, steps_done, mse = summarize(config, self.rec, rho, predicted)
+        return SimResult(self.rec, summary, steps_done, mse, self.monitors, config)
+
+
+def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
+                  config: SimConfig | None = None, progress=None) -> dict:
+    """Chaos under simulated time: for each seed, a schedule drawn by
+    :func:`agent.run.chaos.draw_schedule`, run by :class:`SimRuntime` and checked by
+    :func:`agent.run.chaos.check_invariants`. Returns the report (``report_lines`` prints it):
+    runs and CPU seconds, faults by kind, verdicts by cause, detection steps after stop,
+    hang and kill faults and switch steps after the verdicts (median, min, max), and every
+    violation with its seed. ``progress(seed, violations)`` is called after each run."""
+    import time
+    from collections import Counter
+
+    from agent.run.chaos import draw_schedule
+
+    faults, verdicts, broken, runs_s = Counter(), Counter(), [], []
+    detection = {k: [] for k in ("kill", "hang", "stop")}
+    switch = []
+    for seed in seeds:
+        schedule = draw_schedule(scenario, seed, steps, kinds=kinds, rate=rate)
+        t = time.process_time()
+        result = SimRuntime(scenario, G, delays, seed=seed, faults=schedule,
+                            config=config).run(steps)
+        runs_s.append(time.process_time() - t)
+        faults.update(f.kind for f in schedule)
+        found = result.violations()
+        broken += [{"seed": seed, **v.to_dict()} for v in found]
+        for f in result.summary.get("failures", []):
+            verdicts[f.get("cause")] += 1
+            if f.get("detected_step") is None:
+                continue
+            fault = max((g for g in schedule if g.agent == f["agent"]
+                         and g.step <= f["detected_step"] + 5), key=lambda g: g.step,
+                        default=None)
+            if fault is not None and fault.kind in detection:
+                detection[fault.kind].append(f["detected_step"] - fault.step)
+            if f.get("activate_at") is not None:
+                switch.append(f["activate_at"] - f["detected_step"])
+        if progress is not None:
+            progress(seed, found)
+
+    def spread(values):
+        return [float(np.median(values)), min(values), max(values)] if values else None
+
+    return {"scenario": scenario.name, "seeds": [min(seeds), max(seeds) + 1], "steps": steps,
+            "kinds": list(kinds), "rate": rate, "runs": len(runs_s),
+            "cpu_s": float(np.sum(runs_s)), "cpu_s_median": float(np.median(runs_s)),
+            "faults": dict(faults), "verdicts": dict(verdicts),
+            "detection_steps": {k: spread(v) for k, v in detection.items() if v},
+            "switch_steps": spread(switch), "violations": broken}
+
+
+def report_lines(report: dict) -> list:
+    """The lines of a :func:`run_schedules` report, for terminals."""
+    lines = [f"{report['runs']} schedules of {report['steps']} steps, {report['cpu_s']:.1f} s "
+             f"of CPU ({report['cpu_s_median']:.2f} s a run, median)",
+             f"faults injected: {report['faults']}; verdicts: {report['verdicts']}"]
+    for kind, (median, low, high) in report["detection_steps"].items():
+        lines.append(f"  {kind}: detected {median:.0f} steps after the fault (median), "
+                     f"{low} to {high}")
+    if report["switch_steps"]:
+        median, low, high = report["switch_steps"]
+        lines.append(f"  roles in force {median:.0f} steps after the verdict (median), "
+                     f"{low} to {high}")
+    broken = report["violations"]
+    lines.append(f"violations: {len(broken)} in {len({v['seed'] for v in broken})} runs")
+    lines += [f"  seed {v['seed']}: {v['invariant']} at step {v['step']}: {v['evidence']}"
+              for v in broken[:30]]
+    return lines

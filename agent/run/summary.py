@@ -1,0 +1,783 @@
+"""The summary of a local run: pure functions of its :class:`agent.run.local.Recording`.
+
+MSE per step over the agents in force at that step (the roster), failures and
+recoveries from the monitor's record (``events.jsonl``) and the assignments heard, the
+exact prediction for every configuration, the comparison with the simulator's replay,
+and the run folder's files.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from design.metrics import mean_recorded, mse_of_step, steady_mse, steady_window
+
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
+           "write_run_folder", "save_estimates", "CHECK_TOL"]
+
+#: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
+CHECK_TOL = 1e-9
+#: A run recovered when the steady MSE after its last switch is within this factor of the
+#: exact prediction for the configuration in force.
+RECOVERED_FACTOR = 3.0
+#: A run diverged at the first step whose MSE is not finite or above this factor times
+#: the larger exact prediction (the configuration started with, the one in force at the
+#: end); with no finite prediction, only a non-finite MSE counts.
+DIVERGED_FACTOR = 1e3
+
+
+def diverged_at(steps, mse, predictions) -> int | None:
+    """The first step whose MSE is not finite or exceeds :data:`DIVERGED_FACTOR` times the
+    largest finite value of ``predictions``; None when there is none.
+
+    >>> diverged_at([0, 1, 2, 3], [0.3, 0.5, 500.0, float("inf")], [0.27, 0.4])
+    2
+    >>> diverged_at([0, 1], [0.3, 0.5], [float("inf")]) is None
+    True
+    """
+    finite = [p for p in predictions if p is not None and math.isfinite(p)]
+    bound = DIVERGED_FACTOR * max(finite) if finite else math.inf
+    for k, m in zip(steps, mse):
+        if not math.isfinite(m) or m > bound:
+            return int(k)
+    return None
+
+
+def mse_by_step(rec, K, rosters=None):
+    """``(steps, mse)``: mean over the agents in force at each step (``rosters``, default
+    :func:`rosters_in_force` of the recording)."""
+    steps = sorted(k for k in rec.truth if k <= K)
+    if rosters is None:
+        rosters = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)[0]
+
+    def in_force(k):
+        return [ids for at, ids, _ in rosters if at <= k][-1]
+
+    mse = [mse_of_step([rec.est[a][k] for a in in_force(k) if k in rec.est[a]], rec.truth[k])
+           for k in steps]
+    return steps, np.array([float("nan") if m is None else m for m in mse])
+
+
+def run_and_summarize(config, say=lambda text: None) -> tuple:
+    """Run ``config`` live (:class:`agent.run.local.LocalRun`) and summarize it:
+    ``(rec, summary, steps, mse, predicted)``, ``predicted`` the exact steady MSE of the
+    configuration started with (inf when its loop is not stable)."""
+    from agent.run.local import LocalRun
+
+    rho, predicted = predicted_mse(config.scenario, config.G, config.delays)
+    rec = LocalRun(config, say).run()
+    summary, steps, mse = summarize(config, rec, rho, predicted)
+    return rec, summary, steps, mse, predicted
+
+
+def predicted_mse(scenario, G, delays) -> tuple:
+    """``(rho, mse_steady)`` of the exact closed loop of ``G`` (mse inf when there is none,
+    :func:`design.closed_loop.exact_performance`)."""
+    from design.closed_loop import exact_performance
+
+    p = exact_performance(scenario, G, delays)
+    return p.rho, p.mse_or_inf
+
+
+def summarize(config, rec, loop_rho, predicted) -> tuple:
+    """``(summary, steps, mse)`` of a run (see docs/runtime.md and docs/monitor.md); pure:
+    the run folder is written by :func:`write_run_folder`."""
+    from agent.run.jsonable import SCHEMA_VERSION
+
+    c = config
+    K, N, M = c.steps, c.scenario.N, c.M
+    steps, mse = mse_by_step(rec, K)
+    # the last quarter of the run's K steps (by position: a watcher that attached late
+    # averages the same final steps as the run's own recorder)
+    tail = steady_window(K)
+    mse_steady = mean_recorded(mse[-tail:])
+    last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
+    children = rec.children.children.values() if rec.children is not None else ()
+    summary = {
+        "schema_version": SCHEMA_VERSION,
+        "scenario": c.scenario.name,
+        "run": rec.run_id,
+        "ports": rec.ports,
+        "seed": c.seed,
+        "steps": int(steps[-1]) if steps else -1,
+        "steps_requested": K,
+        "step_ms": c.step_ms,
+        "deadline_ms": c.deadline_ms,
+        "agents": N,
+        "standby": c.scenario.standby,
+        "delays_spec": c.delays_spec,
+        "delays": np.asarray(c.delays).tolist(),
+        "drop": c.drop,
+        "rho_exact": loop_rho,
+        "mse_steady": mse_steady,
+        "mse_steady_exact": predicted,
+        "drops": sum(s.get("drops", 0) for s in last.values()),
+        "late": sum(s.get("late", 0) for s in last.values()),
+        "malformed": sum(s.get("malformed", 0) for s in last.values()),
+        "fenced": sum(s.get("fenced", 0) for s in last.values()),
+        "recorder_malformed": rec.recorder_malformed,
+        "sensor_missed": sum(s.get("sensor", {}).get("missed", 0) for s in last.values()),
+        "sensor_future": sum(s.get("sensor", {}).get("future", 0) for s in last.values()),
+        "implausible": {kind: sum(s.get("implausible", {}).get(kind, 0) for s in last.values())
+                        for kind in ("estimates", "readings")},
+        "learned_delays": {str(a): {str(j): d for j, d in s.get("delays", {}).items()}
+                           for a, s in last.items() if s},
+        "hop_ms": {str(a): s.get("hop_ms") for a, s in last.items() if s.get("hop_ms")},
+        "cpu_s": {ch.name: ch.cpu_s for ch in children},
+        "wall_s": rec.wall,
+        "exit_status": {ch.name: ch.returncode for ch in children},
+        "orphans": [ch.name for ch in children if ch.returncode is None],
+        "monitor": c.monitor,
+        "world_silent": rec.world_silent,
+        "faults": [f.to_dict() for f in c.faults],
+        "events": rec.events,
+        "final_roles": final_roles(last, rec.events, steps[-1] if steps else -1),
+    }
+    summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec,
+                             c.scenario, c.delays, steps, mse, c.G))
+    warnings = []
+    # the prediction for what was in force over the steady window (the last quarter)
+    window_from = steps[-tail] if len(steps) >= tail else (steps[0] if steps else 0)
+    last_switch = summary["rosters"][-1]["activate_at"] if len(summary["rosters"]) > 1 else 0
+    summary["mse_steady_exact_in_force"] = (
+        summary.get("mse_steady_exact_after_recovery") if last_switch
+        and last_switch <= window_from else predicted if not last_switch else None)
+    if last_switch and last_switch > window_from:
+        warnings.append(f"the steady window (from step {window_from}) begins before the last "
+                        f"switch (step {last_switch}): no single exact prediction covers it")
+    summary["diverged_at"] = diverged_at(
+        steps, mse, [predicted, summary.get("mse_steady_exact_after_recovery")])
+    if summary["diverged_at"] is not None:
+        warnings.append(f"the estimates DIVERGED: the MSE at step {summary['diverged_at']} "
+                        f"is above {DIVERGED_FACTOR:g}x every exact prediction (or not finite)")
+    needed = sum(sum((s.get("inputs") or {}).values()) for s in last.values())
+    # a failed agent's missing estimates are drops too: with faults, only the late ones
+    # (arrived after the step that needed them) say the period was not sustained
+    faulty = bool(summary.get("failures") or c.faults)
+    missed = summary["late"] + (0 if faulty else summary["drops"])
+    if needed and missed > 0.01 * needed:
+        warnings.append(f"period not sustained: {missed} of {needed} neighbour estimates "
+                        f"({100 * missed / needed:.1f} %) were "
+                        + ("late" if faulty else "late or dropped")
+                        + " (the machine is too loaded for this step period, or links are "
+                          "impaired)")
+    summary["warnings"] = summary.get("warnings", []) + warnings
+    logged = log_warnings(c.out / "logs") if c.out is not None else []
+    summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
+                                             + summary.get("warnings", [])))
+    return summary, steps, mse
+
+
+def final_roles(last_status, events, last_step) -> dict:
+    """``final_roles`` of a summary: each agent's last status (``epoch``, ``measure``)
+    and whether it ended ``dead`` (its process exited during the run, or its liveliness
+    token went before the last step), ``fenced`` (alive, it dropped its role: convicted
+    by the monitor) and ``active`` (it held a role at the end: its last status said so
+    and it is neither dead nor fenced).
+
+    >>> st = {1: {"active": True, "epoch": 0, "measure": ["a"]},
+    ...       2: {"active": False, "epoch": 1, "measure": []}}
+    >>> ev = [{"process": "agent-1", "exit_status": -9, "step": 150},
+    ...       {"process": "agent-2", "role": "dropped", "epoch": 1, "step": 90}]
+    >>> r = final_roles(st, ev, 400)
+    >>> r["1"]["dead"], r["1"]["active"], r["2"]["fenced"], r["2"]["dead"]
+    (True, False, True, False)
+    """
+    dead, fenced = set(), set()
+    for e in events:
+        name = e.get("process", "")
+        if not name.startswith("agent-") or not name[6:].isdigit():
+            continue
+        a = int(name[6:])
+        step = e.get("step")
+        if e.get("exit_status") is not None or (
+                e.get("liveliness") is False and isinstance(step, int) and step < last_step):
+            dead.add(a)
+        elif e.get("role") == "dropped":
+            fenced.add(a)
+    out = {}
+    for a, st in last_status.items():
+        if not st:
+            continue
+        out[str(a)] = {"active": bool(st.get("active")) and a not in dead and a not in fenced,
+                       "epoch": st.get("epoch"), "measure": st.get("measure"),
+                       "dead": a in dead, "fenced": a in fenced and a not in dead}
+    return out
+
+
+def failure_lines(summary) -> list:
+    """One line per failure of a summary (and the MSE after recovery), for terminals."""
+    lines = []
+    for f in summary.get("failures", []):
+        if f.get("detected") is False:
+            lines.append(f"  failure: agent {f['agent']} died at step {f['died_step']} and was "
+                         f"never convicted ({f['why']}): not recovered"
+                         + (" (a standby)" if f.get("role") == "standby" else ""))
+            continue
+        rep = f.get("replacement") or {}
+        lines.append(f"  failure: agent {f['agent']} {f['cause']} at step {f['detected_step']}"
+                     + (f"; agent {rep.get('agent')} measures {rep.get('node')} from step "
+                        f"{f.get('activate_at')}" if rep else ""))
+    refused = summary.get("implausible") or {}
+    if any(refused.values()):
+        lines.append(f"  refused as implausible (far beyond the model's scale): "
+                     f"{refused.get('estimates', 0)} estimates, {refused.get('readings', 0)} "
+                     "readings")
+    if "mse_steady_after_recovery" in summary:
+        after = summary.get("mse_steady_exact_after_recovery")
+        lines.append(f"  after recovery: mse_steady {summary['mse_steady_after_recovery']:.4g}"
+                     f" (predicted {after if after is not None else float('nan'):.4g})")
+    return lines
+
+
+#: Most warnings taken from the processes' logs into a summary (a log is never read whole
+#: into the summary: the rest is counted).
+MAX_LOG_WARNINGS = 20
+
+
+def log_warnings(logs_dir) -> list:
+    """The warnings the run's processes printed (``NAME: warning: TEXT`` lines of
+    ``logs_dir/*.log``) as ``"NAME: TEXT"``, in file order, at most
+    :data:`MAX_LOG_WARNINGS` (then one line saying how many more).
+
+    >>> import pathlib, tempfile
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> _ = (d / "world.log").write_text("world: started\\nworld: warning: float64 ran out\\n")
+    >>> log_warnings(d)
+    ['world: float64 ran out']
+    """
+    import re
+    from pathlib import Path
+
+    pattern = re.compile(r"^([\w.-]+): warning: (.*\S)")
+    found, more = [], 0
+    for path in sorted(Path(logs_dir).glob("*.log")):
+        try:
+            with open(path, errors="replace") as f:
+                for line in f:
+                    m = pattern.match(line)
+                    if m is None:
+                        continue
+                    if len(found) < MAX_LOG_WARNINGS:
+                        found.append(f"{m.group(1)}: {m.group(2)}")
+                    else:
+                        more += 1
+        except OSError:
+            continue
+    if more:
+        found.append(f"{more} more warnings in {logs_dir}")
+    return found
+
+
+def switch_steps(est_epoch_of_agent: dict, epoch: int):
+    """The first step an agent computed under ``epoch``, from the epochs its estimates
+    carried; None if it never did (it rejected that assignment, or ran a newer one first).
+
+    An agent that takes a role without an estimate of its own (a standby) first publishes
+    the estimate it starts from, stamped ``activate_at - 1`` under the new epoch: its
+    switch is the step after.
+
+    >>> switch_steps({9: 0, 10: 1, 11: 1}, 1), switch_steps({9: 1, 10: 1}, 1)
+    (10, 10)
+    >>> switch_steps({9: 0, 10: 0}, 1) is None, switch_steps({9: 0, 10: 2}, 1) is None
+    (True, True)
+    """
+    steps = sorted(k for k, e in est_epoch_of_agent.items() if e == epoch)
+    if not steps:
+        return None
+    first = steps[0]
+    return first if (first - 1) in est_epoch_of_agent else first + 1
+
+
+def rosters_in_force(rosters, est_epoch, assigns):
+    """The configurations that were really in force, read from what the agents published.
+
+    ``rosters``: ``[(activate_at, ids, epoch)]`` heard from the monitor (the first the
+    initial configuration); ``est_epoch``: agent -> {step: epoch of its estimate};
+    ``assigns``: ``{(agent, epoch): assignment}`` heard. A roster was in force from the
+    step at which the last of the agents it assigned a role switched to its epoch (at its
+    ``activate_at`` when all went together). A roster that an assigned agent never ran
+    (its ``activate_at`` passed before it heard it; a newer epoch came first) never was in
+    force: the re-issue that follows is. A roster whose agents switched at different
+    steps is kept from the last switch, and reported as mixed.
+
+    Returns ``(in_force, mixed)``: ``[(step, ids, epoch)]`` and
+    ``[{"epoch", "activate_at", "switched": {agent: step or None}}]`` for every roster
+    that some of its agents ran and others did not, or ran from different steps (a roster
+    none of them ran, rejected or superseded before its step, is simply not in force).
+
+    >>> rosters = [(0, (1, 2, 3), 0), (175, (1, 2, 4), 1), (184, (1, 2, 4), 2)]
+    >>> est = {a: {174: 0, 175: 1, 183: 1, 184: 2} for a in (1, 2)}
+    >>> est[4] = {183: 2, 184: 2}      # rejected epoch 1 (too late), took epoch 2's role
+    >>> assigns = {(a, e): {} for a in (1, 2, 4) for e in (1, 2)}
+    >>> in_force, mixed = rosters_in_force(rosters, est, assigns)
+    >>> in_force
+    [(0, (1, 2, 3), 0), (184, (1, 2, 4), 2)]
+    >>> mixed[0]["switched"]
+    {1: 175, 2: 175, 4: None}
+    """
+    out, mixed = [rosters[0]], []
+    last = max((max(e) for e in est_epoch.values() if e), default=-1)
+    newest_at: dict = {}
+    for at, ids, epoch in rosters[1:]:
+        newest_at[at] = max(newest_at.get(at, epoch), epoch)
+    for at, ids, epoch in sorted(rosters[1:], key=lambda r: r[2]):
+        if newest_at[at] != epoch or at > last:
+            continue                       # superseded before it ran, or after the run
+        assigned = sorted(a for (a, e) in assigns if e == epoch and a in ids) or list(ids)
+        switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
+        if all(k is None for k in switched.values()):
+            if any(est_epoch.get(a) for a in assigned):
+                continue                   # nobody ran it: rejected, or superseded first
+            out.append((at, tuple(ids), epoch))    # no estimate recorded: as sent
+            continue
+        if any(k != at for k in switched.values()):
+            mixed.append({"epoch": epoch, "activate_at": at, "switched": switched})
+        if any(k is None for k in switched.values()):
+            continue
+        out.append((max(switched.values()), tuple(ids), epoch))
+    out = [out[0]] + sorted(out[1:], key=lambda r: (r[0], r[2]))
+    return out, mixed
+
+
+def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
+    """``(ids, {id: RoleSpec})`` of the last roster (or of the one of ``epoch``), from the
+    assignments recorded up to that epoch."""
+    import numpy as np
+
+    from design.roster import Roster, role_specs
+    from design.roster import RoleSpec
+
+    specs = role_specs(Roster.initial(scenario), G0)
+    for (agent, e), m in sorted(assigns.items(), key=lambda kv: kv[0][1]):
+        if epoch is not None and e > epoch:
+            continue
+        specs[agent] = RoleSpec(agent, tuple(m["measure"]), dict(m["neighbours"]),
+                                float(m["self_weight"]), np.asarray(m["gain"]),
+                                m.get("take_over"))
+    if epoch is not None:
+        return next(ids for _, ids, ep in rosters if ep == epoch), specs
+    return rosters[-1][1], specs
+
+
+def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
+    """``failures``, ``recovered``, MSE after recovery (live and exact) for the summary."""
+    import json
+
+    events, assigns = rec.events, rec.assigns
+    rosters, mixed = rosters_in_force(rec.rosters, rec.est_epoch, assigns)
+    records = []
+    try:
+        with open(events_path) as f:
+            for line in f:
+                try:
+                    records.append(json.loads(line))
+                except ValueError:
+                    continue
+    except (OSError, TypeError):        # no file (TypeError: no run folder)
+        pass
+    # a watcher has only those heard on the wire; a monitor whose disk filled wrote fewer
+    if len(rec.monitor_events) > len(records):
+        records = list(rec.monitor_events)
+    deaths = {}
+    for e in events:
+        name = e.get("process", "")
+        if name.startswith("agent-") and (e.get("exit_status") is not None or
+                                          e.get("liveliness") is False or
+                                          e.get("signal") == "SIGSTOP" or
+                                          e.get("link") == "down"):
+            deaths.setdefault(int(name.split("-")[1]), e)
+    returns, dropped = {}, {}       # agent -> its SIGCONT / link up; its role dropped
+    for e in events:
+        name = e.get("process", "")
+        if name.startswith("agent-") and (e.get("signal") == "SIGCONT" or e.get("link") == "up"):
+            returns.setdefault(int(name.split("-")[1]), e)
+        elif name.startswith("agent-") and e.get("role") == "dropped":
+            dropped.setdefault(int(name.split("-")[1]), e)
+    failures = []
+    reassigns = [r for r in records if r.get("kind") == "reassign"]
+
+    def of_agent(a, test):
+        return [e for e in events if e.get("process") == f"agent-{a}" and test(e)]
+
+    for v in [r for r in records if r.get("kind") == "verdict"]:
+        entry = {"agent": v["agent"], "cause": v["cause"], "evidence": v["evidence"],
+                 "detected_step": v["step"]}
+        # an agent convicted twice (it came back, rejoined, failed again): each verdict is
+        # paired with the fault just before it and the reassignment just after it
+        at = v.get("detected_t", v.get("t"))
+        stops = of_agent(v["agent"], lambda e: e.get("signal") == "SIGSTOP"
+                         or e.get("link") == "down")
+        death = next((e for e in reversed(stops) if at is None or e.get("t", 0) <= at),
+                     deaths.get(v["agent"]))
+        if death is not None and (death.get("signal") == "SIGSTOP" or
+                                  death.get("link") == "down"):
+            entry["detection_ms"] = 1e3 * (at - death["t"])
+        since = death["t"] if death is not None else -math.inf
+        back = next(iter(of_agent(v["agent"], lambda e: (e.get("signal") == "SIGCONT"
+                                                        or e.get("link") == "up")
+                                  and e.get("t", 0) >= since)), returns.get(v["agent"]))
+        gone = next(iter(of_agent(v["agent"], lambda e: e.get("role") == "dropped"
+                                  and e.get("t", 0) >= since)), dropped.get(v["agent"]))
+        if back is not None and gone is not None and gone["t"] >= back["t"]:
+            # resolution: the agent's status period (0.2 s)
+            entry["fenced_ms"] = 1e3 * (gone["t"] - back["t"])
+        r = next((r for r in reassigns if v["agent"] in r.get("failed", [])
+                  and r.get("mono", math.inf) >= v.get("mono", -math.inf)), None)
+        if r is not None:
+            # the roles in force: this epoch's roster, or the re-issue that replaced it
+            took = next(((at, ep) for at, _, ep in rosters[1:] if ep >= r["epoch"]), None)
+            entry.update(epoch=took[1] if took else r["epoch"],
+                         activate_at=took[0] if took else None,
+                         activate_at_sent=r["activate_at"], precomputed=r.get("precomputed"),
+                         gains=r.get("gains"))
+            rep = [x for x in r["replacements"] if x["failed"] == v["agent"]]
+            entry["replacement"] = ({"agent": rep[0]["by"], "node": rep[0]["to"]} if rep
+                                    else None)
+        failures.append(entry)
+    absent = _no_monitor_windows(events)
+    failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},
+                            absent, rosters, steps_done[-1] if len(steps_done) else None)
+    out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
+                                               "epoch": ep} for at, ids, ep in rosters],
+           "rosters_not_in_force": [{**m, "switched": {str(a): k for a, k
+                                                        in m["switched"].items()}}
+                                    for m in mixed],
+           "reissues": [{"epoch": r.get("epoch"), "activate_at": r.get("activate_at"),
+                         "reason": r.get("reason", "")}
+                        for r in records if r.get("kind") == "reissue"],
+           "evidence_refused": [{"reason": r.get("reason"), "agent": r.get("agent"),
+                                 "detail": r.get("detail")}
+                                for r in records if r.get("kind") == "evidence_refused"],
+           "rejoins": [{"agent": r.get("agent"), "step": r.get("step"),
+                        "healthy_s": r.get("healthy_s"), "standby": r.get("standby")}
+                       for r in records if r.get("kind") == "rejoin"]}
+    for f in failures:           # a convicted agent that came back and passed probation
+        back = [r for r in out["rejoins"] if r["agent"] == f["agent"]
+                and (f.get("detected_step") or 0) <= (r["step"] or 0)]
+        if back:
+            f["rejoined_step"] = back[0]["step"]
+    for m in mixed:
+        out.setdefault("warnings", []).append(
+            f"epoch {m['epoch']} (activate_at {m['activate_at']}) was not run by all its "
+            "agents at that step: " + ", ".join(
+                f"agent {a} {'from step ' + str(k) if k is not None else 'never'}"
+                for a, k in sorted(m["switched"].items())))
+    if len(rosters) > 1 and G0 is None:           # a watcher given no gains
+        out["recovered"] = None
+        out.setdefault("warnings", []).append("no gains given: recovery not evaluated")
+    elif len(rosters) > 1:
+        at = rosters[-1][0]
+        ids, specs = specs_in_force(rosters, assigns, scenario, G0)
+        recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
+        after = [m for k, m in zip(steps_done, mse) if k >= at]
+        out["mse_steady_after_recovery"] = steady_mse(after) if after else float("nan")
+        try:
+            from design.closed_loop import exact_performance
+            from design.roster import link_delay_table, roster_from_specs
+
+            table = link_delay_table(scenario, delays)
+            new, G, D = roster_from_specs(scenario, table, ids, specs)
+            perf = exact_performance(new, G, D)
+            out["rho_exact_after_recovery"] = perf.rho
+            out["mse_steady_exact_after_recovery"] = perf.mse_or_inf
+        except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
+            out["mse_steady_exact_after_recovery"] = None
+            out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")
+        # recovered: the roles in force, and the error after them near its exact level
+        exact = out.get("mse_steady_exact_after_recovery")
+        measured = out["mse_steady_after_recovery"]
+        out["recovered"] = bool(recovered) and exact is not None and math.isfinite(exact) \
+            and math.isfinite(measured) and measured <= RECOVERED_FACTOR * exact
+        if recovered and not out["recovered"]:
+            out.setdefault("warnings", []).append(
+                f"not recovered: the roles are in force from step {at}, but the steady MSE "
+                f"after them, {measured:.4g}, is not within {RECOVERED_FACTOR:g}x of their "
+                f"exact prediction {exact if exact is not None else float('nan'):.4g}")
+    elif failures:
+        out["recovered"] = False
+    for a, b in absent:
+        out.setdefault("warnings", []).append(
+            f"NO MONITOR ALIVE from step {a} " + ("to the end of the run" if b == math.inf
+                                                  else f"to step {b}")
+            + ": a failure in that window was neither detected nor recovered")
+    out["no_monitor"] = [{"from": a, "to": None if b == math.inf else b} for a, b in absent]
+    if any(f.get("detected") is False and f.get("role") == "active" for f in failures):
+        out["recovered"] = False
+        out.setdefault("warnings", []).extend(
+            f"agent {f['agent']} died at step {f['died_step']} and was never convicted "
+            f"({f['why']}): its role was not recovered" for f in failures
+            if f.get("detected") is False and f.get("role") == "active")
+    return out
+
+
+def _no_monitor_windows(events) -> list:
+    """``(from, to)`` steps while no monitor token was up (the recorder's monitor events);
+    ``to`` is inf when none came back.
+
+    >>> _no_monitor_windows([{"process": "monitor", "monitors_alive": 0, "step": 10},
+    ...                      {"process": "monitor", "monitors_alive": 1, "step": 30},
+    ...                      {"process": "monitor", "monitors_alive": 0, "step": 50}])
+    [(10, 30), (50, inf)]
+    """
+    absent, since = [], None
+    for e in events:
+        if e.get("process") == "monitor" and "monitors_alive" in e:
+            if e["monitors_alive"] == 0:
+                since = e.get("step", -1)
+            elif since is not None:
+                absent.append((since, e.get("step", since)))
+                since = None
+    if since is not None:
+        absent.append((since, math.inf))
+    return absent
+
+
+def _undetected(deaths, convicted, absent, rosters, last_step=None) -> list:
+    """Failures entries for the agents whose process went (exit or liveliness token gone)
+    and that no verdict named: ``detected: False``, the step it died, whether it held a
+    role then (``role``: the roster in force at that step) and ``why``: ``"no monitor
+    alive"`` when it died in one of the ``absent`` windows, else ``"no verdict"``. An
+    exit at the run's last step (``last_step``) is the end of the run, not a failure."""
+    out = []
+    for agent, e in sorted(deaths.items()):
+        if agent in convicted or (e.get("exit_status") is None and e.get("liveliness") is not False):
+            continue           # a stop or a link down that no verdict followed: it came back
+        k = e.get("step", -1)
+        if last_step is not None and k >= last_step:
+            continue
+        ids = next((ids for at, ids, _ in reversed(rosters) if at <= k), rosters[0][1])
+        out.append({"agent": agent, "cause": "crash", "detected": False,
+                    "evidence": ("exit status " + str(e["exit_status"])
+                                 if e.get("exit_status") is not None else "liveliness token gone"),
+                    "died_step": k, "detected_step": None,
+                    "role": "active" if agent in ids else "standby",
+                    "why": "no monitor alive" if any(a <= k <= b for a, b in absent)
+                    else "no verdict"})
+    return out
+
+
+def compare_simulator(config, rec, steps_done):
+    """Largest difference to ``design.simulate`` (trial 0, same seed, delays and drops).
+
+    ``max_k max_a |xhat_live - xhat_sim| / max(1, |x_k|)`` (infinity norms) over every
+    estimate both computed. With scripted crashes at one step (``--kill``) and the
+    monitor's reassignments, the simulator replays every crash at its step (any number,
+    at different steps; a standby killed before it took a role computed nothing) and the
+    chain of configurations in force (:func:`rosters_in_force`: the step the agents
+    switched, the roles and gains of their assignments).
+    Returns ``(difference, what was compared)``.
+    """
+    from design.roster import link_delay_table, roster_from_specs
+    from design.simulate import Recovery, simulate
+
+    c = config
+    G, K = c.G, c.steps
+    fail = recover = None
+    kills = {f.agent: f.step for f in c.faults if f.kind == "crash"}
+    if any(f.kind != "crash" for f in c.faults):
+        return float("inf"), "the simulator replays scripted crashes (--kill) only"
+    if kills:
+        # a standby killed before it took a role never computed: nothing to replay
+        steps_of = sorted({f for a, f in kills.items() if a <= c.scenario.N})
+        fail = [(f, sorted(a - 1 for a, g in kills.items() if g == f and a <= c.scenario.N))
+                for f in steps_of] or None
+        rosters, mixed = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)
+        if mixed:
+            m = mixed[0]
+            return float("inf"), (
+                f"the agents of epoch {m['epoch']} did not switch together (" + ", ".join(
+                    f"agent {a} {'at step ' + str(k) if k is not None else 'never'}"
+                    for a, k in sorted(m["switched"].items()))
+                + "): the simulator replays whole configurations only")
+        took = sorted(a for a in kills if a > c.scenario.N
+                      and any(a in ids for _, ids, _ in rosters[1:]))
+        if took:
+            return float("inf"), (
+                f"agent {took[0]} was killed after it took a role: the simulator fails "
+                "agents of the initial configuration only")
+        table = link_delay_table(c.scenario, c.delays)
+        chain = []
+        for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
+            _, specs = specs_in_force(rec.rosters, rec.assigns, c.scenario, G, epoch=epoch)
+            new, G_new, D_new = roster_from_specs(c.scenario, table, ids, specs)
+            before = set(rosters[i - 1][1])
+            replaces = {a: specs[a].take_over - 1 for a in ids
+                        if a not in before and specs[a].take_over is not None}
+            chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
+                                  activate_at=at))
+        recover = chain or None
+        if recover is not None and fail is None:
+            return float("inf"), ("a reassignment after the kill of a standby only cannot "
+                                  "be replayed")
+    elif len(rec.rosters) > 1:
+        return float("inf"), "a reassignment without a scripted crash cannot be replayed"
+    res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
+                   drop=c.drop, fail=fail, recover=recover, coordinates="absolute",
+                   record_estimates=True)
+    if len(steps_done) != K + 1:
+        return float("inf"), "incomplete run"
+    sim_est = np.asarray(res.estimates)[0]
+    worst, compared = 0.0, 0
+    for k in steps_done:
+        scale = max(1.0, float(np.abs(rec.truth[k]).max()))
+        for col, a in enumerate(res.estimate_ids):
+            if k in rec.est.get(a, {}) and np.isfinite(sim_est[k, col]).all():
+                d = float(np.abs(rec.est[a][k] - sim_est[k, col]).max())
+                worst = max(worst, d / scale)
+                compared += 1
+    return worst, f"estimates ({compared} compared)"
+
+
+def _write(path, data, written=None) -> None:
+    """:func:`agent.run.folder.write_atomic`; a failure raised as
+    :class:`agent.run.folder.RunFolderError`, ``written`` (names) appended to on success."""
+    from agent.run.folder import RunFolderError, write_atomic
+
+    try:
+        write_atomic(path, data)
+    except RunFolderError:
+        raise
+    except OSError as exc:
+        raise RunFolderError(path, exc, written or []) from None
+    if written is not None:
+        written.append(Path(path).name)
+
+
+def save_estimates(path, steps_done, truth, est, agents, n):
+    """truth (K+1, n) and estimates (K+1, agents, n), NaN where nothing was received;
+    written atomically (:class:`agent.run.folder.RunFolderError` if it cannot be)."""
+    import numpy as np
+
+    X = np.full((len(steps_done), n), np.nan)
+    E = np.full((len(steps_done), len(agents), n), np.nan)
+    for r, k in enumerate(steps_done):
+        X[r] = truth[k]
+        for c, a in enumerate(agents):
+            if k in est[a]:
+                E[r, c] = est[a][k]
+    buf = io.BytesIO()
+    np.savez(buf, step=np.array(steps_done, dtype=int), truth=X, estimates=E,
+             agents=np.array(agents, dtype=int))
+    _write(path, buf.getvalue())
+
+
+def pyplot():
+    """matplotlib's pyplot on the Agg backend, or None when matplotlib is missing."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def plottable(mse) -> np.ndarray:
+    """Mask of the MSE values a log plot can show (finite, positive, not overflowing)."""
+    mse = np.asarray(mse, dtype=float)
+    return np.isfinite(mse) & (mse > 0) & (mse < 1e250)
+
+
+def gain_changes(summary) -> list:
+    """Steps at which a configuration took effect that no failure explains (new gains for
+    the same roles: a refined gain, gains for learned delays), as ``mse.png`` marks them
+    (the first was once drawn unlabelled when a failure's came before it).
+
+    >>> gain_changes({"rosters": [{"activate_at": 0}, {"activate_at": 174},
+    ...                           {"activate_at": 307}],
+    ...               "failures": [{"activate_at": 174}]})
+    [307]
+    """
+    failed_at = {f.get("activate_at") for f in summary.get("failures", [])}
+    return [r["activate_at"] for r in summary.get("rosters", [])[1:]
+            if r.get("activate_at") not in failed_at]
+
+
+def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
+    """The run folder's summary, MSE per step, assignments heard and ``mse.png``; every
+    file written atomically (:func:`agent.run.folder.write_atomic`), the summary first.
+    Returns the names written; a file that cannot be written (a full disk) raises
+    :class:`agent.run.folder.RunFolderError` naming it and those written whole before it."""
+    import json
+    import sys
+
+    from agent.run.jsonable import to_jsonable
+
+    written = []
+    _write(out / "summary.json", json.dumps(to_jsonable(summary), indent=2) + "\n", written)
+    _write(out / "mse.csv", "step,mse\r\n" + "".join(
+        f"{k},{float(m)!r}\r\n" for k, m in zip(steps_done, mse)), written)
+    _write(out / "mse.json", json.dumps(to_jsonable(
+        {"step": steps_done, "mse": list(mse)})) + "\n", written)
+    if assigns is not None:
+        _write(out / "assignments.json", json.dumps(to_jsonable(
+            [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(assigns.items())]))
+            + "\n", written)
+    plt = pyplot()
+    if plt is None:
+        return written
+    ok = plottable(mse)
+    mse = np.asarray(mse, dtype=float)
+    fig, ax = plt.subplots(figsize=(8.5, 4))
+    ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
+    if predicted and predicted != float("inf"):
+        ax.axhline(predicted, color="k", ls="--", lw=0.8, label="predicted steady MSE")
+    after = summary.get("mse_steady_exact_after_recovery")
+    if after and after != float("inf"):
+        ax.axhline(after, color="tab:green", ls=":", lw=0.9,
+                   label="predicted after recovery")
+    for i, f in enumerate(summary.get("failures", [])):
+        if f.get("detected") is False:
+            ax.axvline(f["died_step"], color="tab:red", lw=1.5, ls=":",
+                       label=f"agent {f['agent']} died, never convicted ({f['why']})")
+            continue
+        ax.axvline(f["detected_step"], color="tab:red", lw=0.8, ls="--",
+                   label="detected" if i == 0 else None)
+        if f.get("activate_at") is not None:
+            ax.axvline(f["activate_at"], color="tab:green", lw=0.8,
+                       label="reassigned" if i == 0 else None)
+    for i, f in enumerate(summary.get("faults", [])):
+        ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
+                   label="fault scheduled" if i == 0 else None)
+    labelled = set()        # one legend entry per reason given by the monitor
+    for r in summary.get("reissues", []):
+        if isinstance(r.get("activate_at"), int):
+            reason = str(r.get("reason") or "activate_at had passed")[:60]
+            ax.axvline(r["activate_at"], color="tab:orange", lw=0.8, ls="-.",
+                       label=None if reason in labelled else f"roles re-issued: {reason}")
+            labelled.add(reason)
+    for i, k in enumerate(gain_changes(summary)):
+        ax.axvline(k, color="tab:green", lw=0.8, ls="--",
+                   label="new gains in force (same roles)" if i == 0 else None)
+    if summary.get("diverged_at") is not None:
+        ax.axvline(summary["diverged_at"], color="tab:red", lw=1.5,
+                   label="DIVERGED")
+    changed = sorted({e["step"] for e in summary.get("events", [])
+                      if "links" in e and isinstance(e.get("step"), int) and e["step"] >= 0})
+    for i, k in enumerate(changed):
+        ax.axvline(k, color="tab:purple", lw=0.6, ls=":",
+                   label="link impairments changed" if i == 0 else None)
+    ax.set_xlabel("step")
+    ax.set_ylabel("MSE (mean over agents and states)")
+    ax.set_title(f"{summary['scenario']}: {summary['agents']} agents, seed {summary['seed']}")
+    # beside the axes: inside, it hid the fault and recovery lines of some runs
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0,
+              fontsize="small")
+    png = io.BytesIO()
+    try:
+        fig.tight_layout()
+        fig.savefig(png, format="png", dpi=110)
+    except (OverflowError, ValueError) as exc:  # e.g. a diverged run's huge values
+        print(f"up: warning: no mse.png ({type(exc).__name__}: {exc})", file=sys.stderr)
+        png = None
+    finally:
+        plt.close(fig)
+    if png is not None:
+        _write(out / "mse.png", png.getvalue(), written)
+    return written
