@@ -474,7 +474,7 @@ def test_a_crash_is_answered_while_the_monitors_own_pause_suspends_verdicts(core
     """The pause guard suspends the verdicts that read clocks (a status looks old because
     the monitor slept), never a deleted token: agent 2's crash during the monitor's own
     pause is convicted within CRASH_SETTLE_S, not hang_timeout_s later."""
-    from agent.monitor.core import CRASH_SETTLE_S
+    from agent.monitor.detector import CRASH_SETTLE_S
 
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     core.on_status(_status(1, 200), 4.0)                 # the monitor slept 3 s

@@ -1,36 +1,17 @@
-"""The monitor's protocol as a state machine that never touches a socket.
+"""The monitor's controller: verdicts answered by reassigning roles, as a state machine.
 
 :class:`MonitorCore` takes in the agents' liveliness events and statuses with the time
-they arrived, and gives out verdicts and the control messages that hand a failed
+they arrived, hands them to its failure detector (:class:`agent.monitor.detector.
+FailureDetector`: the evidence about each agent and the ``crash``, ``hang``, ``sensor`` and
+``silent`` verdicts it supports), and gives out the control messages that hand a failed
 agent's role to an observationally equivalent replacement. The process shell
 (:mod:`agent.monitor.process`) only feeds it from a :class:`broker_free_net.Peer`; unit
 tests step it by hand, so tests control time.
 
-Detection (one verdict per cause, each with its evidence):
-
-- ``crash``: the liveliness token of an agent in the configuration was deleted;
-- ``hang``: its token is alive but its loop does not advance: its reported step has not
-  moved for the hang timeout while the other agents' steps moved on by more than
-  ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody).
-  The timeout is ``hang_timeout_s`` on a machine that keeps the statuses' pace, and grows
-  with the pace observed (:class:`StatusPace`, phi accrual over every agent's status
-  intervals) up to ``hang_timeout_max_s``: a loaded machine whose loops stall now and then
-  delays detection instead of convicting healthy agents;
-- ``sensor``: its status says the readings of its nodes have not arrived for
-  ``sensor_lag_steps`` steps while the others advance;
-- ``silent``: it looks alive and advances, but every agent that listens to it reports
-  that the freshest estimate it holds from it is more than ``silent_steps`` old, for
-  ``hang_timeout_s`` (its estimates no longer reach the network: a partition, a broken
-  publisher); a single listener's report stands only when the monitor's own observation
-  (the estimates it hears) or that listener's impaired link agrees;
-- ``delay``: the delays the agents learned on their links exceed the ones the gains were
-  designed for and the exact closed loop with the learned delays is no longer stable
-  (radius >= 1). Nobody is removed: the monitor designs gains for the learned delays and
-  assigns them under a new epoch (same roles).
-
-The monitor guards against its own pauses: when two calls of :meth:`tick` are more than
-``pause_guard_s`` apart, it suspends verdicts and restarts every progress clock (it has
-no fresh evidence), as Cassandra's failure detector does.
+The controller's own verdict is ``delay``: the delays the agents learned on their links
+exceed the ones the gains were designed for and the exact closed loop with the learned
+delays is no longer stable (radius >= 1). Nobody is removed: the monitor designs gains
+for the learned delays and assigns them under a new epoch (same roles).
 
 Reassignment (see docs/monitor.md): on a verdict the monitor plans the failure on the
 configuration in force (:func:`design.roster.replan`), takes the gains precomputed for
@@ -57,23 +38,16 @@ True
 from __future__ import annotations
 
 import dataclasses
-import functools
-import math
-import statistics
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from agent.monitor.detector import FailureDetector, Verdict
 from agent.protocol.timing import DEFAULT as TIMING
 from agent.protocol.timing import Timing
 
 __all__ = ["MonitorConfig", "MonitorCore", "Verdict", "Assignment", "RosterUpdate",
            "GainSource"]
-
-
-#: While the monitor's own pause suspends its verdicts, a deleted token is believed once
-#: it has been gone this long (seconds) without the other tokens going with it.
-CRASH_SETTLE_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -86,7 +60,7 @@ class MonitorConfig:
         No progress of an agent's step for this long (while the others advance) is a hang.
         Lower detects faster; under ``hang_timeout_s`` a slow agent risks conviction.
     hang_timeout_max_s, hang_phi : float
-        The timeout adapts to the statuses' pace (:class:`StatusPace`): the gap a healthy
+        The timeout adapts to the statuses' pace (:class:`agent.monitor.detector.StatusPace`): the gap a healthy
         loop's statuses exceed with probability ``10^-hang_phi`` under the pace observed,
         never below ``hang_timeout_s`` nor above ``hang_timeout_max_s``.
     hang_lag_steps : int
@@ -165,73 +139,6 @@ class MonitorConfig:
                    world_silent_s=timing.monitor_world_silent_s, **fields)
 
 
-#: Other sessions remembered as holding a token for one agent id (more are refused alike).
-MAX_CLAIMS = 16
-
-
-@functools.lru_cache(maxsize=8)
-def _phi_quantile(phi: float) -> float:
-    """The standard normal quantile exceeded with probability ``10^-phi`` (asked at every
-    tick: computed once per phi)."""
-    return statistics.NormalDist().inv_cdf(1.0 - 10.0 ** -phi)
-
-
-class StatusPace:
-    """The pace of the agents' statuses, pooled over the network, and the hang timeout it
-    allows. Two estimates of how long a healthy loop's statuses may pause, the larger
-    taken:
-
-    - a phi accrual detector's (Hayashibara et al.; Pekko's ``PhiAccrualFailureDetector``):
-      an exponentially weighted mean and variance of the gaps between two statuses of one
-      agent, and the gap exceeded with probability ``10^-phi`` were gaps normal;
-    - ``margin`` times the longest gap a healthy agent showed lately (a maximum that
-      halves every ``half_life_s``): loaded machines stall loops in bursts, a tail no
-      normal fit follows.
-
-    Clamped to ``[floor, ceiling]``: on a machine that keeps the pace the timeout is the
-    floor. Gaps of agents convicted meanwhile are not given (the caller's part).
-
-    >>> pace = StatusPace(period=0.2)
-    >>> round(pace.timeout(8.0, floor=1.0, ceiling=5.0, now=0.0), 2)
-    1.0
-    >>> for k, gap in enumerate([0.2] * 50 + [0.9, 0.2, 1.1, 0.2, 0.2, 0.7] * 10):
-    ...     pace.add(gap, now=0.1 * k)
-    >>> round(pace.timeout(8.0, floor=1.0, ceiling=5.0, now=11.0), 2)   # 2 x 1.1 s, decayed
-    2.18
-    """
-
-    def __init__(self, period: float, alpha: float = 0.01, margin: float = 2.0,
-                 half_life_s: float = 30.0):
-        self.alpha, self.margin, self.half_life_s = alpha, margin, half_life_s
-        self.mean = float(period)
-        self.var = (float(period) / 4) ** 2       # a start a little scattered
-        self.peak, self.peak_at = float(period), 0.0
-
-    def add(self, gap: float, now: float) -> None:
-        d = gap - self.mean
-        self.mean += self.alpha * d
-        self.var = (1 - self.alpha) * (self.var + self.alpha * d * d)
-        if gap >= self._peak(now):
-            self.peak, self.peak_at = gap, now
-
-    def _peak(self, now: float) -> float:
-        return self.peak * 0.5 ** (max(0.0, now - self.peak_at) / self.half_life_s)
-
-    def timeout(self, phi: float, floor: float, ceiling: float, now: float) -> float:
-        z = _phi_quantile(phi)
-        wanted = max(self.mean + z * math.sqrt(self.var), self.margin * self._peak(now))
-        return min(ceiling, max(floor, wanted))
-
-
-@dataclass(frozen=True)
-class Verdict:
-    agent: int
-    cause: str           # crash, hang, sensor, unconfirmed
-    evidence: str
-    at: float            # monitor time of the verdict
-    step: int            # newest step reported by any agent then
-
-
 @dataclass(frozen=True, eq=False)
 class Assignment:
     """One role for one agent, under ``epoch`` from step ``activate_at``."""
@@ -249,27 +156,6 @@ class RosterUpdate:
     epoch: int
     activate_at: int
     ids: tuple
-
-
-@dataclass
-class _Agent:
-    alive: bool = False
-    step: int = -1
-    epoch: int = 0
-    pending: int = 0
-    active: bool = False
-    progress_at: float | None = None     # when its step last moved (reset by a pause)
-    step_at: float | None = None         # when its step last moved, never reset
-    status_at: float | None = None       # when its last status arrived
-    gone_at: float | None = None         # when its token was last deleted
-    others_at_progress: int = -1         # the others' newest step then
-    healthy_since: float | None = None   # convicted, on probation: healthy since then
-    estimate_at: float | None = None     # when the monitor last heard one of its estimates
-    sensor_last: int = -1
-    status: dict = field(default_factory=dict)
-    token: str | None = None             # the session whose token is the agent's
-    claims: set = field(default_factory=set)    # other sessions holding a token for its id
-    contested_at: float | None = None    # its token went while another session held one
 
 
 class GainSource:
@@ -413,7 +299,11 @@ class MonitorCore:
 
         self.config = config
         self.scenario = scenario
-        self.roster = Roster.initial(scenario, delays)
+        self.events: list = []            # human-readable log lines, drained by the shell
+        #: the evidence and the verdicts it supports (the controller keeps its roster)
+        self.detector = FailureDetector(config, Roster.initial(scenario, delays),
+                                        range(1, scenario.N + scenario.standby + 1),
+                                        self.events)
         self.G = [np.asarray(g, dtype=float) for g in G]
         self.specs = role_specs(self.roster, self.G)
         self.gains = gains or GainSource()
@@ -423,16 +313,8 @@ class MonitorCore:
         self._pending: dict | None = None     # a reassignment waiting for its gains
         self._delay_pending: dict | None = None   # a delay verdict waiting for its gains
         self.epoch = int(epoch)
-        self.agents: dict = {a: _Agent() for a in
-                             range(1, scenario.N + scenario.standby + 1)}
         self.verdicts: list = []
-        self.events: list = []            # human-readable log lines, drained by the shell
-        self.failed: set = set()          # ids convicted and not healthy again since
-        self.convicted_at: dict = {}      # id -> when it was last convicted
         self.on_probation: set = set()    # convicted, not yet healthy for rejoin_s
-        self.rejected: dict = {}          # reason -> evidence refused (see reject)
-        self.anomalies: list = []         # the first refusal of each reason and agent
-        self._rejected_seen: set = set()
         self._epoch_seen = 0              # the highest epoch accepted from the network
         self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
@@ -441,170 +323,106 @@ class MonitorCore:
         self._sent_at: float | None = None
         self._assigned_at: float | None = None
         self._roster_msg: RosterUpdate | None = None
-        self._last_tick: float | None = None
-        self.pace = StatusPace(config.status_s)   # the statuses' pace: the hang timeout
-        self._hang_said = config.hang_timeout_s   # the hang timeout last logged
-        self._suspended_until = -math.inf
-        self._watching_since = -math.inf  # the last fresh start (a pause, the world back)
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
         self.reissues: list = []          # [{epoch, activate_at, unconfirmed, reason}]
-        self._clock = (-1, 0.0)           # (newest step reported, when)
-        self._started = None              # the first tick
         self._first_verdict_at = None     # the settle window of simultaneous failures
         self._first_seen: dict = {}       # agent -> when its verdict was first found
-        self._silent_since: dict = {}     # agent -> when all its listeners first lost it
         self._delays_checked = None       # learned delays last certified
         self.rho_learned = None
-        self.world_seen = False
-        self.world_gone_at: float | None = None   # the world's token went
-        self._world_gone_step = -1                 # the newest step reported then
-        self._stepped_since_world: set = set()     # agents reporting a step past it
-        self.world_end: int | None = None          # its last step, once its end is heard
         #: the agents report an epoch this monitor did not issue: :meth:`adopt` before acting
         self.behind = False
         self._adopt_wait = None            # the last reason an adoption had to wait
         self._recorded = {"verdicts": 0, "history": 0, "gains": 0, "reissue": 0, "rejoin": 0,
                           "evidence_refused": 0, "waiting": None}   # see new_records
 
+    # -- the configuration in force, and the detector's view of it ---------------------
+    @property
+    def roster(self):
+        """The configuration in force (:class:`design.roster.Roster`); the detector
+        judges its agents."""
+        return self.detector.roster
+
+    @roster.setter
+    def roster(self, value) -> None:
+        self.detector.roster = value
+
+    # what the detector knows, read through the controller (the shells and tools read it)
+    agents = property(lambda self: self.detector.agents)
+    failed = property(lambda self: self.detector.failed)
+    convicted_at = property(lambda self: self.detector.convicted_at)
+    rejected = property(lambda self: self.detector.rejected)
+    anomalies = property(lambda self: self.detector.anomalies)
+    pace = property(lambda self: self.detector.pace)
+    world_gone_at = property(lambda self: self.detector.world_gone_at)
+    world_end = property(lambda self: self.detector.world_end)
+    last_step_reported = property(lambda self: self.detector.last_step_reported)
+
+    def hang_timeout(self, now: float | None = None) -> float:
+        return self.detector.hang_timeout(now)
+
+    def current_step(self, now: float) -> int:
+        return self.detector.current_step(now)
+
+    def step_ceiling(self, now: float, exclude=None) -> int | None:
+        return self.detector.step_ceiling(now, exclude)
+
+    def newest_step(self, exclude=None) -> int:
+        return self.detector.newest_step(exclude)
+
+    def learned_delays(self) -> dict:
+        return self.detector.learned_delays()
+
+    def reject(self, reason: str, agent, detail: str) -> None:
+        self.detector.reject(reason, agent, detail)
+
+    def healthy_standby(self, agent: int, now: float) -> bool:
+        return self.detector.healthy_standby(agent, now)
+
+    def run_ended(self, now: float) -> bool:
+        return self.detector.run_ended(now)
+
     # -- inputs --------------------------------------------------------------------
     def on_liveliness(self, role: str, agent, alive: bool, now: float,
                       session: str | None = None) -> bool | None:
-        """A liveliness token came or went; for an agent of the run, return whether its own
-        token is alive after it (None when the event changed nothing of it).
-
-        With ``session`` (the zid in the token's key), the first session seen holding agent
-        i's token is agent i's; a token of another session for the same id is refused
-        (``token``) and changes nothing. When the agent's own token goes while another
-        session still holds one for its id, the tokens no longer tell (zenoh resolves a
-        relayed token's end by an id, and two tokens for one agent id have been seen to
-        end the wrong one): the agent is then judged by the monitor's own observation,
-        convicted ``crash`` once no estimate of it came for ``silent_steps`` steps (a dead
-        agent cannot be hidden behind a token declared in its name, and an impostor
-        leaving cannot convict a live agent)."""
-        if role == "world":
-            self._on_world(bool(alive), now)
-            return None
-        if role != "agent":
-            return None
-        a = self._agent(agent)
-        if a is None:
-            return None
-        if session is not None:
-            alive = self._token(a, int(agent), str(session), bool(alive), now)
-            if alive is None:
-                return None
-        if a.alive and not alive and agent not in self.roster.ids \
+        """A liveliness token came or went (:meth:`FailureDetector.on_liveliness`); a
+        standby's going is logged with the replacements left."""
+        a = self.detector.evidence(agent) if role == "agent" else None
+        was_alive = a is not None and a.alive
+        out = self.detector.on_liveliness(role, agent, alive, now, session)
+        if was_alive and out is False and int(agent) not in self.roster.ids \
                 and self.world_gone_at is None:
             # no role to hand over, but one failure fewer can be answered
-            left = len(self.standby_pool(now, exclude=(agent,)))
+            left = len(self.standby_pool(now, exclude=(int(agent),)))
             self.events.append(f"standby agent {agent} gone (its token went): {left} "
                                f"standby left to replace a failed agent")
-        if a.alive and not alive:
-            a.gone_at = now
-        a.alive = bool(alive)
-        if alive and a.progress_at is None:
-            a.progress_at = now
-        return a.alive
+        return out
 
-    def _token(self, a: _Agent, agent: int, session: str, alive: bool,
-               now: float) -> bool | None:
-        """Whether agent ``agent``'s own token is alive after this event, or None when the
-        event is about another session's token for its id."""
-        if alive:
-            if a.token == session or (a.token is None and not a.claims):
-                a.token, a.contested_at = session, None
-                return True
-            if len(a.claims) < MAX_CLAIMS:      # a flood of made-up sessions stays bounded
-                a.claims.add(session)
-            self.reject("token", agent, f"a second liveliness token for agent {agent} "
-                        f"(session {session}; the agent's is {a.token}): another process "
-                        "claims its id, and its token is not taken for the agent's")
-            return None
-        if session == a.token:
-            a.token = None
-            if not a.claims:
-                return False
-            a.contested_at = now
-            self.events.append(f"agent {agent}'s liveliness token went while another process "
-                               f"holds one for its id: judged by its estimates from now on")
-            return None
-        a.claims.discard(session)
-        if a.token is None and not a.claims and a.contested_at is not None:
-            a.contested_at = None               # every token of its id is gone now
-            return False
-        return None
+    def on_status(self, msg: dict, now: float, sender: int | None = None) -> None:
+        """An agent's status (:meth:`FailureDetector.on_status`, refused above
+        :meth:`epoch_ceiling`). An epoch above this monitor's own means another monitor
+        acted while this one was away (restarted, paused, cut off): it continues above
+        it, :attr:`behind` until it has adopted the configuration in force."""
+        a = self.detector.on_status(msg, now, sender, epoch_ceiling=self.epoch_ceiling())
+        if a is None:
+            return
+        self._epoch_seen = max(self._epoch_seen, a.epoch)
+        if self.epoch < a.epoch:
+            self.epoch = a.epoch
+            self.behind = True
 
-    def _on_world(self, alive: bool, now: float, how: str = "") -> None:
-        """The world came or went. Without it the agents stop stepping: no verdict is made
-        while it is gone (whether it ended, or was paused or cut off: the agents wait for
-        it); when it comes back, verdicts wait for fresh evidence. It is back when its
-        token is, or when most agents of the configuration report steps ``hang_lag_steps``
-        past the newest reported when it went (they step on its readings only: its
-        token's return was missed, as a monitor whose links lapsed may miss it)."""
-        if alive:
-            if self.world_gone_at is not None:
-                self._fresh_evidence(now)
-                self.events.append(f"the world is back{how}: verdicts resume after "
-                                   f"{self.config.hang_timeout_s:g} s of fresh evidence")
-            self.world_seen, self.world_gone_at = True, None
-        elif self.world_seen and self.world_gone_at is None:
-            self.world_gone_at = now
-            self._world_gone_step = self.last_step_reported
-            self._stepped_since_world = set()
-            if self.world_end is None:
-                self.events.append(
-                    f"the world went silent after step {self.last_step_reported} without "
-                    f"its end (paused or cut off, or this monitor was): no verdicts while "
-                    f"it is gone; waiting up to {self.config.world_silent_s:g} s")
-            else:
-                self.events.append(f"the world left after step {self.world_end}: no "
-                                   "verdicts while it is gone")
+    def on_estimate_seen(self, agent, now: float) -> None:
+        """The monitor's own observation (:meth:`FailureDetector.on_estimate_seen`)."""
+        self.detector.on_estimate_seen(agent, now)
 
     def on_world_end(self, step: int) -> None:
         """The world's end message: the run is over after ``step``."""
-        if self.world_end is None:
-            self.world_end = int(step)
-            self.events.append(f"the world ended after step {self.world_end}")
-
-    def run_ended(self, now: float) -> bool:
-        """True once the world has ended (its end heard) and its token gone, and the agents
-        have left too (no agent token is alive) or ``world_gone_s`` has passed; or once a
-        world whose token went *without* its end has stayed silent ``world_silent_s``.
-
-        A monitor that was itself paused or cut off sees every token go at once, the
-        world's included, but heard no end: it waits for the network to come back instead
-        of leaving a live run.
-        """
-        if self.world_gone_at is None:
-            return False
-        gone = now - self.world_gone_at
-        if self.world_end is None:
-            return gone >= self.config.world_silent_s
-        return not any(a.alive for a in self.agents.values()) or gone >= self.config.world_gone_s
-
-    def _fresh_evidence(self, now: float) -> None:
-        """Forget the progress clocks: verdicts wait ``hang_timeout_s`` of new evidence."""
-        self._suspended_until = now + self.config.hang_timeout_s
-        self._watching_since = now
-        for a in self.agents.values():
-            a.progress_at = now
-            a.others_at_progress = self.newest_step()
+        self.detector.on_world_end(step)
 
     # -- evidence ------------------------------------------------------------------------
     def epoch_ceiling(self) -> int:
         """The largest epoch accepted from the network now: the highest seen (this monitor's
         own, adopted ones included) plus :attr:`MonitorConfig.epoch_jump_max`."""
         return max(self.epoch, self._epoch_seen) + self.config.epoch_jump_max
-
-    def reject(self, reason: str, agent, detail: str) -> None:
-        """Evidence refused (counted in :attr:`rejected` by reason; the first of each
-        reason and agent is an event and an entry of :attr:`anomalies`)."""
-        self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        key = (reason, agent)
-        if key not in self._rejected_seen and len(self._rejected_seen) < 1024:
-            self._rejected_seen.add(key)
-            self.anomalies.append({"reason": reason, "agent": agent, "detail": detail})
-            self.events.append(f"evidence refused ({reason}): {detail}")
 
     def accept_roster(self, msg: dict) -> bool:
         """A roster heard on the wire (already signature-checked by the caller when the
@@ -615,75 +433,6 @@ class MonitorCore:
             return False
         self._epoch_seen = max(self._epoch_seen, int(msg["epoch"]))
         return True
-
-    def on_status(self, msg: dict, now: float, sender: int | None = None) -> None:
-        """An agent's status; ``sender``: the agent id of the key it came on (the shell
-        parses it). A status whose payload names another agent than its key, or carries
-        an epoch above :meth:`epoch_ceiling`, is refused (:meth:`reject`)."""
-        if sender is not None and msg.get("agent") != sender:
-            self.reject("sender", sender, f"a status on agent {sender}'s key names agent "
-                        f"{msg.get('agent')}")
-            return
-        a = self._agent(msg.get("agent"))
-        if a is None:
-            return
-        if int(msg.get("epoch", 0)) > self.epoch_ceiling():
-            self.reject("epoch", msg["agent"], f"agent {msg['agent']}'s status carries epoch "
-                        f"{msg.get('epoch')}, above the highest epoch seen plus "
-                        f"{self.config.epoch_jump_max} ({self.epoch_ceiling()})")
-            return
-        step = int(msg.get("step", -1))
-        # no bound while this monitor has no fresh view: it was paused (its backlog holds
-        # statuses from before, which would anchor the bound in the past) or suspends its
-        # verdicts after a pause or the world's return
-        fresh = self._last_tick is not None and now - self._last_tick <= \
-            self.config.pause_guard_s and now >= self._suspended_until
-        ceiling = self.step_ceiling(now, exclude=msg["agent"]) if fresh else None
-        if ceiling is not None and step > ceiling:
-            self.reject("step", msg["agent"], f"agent {msg['agent']}'s status reports step "
-                        f"{step}, more than {self.config.step_ahead_s:g} s ahead of the other "
-                        f"agents (step {ceiling} at most)")
-            return
-        if self.world_gone_at is not None and self.world_end is None \
-                and step > self._world_gone_step + self.config.hang_lag_steps \
-                and msg["agent"] in self.roster.ids:
-            self._stepped_since_world.add(msg["agent"])
-            if 2 * len(self._stepped_since_world) > len(self.roster.ids):
-                self._on_world(True, now, how=" (agents "
-                               f"{sorted(self._stepped_since_world)} step past "
-                               f"{self._world_gone_step}; its token was not seen back)")
-        if step != a.step or a.step_at is None:
-            a.step_at = now
-        if step != a.step or a.progress_at is None:
-            a.progress_at = now
-            a.others_at_progress = self.newest_step(exclude=msg["agent"])
-        a.step = step
-        if a.status_at is not None and a.status_at >= self._watching_since \
-                and self._last_tick is not None \
-                and now - self._last_tick < self.config.pause_guard_s \
-                and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at:
-            # a healthy gap between two of its statuses: one this monitor watched whole
-            # (not across its own pause, nor the world's absence: after either, the
-            # backlog's first status of each agent closes a gap as long as the pause), nor
-            # across the agent's own conviction
-            self.pace.add(now - a.status_at, now)
-        a.status_at = now
-        if step >= self._clock[0]:
-            self._clock = (step, now)
-        a.epoch = int(msg.get("epoch", 0))
-        self._epoch_seen = max(self._epoch_seen, a.epoch)
-        a.active = bool(msg.get("active", False))
-        ctl = msg.get("ctl") if isinstance(msg.get("ctl"), dict) else {}
-        a.pending = int(ctl.get("pending", 0) or 0)
-        sensor = msg.get("sensor") if isinstance(msg.get("sensor"), dict) else {}
-        last = sensor.get("last_step", -1)
-        a.sensor_last = int(last) if isinstance(last, int) else -1
-        a.status = msg
-        if self.epoch < a.epoch:          # a restarted monitor continues above every epoch
-            # ... and the configuration it holds is not the one in force: another monitor
-            # acted while this one was away (restarted, paused, cut off)
-            self.epoch = a.epoch
-            self.behind = True
 
     @property
     def roster_message(self):
@@ -719,54 +468,6 @@ class MonitorCore:
             seen["waiting"] = None
         return out
 
-    def _agent(self, agent):
-        try:
-            agent = int(agent)
-        except (TypeError, ValueError):
-            return None
-        return self.agents.get(agent)
-
-    def current_step(self, now: float) -> int:
-        """The newest step reported, extrapolated to ``now`` at the run's step period."""
-        step, t = self._clock
-        if step < 0:
-            return step
-        return step + max(0, int((now - t) / self.config.step_s))
-
-    def step_ceiling(self, now: float, exclude=None) -> int | None:
-        """The highest step a status may report now: the most advanced other agent's step
-        (``exclude``: the sender), extrapolated at ``step_s`` from when it was reached (not
-        from a pause's fresh start: after one the others are ahead by the pause), plus
-        ``step_ahead_s``; None until another agent has reported. Taking the others' word
-        and not the sender's keeps one agent from ratcheting the clock up."""
-        best = None
-        for i, a in self.agents.items():
-            if i != exclude and a.step >= 0 and a.step_at is not None:
-                at = a.step + max(0.0, now - a.step_at) / self.config.step_s
-                best = at if best is None or at > best else best
-        if best is None:
-            return None
-        return int(best + self.config.step_ahead_s / self.config.step_s)
-
-    @property
-    def last_step_reported(self) -> int:
-        """The newest step any agent reported (-1 before the first)."""
-        return self._clock[0]
-
-    def newest_step(self, exclude=None) -> int:
-        steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
-        return max(steps, default=-1)
-
-    def hang_timeout(self, now: float | None = None) -> float:
-        """The hang timeout at ``now`` (default: the last tick): ``hang_timeout_s``, grown
-        with the statuses' observed pace (:class:`StatusPace`) up to
-        ``hang_timeout_max_s``."""
-        cfg = self.config
-        if now is None:
-            now = self._last_tick if self._last_tick is not None else 0.0
-        return self.pace.timeout(cfg.hang_phi, cfg.hang_timeout_s, cfg.hang_timeout_max_s,
-                                 now)
-
     # -- the clock -----------------------------------------------------------------
     def tick(self, now: float) -> list:
         """Verdicts and reassignment at time ``now``; returns messages to publish now.
@@ -774,40 +475,28 @@ class MonitorCore:
         Nothing while :attr:`behind` (the configuration held is not the one in force:
         the caller rebuilds it with :meth:`adopt` first)."""
         cfg = self.config
-        if self._last_tick is not None and now - self._last_tick > cfg.pause_guard_s:
-            self._fresh_evidence(now)
-            self.events.append(f"monitor paused {now - self._last_tick:.2f} s: verdicts "
-                               f"suspended for {cfg.hang_timeout_s:g} s")
-        self._last_tick = now
-        if self._started is None:
-            self._started = now
-        hang_s = self.hang_timeout(now)
-        if abs(hang_s - self._hang_said) >= 0.25 * cfg.hang_timeout_s:
-            self._hang_said = hang_s
-            self.events.append(
-                f"hang timeout {hang_s:.2f} s: statuses come every {self.pace.mean:.2f} s "
-                f"+- {math.sqrt(self.pace.var):.2f} s (floor {cfg.hang_timeout_s:g}, "
-                f"ceiling {cfg.hang_timeout_max_s:g})")
+        detector = self.detector
+        detector.observe(now)
         if self.world_gone_at is not None or self.behind:
             return []                      # the world is gone, or the roster is stale
         out = []
         self._check_confirmations(now)
-        suspended = now < self._suspended_until
+        suspended = detector.suspended(now)
         if not suspended:
             self._probation(now)
             out += self._retry_unanswered(now)
         if self._pending is not None:
             out += self._emit_reassign(now)     # its gains came back from the worker
         self._note_gain_mse()
-        if not suspended and self._clock[0] >= 0 and not self._unconfirmed \
+        if not suspended and self.last_step_reported >= 0 and not self._unconfirmed \
                 and self._pending is None:
             out += self.check_delays(now)
             if not out:
                 out += self._upgrade_gains(now)
-        if self._clock[0] >= 0:
+        if self.last_step_reported >= 0:
             # a deleted token is evidence of its own: even while the monitor's own pause
             # suspends the verdicts that read clocks, a crash is answered
-            found = self._crash_verdicts(now) if suspended else self._detect(now)
+            found = detector.crash_verdicts(now) if suspended else detector.verdicts(now)
             # when its verdict was first found, while the evidence holds: an agent convicted
             # again later (it came back, rejoined, failed again) starts a new time
             self._first_seen = {a: t for a, t in self._first_seen.items()
@@ -854,142 +543,11 @@ class MonitorCore:
                            f"confirmed; re-issued from step {at}")
         return out
 
-    def _crash_verdicts(self, now: float) -> list:
-        """The ``crash`` verdicts that hold while verdicts are suspended: a token deleted
-        :data:`CRASH_SETTLE_S` ago or more, while fewer than half of the configuration's
-        tokens are gone (when this monitor was paused or cut off, its links lapse and every
-        token seems to go at once: that is no crash)."""
-        gone = [i for i in self.roster.ids if not self.agents[i].alive]
-        if 2 * len(gone) >= len(self.roster.ids):
-            return []
-        return [Verdict(i, "crash", "liveliness token deleted", now, self._clock[0])
-                for i in gone if i not in self.failed
-                and self.agents[i].progress_at is not None
-                and self.agents[i].gone_at is not None
-                and now - self.agents[i].gone_at >= CRASH_SETTLE_S]
-
-    def _detect(self, now: float) -> list:
-        cfg = self.config
-        found = []
-        newest = self._clock[0]
-        silent_s = cfg.silent_steps * cfg.step_s
-        hang_s = self.hang_timeout(now)
-        for i in self.roster.ids:
-            if i in self.failed:
-                continue
-            a = self.agents[i]
-            if not a.alive and a.progress_at is not None:
-                found.append(Verdict(i, "crash", "liveliness token deleted", now, newest))
-            elif a.contested_at is not None and a.token is None and now - max(
-                    a.contested_at, a.estimate_at or a.contested_at) > silent_s:
-                found.append(Verdict(i, "crash", "its liveliness token went, another process "
-                                     "holds one for its id, and no estimate of it for "
-                                     f"{cfg.silent_steps} steps", now, newest))
-            elif a.progress_at is None and now - self._started > cfg.hang_timeout_s:
-                # a (re)started monitor never saw it: no token, no status, others advance
-                found.append(Verdict(i, "crash", "no liveliness token and no status since "
-                                     "the monitor started", now, newest))
-            elif (a.progress_at is not None and now - a.progress_at > hang_s
-                  and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
-                # stuck: a quiet sensor if its loop still reports (statuses arrive) and its
-                # last reading is behind; otherwise its loop is hung
-                talking = a.status_at is not None and now - a.status_at < hang_s / 2
-                if talking and a.sensor_last >= 0 and newest - a.sensor_last > cfg.sensor_lag_steps:
-                    found.append(Verdict(
-                        i, "sensor", f"no reading since step {a.sensor_last} while the others "
-                        f"reached step {newest}; its loop still reports", now, newest))
-                else:
-                    found.append(Verdict(
-                        i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
-                        f"others reached step {newest}"
-                        + ("" if talking else "; no status either")
-                        + (f" (hang timeout {hang_s:.2f} s at the statuses' pace)"
-                           if hang_s > cfg.hang_timeout_s else ""), now, newest))
-            else:
-                ages = self._listener_ages(i)
-                if ages and min(age - self._link_delay(j, i) for j, age in ages.items()) \
-                        > cfg.silent_steps and self._hearsay_holds(i, ages, now):
-                    since = self._silent_since.setdefault(i, now)
-                    if now - since > cfg.hang_timeout_s:
-                        found.append(Verdict(
-                            i, "silent", "its listeners hold nothing fresher than "
-                            + ", ".join(f"{age} steps (agent {r})" for r, age in sorted(ages.items())),
-                            now, newest))
-                else:
-                    self._silent_since.pop(i, None)
-        return found
-
-    def on_estimate_seen(self, agent, now: float) -> None:
-        """The monitor's own observation: an estimate of ``agent`` arrived at ``now`` (the
-        shell tells it from the key alone, without decoding)."""
-        a = self._agent(agent)
-        if a is not None:
-            a.estimate_at = now
-
-    def _hearsay_holds(self, agent: int, ages: dict, now: float) -> bool:
-        """One listener's word is not enough to convict: a ``silent`` verdict from a single
-        listener stands only if the monitor's own observation agrees (it has heard no
-        estimate of ``agent`` for ``silent_steps`` steps) or that listener's status shows
-        the link from ``agent`` impaired. Otherwise its hearsay is discounted (an
-        anomaly: :meth:`reject` ``hearsay``)."""
-        if len(ages) >= 2:
-            return True
-        (j,) = ages
-        links = self.agents[j].status.get("links")
-        if isinstance(links, dict) and str(agent) in links:
-            return True
-        seen = self.agents[agent].estimate_at
-        window = self.config.silent_steps * self.config.step_s
-        if seen is None or now - seen > window:
-            return True
-        self.reject("hearsay", j, f"agent {j} reports agent {agent} silent ({ages[j]} steps) "
-                    f"but the monitor heard agent {agent}'s estimates {now - seen:.2f} s ago "
-                    "and no impaired link: not convicted on one listener's word")
-        return False
-
-    def _listener_ages(self, agent: int) -> dict:
-        """``{listener: age of the freshest estimate of agent it holds}`` (-1: none yet
-        counts as not silent; listeners without a status are left out). The listeners are
-        those of the configuration in force (its W), not whoever claims to listen."""
-        out = {}
-        W, col = self.roster.scenario.W, self.roster.row_of(agent)
-        for j in self.roster.ids:
-            st = self.agents[j].status
-            if j == agent or not st or not W[self.roster.row_of(j), col] > 0:
-                continue
-            age = st.get("ages", {}).get(agent)
-            if age is None or age < 0:
-                return {}
-            out[j] = age
-        return out
-
-    def _link_delay(self, receiver: int, sender: int) -> int:
-        """The delay of link ``sender -> receiver`` in force: the configuration's, or the
-        one the receiver learned when larger (an estimate that old is on time), by at
-        most ``silent_steps`` (a larger one is the ``delay`` verdict's matter, and a
-        listener claiming a huge one must not silence the bound)."""
-        D = self.roster.delays
-        tau = int(D[self.roster.row_of(receiver), self.roster.row_of(sender)])
-        learned = self.agents[receiver].status.get("delays")
-        if isinstance(learned, dict):
-            got = learned.get(sender, learned.get(str(sender)))
-            if isinstance(got, int) and not isinstance(got, bool):
-                tau = max(tau, min(got, tau + self.config.silent_steps))
-        return tau
-
     def scenario_link(self, link) -> bool:
         """True iff ``(receiver, sender)`` is a link of the configuration in force."""
         a, b = link
         i, j = self.roster.row_of(a), self.roster.row_of(b)
         return i != j and self.roster.scenario.W[i, j] > 0
-
-    def learned_delays(self) -> dict:
-        """``{(receiver, sender): tau}`` from the statuses of the agents in force."""
-        out = {}
-        for a in self.roster.ids:
-            for b, tau in self.agents[a].status.get("delays", {}).items():
-                out[(a, int(b))] = int(tau)
-        return out
 
     def check_delays(self, now: float) -> list:
         """The ``delay`` verdict: learned delays above the design and the exact loop with
@@ -1029,7 +587,7 @@ class MonitorCore:
                                f"exact loop is still stable (radius {rho:.4f})")
             return []
         v = Verdict(0, "delay", f"{evidence}; exact radius {rho:.4f} >= 1", now,
-                    self._clock[0])
+                    self.last_step_reported)
         self.verdicts.append(v)
         self.events.append(f"verdict: delay ({v.evidence})")
         self._delay_pending = {"roster": new, "record": {
@@ -1067,7 +625,7 @@ class MonitorCore:
 
         self.verdicts += verdicts
         failed = sorted({v.agent for v in verdicts} | set(unanswered))
-        self.failed |= set(failed)
+        self.failed.update(failed)
         for a in failed:
             self.convicted_at[a] = now
             self.on_probation.add(a)
@@ -1090,7 +648,7 @@ class MonitorCore:
                 f"RECOVERY IMPOSSIBLE after the failure of {failed}: no equivalent agent or "
                 "connected network left; keeping the configuration in force and monitoring")
             return []
-        self.failed -= set(nxt.ids)       # a returned agent taken again is healthy
+        self.failed.difference_update(nxt.ids)       # a returned agent taken again is healthy
         self._pending = {"verdicts": verdicts, "failed": failed, "roster": roster,
                          "plan": plan, "nxt": nxt, "at": now, "asked": False}
         return self._emit_reassign(now)
@@ -1204,36 +762,6 @@ class MonitorCore:
         return self._assign_all(self.roster, G, info, now, {"causes": {"0": "refined"}},
                                 "refined gains for the configuration in force")
 
-    def healthy_standby(self, agent: int, now: float) -> bool:
-        """What probation asks of a convicted agent, at ``now``: its token is up, it holds
-        no role, its step moved within half the hang timeout and is within the hold
-        window (``lead_steps``) of the network's newest, its sensor readings (if it
-        wants any) are no older than that window, and no status (its own or a
-        neighbour's) shows a link into or out of it cut (partitioned, or dropping half
-        or more; a delay is no cut)."""
-        cfg, st = self.config, self.agents[agent]
-        if not st.alive or st.progress_at is None or st.status.get("active"):
-            return False
-        if now - st.progress_at > cfg.hang_timeout_s / 2:
-            return False
-        window = max(cfg.lead_steps, 1)
-        if self.newest_step() - st.step > window:
-            return False
-        sensor = st.status.get("sensor") if isinstance(st.status.get("sensor"), dict) else {}
-        if sensor.get("labels") and st.step - st.sensor_last > window:
-            return False
-        me = str(agent)
-        for b, other in self.agents.items():
-            links = other.status.get("links")
-            if not isinstance(links, dict):
-                continue
-            for src, p in links.items():
-                cut = isinstance(p, dict) and (p.get("partition") or
-                                               float(p.get("drop", 0) or 0) >= 0.5)
-                if cut and (b == agent or src == me):    # a delay is no cut
-                    return False
-        return True
-
     def _probation(self, now: float) -> None:
         """Agents on probation that stayed healthy for ``rejoin_s`` rejoin the standby pool
         (an event and an entry of :attr:`rejoins`); a break starts the probation over."""
@@ -1343,7 +871,7 @@ class MonitorCore:
                 self._adopt_wait = line
             return False
         self.roster = Roster(scen, tuple(rows), standby, table, D)
-        self.failed |= {a for a in range(1, s.N + 1) if a not in rows}
+        self.failed.update(a for a in range(1, s.N + 1) if a not in rows)
         self.G, self.specs = None, {}
         self.epoch = max([self.epoch, int(epoch)] + [st.epoch for st in self.agents.values()])
         self.behind = False
