@@ -792,3 +792,33 @@ def test_a_failure_without_a_standby_is_recovered_once_an_agent_rejoins(core):
     assert [r["agent"] for r in core.rejoins] == [1]
     assert core.roster.ids == (1,) and not core.unrecoverable
     assert any("planning the recovery of [3]" in e for e in core.events)
+
+
+def test_the_failure_detector_judges_without_the_controller(paper14):
+    """FailureDetector alone: a stuck loop is a hang, a deleted token a crash, a status on
+    another agent's key refused; it reassigns nothing."""
+    from agent.monitor.detector import FailureDetector
+    from design.roster import Roster
+
+    d = FailureDetector(MonitorConfig(hang_timeout_s=1.0, step_s=0.02),
+                        Roster.initial(paper14, paper14.delays))
+    assert sorted(d.agents) == [1, 2, 3, 4]
+    for a in (1, 2, 3):
+        d.on_liveliness("agent", a, True, 0.0)
+    t = 0.0
+    while t <= 3.0:
+        d.observe(t)
+        for a in (1, 2, 3):
+            if a != 2 or t < 0.8:                      # agent 2's loop hangs at step 40
+                d.on_status(_status(a, int(50 * t)), t, sender=a)
+        t += 0.1
+    found = d.verdicts(t)
+    assert [(v.agent, v.cause) for v in found] == [(2, "hang")]
+    assert "step 40 for" in found[0].evidence and "no status either" in found[0].evidence
+    d.on_liveliness("agent", 3, False, t)
+    d.observe(t + 0.2)
+    assert sorted((v.agent, v.cause) for v in d.verdicts(t + 0.2)) == [(2, "hang"), (3, "crash")]
+    d.failed.add(2)                                    # the controller convicted it
+    assert [(v.agent, v.cause) for v in d.verdicts(t + 0.2)] == [(3, "crash")]
+    assert d.on_status(_status(1, 200), t + 0.2, sender=3) is None
+    assert d.rejected == {"sender": 1}
