@@ -8,7 +8,7 @@ import pytest
 
 from agent.protocol import wire
 from agent.cli.main import main
-from agent.cli.up import check_run_endpoint
+from agent.run.setup import check_run_endpoint
 from agent.cli._common import CommandError
 from agent.run.live_view import LiveView, format_lines
 from agent.run.local import RunConfig

@@ -14,7 +14,7 @@ pytestmark = [pytest.mark.multiprocess]
 
 
 def _config(tmp_path, gains, steps, **extra):
-    from agent.cli.up import run_config
+    from agent.run.setup import run_config
 
     args = argparse.Namespace(
         scenario="paper-14-live", steps=steps, gains=str(gains), seed=0, out=str(tmp_path),

@@ -3,25 +3,23 @@
 from __future__ import annotations
 
 import json
-import math
 import sys
-import warnings
 
 from agent.run.jsonable import to_jsonable, versioned  # noqa: F401 - re-exported for the commands
 
-from design.errors import GainsError, ScenarioError
-from design.gains import load_gains
-from design.scenario import load_scenario
-
-EXIT_OK, EXIT_NEGATIVE, EXIT_BAD_INPUT = 0, 1, 2
-
-
-class CommandError(Exception):
-    """Abort a command with a message and an exit status (2 = bad input)."""
-
-    def __init__(self, message: str, status: int = EXIT_BAD_INPUT):
-        super().__init__(message)
-        self.status = status
+# the checks of what a user gives live with the runs; the commands take them from here
+from agent.run.inputs import (  # noqa: F401 - re-exported for the commands
+    EXIT_BAD_INPUT,
+    EXIT_NEGATIVE,
+    EXIT_OK,
+    check_run_flags,
+    gains_for,
+    gains_scenario_mismatch,
+    load_gains_arg,
+    load_scenario_arg,
+    timing_arg,
+)
+from agent.run.inputs import InputError as CommandError
 
 
 def add_scenario_argument(parser) -> None:
@@ -49,49 +47,6 @@ def add_force_gains_argument(parser) -> None:
                              "scenario's (by default that is an error, exit 2)")
 
 
-def load_scenario_arg(spec):
-    """Load a scenario; a ScenarioError becomes a CommandError (exit 2).
-
-    Warnings (e.g. rank-deficient A) are printed to stderr, not raised.
-    """
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            scenario = load_scenario(spec)
-        except ScenarioError as exc:
-            raise CommandError(f"bad scenario: {exc}") from None
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
-    return scenario
-
-
-def load_gains_arg(path, scenario, force: bool = False, flag: str = "--gains"):
-    """Load the gains file of ``flag`` for ``scenario``; CommandError (exit 2) naming the flag
-    when it cannot be read, does not fit, or was designed for another scenario (its meta's
-    ``scenario_digest`` is not ``scenario.digest()``) unless ``force`` (``--force-gains``),
-    which prints a warning instead. A file without a digest (written by hand) is accepted."""
-    try:
-        gains = load_gains(path, scenario)
-    except GainsError as exc:
-        raise CommandError(f"{flag}: {exc}") from None
-    problem = gains_scenario_mismatch(gains.meta, scenario)
-    if problem is not None:
-        if not force:
-            raise CommandError(f"{flag}: {path}: {problem} (--force-gains to use it anyway)")
-        print(f"warning: {flag}: {path}: {problem}", file=sys.stderr)
-    return gains
-
-
-def gains_scenario_mismatch(meta: dict, scenario) -> str | None:
-    """Why the gains of ``meta`` were not designed for ``scenario``, or None when they were
-    (or when the file does not say)."""
-    digest = meta.get("scenario_digest")
-    if digest is None or digest == scenario.digest():
-        return None
-    return (f"gains designed for scenario {meta.get('scenario', '?')!s} (digest {digest}), "
-            f"not for scenario {scenario.name} (digest {scenario.digest()})")
-
-
 def net_config_arg(args, identity: str):
     """The :class:`broker_free_net.NetConfig` of the transport flags; CommandError (exit 2)
     naming the flag (``--zenoh-config``, ``--listen``, ...) when a value is bad."""
@@ -104,36 +59,6 @@ def net_config_arg(args, identity: str):
         if message.startswith(f"{exc.field}: "):
             message = message[len(exc.field) + 2:]
         raise CommandError(f"--{exc.field.replace('_', '-')}: {message}") from None
-
-
-def timing_arg(step_s: float | None = None, lead_steps: int | None = None, **fields):
-    """The run's :class:`agent.protocol.timing.Timing` from flag values; CommandError naming the flag
-    and the broken relation otherwise (``fields``: Timing field -> value, None = default).
-
-    >>> timing_arg(hang_timeout_s=2.0).hang_timeout_s
-    2.0
-    >>> timing_arg(hang_timeout_s=0.4)  # doctest: +ELLIPSIS
-    Traceback (most recent call last):
-    ...
-    agent.cli._common.CommandError: --hang-timeout: 0.4 s must exceed 2 x status_s = 0.4 s (...); pause_guard_s: 0.5 s must be below hang_timeout_s = 0.4 s (...)
-    """
-    from agent.protocol.timing import DEFAULT
-
-    timing = DEFAULT.replace(**{k: v for k, v in fields.items() if v is not None})
-    problems = timing.problems(step_s=step_s, lead_steps=lead_steps)
-    if problems:
-        lines = []
-        for line in problems:
-            field, _, reason = line.partition(": ")
-            flag = _TIMING_FLAGS.get(field)
-            lines.append(f"{flag}: {reason}" if flag and field in fields else line)
-        raise CommandError("; ".join(lines))
-    return timing
-
-
-#: Timing fields set by a flag of some command (the rest are the runtime's constants).
-_TIMING_FLAGS = {"hang_timeout_s": "--hang-timeout", "hang_timeout_max_s": "--hang-timeout-max",
-                 "start_timeout_s": "--start-timeout"}
 
 
 def _int_or_reason(text, lo: int, hi: int | None):
@@ -164,11 +89,11 @@ def parse_int(text, flag: str, lo: int = 0, hi: int | None = None) -> int:
     >>> parse_int("²", "--steps")
     Traceback (most recent call last):
     ...
-    agent.cli._common.CommandError: --steps: expected an integer, got '²'
+    agent.run.inputs.InputError: --steps: expected an integer, got '²'
     >>> parse_int("0", "--trials", lo=1)
     Traceback (most recent call last):
     ...
-    agent.cli._common.CommandError: --trials: must be an integer >= 1, got 0
+    agent.run.inputs.InputError: --trials: must be an integer >= 1, got 0
     """
     value, reason = _int_or_reason(text, lo, hi)
     if reason is not None:
@@ -212,7 +137,7 @@ def parse_int_list(text, flag: str, lo: int = 0, hi: int | None = None, *,
     >>> parse_int_list("1,1", "--fail", lo=1, item="agent", unique=True)
     Traceback (most recent call last):
     ...
-    agent.cli._common.CommandError: --fail: agent 1 listed twice
+    agent.run.inputs.InputError: --fail: agent 1 listed twice
     """
     out = []
     for part in str(text).split(","):
@@ -233,16 +158,6 @@ def parse_int_list(text, flag: str, lo: int = 0, hi: int | None = None, *,
     if not out and not allow_empty:
         raise CommandError(f"{flag}: give at least one {item}")
     return out
-
-
-def check_run_flags(args) -> None:
-    """Flags shared by the live-run commands: ``--seed`` >= 0, ``--start-timeout`` > 0."""
-    seed = getattr(args, "seed", None)
-    if seed is not None and seed < 0:
-        raise CommandError(f"--seed: must be a non-negative integer, got {seed}")
-    timeout = getattr(args, "start_timeout", None)
-    if timeout is not None and not (math.isfinite(timeout) and timeout > 0):
-        raise CommandError(f"--start-timeout: must be a positive number of seconds, got {timeout}")
 
 
 def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:

@@ -33,29 +33,6 @@ def add_arguments(parser) -> None:
     add_net_arguments(parser)
 
 
-def gains_for(scenario, gains_path, delays, force: bool = False, progress=None):
-    """Load ``gains_path`` (``force``: even when designed for another scenario) or design the
-    default gain (``progress``: as for :func:`design.gain_design.design_gains`);
-    CommandError when impossible."""
-    from agent.cli._common import CommandError, load_gains_arg
-
-    if gains_path:
-        return load_gains_arg(gains_path, scenario, force=force).G
-    from design.errors import SocmonError
-    from design.gain_design import design_gains
-
-    try:
-        # the error users see: steady MSE (certified stable), bounded by iterations, not
-        # by the clock, so that every process of a run designs the same gain
-        result = design_gains(scenario, delays=delays, objective="mse", progress=progress)
-    except SocmonError as exc:   # not observable / not detectable, bad delays
-        raise CommandError(f"gain design: {exc}") from None
-    if not result.rho < 1:
-        raise CommandError(f"gain design found no stabilising gain (rho = {result.rho:.4g})",
-                           status=1)
-    return list(result.G)
-
-
 def run(args) -> int:
     from agent.cli._common import CommandError, run_command
 
@@ -65,7 +42,7 @@ def run(args) -> int:
 
         from agent.node.process import run_agent
         from agent.node.core import agent_config
-        from agent.cli._common import check_run_flags, load_scenario_arg, net_config_arg
+        from agent.cli._common import check_run_flags, gains_for, load_scenario_arg, net_config_arg
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)

@@ -290,3 +290,139 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
                                  f"agent {v['agent']} convicted ({v['cause']}: "
                                  f"{v.get('evidence')}) but no fault was injected into it"))
     return out
+
+
+def live_chaos(args, say) -> tuple:
+    """``socmon chaos``: a live run under the fault schedule drawn from ``args.seed``,
+    checked against the invariants; the run folder gets ``schedule.json``,
+    ``invariants.json`` and the timeline besides ``up``'s files. Returns ``(report,
+    status, reassignments)``: status 1 when the run failed or broke an invariant."""
+    import argparse
+    import dataclasses
+    import json
+    import time
+    from pathlib import Path
+
+    from agent.protocol.timing import DEFAULT as TIMING
+    from agent.run.folder import write_atomic
+    from agent.run.inputs import InputError
+    from agent.run.jsonable import SCHEMA_VERSION, to_jsonable
+    from agent.run.setup import run_config
+    from agent.run.summary import run_and_summarize, write_run_folder
+
+    if not 0 <= args.rate <= 6.25:
+        raise InputError(f"--rate: must be in [0, 6.25] faults per 1000 steps, got {args.rate}")
+    if args.duration < 100:
+        raise InputError(f"--duration: must be >= 100 steps, got {args.duration}")
+    kinds = tuple(k.strip() for k in args.faults.split(",") if k.strip())
+    bad = [k for k in kinds if k not in CHAOS_KINDS]
+    if bad or not kinds:
+        raise InputError(f"--faults: unknown kinds {bad} (known: {', '.join(CHAOS_KINDS)})"
+                           if bad else "--faults: give at least one kind")
+
+    out = args.out or str(Path("runs") / f"chaos-{Path(args.scenario).stem}-s{args.seed}-"
+                                          f"{time.strftime('%Y%m%d-%H%M%S')}")
+    up_args = argparse.Namespace(
+        scenario=args.scenario, steps=args.duration, gains=args.gains, seed=args.seed,
+        out=out, delays=args.delays, step_ms=args.step_ms, deadline_ms=None,
+        start_timeout=TIMING.start_timeout_s, quiet=args.quiet, no_monitor=False, monitors=2, drop=0.0,
+        kill=[], stop=[],
+        kill_monitor=None, hang_timeout=args.hang_timeout,
+        hang_timeout_max=TIMING.hang_timeout_max_s, check_simulator=False,
+        overwrite=args.overwrite)
+    config = run_config(up_args, say, prog="chaos")
+    schedule = draw_schedule(config.scenario, args.seed, args.duration, kinds, args.rate,
+                             config.step_ms)
+    config = dataclasses.replace(config, faults=tuple(schedule))
+    write_atomic(config.out / "schedule.json",
+                 json.dumps([f.to_dict() for f in schedule], indent=2) + "\n")
+    say(f"{len(schedule)} faults: " + ", ".join(
+        f"{f.kind}{' ' + str(f.agent) if f.agent else ''}@{f.step}" for f in schedule))
+    s = config.scenario
+    rec, summary, steps, mse, predicted = run_and_summarize(config, say)
+    violations = [] if rec.failure else check_invariants(config, rec, summary, steps, mse)
+    write_run_folder(config.out, summary, steps, mse, predicted, assigns=rec.assigns)
+    report = {
+        "schema_version": SCHEMA_VERSION,
+        "scenario": s.name, "seed": args.seed, "duration": args.duration,
+        "faults": [f.to_dict() for f in schedule],
+        "failures": summary.get("failures", []),
+        "rosters": summary.get("rosters", []),
+        "violations": [v.to_dict() for v in violations],
+        "error": rec.failure,
+        "replay": f"socmon chaos {args.scenario} --seed {args.seed} --duration "
+                  f"{args.duration} --faults {','.join(kinds)} --rate {args.rate:g}",
+        "out": str(config.out),
+    }
+    write_atomic(config.out / "invariants.json",
+                 json.dumps(to_jsonable(report), indent=2) + "\n")
+    write_timeline(config.out, summary, steps, mse, schedule, rec.rosters)
+    return report, 1 if violations or rec.failure else 0, len(rec.rosters) - 1
+
+
+def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
+    """timeline.json and timeline.png of a chaos run: faults, verdicts, activations, MSE."""
+    import json
+
+    import numpy as np
+
+    from agent.run.folder import write_atomic
+    from agent.run.jsonable import to_jsonable
+
+    items = [{"step": f.step, "what": "fault", **f.to_dict()} for f in schedule]
+    items += [{"step": v["detected_step"], "what": "verdict", "agent": v["agent"],
+               "cause": v["cause"]} for v in summary.get("failures", [])]
+    items += [{"step": at, "what": "activation", "ids": list(ids), "epoch": ep}
+              for at, ids, ep in rosters[1:]]
+    items.sort(key=lambda x: x["step"])
+    write_atomic(out / "timeline.json", json.dumps(to_jsonable(items), indent=2) + "\n")
+    from agent.run.summary import plottable, pyplot
+
+    plt = pyplot()
+    if plt is None:
+        return
+    ok = plottable(mse)
+    mse = np.asarray(mse, dtype=float)
+    fig, (ax, lane) = plt.subplots(2, 1, figsize=(10.5, 5), sharex=True,
+                                   gridspec_kw={"height_ratios": [3, 1.4]})
+    ax.semilogy(np.asarray(steps)[ok], mse[ok], lw=0.8)
+    ax.set_ylabel("MSE")
+    ax.set_title(f"{summary['scenario']}: chaos, seed {summary['seed']}")
+    M = summary["agents"] + summary["standby"]
+    colours = {"kill": "tab:red", "stop": "tab:orange", "partition": "tab:purple",
+               "delay": "tab:brown", "drop": "tab:olive", "monitor": "k", "crash": "tab:red",
+               "hang": "tab:pink", "sensor": "tab:cyan"}
+    for f in schedule:
+        y = f.agent if f.agent else 0
+        width = max(1.0, f.seconds * 1000.0 / summary["step_ms"]) if f.seconds else 3
+        lane.barh(y, width, left=f.step, height=0.6, color=colours.get(f.kind, "grey"),
+                  alpha=0.8)
+        lane.text(f.step, y + 0.35, f.kind, fontsize=7)
+        ax.axvline(f.step, color=colours.get(f.kind, "grey"), lw=0.6, alpha=0.6)
+    for v in summary.get("failures", []):
+        lane.plot(v["detected_step"], v["agent"], "kx", ms=6)
+    for at, ids, _ in rosters[1:]:
+        ax.axvline(at, color="tab:green", lw=0.8, ls="--")
+        for a in ids:
+            lane.plot(at, a, "g|", ms=10)
+    lane.set_yticks(range(0, M + 1), ["monitor"] + [f"agent {a}" for a in range(1, M + 1)])
+    lane.set_xlabel("step")
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    kinds = sorted({f.kind for f in schedule})
+    lane.legend(handles=[Patch(color=colours.get(k, "grey"), alpha=0.8, label=f"fault: {k}")
+                         for k in kinds]
+                + [Line2D([], [], color="k", marker="x", ls="", label="verdict"),
+                   Line2D([], [], color="g", marker="|", ls="", ms=10,
+                          label="roles in force (activation)")],
+                loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, frameon=False)
+    ax.legend(handles=[Line2D([], [], lw=0.8, label="MSE (live)"),
+                       Line2D([], [], color="tab:green", lw=0.8, ls="--",
+                              label="a new configuration in force")],
+              loc="upper right", fontsize=8)
+    fig.tight_layout()
+    try:
+        fig.savefig(out / "timeline.png", dpi=110)
+    finally:
+        plt.close(fig)

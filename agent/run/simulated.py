@@ -705,3 +705,27 @@ def report_lines(report: dict) -> list:
     lines += [f"  seed {v['seed']}: {v['invariant']} at step {v['step']}: {v['evidence']}"
               for v in broken[:30]]
     return lines
+
+
+def simulated_chaos(args, seeds) -> dict:
+    """``socmon chaos --simulated A:B``: the schedules of ``seeds`` under simulated time
+    (:func:`agent.run.simulated.run_schedules`), one report."""
+    from design.errors import ScenarioError
+    from design.scenario import resolve_delays
+
+    from agent.run.inputs import InputError, gains_for, load_scenario_arg
+
+    kinds = tuple(k.strip() for k in args.faults.split(",") if k.strip())
+    bad = [k for k in kinds if k not in FAULT_KINDS or k == "crash"]
+    if bad or not kinds:
+        raise InputError(f"--faults: {bad} cannot be simulated (simulated: "
+                           f"{', '.join(k for k in FAULT_KINDS if k != 'crash')})"
+                           if bad else "--faults: give at least one kind")
+    scenario = load_scenario_arg(args.scenario)
+    try:
+        delays = resolve_delays(scenario, args.delays)
+    except ScenarioError as exc:
+        raise InputError(str(exc)) from None
+    G = gains_for(scenario, args.gains, delays, args.force_gains)
+    report = run_schedules(scenario, G, delays, seeds, args.duration, kinds, args.rate)
+    return {**report, "delays": delays, "scenario_name": scenario.name, "kinds": kinds}

@@ -209,6 +209,22 @@ def final_roles(last_status, events, last_step) -> dict:
     return out
 
 
+def headline_lines(summary: dict, scenario) -> list:
+    """The lines ``socmon up`` prints of a finished run: the MSE against its prediction for
+    the configuration in force, the message counts, each failure, the run folder."""
+    exact = summary.get("mse_steady_exact_in_force")
+    first = (f"{scenario.name}: {summary['steps']} steps, {scenario.N} agents, mse_steady "
+             f"{summary['mse_steady']:.4g} (predicted "
+             + (f"{exact:.4g} for the configuration in force" if exact is not None
+                else "n/a: the window spans a switch")
+             + (f"; DIVERGED at step {summary['diverged_at']}"
+                if summary.get("diverged_at") is not None else "") + "), drops "
+             f"{summary['drops']}, late {summary['late']}, malformed {summary['malformed']}"
+             + (f", max_rel_diff_vs_simulator {summary['max_rel_diff_vs_simulator']:.3g}"
+                if "max_rel_diff_vs_simulator" in summary else ""))
+    return [first, *failure_lines(summary), f"run folder: {summary['out']}"]
+
+
 def failure_lines(summary) -> list:
     """One line per failure of a summary (and the MSE after recovery), for terminals."""
     lines = []
