@@ -61,6 +61,7 @@ class WatchResult:
 def watch(config: WatchConfig, view) -> WatchResult:
     """Record the run of ``config.net`` until it ends; ``view``: a LiveView (or anything
     with ``show(view)`` and ``close()``). Raises :class:`NoWorld` if nothing was heard."""
+    from agent.run.folder import write_atomic
     from agent.run.local import RunConfig
     from agent.run.summary import predicted_mse, save_estimates, summarize, write_run_folder
 
@@ -90,7 +91,7 @@ def watch(config: WatchConfig, view) -> WatchResult:
         c.out.mkdir(parents=True, exist_ok=True)
         events = c.out / "events.jsonl"
         if rec.monitor_events:
-            events.write_text("".join(json.dumps(e) + "\n" for e in rec.monitor_events))
+            write_atomic(events, "".join(json.dumps(e) + "\n" for e in rec.monitor_events))
         elif events.exists():       # an earlier run's record, not this one's failures
             events.unlink()
     run_config = RunConfig(
