@@ -29,7 +29,8 @@ def test_json_record_and_gains_file_round_trip(capsys, tmp_path):
     for key in ("schema_version", "scenario", "method", "objective", "delays", "rho_exact",
                 "mse_steady_exact", "rho_delay_free", "seconds", "iterations", "stable"):
         assert key in rec
-    assert rec["method"] == "default" and rec["objective"] == "rho" and rec["stable"] is True
+    assert rec["method"] == "default" and rec["objective"] == "mse" and rec["stable"] is True
+    assert g_meta_objective(path) == "mse"        # the default, the gain `up` designs
     s = load_scenario("paper-14")
     D = resolve_delays(s, "uniform:3")
     assert rec["delays"] == D.tolist()
@@ -151,11 +152,12 @@ def test_design_help_shows_every_budget(capsys):
 
 def test_a_radius_design_worse_than_no_correction_is_warned(capsys, tmp_path):
     """The starter scenario (stable A): the smallest radius costs more error than zero
-    gains; the warning gives both exact steady MSEs, and --objective mse does not warn."""
+    gains; the warning gives both exact steady MSEs, and the default (mse) does not warn."""
     start = tmp_path / "s.toml"
     assert main(["init", str(start)]) == 0
     capsys.readouterr()
-    assert main(["design", str(start), "--out", str(tmp_path / "g.npz"), "--json"]) == 0
+    assert main(["design", str(start), "--out", str(tmp_path / "g.npz"), "--objective", "rho",
+                 "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     s = load_scenario(str(start))
     D = resolve_delays(s, "scenario")
@@ -164,7 +166,10 @@ def test_a_radius_design_worse_than_no_correction_is_warned(capsys, tmp_path):
     assert record["mse_steady_exact"] > none
     (w,) = record["warnings"]
     assert f"above that of no correction at all (zero gains: {none:.6g})" in w
-    assert main(["design", str(start), "--out", str(tmp_path / "m.npz"), "--objective", "mse",
-                 "--json"]) == 0
+    assert main(["design", str(start), "--out", str(tmp_path / "m.npz"), "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     assert record["warnings"] == [] and record["mse_steady_exact"] <= none
+
+
+def g_meta_objective(path):
+    return load_gains(path, load_scenario("paper-14")).meta["objective"]

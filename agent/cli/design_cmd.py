@@ -42,8 +42,10 @@ def add_arguments(parser) -> None:
                              "ccl: the paper's LMI algorithm (delay-free)")
     parser.add_argument("--delays", default="scenario", metavar="scenario|none|uniform:T",
                         help="delay matrix to design for and certify against (default: scenario)")
-    parser.add_argument("--objective", choices=("rho", "mse"), default="rho",
-                        help="minimise the exact spectral radius or the steady MSE (default: rho)")
+    parser.add_argument("--objective", choices=("rho", "mse"), default=None,
+                        help="minimise the exact steady MSE or the exact spectral radius "
+                             "(default: mse with --method default, the gain `up` designs; "
+                             "rho with --method ccl)")
     parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="seed of the extra starts (default 0)")
     parser.add_argument("--solver", type=str.upper, choices=("CLARABEL", "SCS"), default=None,
                         help="conic solver for --method ccl (default CLARABEL)")
@@ -79,6 +81,8 @@ def add_arguments(parser) -> None:
 
 
 def _options(args) -> dict:
+    if args.objective is None:         # the one default: the gain `socmon up` designs
+        args.objective = "rho" if args.method == "ccl" else "mse"
     opts = {}
     if args.method == "ccl":
         for flag, value in (("--starts", args.starts), ("--target", args.target),

@@ -109,22 +109,32 @@ def check_run_flags(args) -> None:
         raise InputError(f"--start-timeout: must be a positive number of seconds, got {timeout}")
 
 
+#: the objective of the default gain, the one ``up``, ``agent`` and ``design`` all design
+DEFAULT_OBJECTIVE = "mse"
+
+
 def gains_for(scenario, gains_path, delays, force: bool = False, progress=None):
     """Load ``gains_path`` (``force``: even when designed for another scenario) or design the
-    default gain (``progress``: as for :func:`design.gain_design.design_gains`);
-    InputError when impossible."""
+    default gain (:func:`default_design`); InputError when impossible."""
     if gains_path:
         return load_gains_arg(gains_path, scenario, force=force).G
+    return list(default_design(scenario, delays, progress).G)
+
+
+def default_design(scenario, delays, progress=None):
+    """The default gain's design (:class:`design.gain_design.DesignResult`): the steady MSE
+    minimised on the exact delayed loop, certified stable, bounded by iterations and not by
+    the clock, so that every process of a run designs the same gain (``progress``: as for
+    :func:`design.gain_design.design_gains`). InputError when the scenario has none."""
     from design.errors import SocmonError
     from design.gain_design import design_gains
 
     try:
-        # the error users see: steady MSE (certified stable), bounded by iterations, not
-        # by the clock, so that every process of a run designs the same gain
-        result = design_gains(scenario, delays=delays, objective="mse", progress=progress)
+        result = design_gains(scenario, delays=delays, objective=DEFAULT_OBJECTIVE,
+                              progress=progress)
     except SocmonError as exc:   # not observable / not detectable, bad delays
         raise InputError(f"gain design: {exc}") from None
     if not result.rho < 1:
         raise InputError(f"gain design found no stabilising gain (rho = {result.rho:.4g})",
-                           status=1)
-    return list(result.G)
+                         status=1)
+    return result

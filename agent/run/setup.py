@@ -14,7 +14,15 @@ import signal
 import sys
 from dataclasses import dataclass
 
-from agent.run.inputs import InputError, check_run_flags, gains_for, load_scenario_arg, timing_arg
+from agent.run.inputs import (
+    DEFAULT_OBJECTIVE,
+    InputError,
+    check_run_flags,
+    default_design,
+    gains_for,
+    load_scenario_arg,
+    timing_arg,
+)
 
 
 def run_config(args, say, prog="up", design_progress=None):
@@ -80,20 +88,22 @@ def run_config(args, say, prog="up", design_progress=None):
         prepare_run_folder(out, overwrite=getattr(args, "overwrite", False))
     except InvalidRunFolder as exc:
         raise InputError(f"--out: {exc}") from None
+    meta = {}
     if args.gains:
         G = gains_for(scenario, args.gains, delays, getattr(args, "force_gains", False))
         method = "file"
     else:
-        say("designing gains with the default method ...")
-        G = gains_for(scenario, None, delays, progress=design_progress)
-        method = "default"
+        say(f"designing gains with the default method (objective {DEFAULT_OBJECTIVE}) ...")
+        res = default_design(scenario, delays, progress=design_progress)
+        G, method = list(res.G), "default"
+        meta = {"objective": res.objective, "mse_steady_exact": res.mse_steady}
     from design.gap import gap_warnings
 
     for line in gap_warnings(scenario, G, delays):
         print(f"{prog}: warning: {line}", file=sys.stderr, flush=True)
     gains_path = (out / "gains.npz").resolve()
     rho = closed_loop_for(scenario, G, delays).spectral_radius()
-    save_gains(gains_path, G, gains_meta(scenario, method, delays, rho))
+    save_gains(gains_path, G, gains_meta(scenario, method, delays, rho, **meta))
     scen_arg = str(Path(args.scenario).resolve()) if Path(args.scenario).is_file() \
         else args.scenario
     return RunConfig(scenario=scenario, scenario_arg=scen_arg, G=list(G), gains_path=gains_path,
