@@ -345,3 +345,16 @@ def test_distributed_detectability_against_the_textbook_tests():
         assert d.detectable == (worst_pbh < 1)
         seen.add((d.rank < n * N, d.detectable))
     assert seen == {(False, True), (True, True), (True, False)}  # every case is met
+
+
+def test_cli_analyze_exits_1_on_an_undetectable_scenario(tmp_path, capsys):
+    """An unstable mode no agent sees (node 1 grows, only node 2 is measured): a negative
+    result, exit 1, said on stderr; a detectable one exits 0."""
+    path = tmp_path / "u.toml"
+    path.write_text('[social]\nA = [[1.5, 0.0], [0.0, 0.5]]\n[agents]\nmeasure = [["2"]]\n')
+    assert main(["analyze", str(path), "--json"]) == 1
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["distributed_detectable"] is False
+    assert "not detectable" in cap.err
+    path.write_text('[social]\nA = [[0.9, 0.0], [0.0, 0.5]]\n[agents]\nmeasure = [["2"]]\n')
+    assert main(["analyze", str(path), "--json"]) == 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 from design.analysis import analyze
 
 from agent.cli._common import (
+    EXIT_NEGATIVE,
     EXIT_OK,
     add_force_gains_argument,
     add_scenario_argument,
@@ -59,6 +60,12 @@ def _run(args) -> int:
         print_json(data)
     else:
         print(format_text(data))
+    if not data["distributed_detectable"]:      # a negative result: no gain can help
+        import sys
+
+        print("socmon analyze: the agents' network is not detectable: no gain makes the "
+              "distributed estimator's error bounded", file=sys.stderr)
+        return EXIT_NEGATIVE
     return EXIT_OK
 
 
