@@ -20,7 +20,7 @@ from pathlib import Path
 __all__ = ["Child", "Children", "ROOT"]
 
 #: The project root (children run ``python -m agent.cli`` from here).
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
