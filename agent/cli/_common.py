@@ -232,3 +232,36 @@ def attach_run(args):
     if getattr(args, "keys", None) is None and info.keys is not None:
         args.keys = str(info.keys)
     return info
+
+
+
+def parse_drop(text) -> float:
+    try:
+        p = float(str(text).strip())
+    except ValueError:
+        raise CommandError(f"--drop: expected a probability in [0, 1), got {text!r}") from None
+    if not 0.0 <= p < 1.0:
+        raise CommandError(f"--drop: expected a probability in [0, 1), got {text!r}")
+    return p
+
+
+def parse_fail(text, scenario, steps) -> tuple:
+    """``"150:1,2"`` -> ``(150, [0, 1])`` (agents 0-based)."""
+    step_text, sep, agents_text = str(text).partition(":")
+    if not sep:
+        raise CommandError(f"--fail: expected STEP:AGENTS (e.g. 150:1,2), got {text!r}")
+    step = parse_int(step_text, "--fail STEP", lo=1)
+    if step > steps:
+        raise CommandError(f"--fail: step {step} is after the last step ({steps})")
+    rows = parse_agent_list(agents_text, scenario, flag="--fail")
+    return step, rows
+
+
+def resolve_delays_arg(scenario, spec):
+    from design.errors import ScenarioError
+    from design.scenario import resolve_delays
+
+    try:
+        return resolve_delays(scenario, spec)
+    except ScenarioError as exc:
+        raise CommandError(str(exc)) from None

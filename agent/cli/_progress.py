@@ -119,3 +119,33 @@ class ProgressLine:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr, shown only on a terminal after a short delay."""
+
+    def __init__(self, label="simulate", stream=None, delay=0.5, width=30):
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.label, self.delay, self.width = label, delay, width
+        self.t0 = time.monotonic()
+        self.last = 0.0
+        self.shown = False
+
+    def __call__(self, done, total):
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if now - self.t0 < self.delay or (now - self.last < 0.1 and done < total):
+            return
+        self.last = now
+        frac = done / total if total else 1.0
+        bar = "#" * int(self.width * frac)
+        self.stream.write(f"\r{self.label} [{bar:<{self.width}}] {done}/{total}")
+        self.stream.flush()
+        self.shown = True
+
+    def close(self):
+        if self.shown:
+            self.stream.write("\r" + " " * (self.width + len(self.label) + 30) + "\r")
+            self.stream.flush()

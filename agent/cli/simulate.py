@@ -7,8 +7,6 @@ recovery / no stabilising gain for it), 2 for bad input (named in the message).
 
 from __future__ import annotations
 
-import sys
-import time
 
 from agent.cli._common import (
     EXIT_NEGATIVE,
@@ -18,12 +16,14 @@ from agent.cli._common import (
     add_scenario_argument,
     load_gains_arg,
     load_scenario_arg,
-    parse_agent_list,
+    parse_drop,
+    parse_fail,
     parse_int,
     print_json,
+    resolve_delays_arg,
     run_command,
 )
-from agent.cli._progress import ProgressLine
+from agent.cli._progress import ProgressBar, ProgressLine
 
 HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops, failures"
 
@@ -59,51 +59,7 @@ def run(args) -> int:
 
 
 # ---------------------------------------------------------------------------------
-# argument parsing (each raises CommandError naming the flag)
-
-
-def parse_drop(text) -> float:
-    try:
-        p = float(str(text).strip())
-    except ValueError:
-        raise CommandError(f"--drop: expected a probability in [0, 1), got {text!r}") from None
-    if not 0.0 <= p < 1.0:
-        raise CommandError(f"--drop: expected a probability in [0, 1), got {text!r}")
-    return p
-
-
-def parse_fail(text, scenario, steps) -> tuple:
-    """``"150:1,2"`` -> ``(150, [0, 1])`` (agents 0-based)."""
-    step_text, sep, agents_text = str(text).partition(":")
-    if not sep:
-        raise CommandError(f"--fail: expected STEP:AGENTS (e.g. 150:1,2), got {text!r}")
-    step = parse_int(step_text, "--fail STEP", lo=1)
-    if step > steps:
-        raise CommandError(f"--fail: step {step} is after the last step ({steps})")
-    rows = parse_agent_list(agents_text, scenario, flag="--fail")
-    return step, rows
-
-
-def resolve_delays_arg(scenario, spec):
-    from design.errors import ScenarioError
-    from design.scenario import resolve_delays
-
-    try:
-        return resolve_delays(scenario, spec)
-    except ScenarioError as exc:
-        raise CommandError(str(exc)) from None
-
-
-# ---------------------------------------------------------------------------------
 # recovery
-
-
-def design_for(scenario, delays, seed: int, objective: str = "rho", time_limit=None):
-    """Gains for ``scenario`` with ``delays`` from the gain design (``design_gains``)."""
-    from design.gain_design import design_gains
-
-    options = {} if time_limit is None else {"time_limit": float(time_limit)}
-    return design_gains(scenario, delays=delays, seed=seed, objective=objective, **options)
 
 
 def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rho",
@@ -123,44 +79,8 @@ def build_recovery(scenario, failed, delay_spec, seed: int, objective: str = "rh
 # ---------------------------------------------------------------------------------
 
 
-class ProgressBar:
-    """A one-line progress bar on stderr, shown only on a terminal after a short delay."""
-
-    def __init__(self, label="simulate", stream=None, delay=0.5, width=30):
-        self.stream = sys.stderr if stream is None else stream
-        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.label, self.delay, self.width = label, delay, width
-        self.t0 = time.monotonic()
-        self.last = 0.0
-        self.shown = False
-
-    def __call__(self, done, total):
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if now - self.t0 < self.delay or (now - self.last < 0.1 and done < total):
-            return
-        self.last = now
-        frac = done / total if total else 1.0
-        bar = "#" * int(self.width * frac)
-        self.stream.write(f"\r{self.label} [{bar:<{self.width}}] {done}/{total}")
-        self.stream.flush()
-        self.shown = True
-
-    def close(self):
-        if self.shown:
-            self.stream.write("\r" + " " * (self.width + len(self.label) + 30) + "\r")
-            self.stream.flush()
-
-
-def exact_steady_mse(scenario, G, delays):
-    """The exact steady MSE of the loop (None when unstable or too large to solve)."""
-    from design.closed_loop import exact_performance
-
-    return exact_performance(scenario, G, delays).mse
-
-
 def _run(args) -> int:
+    from design.closed_loop import exact_performance
     from design.errors import SocmonError
     from design.simulate import simulate
 
@@ -195,7 +115,7 @@ def _run(args) -> int:
                                                      progress=line.design, **budget)
         recovery_info["objective"] = objective
 
-    bar = ProgressBar()
+    bar = ProgressBar("simulate")
     bar.enabled = bar.enabled and not args.json
     try:
         result = simulate(scenario, gains.G, steps=steps, trials=trials, seed=seed,
@@ -216,8 +136,9 @@ def _run(args) -> int:
     out["delays"] = delays.tolist()
     out["delays_spec"] = args.delays
     exact = fail is None and drop == 0   # the loop simulated is the one certify sees
-    out["mse_steady_exact"] = exact_steady_mse(scenario, gains.G, delays) if exact else None
-    out["rho_exact"] = exact_radius(scenario, gains.G, delays) if exact else None
+    before = exact_performance(scenario, gains.G, delays) if exact or recover else None
+    out["mse_steady_exact"] = before.mse if exact else None
+    out["rho_exact"] = before.rho if exact else None
     out["unstable"] = out["rho_exact"] is not None and not out["rho_exact"] < 1
     if recovery_info is not None:
         out["recovery"] = recovery_info
@@ -231,8 +152,8 @@ def _run(args) -> int:
         ref = [(out["mse_steady_exact"], "exact steady MSE (Lyapunov)")]
         after = (recovery_info or {}).get("mse_steady_exact_after_recovery")
         if after is not None and drop == 0:
-            ref = [(exact_steady_mse(scenario, gains.G, delays), "exact steady MSE before the "
-                    "failure"), (after, "exact steady MSE after recovery")]
+            ref = [(before.mse, "exact steady MSE before the failure"),
+                   (after, "exact steady MSE after recovery")]
         try:
             plot_mse(args.plot, [(f"{scenario.name}, {trials} trials", result)],
                      title=f"{scenario.name} (delays: {args.delays})"
@@ -246,17 +167,6 @@ def _run(args) -> int:
     else:
         print(format_text(out))
     return EXIT_NEGATIVE if result.diverged or out["unstable"] else EXIT_OK
-
-
-def exact_radius(scenario, G, delays):
-    """Exact spectral radius of the simulated loop (None if it cannot be computed)."""
-    from design.closed_loop import closed_loop_for
-    from design.errors import SocmonError
-
-    try:
-        return float(closed_loop_for(scenario, G, delays).spectral_radius())
-    except SocmonError:
-        return None
 
 
 def _f(x, digits=5) -> str:
