@@ -44,11 +44,19 @@ per-step false-alarm probability ``alpha_test``. Why a window and not a CUSUM:
   It is slower than a per-step test on a large fault by at most ``window - 1`` steps,
   and it sees a fault ``sqrt(window)`` times smaller.
 
-Where ``Sigma`` is singular (the residual does not move in some directions on a healthy
-loop) the statistic uses the pseudo-inverse through an eigen-whitening that keeps the
-eigenvalues above :data:`RANK_RTOL` times the largest: ``dof`` is that rank
-(:attr:`Residual.singular` says when it is below the dimension). A fault that moves the
-residual only in the discarded directions is not seen.
+Where ``Sigma`` is singular or nearly so (the residual hardly moves in some directions on
+a healthy loop: on paper-14-live the discrepancy's eigenvalues fall continuously from 1
+to 1e-14 of the largest) the statistic uses the pseudo-inverse through an
+eigen-whitening that keeps the eigenvalues above :data:`RANK_RTOL` times the largest:
+``dof`` is that rank (:attr:`Residual.singular` says when it is below the dimension).
+The discarded directions are not left unwatched: they are exactly where a lie would
+otherwise hide (a receiver uses the lied estimate whatever its direction). A second,
+conservative test alarms when the window sum's component there,
+``||N^T s||^2 / floor``, exceeds ``chi2.isf(alpha * NULL_SHARE, dim - dof)``: every
+discarded direction has a variance below the floor, so its false-alarm probability is
+at most ``alpha * NULL_SHARE`` (in practice far below). The residual's statistic is the
+larger of the two on the main test's threshold scale, so one threshold per residual
+still decides.
 
 The false-alarm rate ``alpha`` is per agent and per step: it is split evenly over an
 agent's tests (its innovation and one discrepancy per in-neighbour), so the expected
@@ -114,6 +122,7 @@ __all__ = [
     "DEFAULT_WINDOW",
     "RANK_RTOL",
     "WARMUP_TOL",
+    "NULL_SHARE",
     "MAX_ORDER",
 ]
 
@@ -132,6 +141,8 @@ DEFAULT_WINDOW = 8
 #: Eigenvalues of a window covariance below this share of its largest are dropped
 #: (pseudo-inverse): the statistic's degrees of freedom are the rank kept.
 RANK_RTOL = 1e-9
+#: Share of a singular residual's false-alarm budget given to its null-space test.
+NULL_SHARE = 0.01
 #: Statistics are tested once the initial transient's share of their whitened
 #: covariance is below this (a bound, see ``_warmup``): the chi-square tail at the
 #: default thresholds is then within 0.1 % of its steady value.
@@ -184,7 +195,17 @@ class Residual:
     alpha : float
         False-alarm probability of this statistic at one step.
     threshold : float
-        ``chi2.isf(alpha, dof)``.
+        ``chi2.isf(alpha * (1 - NULL_SHARE), dof)`` (``chi2.isf(alpha, dof)`` when
+        ``Sigma`` is regular).
+    null_basis : (dim, dim - dof) array or None
+        The discarded directions (variance below ``null_floor``), when there are any.
+    null_floor : float
+        :data:`RANK_RTOL` times the largest eigenvalue of ``Sigma``.
+    null_threshold : float
+        ``chi2.isf(alpha * NULL_SHARE, dim - dof)``: the null-space test alarms when
+        ``||null_basis^T s||^2 / null_floor`` exceeds it. Each discarded direction has a
+        variance below the floor, so its false-alarm probability is at most
+        ``alpha * NULL_SHARE`` (a bound, not exact: in practice far below).
     """
 
     name: str
@@ -200,6 +221,9 @@ class Residual:
     whiten: np.ndarray
     alpha: float
     threshold: float
+    null_basis: np.ndarray | None = None
+    null_floor: float = 0.0
+    null_threshold: float = math.inf
 
     @property
     def singular(self) -> bool:
@@ -207,9 +231,17 @@ class Residual:
         return self.dof < self.dim
 
     def statistic(self, s) -> np.ndarray:
-        """``T = s^T Sigma^+ s`` of window sums ``s`` (..., dim)."""
-        z = np.asarray(s) @ self.whiten.T
-        return np.einsum("...i,...i->...", z, z)
+        """``T = s^T Sigma^+ s`` of window sums ``s`` (..., dim), raised to the threshold
+        scale of the null-space test when that one is the stronger alarm:
+        ``max(T, T_null * threshold / null_threshold)``."""
+        s = np.asarray(s)
+        z = s @ self.whiten.T
+        T = np.einsum("...i,...i->...", z, z)
+        if self.null_basis is None:
+            return T
+        zn = s @ self.null_basis
+        Tn = np.einsum("...i,...i->...", zn, zn) / self.null_floor
+        return np.maximum(T, Tn * (self.threshold / self.null_threshold))
 
 
 @dataclass(frozen=True, eq=False)
@@ -433,10 +465,22 @@ def window_covariance(gammas, window: int) -> np.ndarray:
 
 
 def _whitening(S):
+    """``(whiten, null_basis, floor)`` of a covariance: eigen-whitening of the directions
+    above the floor (``RANK_RTOL`` times the largest eigenvalue), and the others."""
     lam, V = np.linalg.eigh(S)
     top = float(lam.max()) if lam.size else 0.0
-    keep = lam > RANK_RTOL * top if top > 0 else np.zeros_like(lam, bool)
-    return (V[:, keep] / np.sqrt(lam[keep])).T
+    floor = RANK_RTOL * top
+    keep = lam > floor if top > 0 else np.zeros_like(lam, bool)
+    null = V[:, ~keep] if (~keep).any() and top > 0 else None
+    return (V[:, keep] / np.sqrt(lam[keep])).T, null, floor
+
+
+def _full_whitening(r: Residual) -> np.ndarray:
+    """The main whitening and the null directions scaled by the floor: the transient
+    must be negligible on both tests' scales."""
+    if r.null_basis is None:
+        return r.whiten
+    return np.vstack([r.whiten, r.null_basis.T / np.sqrt(r.null_floor)])
 
 
 def residual_test(scenario, G, delays=None, window: int = DEFAULT_WINDOW,
@@ -470,16 +514,21 @@ def residual_test(scenario, G, delays=None, window: int = DEFAULT_WINDOW,
     for kind, i, j, age, offset, dim in layout:
         sl = slice(offset, offset + dim)
         Sw = window_covariance([g[sl, sl] for g in gammas], window)
-        Wh = _whitening(Sw)
+        Wh, null, floor = _whitening(Sw)
         dof = Wh.shape[0]
         a = alpha / tests_of[i]
+        a_main = a if null is None else a * (1 - NULL_SHARE)
         name = f"innovation {i + 1}" if kind == INNOVATION else f"link {j + 1}->{i + 1}"
         residuals.append(Residual(
             name=name, kind=kind, agent=i, sender=j, age=age, offset=offset, dim=dim,
             dof=dof, cov_step=gammas[0][sl, sl], cov_window=Sw, whiten=Wh, alpha=a,
-            threshold=float(_stats.chi2.isf(a, dof)) if dof else math.inf))
+            threshold=(float(_stats.chi2.isf(a_main, dof)) if dof else
+                       float(_stats.chi2.isf(a * NULL_SHARE, null.shape[1]))),
+            null_basis=null, null_floor=floor,
+            null_threshold=(float(_stats.chi2.isf(a * NULL_SHARE, null.shape[1]))
+                            if null is not None else math.inf)))
     rho = float(loop.spectral_radius())
-    warmup = _warmup(loop, M, P, [(r.whiten, Cv[r.offset:r.offset + r.dim])
+    warmup = _warmup(loop, M, P, [(_full_whitening(r), Cv[r.offset:r.offset + r.dim])
                                   for r in residuals], window)
     return ResidualTest(residuals=tuple(residuals), window=int(window), alpha=float(alpha),
                         warmup=int(warmup), rho=rho, N=loop.N, n=loop.n,
@@ -543,16 +592,18 @@ def isolate(reports) -> Verdict | None:
     - **sensor bias** of agent a, direct: a's own innovation alarms. Score: its level.
       A faulty sensor enters the loop through its own agent's update, so it shows first
       in that agent's innovation.
-    - **sensor bias** of agent a, absorbed: a's innovation is quiet but a flags every
-      one of its senders and every receiver of a flags a: a's estimate is away from all
-      of its neighbours, both ways (the estimator has taken the bias into its state).
-      Score: the weakest of those levels.
+    - **sensor bias** of agent a, absorbed: a's innovation is quiet but every receiver
+      of a flags a, and a's tests on each of its senders are within a factor
+      :data:`TIE_RATIO` of that (alarming or not): a's estimate is away from all of its
+      neighbours, both ways (the estimator has taken the bias into its state). Score:
+      the weakest receiver's level.
     - **inconsistent estimates** of agent a (a lies about its estimate, its own state
-      being honest): every receiver of a flags a, while a's own reports are all quiet
-      (its innovation, and its tests on its senders: its prediction agrees with them),
-      and no link between two other agents alarms as strongly as the weakest of a's
-      links (those are the lie spreading through the receivers, weaker and later).
-      Score: the weakest of a's links.
+      being honest): every receiver of a flags a, while a's own reports are quiet and
+      more than :data:`TIE_RATIO` below that (its innovation, and its tests on its
+      senders: its prediction agrees with them), and no link between two other agents
+      alarms as strongly as the weakest of a's links (those are the lie spreading
+      through the receivers, weaker and later). Score: the weakest of a's links.
+    - Between the two (a's tests on its senders quiet but within the factor): neither.
     - The explanation with the highest score wins; explanations within a factor
       :data:`TIE_RATIO` of it are broken by the agent's own innovation level (a sensor
       fault raises it even below its threshold, a lie does not); the rest are returned
@@ -605,15 +656,17 @@ def isolate(reports) -> Verdict | None:
             continue
         ins = [links[(j, a)] for j in senders[a]]
         outs = [links[(a, i)] for i in receivers[a]]
-        if ins and outs and min(ins + outs) >= 1:
-            both = min(ins + outs)
-            hyps.append((both, a, SENSOR_BIAS, (
-                f"agent {a} flags all its senders {senders[a]} and all its receivers "
-                f"{receivers[a]} flag it (weakest {both:.3g} x threshold)",
+        if not outs or min(outs) < 1:
+            continue
+        weakest = min(outs)
+        if ins and min(ins) * TIE_RATIO >= weakest:
+            hyps.append((weakest, a, SENSOR_BIAS, (
+                f"all receivers of agent {a} ({receivers[a]}) flag it (weakest "
+                f"{weakest:.3g} x threshold) and it is as far from all its senders "
+                f"{senders[a]} (weakest {min(ins):.3g})",
                 f"its innovation is quiet ({own:.3g} x threshold): the bias is absorbed "
                 "into its estimate, or its estimate is corrupted inside the agent")))
-        if outs and min(outs) >= 1 and not any(v >= 1 for v in ins):
-            weakest = min(outs)
+        elif max(ins, default=0.0) < 1 and max(ins, default=0.0) * TIE_RATIO < weakest:
             others = [v for link, v in links.items() if a not in link]
             if others and max(others) >= weakest:
                 continue

@@ -141,6 +141,24 @@ def test_default_alpha_gives_a_hundredth_of_a_false_alarm_in_10000_steps(live):
     assert test.residuals[0].threshold == pytest.approx(stats.norm.isf(DEFAULT_ALPHA / 4) ** 2)
 
 
+def test_the_discarded_directions_are_watched(live):
+    """A window sum only in the directions of (numerically) zero healthy variance is
+    ignored by the chi-square part and caught by the null-space test."""
+    s, G = live
+    test = residual_test(s, G)
+    link = next(r for r in test.residuals if r.singular)
+    assert link.null_basis.shape == (link.dim, link.dim - link.dof)
+    v = 1e-2 * link.null_basis[:, 0]
+    z = link.whiten @ v
+    assert z @ z < 1e-3 * link.threshold              # invisible to the main test
+    assert link.statistic(v) > 100 * link.threshold   # seen by the null-space test
+    # a healthy-sized window sum in the kept directions is untouched by it
+    rng = np.random.default_rng(1)
+    u = rng.multivariate_normal(np.zeros(link.dim), link.cov_window)
+    zu = link.whiten @ u
+    assert link.statistic(u) == pytest.approx(zu @ zu, rel=1e-9)
+
+
 def test_bad_arguments_are_named(hand3):
     with pytest.raises(ResidualError, match="window"):
         residual_test(hand3, G3, window=0)
@@ -199,12 +217,17 @@ def test_a_liar_with_one_receiver_is_named_but_not_corroborated():
 
 
 def test_an_agent_that_also_flags_its_senders_is_not_a_liar():
-    """A liar's own state is honest: its prediction agrees with its senders."""
-    reports = [AgentReport(0, 0.1, {1: 4.0}), AgentReport(1, 0.2, {2: 0.1}),
+    """A liar's own state is honest: its prediction agrees with its senders. An agent
+    as far from its senders as its receivers find it has absorbed a sensor fault."""
+    reports = [AgentReport(0, 0.1, {1: 10.0}), AgentReport(1, 0.2, {2: 0.1}),
                AgentReport(2, 0.1, {0: 12.0})]
     v = isolate(reports)
     assert (v.agent, v.kind) == (0, SENSOR_BIAS)     # absorbed: away from all, both ways
     assert "quiet" in v.evidence[1]
+    # in between (its own test alarms, but well below its receiver's): neither rule
+    reports[0] = AgentReport(0, 0.1, {1: 4.0})
+    v = isolate(reports)
+    assert (v.agent, v.kind) == (0, "unexplained")
 
 
 def test_booleans_are_accepted_as_alarms():
