@@ -140,6 +140,9 @@ class Fault:
     size : float
     ramp : int >= 1
         Steps for a drift to reach ``size``.
+    direction : sequence of float, optional
+        Shape of the offset (bias, drift: one entry per measured node; lie: one per
+        state component), multiplied by the offset; default all ones.
     """
 
     kind: str
@@ -147,6 +150,13 @@ class Fault:
     start: int
     size: float
     ramp: int = 100
+    direction: tuple | None = None
+
+    def vector(self, length: int) -> np.ndarray:
+        """The offset's shape (``direction``, or ones of ``length``)."""
+        if self.direction is None:
+            return np.ones(length)
+        return np.asarray(self.direction, dtype=float)
 
     def offset(self, k: int, sigma: float) -> float:
         """The offset of step k, in the units of the readings (bias, drift, lie)."""
@@ -157,7 +167,7 @@ class Fault:
         return self.size * sigma
 
 
-def _check_faults(faults, N, steps):
+def _check_faults(faults, N, steps, n=None, measure=None):
     out = {}
     for f in faults:
         if not isinstance(f, Fault):
@@ -174,6 +184,13 @@ def _check_faults(faults, N, steps):
             raise SimulationError(f"faults: size must be a finite number, got {f.size!r}")
         if f.kind == "noise" and f.size < 0:
             raise SimulationError(f"faults: a noise factor must be >= 0, got {f.size!r}")
+        if f.direction is not None:
+            want = {"lie": n, "noise": 0}.get(f.kind, len(measure[f.agent]) if measure else 0)
+            d = np.asarray(f.direction, dtype=float)
+            if d.ndim != 1 or d.size != want or not np.all(np.isfinite(d)):
+                raise SimulationError(f"faults: the direction of a {f.kind} fault of agent row "
+                                      f"{f.agent} must be {want} finite numbers, got "
+                                      f"{f.direction!r}")
         out.setdefault(f.agent + 1, []).append(f)
     return out
 
@@ -479,7 +496,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     if recover is not None and fail is None:
         raise SimulationError("recover: a recovery needs a failure (fail=...)")
     faults = tuple(faults or ())
-    fault_of = _check_faults(faults, N, steps)
+    fault_of = _check_faults(faults, N, steps, n, scenario.measure)
     if residuals is not None and residuals is not False:
         if drop or fail is not None:
             raise SimulationError("residuals: need drop=0 and no failure (the thresholds "
@@ -573,12 +590,14 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 nbs, noise_parts = _neighbours(config, i, held, est[a], k, max_age)
                 role = config.roles[i]
                 zeta = noise.measurement_noise(seed, a, k, len(role.measured), config.r, trials)
-                extra = 0.0
+                extra = None
                 for fault in fault_of.get(a, ()):
                     if fault.kind == "noise" and k >= fault.start:
                         zeta = zeta * fault.size
-                    elif fault.kind in ("bias", "drift"):
-                        extra = extra + fault.offset(k, math.sqrt(config.r))
+                    elif fault.kind in ("bias", "drift") and k >= fault.start:
+                        off = fault.offset(k, math.sqrt(config.r)) \
+                            * fault.vector(len(role.measured))
+                        extra = off if extra is None else extra + off
                 if error_coords:
                     # x_k = A^age x_{k-age} + S_age(k): subtract what the truth gained
                     d = None
@@ -589,7 +608,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                     y = zeta
                 else:
                     y = x[:, list(role.measured)] + zeta
-                if extra:
+                if extra is not None:
                     y = y + extra
                 prior, new[a] = estimator_step(P, role, est[a], nbs, y)
                 if rec is not None:
@@ -601,7 +620,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 published[a][k] = new[a]
                 for fault in fault_of.get(a, ()):
                     if fault.kind == "lie" and k >= fault.start:
-                        published[a][k] = new[a] + fault.offset(k, math.sqrt(config.r))
+                        published[a][k] = new[a] + fault.offset(k, math.sqrt(config.r)) \
+                            * fault.vector(n)
                 # stamps below k - 1 - max_delay can no longer arrive on time
                 published[a].pop(k - 2 - max_delay, None)
             mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)

@@ -14,8 +14,10 @@ steps per 10,000-step healthy run, all agents together) and prints:
    ``--healthy-steps`` steps, alarm steps and alarm episodes (runs of consecutive alarm
    steps) of the exact test against the expected value, and those of the naive test.
 2. **Detection** for every fault kind (``bias``, ``drift``, ``lie``: offsets of SIZE
-   measurement-noise std-devs; ``drift`` reaches SIZE after ``--ramp`` steps; ``noise``:
-   the sensor noise multiplied by the factor), size and faulty agent: the fraction of
+   measurement-noise std-devs on every component; ``drift`` reaches SIZE after
+   ``--ramp`` steps; ``lie-hidden``: a lie of the same Euclidean size along the direction
+   its receivers' tests see least, see :func:`hidden_direction`; ``noise``: the sensor
+   noise multiplied by the factor), size and faulty agent: the fraction of
    ``--trials`` trials detected within ``--horizon`` steps of the fault, the median and
    90th percentile delay, the share whose verdict at the first alarm
    (:func:`design.residuals.isolate`) names the right agent and kind, and the MSE excess
@@ -65,6 +67,24 @@ from design.simulate import Fault, simulate  # noqa: E402
 NAIVE_SIGMAS = 3.0
 CHUNK = 100          # trials per simulation of the healthy runs (memory)
 NEVER = 10 ** 9
+
+
+def hidden_direction(s, test, agent):
+    """The lie direction (norm sqrt(n), as the all-ones offset) that the receivers' tests
+    see least at its first use: the right singular vector of the smallest singular value
+    of the stacked ``Wh (1 - w) A^age`` over the agent's receivers (``Wh`` whitening both
+    the kept and the discarded directions)."""
+    A = np.asarray(s.A, dtype=float)
+    rows = []
+    for r in test.residuals:
+        if r.sender != agent:
+            continue
+        Wh = r.whiten if r.null_basis is None else np.vstack(
+            [r.whiten, r.null_basis.T / np.sqrt(r.null_floor)])
+        w = float(s.W[r.agent, agent])
+        rows.append(Wh @ ((1 - w) * np.linalg.matrix_power(A, r.age)))
+    _, _, Vt = np.linalg.svd(np.vstack(rows))
+    return tuple(Vt[-1] * np.sqrt(s.n))
 
 
 def naive_alarms(innovations, r):
@@ -208,24 +228,28 @@ def main(scenario="paper-14-live", gains="designed", window=8, trials=400, horiz
     out(f"Detection within {horizon} steps ({trials} trials per row; delay in steps from "
         f"the fault; named = right agent and kind at the first alarm; MSE+% = MSE excess "
         f"while undetected, in % of the healthy steady MSE):")
-    head = (f"{'kind':6} {'size':>5} {'agent':>5} | {'det':>5} {'med':>5} {'p90':>5} "
+    head = (f"{'kind':10} {'size':>5} {'agent':>5} | {'det':>5} {'med':>5} {'p90':>5} "
             f"{'named':>6} {'MSE+%':>7} | {'step det':>8} {'med':>5} {'p90':>5} {'named':>6} "
             f"| {'naive det':>9} {'med':>5} {'p90':>5} {'named':>6}")
     out(head)
     out("-" * len(head))
     healthy = {}
     cells = [("bias", x) for x in sizes] + [("drift", x) for x in sizes] + \
-        [("lie", x) for x in sizes] + [("noise", x) for x in noise_factors]
+        [("lie", x) for x in sizes] + [("lie-hidden", x) for x in sizes] + \
+        [("noise", x) for x in noise_factors]
     f = test.first_step + 20
     for kind, size in cells:
         for a in agents:
             key = f + horizon
             if key not in healthy:
                 healthy[key] = simulate(s, G, steps=key, trials=trials, seed=seed)
-            r = detection(s, G, test, Fault(kind, a, f, float(size), ramp=ramp), trials,
-                          horizon, seed, healthy[key])
+            if kind == "lie-hidden":
+                fault = Fault("lie", a, f, float(size), direction=hidden_direction(s, test, a))
+            else:
+                fault = Fault(kind, a, f, float(size), ramp=ramp)
+            r = detection(s, G, test, fault, trials, horizon, seed, healthy[key])
             e, nv, ps = r["exact"], r["naive"], r["step"]
-            out(f"{kind:6} {size:>5g} {a + 1:>5} | {e['detected']:>5.2f} {e['median']:>5.0f} "
+            out(f"{kind:10} {size:>5g} {a + 1:>5} | {e['detected']:>5.2f} {e['median']:>5.0f} "
                 f"{e['p90']:>5.0f} {e['named']:>6.2f} {r['mse_undetected_pct']:>7.1f} | "
                 f"{ps['detected']:>8.2f} {ps['median']:>5.0f} {ps['p90']:>5.0f} "
                 f"{ps['named']:>6.2f} | "

@@ -276,6 +276,22 @@ def test_faults_enter_exactly_where_they_should(live):
     assert np.allclose(d[:, f + 1, 1:], 0, atol=1e-12)
 
 
+def test_a_fault_direction_shapes_the_offset(live):
+    s, G = live
+    test = residual_test(s, G, window=2, alpha=0.01)
+    f, sigma = 40, math.sqrt(s.measurement_noise)
+    base = simulate(s, G, steps=f + 2, trials=2, seed=4, residuals=test)
+    d = np.zeros(s.n)
+    d[list(s.measure[0])] = 1.0          # a lie only on the node its receiver measures
+    lied = simulate(s, G, steps=f + 2, trials=2, seed=4, residuals=test,
+                    faults=[Fault("lie", 1, f, 2.0, direction=tuple(d))])
+    shift = 0.5 * (np.asarray(s.A) @ (2 * sigma * d))[list(s.measure[0])]
+    assert np.allclose((lied.innovations - base.innovations)[:, f + 1, 0], -shift[0])
+    with pytest.raises(SimulationError, match="direction of a lie fault"):
+        simulate(s, G, steps=5, trials=1, seed=0, faults=[Fault("lie", 1, 2, 1.0,
+                                                                direction=(1.0, 2.0))])
+
+
 def test_residuals_and_faults_leave_a_healthy_run_unchanged(live):
     s, G = live
     a = simulate(s, G, steps=60, trials=4, seed=2)
