@@ -19,7 +19,8 @@ Layers, lowest first. A module imports only from its own layer or the layers bel
 3. **loop** -- the estimator and its exact closed loop: :mod:`~design.estimator`,
    :mod:`~design.closed_loop`, :mod:`~design.structured` (the loop applied through its
    sparse and low-rank factors), :mod:`~design.certificates`, :mod:`~design.gap` (the
-   loop between a failure and the switch).
+   loop between a failure and the switch), :mod:`~design.residuals` (residual tests
+   with exact thresholds from the loop's covariance, and fault isolation).
 4. **estimation** -- gains and Monte-Carlo runs: :mod:`~design.ccl`,
    :mod:`~design.gradient`, :mod:`~design.gain_design`, :mod:`~design.simulate`.
 5. **experiments** -- pipelines over all of the above: :mod:`~design.experiments`,
@@ -34,6 +35,7 @@ LAYERS = {
     "connectivity": 1, "scenario": 1, "gains": 1, "generate": 1,
     "observability": 2, "recovery": 2, "analysis": 2, "roster": 2,
     "estimator": 3, "closed_loop": 3, "structured": 3, "certificates": 3, "gap": 3,
+    "residuals": 3,
     "ccl": 4, "gradient": 4, "gain_design": 4, "simulate": 4,
     "reconfigure": 5, "experiments": 5, "interop": 5,
 }

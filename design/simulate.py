@@ -51,6 +51,19 @@ size of ``x`` is formed, so the error keeps full precision for any number of ste
 while the loop is stable (only a cold-started replacement forms ``x``, once).
 ``coordinates="absolute"`` runs ``x`` and ``xhat`` as a live run does.
 
+Faults and residuals
+--------------------
+``faults`` (a sequence of :class:`Fault`) corrupt one agent from a step on: its readings
+(``bias``: a constant offset; ``drift``: a growing one; ``noise``: the sensor noise
+scaled) or what it publishes (``lie``: its estimate plus an offset, its own state staying
+honest). Offsets are in measurement-noise std-devs ``sqrt(r)``, on every measured node
+(readings) or every state component (a lie). ``residuals`` (a
+:class:`design.residuals.ResidualTest`, or True for the default one of the run's gains
+and delays) makes the simulator form, per agent and step, its innovation and the
+discrepancy with each in-neighbour's propagated estimate, and the windowed statistics of
+:mod:`design.residuals` (:attr:`SimulationResult.residual_stats`), so that detection can
+be swept offline over many trials. Both are off by default and cost nothing then.
+
 Examples
 --------
 >>> import numpy as np
@@ -81,8 +94,11 @@ from .estimator import (
 )
 from .gains import Gains, check_gains_fit
 from .metrics import steady_mse, steady_window
+from .residuals import ResidualTest, residual_test
 
 __all__ = [
+    "Fault",
+    "FAULT_KINDS",
     "Recovery",
     "SimulationError",
     "SimulationResult",
@@ -99,6 +115,84 @@ GROWTH_FACTOR = 2.0
 
 class SimulationError(SocmonError):
     """Bad arguments to :func:`simulate` (the message names the argument)."""
+
+
+#: Fault kinds of :class:`Fault`.
+FAULT_KINDS = ("bias", "drift", "noise", "lie")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One agent goes wrong from step ``start`` on.
+
+    Attributes
+    ----------
+    kind : {"bias", "drift", "noise", "lie"}
+        ``bias``: its readings get ``size * sqrt(r)`` on every measured node;
+        ``drift``: ``size * sqrt(r) * (k - start + 1) / ramp`` at step k (``size`` std-devs
+        after ``ramp`` steps, growing on); ``noise``: its sensor noise is multiplied by
+        ``size``; ``lie``: the estimates it publishes (stamps >= start) carry
+        ``size * sqrt(r)`` on every state component, its own estimate staying honest.
+    agent : int
+        0-based row of the agent in the initial scenario (it keeps its id after a
+        recovery).
+    start : int >= 1
+    size : float
+    ramp : int >= 1
+        Steps for a drift to reach ``size``.
+    direction : sequence of float, optional
+        Shape of the offset (bias, drift: one entry per measured node; lie: one per
+        state component), multiplied by the offset; default all ones.
+    """
+
+    kind: str
+    agent: int
+    start: int
+    size: float
+    ramp: int = 100
+    direction: tuple | None = None
+
+    def vector(self, length: int) -> np.ndarray:
+        """The offset's shape (``direction``, or ones of ``length``)."""
+        if self.direction is None:
+            return np.ones(length)
+        return np.asarray(self.direction, dtype=float)
+
+    def offset(self, k: int, sigma: float) -> float:
+        """The offset of step k, in the units of the readings (bias, drift, lie)."""
+        if k < self.start:
+            return 0.0
+        if self.kind == "drift":
+            return self.size * sigma * (k - self.start + 1) / self.ramp
+        return self.size * sigma
+
+
+def _check_faults(faults, N, steps, n=None, measure=None):
+    out = {}
+    for f in faults:
+        if not isinstance(f, Fault):
+            raise SimulationError(f"faults: expected Fault entries, got {type(f).__name__}")
+        if f.kind not in FAULT_KINDS:
+            raise SimulationError(f"faults: kind must be one of {FAULT_KINDS}, got {f.kind!r}")
+        _check_int(f.agent, "fault agent row", 0)
+        if f.agent >= N:
+            raise SimulationError(f"faults: no agent row {f.agent} (rows are 0..{N - 1})")
+        _check_int(f.start, "fault start", 1)
+        _check_int(f.ramp, "fault ramp", 1)
+        if isinstance(f.size, bool) or not isinstance(f.size, (int, float, np.floating)) \
+                or not math.isfinite(f.size):
+            raise SimulationError(f"faults: size must be a finite number, got {f.size!r}")
+        if f.kind == "noise" and f.size < 0:
+            raise SimulationError(f"faults: a noise factor must be >= 0, got {f.size!r}")
+        if f.direction is not None:
+            want = {"lie": n, "noise": 0}.get(f.kind, len(measure[f.agent]) if measure else 0)
+            d = np.asarray(f.direction, dtype=float)
+            if d.ndim != 1 or d.size != want or not np.all(np.isfinite(d)):
+                raise SimulationError(f"faults: the direction of a {f.kind} fault of agent row "
+                                      f"{f.agent} must be {want} finite numbers, got "
+                                      f"{f.direction!r}")
+        out.setdefault(f.agent + 1, []).append(f)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,6 +267,15 @@ class SimulationResult:
         (NaN while the agent does not run: failed, or a replacement before it starts).
     estimate_ids : tuple of int
         1-based agent ids of the columns of ``estimates`` (agents 1..N, then new ids).
+    residual_test : design.residuals.ResidualTest or None
+        The tests whose statistics were formed (``residuals``).
+    residual_stats : ndarray (trials, steps+1, S) or None
+        Statistic of every residual of ``residual_test`` (column order of its
+        ``residuals``) at every step; NaN before ``residual_test.first_step``.
+    innovations : ndarray (trials, steps+1, p) or None
+        The raw innovations ``y^i_k - H_i xhat^i_{k|k-1}``, agents in order (NaN at
+        step 0), for baselines that test them directly.
+    faults : tuple of Fault
     """
 
     mse: np.ndarray
@@ -189,6 +292,10 @@ class SimulationResult:
     coordinates: str = "error"
     estimates: np.ndarray | None = None
     estimate_ids: tuple = ()
+    residual_test: object = None
+    residual_stats: np.ndarray | None = None
+    innovations: np.ndarray | None = None
+    faults: tuple = ()
 
     def band(self, lo: float = 10.0, hi: float = 90.0):
         """Percentiles ``lo`` and ``hi`` across trials, per step."""
@@ -288,7 +395,7 @@ def _check_delays(D, scenario, name):
 def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop: float = 0.0,
              fail=None, recover: Recovery | None = None, progress=None,
              coordinates: str = "error", record_estimates: bool = False,
-             max_age: int | None = None) -> SimulationResult:
+             max_age: int | None = None, faults=(), residuals=None) -> SimulationResult:
     """Run ``trials`` Monte-Carlo trials of the distributed estimator for ``steps`` steps.
 
     Parameters
@@ -326,6 +433,13 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         Oldest age at which a held neighbour estimate is used (the neighbour policy,
         :func:`design.estimator.neighbour_input`); default
         ``hold_limit(largest delay)``, the same default as a live agent's.
+    faults : sequence of Fault, optional
+        Sensor and agent faults (see :class:`Fault`).
+    residuals : ResidualTest or True, optional
+        Form the residual statistics (:attr:`SimulationResult.residual_stats`) of this
+        test, or of ``design.residuals.residual_test(scenario, G, delays)`` for True.
+        Needs ``drop=0`` and no ``fail``: the thresholds are those of the healthy,
+        lossless configuration.
 
     Returns
     -------
@@ -381,6 +495,22 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
             raise SimulationError("fail: every agent fails and no recovery is given")
     if recover is not None and fail is None:
         raise SimulationError("recover: a recovery needs a failure (fail=...)")
+    faults = tuple(faults or ())
+    fault_of = _check_faults(faults, N, steps, n, scenario.measure)
+    if residuals is not None and residuals is not False:
+        if drop or fail is not None:
+            raise SimulationError("residuals: need drop=0 and no failure (the thresholds "
+                                  "are those of the healthy, lossless configuration)")
+        if residuals is True:
+            residuals = residual_test(scenario, G, D)
+        if not isinstance(residuals, ResidualTest):
+            raise SimulationError(f"residuals: expected a ResidualTest or True, got "
+                                  f"{type(residuals).__name__}")
+        if (residuals.N, residuals.n) != (N, n) or not np.array_equal(residuals.delays, D):
+            raise SimulationError("residuals: the test was computed for another "
+                                  "configuration (agents, states or delays differ)")
+    else:
+        residuals = None
 
     A = np.asarray(scenario.A, float)
     P = PowerCache(A)
@@ -434,6 +564,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         if record_estimates else None
     if recorded is not None:
         _record(recorded, 0, est, config, record_ids)
+    rec = None if residuals is None else _ResidualRecorder(residuals, config, trials, steps)
 
     with np.errstate(over="ignore", invalid="ignore"):
         for k in range(1, steps + 1):
@@ -459,6 +590,14 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 nbs, noise_parts = _neighbours(config, i, held, est[a], k, max_age)
                 role = config.roles[i]
                 zeta = noise.measurement_noise(seed, a, k, len(role.measured), config.r, trials)
+                extra = None
+                for fault in fault_of.get(a, ()):
+                    if fault.kind == "noise" and k >= fault.start:
+                        zeta = zeta * fault.size
+                    elif fault.kind in ("bias", "drift") and k >= fault.start:
+                        off = fault.offset(k, math.sqrt(config.r)) \
+                            * fault.vector(len(role.measured))
+                        extra = off if extra is None else extra + off
                 if error_coords:
                     # x_k = A^age x_{k-age} + S_age(k): subtract what the truth gained
                     d = None
@@ -469,10 +608,20 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                     y = zeta
                 else:
                     y = x[:, list(role.measured)] + zeta
-                _, new[a] = estimator_step(P, role, est[a], nbs, y)
+                if extra is not None:
+                    y = y + extra
+                prior, new[a] = estimator_step(P, role, est[a], nbs, y)
+                if rec is not None:
+                    rec.agent_step(i, a, k, y, prior, held, P, S if error_coords else None)
             est.update(new)
+            if rec is not None:
+                rec.end_step(k)
             for a in new:
                 published[a][k] = new[a]
+                for fault in fault_of.get(a, ()):
+                    if fault.kind == "lie" and k >= fault.start:
+                        published[a][k] = new[a] + fault.offset(k, math.sqrt(config.r)) \
+                            * fault.vector(n)
                 # stamps below k - 1 - max_delay can no longer arrive on time
                 published[a].pop(k - 2 - max_delay, None)
             mse_trials[:, k] = _mse(est, [a for _, a in config.live], x, error_coords)
@@ -499,7 +648,64 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
         failed=tuple(a + 1 for a in failed), recovered=recover is not None,
         coordinates=coordinates, estimates=recorded,
         estimate_ids=tuple(record_ids) if recorded is not None else (),
+        residual_test=residuals, faults=faults,
+        residual_stats=None if rec is None else rec.stats,
+        innovations=None if rec is None else rec.innovations,
     )
+
+
+class _ResidualRecorder:
+    """Forms the residuals of every agent at every step, and their window statistics
+    (:mod:`design.residuals`): the ring of the last ``window`` residual vectors."""
+
+    def __init__(self, test, config, trials, steps):
+        self.test = test
+        self.ids = list(config.ids)
+        self.measured = [list(role.measured) for role in config.roles]
+        self.cols = {}          # (row, sender row or None) -> columns of the stacked vector
+        self.links_of = {}      # row -> [(sender row, columns)]
+        for r in test.residuals:
+            cols = slice(r.offset, r.offset + r.dim)
+            self.cols[(r.agent, r.sender)] = cols
+            if r.sender is not None:
+                self.links_of.setdefault(r.agent, []).append((r.sender, cols))
+        self.innov_cols = []
+        for r in test.residuals:
+            if r.sender is None:
+                self.innov_cols.append(self.cols[(r.agent, None)])
+        p = sum(c.stop - c.start for c in self.innov_cols)
+        self.vec = np.full((trials, test.dim), np.nan)
+        self.ring = np.zeros((test.window, trials, test.dim))
+        self.stats = np.full((trials, steps + 1, len(test.residuals)), np.nan)
+        self.innovations = np.full((trials, steps + 1, p), np.nan)
+
+    def agent_step(self, i, a, k, y, prior, held, P, S):
+        """Residuals of row i (id a) at step k from its reading y and prediction; on each
+        link the held estimate propagated by ``A^age`` (less the noise window ``S`` in
+        error coordinates, as the estimator step does)."""
+        self.vec[:, self.cols[(i, None)]] = y - prior[:, self.measured[i]]
+        for j, cols in self.links_of.get(i, ()):
+            h = held.get((a, self.ids[j]))
+            if h is None:
+                self.vec[:, cols] = np.nan
+                continue
+            stamps, values = h
+            age = k - int(stamps[0])
+            d = values @ P.transposed(age) - prior
+            if S is not None:
+                d = d - S[age]
+            self.vec[:, cols] = d
+
+    def end_step(self, k):
+        w = self.test.window
+        self.ring[k % w] = self.vec
+        c = 0
+        for r in self.test.residuals:
+            if r.sender is None:
+                self.innovations[:, k, c:c + r.dim] = self.vec[:, r.offset:r.offset + r.dim]
+                c += r.dim
+        if k >= self.test.first_step:
+            self.stats[:, k] = self.test.statistics(self.ring.sum(axis=0))
 
 
 def _record(recorded, k, est, config, ids):
