@@ -115,6 +115,7 @@ __all__ = [
     "Verdict",
     "isolate",
     "reports_at",
+    "AgentResiduals",
     "SENSOR_BIAS",
     "INCONSISTENT",
     "TIE_RATIO",
@@ -720,3 +721,51 @@ def reports_at(test: ResidualTest, levels) -> list:
                 disc[r.sender] = float(levels[s])
         out.append(AgentReport(i, innov, disc))
     return out
+
+
+class AgentResiduals:
+    """One agent's residual tests, stepped as it computes (what a live agent runs).
+
+    ``test`` is the configuration's :class:`ResidualTest`; ``row`` the agent's 0-based
+    row in it. At each step :meth:`step` takes the agent's innovation (None when some
+    readings were missing) and, per in-neighbour row, the discrepancy of the estimate it
+    used (None when that estimate was not the on-time one: held, late or lost). A
+    residual that is None starts its window over: a late or held estimate is outside the
+    distribution the threshold was computed for, so its test resumes ``window`` fresh
+    steps later. Returns ``{residual name: level}`` of the statistics formed at that step
+    (statistic / threshold; >= 1 is an alarm), as :meth:`ResidualTest.window_statistics`
+    forms them for the simulator.
+
+    >>> import numpy as np
+    >>> from design.scenario import load_scenario
+    >>> s = load_scenario("paper-14-live")
+    >>> G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    >>> res = AgentResiduals(residual_test(s, G, window=2), row=0)
+    >>> [r.name for r in res.residuals]
+    ['innovation 1', 'link 2->1']
+    >>> res.step(1, np.zeros(1), {1: np.zeros(s.n)})    # in the warm-up: nothing formed
+    {}
+    """
+
+    def __init__(self, test: ResidualTest, row: int):
+        self.test = test
+        self.row = int(row)
+        self.residuals = test.for_agent(self.row)
+        self.window = test.window
+        self.first_step = test.first_step
+        self._rings = {r.name: [] for r in self.residuals}
+
+    def step(self, k: int, innovation, discrepancies: dict) -> dict:
+        levels = {}
+        for r in self.residuals:
+            v = innovation if r.sender is None else discrepancies.get(r.sender)
+            ring = self._rings[r.name]
+            if v is None or k <= self.test.warmup:
+                ring.clear()
+                continue
+            ring.append(np.asarray(v, dtype=float))
+            if len(ring) > self.window:
+                ring.pop(0)
+            if len(ring) == self.window and k >= self.first_step:
+                levels[r.name] = float(r.statistic(np.sum(ring, axis=0)) / r.threshold)
+        return levels

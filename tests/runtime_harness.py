@@ -11,13 +11,14 @@ from design.estimator import NeighbourEstimate, PowerCache, estimator_step, role
 class Mesh:
     """World + agents wired in memory; ``lost(src, dst, stamp)`` drops estimates in transit."""
 
-    def __init__(self, scenario, G, seed=0, delays=None, deadline_s=1.0, lost=None, drop=0.0):
+    def __init__(self, scenario, G, seed=0, delays=None, deadline_s=1.0, lost=None, drop=0.0,
+                 residuals=False):
         self.s = scenario
         delays = np.zeros((scenario.N, scenario.N), int) if delays is None else delays
         M = scenario.N + scenario.standby
         self.world = WorldCore(scenario.A, seed, scenario.process_noise)
         self.agents = {a: AgentCore(agent_config(scenario, a, G, seed, delays, deadline_s,
-                                                 drop=drop))
+                                                 drop=drop, residuals=residuals))
                        for a in range(1, M + 1)}
         self.lost = lost or (lambda src, dst, stamp: False)
         self.now = 0.0

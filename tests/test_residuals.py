@@ -361,3 +361,36 @@ def test_a_healthy_run_raises_no_alarm(live):
     assert (first < 0).all()
     # and the statistics were formed (not NaN) on every tested step
     assert not np.isnan(res.residual_stats[:, test.first_step:]).any()
+
+
+# -- the live agent's side -------------------------------------------------------------
+
+def test_an_agent_forms_the_simulators_residual_statistics(live):
+    """AgentCore stepped by hand (in-memory mesh, the scenario's delays) forms, at every
+    step, the same residual levels as the simulator's trial of the same seed; its status
+    carries the largest level of each test since the last status."""
+    from tests.runtime_harness import Mesh
+
+    s, G = live
+    test = residual_test(s, G)
+    steps = test.first_step + 40
+    sim = simulate(s, G, steps=steps, trials=1, seed=4, delays=s.delays, residuals=test,
+                   coordinates="absolute")
+    want = sim.residual_stats[0] / test.thresholds
+    mesh = Mesh(s, G, seed=4, delays=s.delays, residuals=True)
+    got = np.full_like(want, np.nan)
+    index = {name: c for c, name in enumerate(test.names)}
+    for _ in range(steps + 1):
+        mesh.tick()
+        for a in range(1, s.N + 1):
+            core = mesh.agents[a]
+            for name, level in core.residual_levels.items():
+                got[core.step, index[name]] = level
+    formed = ~np.isnan(want)
+    assert formed[test.first_step:].all() and not formed[:test.first_step].any()
+    assert np.array_equal(formed, ~np.isnan(got))
+    assert np.allclose(got[formed], want[formed], rtol=1e-7, atol=1e-9)
+    status = mesh.agents[1].status()["residuals"]
+    assert set(status["levels"]) == {"innovation 1", "link 2->1"}
+    assert status["levels"]["innovation 1"] == pytest.approx(np.nanmax(want[:, 0]), rel=1e-3)
+    assert mesh.agents[1].status()["residuals"]["levels"] == {}     # peaks since the last

@@ -234,6 +234,10 @@ class AgentConfig:
     drop : float
         Probability of a keyed drop (:func:`design.noise.message_dropped`) per estimate
         and link, the simulator's drop model; 0 for none.
+    residuals : design.residuals.AgentResiduals or None
+        The agent's residual tests of its initial configuration (its innovation, and the
+        discrepancy of each in-neighbour's on-time estimate, against thresholds from the
+        exact loop); their levels are in its status while that configuration holds.
     """
 
     agent: int
@@ -251,6 +255,7 @@ class AgentConfig:
     impair_seed: int = 0
     max_age: int = hold_limit(0)
     drop: float = 0.0
+    residuals: object = None
 
 
 class _Neighbour:
@@ -336,6 +341,9 @@ class AgentCore:
         self.roster_pending: list = []
         self.fence = None                 # ids in force, or None before any roster
         self.fenced = 0
+        self.residual_levels: dict = {}   # the residual tests' levels at the last step
+        self._residual_peak: dict = {}    # ... their largest since the last status
+        self.residual_alarms = 0          # steps at which a test alarmed (level >= 1)
 
     # -- helpers ------------------------------------------------------------------
     @property
@@ -759,9 +767,26 @@ class AgentCore:
             nb, state = neighbour_input(role.neighbours[j], k, s, x, self.config.max_age, need)
             self.states[state] += 1
             nbs.append(nb)
-        _, post = estimator_step(self.powers, est_role, self.x, nbs, y)
+        prior, post = estimator_step(self.powers, est_role, self.x, nbs, y)
+        if self.config.residuals is not None and role is self.config.role:
+            self._residuals(k, y if len(cols) == len(role.measure) else None,
+                            prior, est_role, plan)
         self._finish(k, post)
         return post
+
+    def _residuals(self, k: int, y, prior, est_role, plan: dict) -> None:
+        """The residual tests of step k (:class:`design.residuals.AgentResiduals`): the
+        innovation when every reading came, and on each link whose estimate used was the
+        on-time one, ``A^age xhat^j - prior``."""
+        innovation = None if y is None else y - prior[list(est_role.measured)]
+        disc = {}
+        for j, (s, need, src) in plan.items():
+            if s is not None and s == need and src == j:
+                disc[j - 1] = self.nbrs[j].est[s] @ self.powers.transposed(k - s) - prior
+        self.residual_levels = self.config.residuals.step(k, innovation, disc)
+        for name, level in self.residual_levels.items():
+            self._residual_peak[name] = max(level, self._residual_peak.get(name, 0.0))
+        self.residual_alarms += any(v >= 1 for v in self.residual_levels.values())
 
     def _finish(self, k: int, post) -> None:
         if post is not None:
@@ -772,6 +797,18 @@ class AgentCore:
             del self.sensor[s]
 
     # -- status ------------------------------------------------------------------
+    def _residual_status(self) -> dict:
+        """``residuals``: the largest level of each test since the last status and the
+        alarm steps so far; ``off`` once the initial configuration no longer holds."""
+        if self.config.residuals is None:
+            return {}
+        if self.role is not self.config.role:
+            return {"residuals": {"off": "the configuration changed",
+                                  "alarms": self.residual_alarms}}
+        peak, self._residual_peak = self._residual_peak, {}
+        return {"residuals": {"levels": {k: round(v, 4) for k, v in peak.items()},
+                              "alarms": self.residual_alarms}}
+
     def status(self) -> dict:
         """The status fields of this agent (see docs/runtime.md)."""
         role = self.role
@@ -793,6 +830,7 @@ class AgentCore:
             "sensor": {"labels": list(self.wanted_labels()), "last_step": self.sensor_last,
                        "missed": self.sensor_missed, "future": self.sensor_future},
             "implausible": dict(self.implausible),
+            **self._residual_status(),
             "heard": sorted(self.heard),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
                       for (src, dst), p in self.impair.links().items() if not p.is_identity},
@@ -813,7 +851,8 @@ def initial_role(scenario, gains, agent: int):
 
 
 def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: float,
-                 impair_seed: int = 0, drop: float = 0.0, max_age=None) -> AgentConfig:
+                 impair_seed: int = 0, drop: float = 0.0, max_age=None,
+                 residuals: bool = False) -> AgentConfig:
     """The :class:`AgentConfig` of agent ``agent`` (1-based) of ``scenario``.
 
     The receiver-side delay of link b -> ``agent`` is
@@ -821,6 +860,8 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
     scenario's delay on its links, the largest delay on every other pair (standby
     agents included), so that a role change keeps the delays the simulator and the
     monitor assume. ``max_age`` defaults to ``hold_limit(delays.max())``.
+    ``residuals``: run the residual tests of the initial configuration
+    (:func:`residual_tests_for`) when the agent has a role in it.
     """
     from design.estimator import hold_limit
     from design.roster import link_delay_table
@@ -840,4 +881,26 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         role=initial_role(scenario, gains, agent) if gains is not None or i >= scenario.N
         else None,
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
-        drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age))
+        drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age),
+        residuals=residual_tests_for(scenario, gains, delays, i)
+        if residuals and gains is not None and i < scenario.N else None)
+
+
+#: the largest augmented loop (nN (1 + largest delay)) whose residual tests an agent
+#: computes at start (one dense Lyapunov solve; paper-14-live: order 84, 0.05 s)
+RESIDUAL_MAX_ORDER = 1000
+
+
+def residual_tests_for(scenario, gains, delays, row: int):
+    """:class:`design.residuals.AgentResiduals` of agent row ``row`` of the initial
+    configuration, or None when its loop is above :data:`RESIDUAL_MAX_ORDER` or not
+    stable (no steady covariance to test against)."""
+    from design.residuals import AgentResiduals, ResidualError, residual_test
+
+    top = int(np.max(delays)) if np.size(delays) else 0
+    if scenario.n * scenario.N * (1 + top) > RESIDUAL_MAX_ORDER:
+        return None
+    try:
+        return AgentResiduals(residual_test(scenario, gains, delays), row)
+    except ResidualError:
+        return None

@@ -262,6 +262,7 @@ STATUS_SCHEMA = Schema({
     "overflows": Int(0),
     "hop_ms": Loose(required=False),
     "implausible": Loose(required=False),
+    "residuals": Loose(required=False),
 }, sender="agent")
 
 
