@@ -822,3 +822,28 @@ def test_the_failure_detector_judges_without_the_controller(paper14):
     assert [(v.agent, v.cause) for v in d.verdicts(t + 0.2)] == [(3, "crash")]
     assert d.on_status(_status(1, 200), t + 0.2, sender=3) is None
     assert d.rejected == {"sender": 1}
+
+
+def test_residual_alarms_are_isolated_into_an_alert_that_convicts_nobody(core):
+    """Statuses whose residual tests alarm: agent 1's own innovation far above its
+    threshold is a sensor bias alert on agent 1 (once), an event and a record; nobody is
+    convicted. Malformed levels (a string, NaN, a foreign name) are ignored."""
+    out = _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    quiet = {"innovation 1": 0.2, "link 2->1": 0.3}
+
+    def status(a, step, levels):
+        return {**_status(a, step), "residuals": {"levels": levels, "alarms": 0}}
+
+    core.on_status(status(1, 60, {"innovation 1": 9.0, "link 2->1": 0.4,
+                                  "link 9->1": "x", "innovation 2": float("nan")}), 1.1)
+    core.on_status(status(2, 60, {"innovation 2": 0.3, "link 3->2": 0.2}), 1.1)
+    core.on_status(status(3, 60, {"innovation 3": 0.1, "link 1->3": 0.5}), 1.1)
+    out += core.tick(1.1)
+    out += core.tick(1.2)
+    assert [(r["agent"], r["fault"]) for r in core.residual_alerts] == [(1, "sensor bias")]
+    assert any("residual alert: agent 1 sensor bias" in e for e in core.events)
+    assert core.verdicts == [] and out == []
+    assert ("residual_alert", core.residual_alerts[0]) in core.new_records()
+    core.on_status(status(1, 61, quiet), 1.3)
+    core.tick(1.3)
+    assert len(core.residual_alerts) == 1

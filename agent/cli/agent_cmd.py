@@ -86,7 +86,8 @@ def run(args) -> int:
         if args.crash_at is not None and args.crash_at < 1:
             raise CommandError(f"--crash-at: must be a step >= 1, got {args.crash_at}")
         config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
-                              impair_seed=args.seed * 1000 + args.id, drop=args.drop)
+                              impair_seed=args.seed * 1000 + args.id, drop=args.drop,
+                              residuals=args.drop == 0)
         return run_agent(config, net, crash_at=args.crash_at, verifier=verifier,
                          operator_verifier=operator_verifier)
 

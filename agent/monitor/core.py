@@ -38,6 +38,7 @@ True
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -286,6 +287,20 @@ def design_gains_for(roster, kind: str = "fast", progress=None):
                          "seconds": float(res.seconds)}
 
 
+def _residual_name(name) -> tuple | None:
+    """``("innovation", i)`` or ``("link", j, i)`` (1-based ids) of a residual test's name
+    as an agent reports it (``"innovation 2"``, ``"link 3->2"``), or None."""
+    import re
+
+    if not isinstance(name, str) or len(name) > 32:
+        return None
+    m = re.fullmatch(r"innovation (\d{1,6})", name)
+    if m:
+        return ("innovation", int(m.group(1)))
+    m = re.fullmatch(r"link (\d{1,6})->(\d{1,6})", name)
+    return ("link", int(m.group(1)), int(m.group(2))) if m else None
+
+
 class MonitorCore:
     """The monitor's protocol, stepped by the caller with explicit times (seconds).
 
@@ -333,7 +348,10 @@ class MonitorCore:
         self.behind = False
         self._adopt_wait = None            # the last reason an adoption had to wait
         self._recorded = {"verdicts": 0, "history": 0, "gains": 0, "reissue": 0, "rejoin": 0,
-                          "evidence_refused": 0, "waiting": None}   # see new_records
+                          "evidence_refused": 0, "residual_alert": 0,
+                          "waiting": None}   # see new_records
+        self.residual_alerts: list = []   # residual alarms isolated to an agent (alerts)
+        self._alerted: set = set()        # (agent, kind) already alerted
 
     # -- the configuration in force, and the detector's view of it ---------------------
     @property
@@ -455,11 +473,13 @@ class MonitorCore:
                                         if k not in ("decided_at", "sent_at")},
                                      "mono": h["decided_at"], "mono_sent": h["sent_at"]}))
         for name, items in (("gains", self.gain_notes), ("reissue", self.reissues),
-                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies)):
+                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies),
+                            ("residual_alert", self.residual_alerts)):
             out += [(name, dict(r)) for r in items[seen[name]:]]
         for name, items in (("verdicts", self.verdicts), ("history", self.history),
                             ("gains", self.gain_notes), ("reissue", self.reissues),
-                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies)):
+                            ("rejoin", self.rejoins), ("evidence_refused", self.anomalies),
+                            ("residual_alert", self.residual_alerts)):
             seen[name] = len(items)
         if self.history and not self.confirmed():
             seen["waiting"] = self.epoch
@@ -488,6 +508,7 @@ class MonitorCore:
         if self._pending is not None:
             out += self._emit_reassign(now)     # its gains came back from the worker
         self._note_gain_mse()
+        self._residual_alerts(now)
         if not suspended and self.last_step_reported >= 0 and not self._unconfirmed \
                 and self._pending is None:
             out += self.check_delays(now)
@@ -518,6 +539,54 @@ class MonitorCore:
                 out.append(self._roster_msg)
             self._sent_at = now
         return out
+
+    def _residual_alerts(self, now: float) -> None:
+        """The agents' residual tests (the peak levels in their statuses, tests of the
+        initial configuration) isolated to one agent (:func:`design.residuals.isolate`):
+        a ``sensor bias`` or ``inconsistent estimates`` alert, an event and a record once
+        per agent and kind. An alert convicts nobody: on a network whose agents have a
+        single receiver each, a lie and an absorbed sensor fault cannot be told from a
+        fault of the receiver (docs/residuals.md), and a wrong conviction removes a healthy
+        agent."""
+        if self.epoch != 0 or self.history:
+            return
+        from design.residuals import AgentReport, isolate
+
+        reports, alarmed = [], False
+        for a in self.roster.ids:
+            res = self.agents[a].status.get("residuals")
+            levels = res.get("levels") if isinstance(res, dict) else None
+            if not isinstance(levels, dict):
+                continue
+            innovation, disc = 0.0, {}
+            for name, level in list(levels.items())[:64]:      # bounded: untrusted input
+                if isinstance(level, bool) or not isinstance(level, (int, float)) \
+                        or not math.isfinite(level) or level < 0:
+                    continue
+                parsed = _residual_name(name)
+                if parsed is None or parsed[-1] != a:
+                    continue
+                if parsed[0] == "innovation":
+                    innovation = float(level)
+                else:
+                    disc[parsed[1] - 1] = float(level)
+                alarmed |= level >= 1
+            reports.append(AgentReport(a - 1, innovation, disc))
+        if not alarmed:
+            return
+        verdict = isolate(reports)
+        if verdict is None or (verdict.agent, verdict.kind) in self._alerted:
+            return
+        self._alerted.add((verdict.agent, verdict.kind))
+        agent = verdict.agent + 1
+        record = {"agent": agent, "fault": verdict.kind, "score": round(verdict.score, 3),
+                  "evidence": list(verdict.evidence), "step": self.last_step_reported,
+                  "alternatives": [[a + 1, kind, round(s, 3)]
+                                   for a, kind, s in verdict.alternatives]}
+        self.residual_alerts.append(record)
+        self.events.append(f"residual alert: agent {agent} {verdict.kind} (level "
+                           f"{verdict.score:.3g}): {'; '.join(verdict.evidence)}; not "
+                           "convicted (an alert)")
 
     def _reissue(self, now: float) -> list:
         """``activate_at`` passed before every agent confirmed: the same roles again under

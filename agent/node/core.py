@@ -887,8 +887,10 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
 
 
 #: the largest augmented loop (nN (1 + largest delay)) whose residual tests an agent
-#: computes at start (one dense Lyapunov solve; paper-14-live: order 84, 0.05 s)
-RESIDUAL_MAX_ORDER = 1000
+#: computes at start: paper-14-live with its own delays (order 126) 0.02 s; at 7-step
+#: delays (order 336) 22 s and at 15 (672) 95 s on this machine under load, too long
+#: for a process's start
+RESIDUAL_MAX_ORDER = 200
 
 
 def residual_tests_for(scenario, gains, delays, row: int):

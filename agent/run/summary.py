@@ -471,7 +471,11 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                                 for r in records if r.get("kind") == "evidence_refused"],
            "rejoins": [{"agent": r.get("agent"), "step": r.get("step"),
                         "healthy_s": r.get("healthy_s"), "standby": r.get("standby")}
-                       for r in records if r.get("kind") == "rejoin"]}
+                       for r in records if r.get("kind") == "rejoin"],
+           "residual_alerts": [{"agent": r.get("agent"), "fault": r.get("fault"),
+                                "step": r.get("step"), "score": r.get("score"),
+                                "evidence": r.get("evidence")}
+                               for r in records if r.get("kind") == "residual_alert"]}
     for f in failures:           # a convicted agent that came back and passed probation
         back = [r for r in out["rejoins"] if r["agent"] == f["agent"]
                 and (f.get("detected_step") or 0) <= (r["step"] or 0)]
