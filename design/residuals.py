@@ -753,14 +753,29 @@ class AgentResiduals:
         self.residuals = test.for_agent(self.row)
         self.window = test.window
         self.first_step = test.first_step
+        #: in-neighbour row -> the age its link is tested at (``1 + tau``): an estimate of
+        #: another age (a delay learned otherwise) is outside the tested distribution
+        self.link_age = {r.sender: r.age for r in self.residuals if r.sender is not None}
         self._rings = {r.name: [] for r in self.residuals}
+        self.disturbed_at = None          # the last step whose inputs were not on time
+
+    def disturb(self, k: int) -> None:
+        """Step k ran on inputs the thresholds do not cover (a held, late or lost
+        neighbour estimate, missing readings): the agent's own error left the healthy
+        loop's distribution, and so do its later residuals until the transient decays.
+        Every test starts over ``warmup`` steps later (as after the start)."""
+        self.disturbed_at = int(k)
+        for ring in self._rings.values():
+            ring.clear()
 
     def step(self, k: int, innovation, discrepancies: dict) -> dict:
         levels = {}
+        quiet = self.test.warmup if self.disturbed_at is None \
+            else self.disturbed_at + self.test.warmup
         for r in self.residuals:
             v = innovation if r.sender is None else discrepancies.get(r.sender)
             ring = self._rings[r.name]
-            if v is None or k <= self.test.warmup:
+            if v is None or k <= quiet:
                 ring.clear()
                 continue
             ring.append(np.asarray(v, dtype=float))

@@ -847,3 +847,22 @@ def test_residual_alarms_are_isolated_into_an_alert_that_convicts_nobody(core):
     core.on_status(status(1, 61, quiet), 1.3)
     core.tick(1.3)
     assert len(core.residual_alerts) == 1
+
+
+def test_residual_alarms_wait_while_an_agent_was_disturbed_lately(core):
+    """An agent that used a held estimate lately (``disturbed`` within ``settle`` steps of
+    the newest step) puts the whole network's tests on hold: no alert from its alarms."""
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+
+    def status(a, levels, disturbed=-1):
+        return {**_status(a, 60), "residuals": {"levels": levels, "alarms": 0,
+                                                "disturbed": disturbed, "settle": 40}}
+
+    core.on_status(status(1, {"innovation 1": 9.0}), 1.1)
+    core.on_status(status(2, {"innovation 2": 0.3}, disturbed=40), 1.1)
+    core.on_status(status(3, {"innovation 3": 0.1}), 1.1)
+    core.tick(1.1)
+    assert core.residual_alerts == []
+    core.on_status(status(2, {"innovation 2": 0.3}, disturbed=10), 1.2)
+    core.tick(1.2)
+    assert [(r["agent"], r["fault"]) for r in core.residual_alerts] == [(1, "sensor bias")]

@@ -553,6 +553,19 @@ class MonitorCore:
         from design.residuals import AgentReport, isolate
 
         reports, alarmed = [], False
+        newest = self.last_step_reported
+        unsettled = set()      # agents whose inputs left the tested distribution lately
+        for a in self.roster.ids:
+            res = self.agents[a].status.get("residuals")
+            if isinstance(res, dict) and isinstance(res.get("disturbed"), int) \
+                    and isinstance(res.get("settle"), int) \
+                    and res["disturbed"] >= 0 and newest - res["disturbed"] <= res["settle"]:
+                unsettled.add(a)
+        if unsettled:
+            # a disturbance reaches every agent through the loop (an agent that used a held
+            # estimate perturbs its receivers' estimates, and theirs): the whole network's
+            # tests wait until it settled
+            return
         for a in self.roster.ids:
             res = self.agents[a].status.get("residuals")
             levels = res.get("levels") if isinstance(res, dict) else None
@@ -569,19 +582,19 @@ class MonitorCore:
                 if parsed[0] == "innovation":
                     innovation = float(level)
                 else:
-                    disc[parsed[1] - 1] = float(level)
+                    disc[parsed[1]] = float(level)
                 alarmed |= level >= 1
-            reports.append(AgentReport(a - 1, innovation, disc))
+            reports.append(AgentReport(a, innovation, disc))       # agent ids throughout
         if not alarmed:
             return
         verdict = isolate(reports)
         if verdict is None or (verdict.agent, verdict.kind) in self._alerted:
             return
         self._alerted.add((verdict.agent, verdict.kind))
-        agent = verdict.agent + 1
+        agent = verdict.agent
         record = {"agent": agent, "fault": verdict.kind, "score": round(verdict.score, 3),
                   "evidence": list(verdict.evidence), "step": self.last_step_reported,
-                  "alternatives": [[a + 1, kind, round(s, 3)]
+                  "alternatives": [[a, kind, round(s, 3)]
                                    for a, kind, s in verdict.alternatives]}
         self.residual_alerts.append(record)
         self.events.append(f"residual alert: agent {agent} {verdict.kind} (level "

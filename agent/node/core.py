@@ -777,13 +777,18 @@ class AgentCore:
     def _residuals(self, k: int, y, prior, est_role, plan: dict) -> None:
         """The residual tests of step k (:class:`design.residuals.AgentResiduals`): the
         innovation when every reading came, and on each link whose estimate used was the
-        on-time one, ``A^age xhat^j - prior``."""
+        on-time one at the tested age, ``A^age xhat^j - prior``."""
+        res = self.config.residuals
+        if y is None or any(s != need or src != j for j, (s, need, src) in plan.items()):
+            res.disturb(k)
         innovation = None if y is None else y - prior[list(est_role.measured)]
-        disc = {}
+        disc, ages = {}, res.link_age
         for j, (s, need, src) in plan.items():
-            if s is not None and s == need and src == j:
+            # the on-time estimate, at the age the link's test was computed for (a delay
+            # learned otherwise, e.g. after a burst of late messages, is not tested)
+            if s is not None and s == need and src == j and k - s == ages.get(j - 1):
                 disc[j - 1] = self.nbrs[j].est[s] @ self.powers.transposed(k - s) - prior
-        self.residual_levels = self.config.residuals.step(k, innovation, disc)
+        self.residual_levels = res.step(k, innovation, disc)
         for name, level in self.residual_levels.items():
             self._residual_peak[name] = max(level, self._residual_peak.get(name, 0.0))
         self.residual_alarms += any(v >= 1 for v in self.residual_levels.values())
@@ -806,8 +811,11 @@ class AgentCore:
             return {"residuals": {"off": "the configuration changed",
                                   "alarms": self.residual_alarms}}
         peak, self._residual_peak = self._residual_peak, {}
+        res = self.config.residuals
         return {"residuals": {"levels": {k: round(v, 4) for k, v in peak.items()},
-                              "alarms": self.residual_alarms}}
+                              "alarms": self.residual_alarms,
+                              "disturbed": -1 if res.disturbed_at is None else res.disturbed_at,
+                              "settle": res.test.warmup + res.test.window}}
 
     def status(self) -> dict:
         """The status fields of this agent (see docs/runtime.md)."""
