@@ -832,13 +832,17 @@ def test_residual_alarms_are_isolated_into_an_alert_that_convicts_nobody(core):
     quiet = {"innovation 1": 0.2, "link 2->1": 0.3}
 
     def status(a, step, levels):
-        return {**_status(a, step), "residuals": {"levels": levels, "alarms": 0}}
+        first = {k: [step - 2, v] for k, v in levels.items()
+                 if isinstance(v, float) and v >= 1}
+        return {**_status(a, step), "residuals": {"levels": levels, "first": first,
+                                                  "alarms": 0}}
 
     core.on_status(status(1, 60, {"innovation 1": 9.0, "link 2->1": 0.4,
                                   "link 9->1": "x", "innovation 2": float("nan")}), 1.1)
+    out += core.tick(1.1)
+    assert core.residual_alerts == []        # agents 2 and 3 have not reported step 60
     core.on_status(status(2, 60, {"innovation 2": 0.3, "link 3->2": 0.2}), 1.1)
     core.on_status(status(3, 60, {"innovation 3": 0.1, "link 1->3": 0.5}), 1.1)
-    out += core.tick(1.1)
     out += core.tick(1.2)
     assert [(r["agent"], r["fault"]) for r in core.residual_alerts] == [(1, "sensor bias")]
     assert any("residual alert: agent 1 sensor bias" in e for e in core.events)
@@ -851,11 +855,13 @@ def test_residual_alarms_are_isolated_into_an_alert_that_convicts_nobody(core):
 
 def test_residual_alarms_wait_while_an_agent_was_disturbed_lately(core):
     """An agent that used a held estimate lately (``disturbed`` within ``settle`` steps of
-    the newest step) puts the whole network's tests on hold: no alert from its alarms."""
+    the newest step) puts the whole network's tests on hold: what alarmed meanwhile is
+    dropped; an alarm once it settled is isolated."""
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
 
     def status(a, levels, disturbed=-1):
-        return {**_status(a, 60), "residuals": {"levels": levels, "alarms": 0,
+        first = {k: [58, v] for k, v in levels.items() if v >= 1}
+        return {**_status(a, 60), "residuals": {"levels": levels, "first": first, "alarms": 0,
                                                 "disturbed": disturbed, "settle": 40}}
 
     core.on_status(status(1, {"innovation 1": 9.0}), 1.1)
@@ -865,4 +871,31 @@ def test_residual_alarms_wait_while_an_agent_was_disturbed_lately(core):
     assert core.residual_alerts == []
     core.on_status(status(2, {"innovation 2": 0.3}, disturbed=10), 1.2)
     core.tick(1.2)
+    assert core.residual_alerts == []         # what alarmed while unsettled is dropped
+    core.on_status(status(1, {"innovation 1": 9.0}), 1.3)
+    core.tick(1.3)
     assert [(r["agent"], r["fault"]) for r in core.residual_alerts] == [(1, "sensor bias")]
+
+
+
+def test_residual_isolation_takes_the_picture_at_the_first_alarm(core):
+    """Agent 2 lies: agent 1 (its receiver) alarms first on link 2->1; the lie then goes
+    round the loop (1 -> 3 -> 2) and alarms later on links 1->3 and 3->2, at larger
+    levels. The alert names agent 2, not a consequence."""
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+
+    def status(a, levels, first):
+        return {**_status(a, 70), "residuals": {"levels": levels, "first": first,
+                                                "alarms": 1, "disturbed": -1, "settle": 40}}
+
+    core.on_status(status(3, {"innovation 3": 0.2, "link 1->3": 900.0},
+                          {"link 1->3": [63, 40.0]}), 1.1)
+    core.on_status(status(2, {"innovation 2": 0.1, "link 3->2": 5000.0},
+                          {"link 3->2": [66, 12.0]}), 1.1)
+    core.tick(1.1)
+    assert core.residual_alerts == []                       # agent 1 not heard since
+    core.on_status(status(1, {"innovation 1": 0.3, "link 2->1": 80.0},
+                          {"link 2->1": [61, 6.0]}), 1.2)
+    core.tick(1.2)
+    assert [(r["agent"], r["fault"], r["step"]) for r in core.residual_alerts] == \
+        [(2, "inconsistent estimates", 61)]

@@ -26,6 +26,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--drop", type=float, default=0.0,
                         help="probability that an estimate is lost on a link, drawn from the run "
                              "seed as the simulator draws it (default 0)")
+    parser.add_argument("--lie", default=None, metavar="STEP:SIZE",
+                        help="scripted misbehaviour: from STEP on, publish estimates SIZE "
+                             "measurement-noise std-devs off on every component, the agent's "
+                             "own estimate staying honest (socmon up --fault lie uses it)")
     parser.add_argument("--crash-at", type=int, default=None, metavar="STEP",
                         help="scripted crash: publish step STEP-1, then SIGKILL itself "
                              "(reproducible failures; socmon up --kill uses it)")
@@ -87,8 +91,26 @@ def run(args) -> int:
             raise CommandError(f"--crash-at: must be a step >= 1, got {args.crash_at}")
         config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
                               impair_seed=args.seed * 1000 + args.id, drop=args.drop,
-                              residuals=args.drop == 0)
+                              residuals=args.drop == 0, lie=parse_lie(args.lie, args.id))
         return run_agent(config, net, crash_at=args.crash_at, verifier=verifier,
                          operator_verifier=operator_verifier)
 
     return run_command(body)
+
+
+def parse_lie(text, agent: int):
+    """``--lie STEP:SIZE`` -> :class:`design.simulate.Fault` (kind ``lie``), or None."""
+    if text is None:
+        return None
+    from design.simulate import Fault
+
+    from agent.cli._common import CommandError, parse_int
+
+    step, sep, size = str(text).partition(":")
+    try:
+        value = float(size)
+    except ValueError:
+        value = -1.0
+    if not sep or not 0 <= value <= 1e6:
+        raise CommandError(f"--lie: expected STEP:SIZE with SIZE in [0, 1e6], got {text!r}")
+    return Fault("lie", agent - 1, parse_int(step, "--lie STEP", lo=1), value)

@@ -352,6 +352,11 @@ class MonitorCore:
                           "waiting": None}   # see new_records
         self.residual_alerts: list = []   # residual alarms isolated to an agent (alerts)
         self._alerted: set = set()        # (agent, kind) already alerted
+        self._residual_peaks: dict = {}   # agent -> {test: largest level since isolated}
+        self._residual_alarm_step = None  # the earliest first alarm reported
+        self._residual_first: dict = {}   # (agent, test) -> (step, level) of its first alarm
+        self._residual_last_alarm = -1    # the newest status step with an alarm
+        self._residual_hold = False       # an episode was isolated: wait until it is over
 
     # -- the configuration in force, and the detector's view of it ---------------------
     @property
@@ -424,6 +429,7 @@ class MonitorCore:
         if a is None:
             return
         self._epoch_seen = max(self._epoch_seen, a.epoch)
+        self._note_residuals(int(msg["agent"]), msg)
         if self.epoch < a.epoch:
             self.epoch = a.epoch
             self.behind = True
@@ -540,66 +546,123 @@ class MonitorCore:
             self._sent_at = now
         return out
 
+    def _note_residuals(self, agent: int, msg: dict) -> None:
+        """Keep the largest level of each residual test an agent reported since the last
+        isolation (untrusted input: names and levels checked, at most 64 of them)."""
+        res = msg.get("residuals")
+        levels = res.get("levels") if isinstance(res, dict) else None
+        if not isinstance(levels, dict):
+            return
+        peaks = self._residual_peaks.setdefault(agent, {})
+        for name, level in list(levels.items())[:64]:
+            if isinstance(level, bool) or not isinstance(level, (int, float)) \
+                    or not math.isfinite(level) or level < 0:
+                continue
+            parsed = _residual_name(name)
+            if parsed is None or parsed[-1] != agent:
+                continue
+            peaks[parsed[:-1]] = max(float(level), peaks.get(parsed[:-1], 0.0))
+            if level >= 1:
+                step = msg.get("step")
+                if isinstance(step, int) and not isinstance(step, bool):
+                    self._residual_last_alarm = max(self._residual_last_alarm, step)
+        first = res.get("first")
+        for name, entry in (list(first.items())[:64] if isinstance(first, dict) else ()):
+            parsed = _residual_name(name)
+            if parsed is None or parsed[-1] != agent or not isinstance(entry, list) \
+                    or len(entry) != 2 or isinstance(entry[0], bool) \
+                    or not isinstance(entry[0], int) or isinstance(entry[1], bool) \
+                    or not isinstance(entry[1], (int, float)) or not math.isfinite(entry[1]) \
+                    or entry[1] < 1:
+                continue
+            key = (agent, parsed[:-1])
+            if key not in self._residual_first or entry[0] < self._residual_first[key][0]:
+                self._residual_first[key] = (entry[0], float(entry[1]))
+            if self._residual_alarm_step is None or entry[0] < self._residual_alarm_step:
+                self._residual_alarm_step = entry[0]
+
+    def _reset_residuals(self) -> None:
+        self._residual_peaks, self._residual_first, self._residual_alarm_step = {}, {}, None
+
     def _residual_alerts(self, now: float) -> None:
-        """The agents' residual tests (the peak levels in their statuses, tests of the
-        initial configuration) isolated to one agent (:func:`design.residuals.isolate`):
-        a ``sensor bias`` or ``inconsistent estimates`` alert, an event and a record once
-        per agent and kind. An alert convicts nobody: on a network whose agents have a
-        single receiver each, a lie and an absorbed sensor fault cannot be told from a
-        fault of the receiver (docs/residuals.md), and a wrong conviction removes a healthy
-        agent."""
+        """The agents' residual tests (tests of the initial configuration) isolated to
+        one agent (:func:`design.residuals.isolate`): a ``sensor bias`` or ``inconsistent
+        estimates`` alert, an event and a record once per agent and kind.
+
+        An alarm is isolated once every agent of the configuration has reported a step at
+        least as late as the earliest first alarm (statuses arrive at different times, and
+        the first alarm heard may be a consequence, a receiver of a receiver, of one
+        another agent reports later), on the picture at that earliest step: the tests that
+        alarmed then, at their level then (what alarmed later is a consequence around the
+        loop, as the simulator's benchmark isolates at the first alarm step). Nothing is isolated while an agent was disturbed
+        lately (it used a held, late or lost estimate, or missed readings, within its
+        settle window: that reaches every agent through the loop). An alert convicts
+        nobody: on a network whose agents have a single receiver each, a lie and an
+        absorbed sensor fault cannot be told from a fault of the receiver
+        (docs/residuals.md), and a wrong conviction removes a healthy agent."""
         if self.epoch != 0 or self.history:
             return
         from design.residuals import AgentReport, isolate
 
-        reports, alarmed = [], False
         newest = self.last_step_reported
-        unsettled = set()      # agents whose inputs left the tested distribution lately
+        settle, disturbed = 0, {}
         for a in self.roster.ids:
             res = self.agents[a].status.get("residuals")
             if isinstance(res, dict) and isinstance(res.get("disturbed"), int) \
-                    and isinstance(res.get("settle"), int) \
-                    and res["disturbed"] >= 0 and newest - res["disturbed"] <= res["settle"]:
-                unsettled.add(a)
-        if unsettled:
-            # a disturbance reaches every agent through the loop (an agent that used a held
-            # estimate perturbs its receivers' estimates, and theirs): the whole network's
-            # tests wait until it settled
+                    and isinstance(res.get("settle"), int):
+                settle = max(settle, res["settle"])
+                if res["disturbed"] >= 0:
+                    disturbed[a] = res["disturbed"] + res["settle"]    # tests back then
+        if self._residual_hold:
+            # one alert per episode: the fault goes on, and what alarms next are its
+            # consequences around the loop; the episode ends after settle quiet steps
+            if newest - self._residual_last_alarm > settle:
+                self._residual_hold = False
+            self._reset_residuals()
             return
+        if any(newest < back for back in disturbed.values()):
+            self._reset_residuals()
+            return
+        first = self._residual_alarm_step
+        if first is None:
+            self._residual_peaks = {}
+            return
+        if any(self.agents[a].step < first for a in self.roster.ids):
+            return                     # not every agent has reported the steps since
+        reports = []
         for a in self.roster.ids:
-            res = self.agents[a].status.get("residuals")
-            levels = res.get("levels") if isinstance(res, dict) else None
-            if not isinstance(levels, dict):
-                continue
-            innovation, disc = 0.0, {}
-            for name, level in list(levels.items())[:64]:      # bounded: untrusted input
-                if isinstance(level, bool) or not isinstance(level, (int, float)) \
-                        or not math.isfinite(level) or level < 0:
-                    continue
-                parsed = _residual_name(name)
-                if parsed is None or parsed[-1] != a:
-                    continue
-                if parsed[0] == "innovation":
-                    innovation = float(level)
-                else:
-                    disc[parsed[1]] = float(level)
-                alarmed |= level >= 1
-            reports.append(AgentReport(a, innovation, disc))       # agent ids throughout
-        if not alarmed:
+            # the picture at the first alarm: what alarmed then, at its level then; what
+            # alarmed only later (a consequence around the loop) counts as quiet
+            levels = {}
+            for test, peak in self._residual_peaks.get(a, {}).items():
+                got = self._residual_first.get((a, test))
+                levels[test] = got[1] if got is not None and got[0] <= first else (
+                    peak if peak < 1 else 0.0)
+            reports.append(AgentReport(a, levels.get(("innovation",), 0.0),
+                                       {k[1]: v for k, v in levels.items() if k[0] == "link"}))
+        self._reset_residuals()
+        self._residual_hold = True
+        blind = sorted(a for a, back in disturbed.items() if back >= first)
+        if blind:
+            # an agent's tests were starting over at the first alarm (it had used a held
+            # estimate): its silence is no evidence, and the picture could name a
+            # consequence
+            self.events.append(f"residual alarm from step {first} not isolated: the tests "
+                               f"of agents {blind} were starting over then")
             return
-        verdict = isolate(reports)
+        verdict = isolate(reports)        # agent ids throughout
         if verdict is None or (verdict.agent, verdict.kind) in self._alerted:
             return
         self._alerted.add((verdict.agent, verdict.kind))
         agent = verdict.agent
         record = {"agent": agent, "fault": verdict.kind, "score": round(verdict.score, 3),
-                  "evidence": list(verdict.evidence), "step": self.last_step_reported,
+                  "evidence": list(verdict.evidence), "step": first,
                   "alternatives": [[a, kind, round(s, 3)]
                                    for a, kind, s in verdict.alternatives]}
         self.residual_alerts.append(record)
         self.events.append(f"residual alert: agent {agent} {verdict.kind} (level "
-                           f"{verdict.score:.3g}): {'; '.join(verdict.evidence)}; not "
-                           "convicted (an alert)")
+                           f"{verdict.score:.3g}, from step {first}): "
+                           f"{'; '.join(verdict.evidence)}; not convicted (an alert)")
 
     def _reissue(self, now: float) -> list:
         """``activate_at`` passed before every agent confirmed: the same roles again under

@@ -64,6 +64,7 @@ Examples
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -238,6 +239,9 @@ class AgentConfig:
         The agent's residual tests of its initial configuration (its innovation, and the
         discrepancy of each in-neighbour's on-time estimate, against thresholds from the
         exact loop); their levels are in its status while that configuration holds.
+    lie : design.simulate.Fault or None
+        A scripted misbehaviour (kind ``lie``): the estimates it publishes from the fault's
+        step on carry its offset, its own estimate staying honest (as the simulator's).
     """
 
     agent: int
@@ -256,6 +260,7 @@ class AgentConfig:
     max_age: int = hold_limit(0)
     drop: float = 0.0
     residuals: object = None
+    lie: object = None
 
 
 class _Neighbour:
@@ -343,6 +348,7 @@ class AgentCore:
         self.fenced = 0
         self.residual_levels: dict = {}   # the residual tests' levels at the last step
         self._residual_peak: dict = {}    # ... their largest since the last status
+        self._residual_first: dict = {}   # test -> (step, level) of its first alarm since
         self.residual_alarms = 0          # steps at which a test alarmed (level >= 1)
 
     # -- helpers ------------------------------------------------------------------
@@ -639,8 +645,16 @@ class AgentCore:
                 return out
             if not complete:
                 self.sensor_missed += 1
-            out.append((k, self._compute(k, readings, plan), self.epoch))
+            out.append((k, self._published(k, self._compute(k, readings, plan)), self.epoch))
         return out
+
+    def _published(self, k: int, x):
+        """The estimate published for step k: ``x``, or ``x`` plus a scripted lie's offset
+        (:attr:`AgentConfig.lie`, the simulator's :class:`design.simulate.Fault`)."""
+        lie = self.config.lie
+        if lie is None or k < lie.start:
+            return x
+        return x + lie.offset(k, math.sqrt(self.config.measurement_noise)) * lie.vector(self.n)
 
     def _first_readings(self):
         wanted = self.wanted_labels()
@@ -791,6 +805,8 @@ class AgentCore:
         self.residual_levels = res.step(k, innovation, disc)
         for name, level in self.residual_levels.items():
             self._residual_peak[name] = max(level, self._residual_peak.get(name, 0.0))
+            if level >= 1 and name not in self._residual_first:
+                self._residual_first[name] = (k, level)
         self.residual_alarms += any(v >= 1 for v in self.residual_levels.values())
 
     def _finish(self, k: int, post) -> None:
@@ -803,16 +819,19 @@ class AgentCore:
 
     # -- status ------------------------------------------------------------------
     def _residual_status(self) -> dict:
-        """``residuals``: the largest level of each test since the last status and the
-        alarm steps so far; ``off`` once the initial configuration no longer holds."""
+        """``residuals``: the largest level of each test since the last status, the step
+        and level of each test's first alarm since then, the alarm steps so far, the last
+        disturbed step; ``off`` once the initial configuration no longer holds."""
         if self.config.residuals is None:
             return {}
         if self.role is not self.config.role:
             return {"residuals": {"off": "the configuration changed",
                                   "alarms": self.residual_alarms}}
         peak, self._residual_peak = self._residual_peak, {}
+        first, self._residual_first = self._residual_first, {}
         res = self.config.residuals
         return {"residuals": {"levels": {k: round(v, 4) for k, v in peak.items()},
+                              "first": {k: [s, round(v, 4)] for k, (s, v) in first.items()},
                               "alarms": self.residual_alarms,
                               "disturbed": -1 if res.disturbed_at is None else res.disturbed_at,
                               "settle": res.test.warmup + res.test.window}}
@@ -860,7 +879,7 @@ def initial_role(scenario, gains, agent: int):
 
 def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: float,
                  impair_seed: int = 0, drop: float = 0.0, max_age=None,
-                 residuals: bool = False) -> AgentConfig:
+                 residuals: bool = False, lie=None) -> AgentConfig:
     """The :class:`AgentConfig` of agent ``agent`` (1-based) of ``scenario``.
 
     The receiver-side delay of link b -> ``agent`` is
@@ -891,7 +910,7 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
         drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age),
         residuals=residual_tests_for(scenario, gains, delays, i)
-        if residuals and gains is not None and i < scenario.N else None)
+        if residuals and gains is not None and i < scenario.N else None, lie=lie)
 
 
 #: the largest augmented loop (nN (1 + largest delay)) whose residual tests an agent

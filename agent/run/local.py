@@ -52,7 +52,9 @@ __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KI
 #: on a testbed of network namespaces only, :mod:`agent.testbed.netns`).
 #: monitorsgone: every monitor (active and standby) SIGKILLed, none started again.
 FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
-               "drop", "linkdown", "worldstop", "monitorstop", "monitorsgone")
+               "drop", "linkdown", "worldstop", "monitorstop", "monitorsgone", "lie")
+#: The kinds an agent process is told of at its start (scripted at a step, like a crash).
+SCRIPTED_FAULTS = ("crash", "lie")
 #: The kinds that act on a process other than an agent (no AGENT in ``--fault``).
 PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop", "monitorsgone")
 
@@ -91,6 +93,7 @@ class Fault:
             "worldstop": "world stopped (SIGSTOP)",
             "monitorstop": "monitor stopped (SIGSTOP)",
             "monitorsgone": "every monitor killed (SIGKILL), none started again",
+            "lie": "agent {a} publishes its estimates {v:g} noise std-devs off (scripted)",
         }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
         return what + (f" for {self.seconds:g} s" if self.seconds else "")
 
@@ -157,6 +160,7 @@ class LocalRun:
         if c.secure:
             common += ["--keys", str((c.out / "keys").resolve())]
         crash_at = {f.agent: f.step for f in c.faults if f.kind == "crash"}
+        lie = {f.agent: f for f in c.faults if f.kind == "lie"}
         out = {"world": ["world", c.scenario_arg, *common, "--listen", ep[1],
                          "--steps", str(c.steps), "--step-ms", str(c.step_ms),
                          "--start-timeout", str(c.start_timeout)]}
@@ -170,6 +174,8 @@ class LocalRun:
                 argv += ["--drop", repr(c.drop)]
             if a in crash_at:
                 argv += ["--crash-at", str(crash_at[a])]
+            if a in lie:
+                argv += ["--lie", f"{lie[a].step}:{lie[a].value!r}"]
             out[f"agent-{a}"] = argv
         out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
                           "--gains", str(c.gains_path), "--delays", c.delays_spec,
@@ -433,7 +439,7 @@ class LocalRun:
                     k_now = recorder.step
                     while pending and k_now >= pending[0].step:
                         f = pending.pop(0)
-                        if f.kind != "crash":
+                        if f.kind not in SCRIPTED_FAULTS:
                             inject(f, k_now, now)
                     for item in sorted(u for u in undo if u[0] <= now):
                         undo.remove(item)
