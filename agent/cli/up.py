@@ -59,7 +59,9 @@ def add_arguments(parser) -> None:
                              "for SECONDS; with --netns), worldstop and monitorstop (the "
                              "world or the monitor SIGSTOPped for SECONDS: "
                              "worldstop:STEP::SECONDS), monitorsgone (every monitor "
-                             "SIGKILLed for good); see docs/monitor.md")
+                             "SIGKILLed for good), lie (the agent publishes its estimates "
+                             "VALUE noise std-devs off from STEP: lie:STEP:AGENT:0:VALUE, "
+                             "docs/residuals.md); see docs/monitor.md")
     parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
                         metavar="S", help="the monitor's hang timeout (default "
                         f"{TIMING.hang_timeout_s:g} s; above twice the status period "
