@@ -45,7 +45,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--objective", choices=("rho", "mse"), default=None,
                         help="minimise the exact steady MSE or the exact spectral radius "
                              "(default: mse with --method default, the gain `up` designs; "
-                             "rho with --method ccl)")
+                             "rho with --method ccl or --target)")
     parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="seed of the extra starts (default 0)")
     parser.add_argument("--solver", type=str.upper, choices=("CLARABEL", "SCS"), default=None,
                         help="conic solver for --method ccl (default CLARABEL)")
@@ -82,7 +82,7 @@ def add_arguments(parser) -> None:
 
 def _options(args) -> dict:
     if args.objective is None:         # the one default: the gain `socmon up` designs
-        args.objective = "rho" if args.method == "ccl" else "mse"
+        args.objective = "rho" if args.method == "ccl" or args.target is not None else "mse"
     opts = {}
     if args.method == "ccl":
         for flag, value in (("--starts", args.starts), ("--target", args.target),
