@@ -35,12 +35,19 @@ def test_a_request_and_the_precompute_both_come_back_certified():
         worker.request(other)
         kinds = lambda got: [i.get("kind") for r, G, i in got   # noqa: E731
                              if GainSource.key(r) == GainSource.key(other)]
+        polished = lambda got: {GainSource.key(r) for r, _, i in got   # noqa: E731
+                                if i.get("polished")}
         got = _collect(worker, lambda g: kinds(g) == ["fast", "refined"] and foreseen
-                       <= {GainSource.key(r) for r, _, _ in g})
+                       <= polished(g))
     finally:
         worker.close()
     assert kinds(got) == ["fast", "refined"]
     assert foreseen <= {GainSource.key(r) for r, _, _ in got}
+    # every foreseen failure: its fast gain first, then the polished one (a fast kind)
+    assert foreseen <= polished(got)
+    for key in foreseen:
+        seq = [i.get("polished", False) for r, _, i in got if GainSource.key(r) == key]
+        assert seq == [False, True]
     assert GainSource.key(single) in foreseen and GainSource.key(other) not in foreseen
     for r, G, info in got:
         assert G is not None and info["rho"] < 1

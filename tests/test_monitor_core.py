@@ -561,6 +561,49 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     assert core.tick(2.6) == []                           # nothing more to upgrade
 
 
+def test_a_precomputed_failure_switches_to_its_polished_first_gain(paper14):
+    """The precompute's polish pass (a few MSE iterations from the fast gain) replaces the
+    fast gain of a foreseen failure and is not replaced by a late plain fast answer; the
+    switch goes out on it, said so, and its refined gain is still asked for."""
+    from agent.monitor.gain_worker import plan_failures
+    from agent.monitor.core import GainSource, design_gains_for
+    from design.closed_loop import exact_performance
+
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    worker = _FakeWorker()
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), s, G,
+                       s.delays, gains=GainSource(worker=worker))
+    (roster,) = [nxt for a, nxt in plan_failures(core.roster) if a == [2]]
+    fast_G, fast = design_gains_for(roster, "fast")
+    pol_G, pol = design_gains_for(roster, "polished", init=fast_G)
+    assert pol["kind"] == "fast" and pol["polished"] is True and pol["rho"] < 1
+    mse = {name: exact_performance(roster.scenario, g, roster.delays).mse
+           for name, g in (("fast", fast_G), ("polished", pol_G))}
+    assert mse["polished"] < 0.8 * mse["fast"]
+    # without init it designs the fast gain itself first: the same gain
+    again = design_gains_for(roster, "polished")[0]
+    assert all(np.array_equal(a, b) for a, b in zip(again, pol_G))
+    core.gains.put(roster, fast_G, fast)                  # the fast pass
+    core.gains.put(roster, pol_G, pol)                    # the polish pass replaces it
+    core.gains.put(roster, fast_G, fast)                  # a late plain fast answer: kept out
+    assert core.gains.info(roster)["polished"] is True
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 2, False, 2.05)
+    out = core.tick(2.05)
+    (msg,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert msg.ids == roster.ids
+    h = core.history[-1]
+    assert h["precomputed"] and h["gains"] == "fast" and h["gains_polished"] is True
+    assert h["gains_rho"] == pol["rho"]
+    assert any("fast gains (MSE-polished)" in e for e in core.events)
+    assert [k for _, k in worker.requests] == [("refined",), ("assess",)]
+
+
 def _standby_status(agent, step, links=None):
     return {**_status(agent, step, active=False), "links": links or {},
             "sensor": {"labels": [], "last_step": -1}}

@@ -138,3 +138,16 @@ def test_socmon_chaos_simulated_reports_every_seed(tmp_path, capsys, live_gains)
     assert sum(report["faults"].values()) >= 2
     assert main(["chaos", "paper-14-live", "--simulated", "0:2", "--faults", "linkdown"]) == 2
     assert "cannot be simulated" in capsys.readouterr().err
+
+
+def test_a_foreseen_crash_switches_first_to_the_precomputed_polished_gain(live):
+    """The precompute's polish pass has come back 3 s into the run: the switch uses the
+    polished first gain (not the fast one, whose level and transient made the error's
+    peak), and the refined gain follows under the next epoch."""
+    r = _run(live, [Fault(150, "crash", 2)], steps=300)
+    assert r.summary["recovered"] is True
+    history = [h for m in r.monitors.values()
+               for h in (getattr(m, "core", None) or m[0]).history]
+    first, *later = history
+    assert first["precomputed"] and first["gains"] == "fast" and first.get("gains_polished")
+    assert [h["gains"] for h in later] == ["refined"]

@@ -165,8 +165,9 @@ class GainSource:
     Each entry is ``(G, info)``: ``G`` the list of G_i by row, ``info`` what
     :func:`design_gains_for` says of it (``kind``: ``"fast"`` a first certified gain,
     ``"refined"`` the gain of least steady MSE, ``"initial"`` the run's own; ``rho``, the
-    exact radius of the delayed loop; ``mse``, its exact steady MSE). A refined entry is
-    never replaced by a fast one.
+    exact radius of the delayed loop; ``mse``, its exact steady MSE; ``polished``, a fast
+    gain given a few MSE iterations). A refined entry is never replaced by a fast one, nor
+    a polished one by a plain fast one.
 
     With a ``worker`` (:class:`agent.monitor.gain_worker.GainWorker`, the monitor process) nothing
     is designed here: :meth:`ready` asks the worker once and says False until its answer
@@ -196,7 +197,9 @@ class GainSource:
                 self._none.add(k)
             return
         old = self._cache.get(k)
-        if old is not None and old[1].get("kind") == "refined" and info.get("kind") == "fast":
+        if old is not None and info.get("kind") == "fast" and (
+                old[1].get("kind") == "refined"
+                or old[1].get("polished") and not info.get("polished")):
             return
         self._cache[k] = ([np.asarray(g, dtype=float) for g in G], info)
         self._none.discard(k)
@@ -247,13 +250,17 @@ class GainSource:
 
 def _gain_record(info: dict) -> dict:
     """The keys a history record (and the monitor's events) keep of a gain's ``info``."""
-    return {"gains": info.get("kind", "unknown"), "gains_rho": info.get("rho"),
-            "gains_mse": info.get("mse")}
+    out = {"gains": info.get("kind", "unknown"), "gains_rho": info.get("rho"),
+           "gains_mse": info.get("mse")}
+    if info.get("polished"):
+        out["gains_polished"] = True
+    return out
 
 
 def _gain_words(info: dict) -> str:
     """``fast gains, exact radius 0.8123, steady MSE 0.4567`` (what is known)."""
-    words = f"{info.get('kind', 'unknown')} gains"
+    words = f"{info.get('kind', 'unknown')} gains" + (" (MSE-polished)" if info.get("polished")
+                                                       else "")
     if info.get("rho") is not None:
         words += f", exact radius {info['rho']:.4f}"
     if info.get("mse") is not None:
@@ -261,11 +268,15 @@ def _gain_words(info: dict) -> str:
     return words
 
 
-def design_gains_for(roster, kind: str = "fast", progress=None):
+def design_gains_for(roster, kind: str = "fast", progress=None, init=None):
     """``(G, info)`` for the configuration ``roster``, designed against its delays.
 
     ``kind="fast"``: :func:`design.reconfigure.fast_recovery_gains`, a first stabilising
-    gain (a target radius, few iterations); ``"refined"``:
+    gain (a target radius, few iterations); ``"polished"`` (what the precompute sends
+    after its fast pass): that gain (``init`` when given: the fast gain already designed)
+    then :func:`design.reconfigure.polished_recovery_gains`, a few MSE iterations,
+    reported as a first gain (``kind`` ``"fast"``, ``polished`` True: the refined gain
+    still follows once it is in force); ``"refined"``:
     :func:`design.reconfigure.refined_recovery_gains` (least steady MSE), falling back to
     the fast one when it is not stable. Bounded by iterations, not by the clock
     (``progress``: called at every iteration, see :func:`design.gain_design.design_gains`). ``G`` is
@@ -273,8 +284,23 @@ def design_gains_for(roster, kind: str = "fast", progress=None):
     ``rho``, the exact steady MSE ``mse`` and the design's ``seconds``.
     """
     from design.errors import SocmonError
-    from design.reconfigure import fast_recovery_gains, refined_recovery_gains
+    from design.reconfigure import (fast_recovery_gains, polished_recovery_gains,
+                                    refined_recovery_gains)
 
+    if kind == "polished":
+        if init is None:
+            init, first = design_gains_for(roster, "fast", progress)
+            if init is None:
+                return None, first
+        try:
+            res = polished_recovery_gains(roster.scenario, roster.delays, init,
+                                          progress=progress)
+        except SocmonError:
+            res = None
+        if res is None or not res.stable:
+            return design_gains_for(roster, "fast", progress)
+        return list(res.G), {"kind": "fast", "polished": True, "rho": float(res.rho),
+                             "mse": None, "seconds": float(res.seconds)}
     design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
     try:
         res = design(roster.scenario, roster.delays, progress=progress)

@@ -20,8 +20,9 @@ nothing; a paused one receives its messages when it resumes. A liveliness token 
 once when its process dies (the kernel closes its sockets), ``lease_s`` after it stopped
 (zenoh's link lease), and comes back when a paused process resumes. Gains the monitor asks
 for come ``design_s`` after the request; the failures of the configuration in force are
-precomputed as the monitor's worker does, one every ``precompute_s`` (designed at once in
-real time and cached across runs by configuration).
+precomputed as the monitor's worker does, one every ``precompute_s``, then polished, one
+every ``polish_s`` (designed at once in real time and cached across runs by
+configuration).
 
 Faults are ``up``'s (:class:`agent.run.local.Fault`, :data:`FAULT_KINDS`): ``crash``
 (the agent dies once it published step ``step - 1``, as ``up --kill STEP:AGENT``),
@@ -98,6 +99,7 @@ class SimConfig:
     roster_s: float = ROSTER_S           # the roster re-published
     design_s: float = 0.5                # a gain requested by the monitor comes this late
     precompute_s: float = 0.3            # each precomputed failure's gain takes this long
+    polish_s: float = 0.4                # ... and its polish (a few MSE iterations) this
     monitors: int = 2                    # as up: the first acts, the others stand by
     listen_s: float = LISTEN_S           # a (re)started monitor listens before it acts
     start_s: float = 0.5                 # the world's first step (agents heard each other)
@@ -137,7 +139,11 @@ class _GainDesigns:
 
         key = (roster.scenario.A.tobytes(), GainSource.key(roster), kind)
         if key not in self.cache:
-            self.cache[key] = design_gains_for(roster, kind)
+            init = self._design(roster, "fast")[0] if kind == "polished" else None
+            if kind == "polished" and init is None:
+                self.cache[key] = (None, {})
+            else:
+                self.cache[key] = design_gains_for(roster, kind, init=init)
         return self.cache[key]
 
     def __init__(self, runtime):
@@ -160,16 +166,24 @@ class _GainDesigns:
     def precompute(self, roster):
         """The failures of ``roster`` planned (:func:`agent.monitor.gain_worker.plan_failures`,
         as the monitor's worker does) and their fast gains answered one after the other,
-        ``precompute_s`` apart; a newer precompute abandons the rest of an older one."""
+        ``precompute_s`` apart, then their polished gains, ``polish_s`` apart; a newer
+        precompute abandons the rest of an older one."""
         from agent.monitor.gain_worker import plan_failures
 
         self.generation += 1
         generation = self.generation
-        for i, (_, nxt) in enumerate(plan_failures(roster), start=1):
-            G, info = self._design(nxt, "fast")
-            self.rt.after(i * self.rt.config.precompute_s,
-                          lambda G=G, info=info, nxt=nxt: generation == self.generation
-                          and self.ready.append((nxt, G, info)))
+        planned = [nxt for _, nxt in plan_failures(roster)]
+        cfg = self.rt.config
+        at = 0.0
+        for kind, dt in (("fast", cfg.precompute_s), ("polished", cfg.polish_s)):
+            for nxt in planned:
+                at += dt
+                G, info = self._design(nxt, kind)
+                if G is None and kind == "polished":
+                    continue
+                self.rt.after(at, lambda G=G, info=info, nxt=nxt:
+                              generation == self.generation
+                              and self.ready.append((nxt, G, info)))
 
     def poll(self):
         out, self.ready = self.ready, []
