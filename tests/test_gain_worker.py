@@ -43,11 +43,19 @@ def test_a_request_and_the_precompute_both_come_back_certified():
         worker.close()
     assert kinds(got) == ["fast", "refined"]
     assert foreseen <= {GainSource.key(r) for r, _, _ in got}
-    # every foreseen failure: its fast gain first, then the polished one (a fast kind)
+    # every foreseen failure: its fast gain first, then the polished one (a fast kind); a
+    # plain fast answer may still come after it (the urgent process designs the single
+    # failures too), and the monitor's GainSource keeps the polished one (or the refined)
     assert foreseen <= polished(got)
+    source = GainSource()
+    for r, G, info in got:
+        source.put(r, G, info)
     for key in foreseen:
         seq = [i.get("polished", False) for r, _, i in got if GainSource.key(r) == key]
-        assert seq == [False, True]
+        assert seq[0] is False and True in seq, seq
+        (r,) = {GainSource.key(r): r for r, _, _ in got if GainSource.key(r) == key}.values()
+        kept = source.get(r)[1]            # the polished gain, or the refined one after it
+        assert kept.get("polished") is True or kept["kind"] == "refined", kept
     assert GainSource.key(single) in foreseen and GainSource.key(other) not in foreseen
     for r, G, info in got:
         assert G is not None and info["rho"] < 1
