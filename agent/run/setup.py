@@ -3,8 +3,9 @@
 :func:`run_config` turns the flags of ``socmon up`` (and ``chaos``) into a
 :class:`agent.run.local.RunConfig`, every problem an :class:`agent.run.inputs.InputError`
 naming the flag; :func:`parse_faults` reads the scheduled faults; :func:`testbed_for`
-makes and removes the network namespaces of ``--netns``; :func:`exit_status` says how a
-finished run ends.
+makes and removes the network namespaces of ``--netns``; :func:`live_run` sets a run up,
+runs it, checks it and writes its folder; :func:`exit_status` says how a finished run
+ends.
 """
 
 from __future__ import annotations
