@@ -561,6 +561,45 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     assert core.tick(2.6) == []                           # nothing more to upgrade
 
 
+def test_an_agent_convicted_before_it_confirmed_is_not_waited_for(paper14):
+    """Agent 1 crashes; before agent 2 confirms the roles that answer it, agent 2 crashes
+    too, and the roles answering both wait for their gains. The first roles are not
+    re-issued to the dead agent meanwhile (epochs churned for nothing): the next epoch
+    is the reassignment that answers agent 2."""
+    from agent.monitor.core import GainSource, design_gains_for
+
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    worker = _FakeWorker()
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), s, G,
+                       s.delays, gains=GainSource(worker=worker))
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    core.tick(2.05)
+    (first, _), = worker.requests
+    core.gains.put(first, *design_gains_for(first, "fast"))
+    (msg,) = [m for m in core.tick(2.06) if isinstance(m, RosterUpdate)]
+    assert msg.epoch == 1 and msg.ids == (4, 2, 3)
+    core.on_liveliness("agent", 2, False, 2.1)
+    t = 2.1
+    while t < 2.0 + (msg.activate_at - 100 + 20) * 0.02:       # well past activate_at
+        for a in (3, 4):
+            core.on_status(_status(a, int(50 * t), epoch=0, pending=1), t)
+        assert [m for m in core.tick(t) if isinstance(m, RosterUpdate)] == []
+        t += 0.05
+    assert core.epoch == 1 and core.reissues == []
+    assert any("agent 2 was convicted before it confirmed epoch 1" in e for e in core.events)
+    second = worker.requests[-1][0]
+    assert second.ids == (4, 3)
+    core.gains.put(second, *design_gains_for(second, "fast"))
+    (msg,) = [m for m in core.tick(t) if isinstance(m, RosterUpdate)]
+    assert msg.epoch == 2 and msg.ids == (4, 3)
+
+
 def test_a_precomputed_failure_switches_to_its_polished_first_gain(paper14):
     """The precompute's polish pass (a few MSE iterations from the fast gain) replaces the
     fast gain of a foreseen failure and is not replaced by a late plain fast answer; the
@@ -645,6 +684,39 @@ def test_a_convicted_agent_rejoins_the_standbys_after_probation_only(core):
     out = core.tick(t + 0.01)
     (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
     assert 2 in roster.ids and 4 not in roster.ids
+
+
+def test_probation_forgives_a_short_slowness_not_a_lasting_one(core):
+    """A standby on probation that falls behind the others for less than half the hang
+    timeout (a loaded host) keeps its probation; behind for longer, it starts over. Its
+    step is compared with the others' at the moment it reached it, so statuses sent a
+    status period apart are not a lag."""
+    step = lambda t: int(50 * t)                                    # noqa: E731
+    _advance(core, 0.0, 1.0, step)
+    _advance(core, 1.1, 2.6, step, skip=(2,))
+    assert [v.agent for v in core.verdicts] == [2]
+    t = 2.7
+
+    def run(until, lag, offset=0.0):
+        nonlocal t
+        while t < until - 1e-9:
+            for a in (1, 3, 4):
+                core.on_status(_status(a, step(t), epoch=core.epoch), t)
+            # agent 2's status arrives offset s after the others', its step then
+            core.on_status(_standby_status(2, step(t + offset) - lag), t + offset)
+            core.tick(t + offset)
+            t += 0.1
+
+    run(3.5, 0, offset=0.09)            # out of phase with the others: no lag
+    since = core.agents[2].healthy_since
+    assert since is not None and core.detector.lag_steps(2) < 1
+    run(3.8, 15)                        # 15 steps behind for 0.3 s: forgiven
+    assert core.agents[2].healthy_since == since
+    run(4.0, 0)
+    run(4.8, 15)                        # behind for 0.8 s: starts over
+    assert core.agents[2].healthy_since > since
+    assert any("probation starts over: 15 steps behind the others" in e for e in core.events)
+    assert core.rejoins == []
 
 
 def test_a_status_on_one_agents_key_naming_another_is_refused(core):

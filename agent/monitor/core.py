@@ -772,6 +772,12 @@ class MonitorCore:
             if a.epoch >= asg.epoch or a.pending >= asg.epoch:
                 del self._unconfirmed[agent]
                 self.events.append(f"agent {agent} confirmed epoch {asg.epoch}")
+            elif agent in self.failed:
+                # convicted since: its reassignment answers it; re-issuing the roles to
+                # it would only churn epochs while that reassignment waits for its gains
+                del self._unconfirmed[agent]
+                self.events.append(f"agent {agent} was convicted before it confirmed epoch "
+                                   f"{asg.epoch}: not waited for")
         if (self._unconfirmed and self._assigned_at is not None
                 and now - self._assigned_at > self.config.confirm_timeout_s):
             for agent in sorted(self._unconfirmed):
@@ -888,15 +894,17 @@ class MonitorCore:
             self.gains.refine(nxt)             # replaced under a new epoch when it is ready
         return out
 
-    def _assign_all(self, new, G, info, now: float, record: dict, why: str) -> list:
+    def _assign_all(self, new, G, info, now: float, record: dict, why: str,
+                    lead: int | None = None) -> list:
         """The same roles with new gains (or delays) under a new epoch: every agent of
-        ``new`` gets an assignment."""
+        ``new`` gets an assignment, ``lead`` steps ahead (default ``lead_steps``)."""
         from design.roster import role_specs
 
         self.roster, self.G, self.gain_info = new, G, info
         self.specs = role_specs(new, G)
         self.epoch += 1
-        at = max(self.current_step(now), 0) + self.config.lead_steps
+        at = max(self.current_step(now), 0) + (self.config.lead_steps if lead is None
+                                               else lead)
         out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
         self._unconfirmed = {m.agent: m for m in out}
         self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
@@ -924,30 +932,45 @@ class MonitorCore:
 
     def _upgrade_gains(self, now: float) -> list:
         """The configuration in force runs a fast gain and its refined gain has come back:
-        the same roles with the refined gain, under a new epoch."""
+        the same roles with the refined gain, under a new epoch, a hang timeout ahead."""
         if self.gain_info.get("kind") != "fast" or self.G is None:
             return []
         G, info = self.gains.get(self.roster)
         if G is None or info.get("kind") != "refined":
             return []
+        # not urgent: a hang timeout ahead, so that an agent slow under load hears it in
+        # time and the network switches together
+        lead = max(self.config.lead_steps,
+                   math.ceil(self.config.hang_timeout_s / self.config.step_s))
         return self._assign_all(self.roster, G, info, now, {"causes": {"0": "refined"}},
-                                "refined gains for the configuration in force")
+                                "refined gains for the configuration in force", lead=lead)
 
     def _probation(self, now: float) -> None:
         """Agents on probation that stayed healthy for ``rejoin_s`` rejoin the standby pool
-        (an event and an entry of :attr:`rejoins`); a break starts the probation over."""
+        (an event and an entry of :attr:`rejoins`); a break
+        (:meth:`FailureDetector.standby_break`) starts the probation over: at once when the
+        agent is down or cut off, after half the hang timeout when it is only slow."""
         for a in sorted(self.on_probation):
             st = self.agents[a]
             if a in self.roster.ids:
                 if a not in self.failed:            # taken again meanwhile
                     self.on_probation.discard(a)
                 continue        # still in the roster: its reassignment waits for gains
-            if not self.healthy_standby(a, now):
-                st.healthy_since = None
+            broken = self.detector.standby_break(a, now)
+            if broken is None:
+                st.slow_since = None
+            elif broken[0] == "slow" and (st.slow_since is None
+                                          or now - st.slow_since < self.config.hang_timeout_s / 2):
+                # a slowness shorter than half the hang timeout (a loaded host) is no break
+                st.slow_since = now if st.slow_since is None else st.slow_since
+            else:
+                if st.healthy_since is not None:
+                    self.events.append(f"agent {a}'s probation starts over: {broken[1]}")
+                st.healthy_since = st.slow_since = None
                 continue
             if st.healthy_since is None:
                 st.healthy_since = now
-            if now - st.healthy_since >= self.config.rejoin_s:
+            if broken is None and now - st.healthy_since >= self.config.rejoin_s:
                 self.on_probation.discard(a)
                 self.failed.discard(a)
                 pool = self.standby_pool(now)

@@ -149,6 +149,7 @@ class AgentEvidence:
     gone_at: float | None = None         # when its token was last deleted
     others_at_progress: int = -1         # the others' newest step then
     healthy_since: float | None = None   # convicted, on probation: healthy since then
+    slow_since: float | None = None      # on probation: a passing slowness since then
     estimate_at: float | None = None     # when the monitor last heard one of its estimates
     sensor_last: int = -1
     status: dict = field(default_factory=dict)
@@ -447,6 +448,23 @@ class FailureDetector:
         """The newest step any agent reported (-1 before the first)."""
         return self._clock[0]
 
+    def lag_steps(self, agent: int) -> float:
+        """How far ``agent`` was behind the most advanced other agent when it reached its
+        step: the others' steps taken back (or on) to that moment at ``step_s``, so two
+        statuses sent a status period apart are compared at one time. Others whose step
+        moved more than half the hang timeout away from that moment (hung, or long
+        silent) are not taken; 0 when none is left."""
+        st = self.agents[agent]
+        if st.step_at is None:
+            return math.inf
+        best = None
+        for i, a in self.agents.items():
+            if i != agent and a.alive and a.step >= 0 and a.step_at is not None \
+                    and abs(st.step_at - a.step_at) <= self.config.hang_timeout_s / 2:
+                at = a.step + (st.step_at - a.step_at) / self.config.step_s
+                best = at if best is None or at > best else best
+        return 0.0 if best is None else max(0.0, best - st.step)
+
     def newest_step(self, exclude=None) -> int:
         steps = [a.step for i, a in self.agents.items() if i != exclude and a.alive]
         return max(steps, default=-1)
@@ -595,23 +613,24 @@ class FailureDetector:
         return out
 
     def healthy_standby(self, agent: int, now: float) -> bool:
-        """What probation asks of a convicted agent, at ``now``: its token is up, it holds
-        no role, its step moved within half the hang timeout and is within the hold
-        window (``lead_steps``) of the network's newest, its sensor readings (if it
-        wants any) are no older than that window, and no status (its own or a
-        neighbour's) shows a link into or out of it cut (partitioned, or dropping half
-        or more; a delay is no cut)."""
+        """What probation asks of a convicted agent at ``now``: nothing in
+        :meth:`standby_break`."""
+        return self.standby_break(agent, now) is None
+
+    def standby_break(self, agent: int, now: float) -> tuple | None:
+        """What breaks a convicted agent's probation at ``now``, as ``(kind, why)``, or
+        None when it is healthy. ``kind`` ``"down"`` (its token is down, it holds a role,
+        a status, its own or a neighbour's, shows a link into or out of it cut:
+        partitioned, or dropping half or more; a delay is no cut) breaks at once;
+        ``"slow"`` (its step did not move within half the hang timeout, or was more than
+        the hold window, ``lead_steps``, behind the other agents' when it reached it
+        (:meth:`lag_steps`), or its sensor readings, if it wants any, are older than that
+        window) breaks once it lasts (the controller's grace)."""
         cfg, st = self.config, self.agents[agent]
-        if not st.alive or st.progress_at is None or st.status.get("active"):
-            return False
-        if now - st.progress_at > cfg.hang_timeout_s / 2:
-            return False
-        window = max(cfg.lead_steps, 1)
-        if self.newest_step() - st.step > window:
-            return False
-        sensor = st.status.get("sensor") if isinstance(st.status.get("sensor"), dict) else {}
-        if sensor.get("labels") and st.step - st.sensor_last > window:
-            return False
+        if not st.alive or st.progress_at is None:
+            return "down", "no token or no status"
+        if st.status.get("active"):
+            return "down", "holds a role"
         me = str(agent)
         for b, other in self.agents.items():
             links = other.status.get("links")
@@ -621,5 +640,13 @@ class FailureDetector:
                 cut = isinstance(p, dict) and (p.get("partition") or
                                                float(p.get("drop", 0) or 0) >= 0.5)
                 if cut and (b == agent or src == me):    # a delay is no cut
-                    return False
-        return True
+                    return "down", f"link {src}->{b} cut"
+        if now - st.progress_at > cfg.hang_timeout_s / 2:
+            return "slow", "its step did not move"
+        window = max(cfg.lead_steps, 1)
+        if self.lag_steps(agent) > window:
+            return "slow", f"{self.lag_steps(agent):.0f} steps behind the others"
+        sensor = st.status.get("sensor") if isinstance(st.status.get("sensor"), dict) else {}
+        if sensor.get("labels") and st.step - st.sensor_last > window:
+            return "slow", f"sensor readings {st.step - st.sensor_last} steps old"
+        return None

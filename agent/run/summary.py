@@ -319,7 +319,9 @@ def rosters_in_force(rosters, est_epoch, assigns):
     ``activate_at`` when all went together). A roster that an assigned agent never ran
     (its ``activate_at`` passed before it heard it; a newer epoch came first) never was in
     force: the re-issue that follows is. A roster whose agents switched at different
-    steps is kept from the last switch, and reported as mixed.
+    steps is kept from the last switch, and reported as mixed. An assigned agent that
+    published nothing from the roster's step on while others did had stopped before it
+    (a crash not yet convicted): the roster ran without it.
 
     Returns ``(in_force, mixed)``: ``[(step, ids, epoch)]`` and
     ``[{"epoch", "activate_at", "switched": {agent: step or None}}]`` for every roster
@@ -335,6 +337,9 @@ def rosters_in_force(rosters, est_epoch, assigns):
     [(0, (1, 2, 3), 0), (184, (1, 2, 4), 2)]
     >>> mixed[0]["switched"]
     {1: 175, 2: 175, 4: None}
+    >>> est = {1: {174: 0, 175: 1}, 2: {174: 0}, 4: {174: 0, 175: 1}}  # 2 stopped at 174
+    >>> rosters_in_force(rosters[:2], est, assigns)
+    ([(0, (1, 2, 3), 0), (175, (1, 2, 4), 1)], [])
     """
     out, mixed = [rosters[0]], []
     last = max((max(e) for e in est_epoch.values() if e), default=-1)
@@ -345,6 +350,13 @@ def rosters_in_force(rosters, est_epoch, assigns):
         if newest_at[at] != epoch or at > last:
             continue                       # superseded before it ran, or after the run
         assigned = sorted(a for (a, e) in assigns if e == epoch and a in ids) or list(ids)
+        # an agent that published nothing from the roster's step on had stopped (a crash
+        # the monitor had not convicted yet): the roster ran without it, as the simulator
+        # replays a failed agent kept in an intermediate configuration
+        stopped = {a for a in assigned if est_epoch.get(a)
+                   and max(est_epoch[a]) < at and any(
+                       max(est_epoch[b]) >= at for b in assigned if est_epoch.get(b))}
+        assigned = [a for a in assigned if a not in stopped]
         switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
         if all(k is None for k in switched.values()):
             if any(est_epoch.get(a) for a in assigned):
@@ -492,7 +504,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         out.setdefault("warnings", []).append("no gains given: recovery not evaluated")
     elif len(rosters) > 1:
         at = rosters[-1][0]
-        ids, specs = specs_in_force(rosters, assigns, scenario, G0)
+        # the roles of the last roster in force: a later epoch's assignments (heard, but
+        # due after the run's end) are not counted
+        ids, specs = specs_in_force(rosters, assigns, scenario, G0, epoch=rosters[-1][2])
         recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
         after = [m for k, m in zip(steps_done, mse) if k >= at]
         out["mse_steady_after_recovery"] = steady_mse(after) if after else float("nan")
