@@ -20,7 +20,7 @@ on or outside the unit circle (not detectable) raises it too.
 Examples
 --------
 >>> from design.scenario import load_scenario
->>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", starts=1, max_iter=30)
+>>> res = design_gains(load_scenario("paper-14"), delays="uniform:3", starts=1, max_iter=10)
 >>> res.stable, res.rho < 1, len(res.G), res.G[0].shape
 (True, True, 3, (14, 1))
 """

@@ -30,8 +30,8 @@ Examples
 >>> from design.scenario import load_scenario
 >>> s = load_scenario("paper-14")
 >>> from design.gain_design import design_gains
->>> G = design_gains(s, delays="uniform:2", starts=1, max_iter=40).G
->>> rec, info = build_recovery(s, [0], "uniform:2", objective="rho", previous=G, max_iter=20)
+>>> G = design_gains(s, delays="uniform:2", starts=1, max_iter=10).G
+>>> rec, info = build_recovery(s, [0], "uniform:2", objective="rho", previous=G, max_iter=5)
 >>> rec.ids, info["rho_exact_after_recovery"] < 1
 ((4, 2, 3), True)
 """

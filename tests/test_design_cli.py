@@ -20,6 +20,7 @@ def _run(capsys, *argv):
     return status, out, err
 
 
+@pytest.mark.slow
 def test_json_record_and_gains_file_round_trip(capsys, tmp_path):
     path = tmp_path / "g.npz"
     status, out, err = _run(capsys, "paper-14", "--delays", "uniform:3", "--starts", "1",
@@ -150,6 +151,7 @@ def test_design_help_shows_every_budget(capsys):
         assert text in out, text
 
 
+@pytest.mark.slow
 def test_a_radius_design_worse_than_no_correction_is_warned(capsys, tmp_path):
     """The starter scenario (stable A): the smallest radius costs more error than zero
     gains; the warning gives both exact steady MSEs, and the default (mse) does not warn."""

@@ -124,6 +124,7 @@ def test_default_beats_ccl_radius_delay_free(paper14, ccl_paper14):
     assert res.rho < ccl_paper14.rho - 0.2
 
 
+@pytest.mark.slow
 def test_mse_objective_lowers_the_steady_error(paper14):
     by_rho = design_gains(paper14, delays="none", starts=1, max_iter=40)
     by_mse = design_gains(paper14, delays="none", objective="mse", starts=1, max_iter=60)
@@ -134,6 +135,7 @@ def test_mse_objective_lowers_the_steady_error(paper14):
         loop.mse_steady(paper14.process_noise, paper14.measurement_noise), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_design_is_deterministic_for_a_seed(paper14):
     a = design_gains(paper14, delays="uniform:2", seed=5, starts=2, max_iter=15)
     b = design_gains(paper14, delays="uniform:2", seed=5, starts=2, max_iter=15)
@@ -225,6 +227,7 @@ def test_bad_arguments_are_named(paper14):
 # -- warm starts, progress, the structured MSE ----------------------------------------
 
 
+@pytest.mark.slow
 def test_warm_start_from_a_neighbouring_design_is_certified_stable(paper14):
     # the gain for 2-step delays starts the design for 3-step delays: one start
     s = paper14
@@ -245,6 +248,7 @@ def test_warm_start_from_a_neighbouring_design_is_certified_stable(paper14):
                                      .spectral_radius(), abs=1e-12)
 
 
+@pytest.mark.slow
 def test_progress_callback_reports_every_iteration(paper14):
     seen = []
     res = design_gains(paper14, delays="uniform:2", objective="mse", max_iter=25,
@@ -302,6 +306,7 @@ def test_structured_mse_equals_the_dense_lyapunov_one(delays):
         pytest.fail("no stable sample gain")
 
 
+@pytest.mark.slow
 def test_a_design_through_arpack_is_the_same_run_after_run(paper14):
     """Above DENSE_SPECTRUM_MAX_ORDER the radius comes from ARPACK, whose own start is
     random: the design starts it from a fixed vector, so one call gives one gain."""

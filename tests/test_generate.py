@@ -46,6 +46,7 @@ def test_builtin_scale_scenarios_are_the_generator_output(N):
     assert built.step_ms == 10
 
 
+@pytest.mark.slow
 def test_communities_16_is_observable_and_gets_a_stable_gain(tmp_path, capsys):
     s = load_scenario("communities-16")
     d = distributed_detectability(s.A, s.W, s.measure)

@@ -220,7 +220,8 @@ def test_hostile_payloads_are_refused_with_their_reason(name, reason):
     assert len(str(info.value)) <= MAX_ERROR_CHARS
 
 
-@pytest.mark.parametrize("name", sorted(HOSTILE))
+@pytest.mark.parametrize("name", [pytest.param(k, marks=pytest.mark.slow)
+                                  if k in ("empty_lists", "wide") else k for k in sorted(HOSTILE)])
 def test_decoding_hostile_payloads_allocates_little_and_keeps_nothing(name):
     """Peak Python allocation of one decode stays far below what the payload could build
     (a 1 MiB payload of empty lists builds ~1M lists, ~60 MB, without the header walk)."""

@@ -90,7 +90,7 @@ def test_scalar_closed_loop_by_hand():
         pytest.approx(variance, rel=1e-12)
 
 
-@pytest.mark.parametrize("spec", ["none", "uniform:2"])
+@pytest.mark.parametrize("spec", ["none", pytest.param("uniform:2", marks=pytest.mark.slow)])
 def test_poles_and_h2_norm_are_the_exact_radius_and_mse(paper14, spec):
     control = _control()
     from design.gain_design import design_gains

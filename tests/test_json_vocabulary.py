@@ -65,7 +65,8 @@ def _commands(gains, tmp):
     }
 
 
-@pytest.mark.parametrize("name", ["analyze", "plan", "certify", "design", "simulate"])
+@pytest.mark.parametrize("name", ["analyze", "plan", "certify", "design",
+                                  pytest.param("simulate", marks=pytest.mark.slow)])
 def test_every_json_output_speaks_the_glossary(name, gains14, tmp_path, capsys):
     command = _commands(gains14, tmp_path)[name]
     assert main(command + ["--json"]) == 0

@@ -36,6 +36,7 @@ def fast(monkeypatch):
     monkeypatch.setattr(rep, "PAPER", paper)
 
 
+@pytest.mark.slow
 def test_reproduce_writes_report_tables_and_figures(fast, tmp_path, sampson_edges, capsys):
     out = tmp_path / "out"
     rc = main(["reproduce", "--out", str(out), "--steps", "60", "--trials", "4",

@@ -24,8 +24,9 @@ def _run(live, faults=(), steps=500, seed=1, **config):
                       config=SimConfig(**config)).run(steps)
 
 
-@pytest.mark.parametrize("faults", [[], [Fault(150, "crash", 1)],
-                                    [Fault(150, "crash", 1), Fault(150, "crash", 2)]])
+@pytest.mark.parametrize("faults", [
+    [], pytest.param([Fault(150, "crash", 1)], marks=pytest.mark.slow),
+    [Fault(150, "crash", 1), Fault(150, "crash", 2)]])
 def test_the_simulated_runtime_equals_the_design_simulator(live, faults):
     r = _run(live, faults)
     diff, how = compare_simulator(r.config, r.recording, r.steps)
@@ -53,6 +54,7 @@ def test_a_stop_shorter_than_the_hang_timeout_convicts_nobody(live):
     assert r.summary["failures"] == [] and r.summary["late"] > 0
 
 
+@pytest.mark.slow
 def test_a_long_stop_is_convicted_and_the_agent_rejoins_after_probation(live):
     r = _run(live, [Fault(150, "stop", 3, 3.0)], steps=800)
     (f,) = r.summary["failures"]
@@ -61,6 +63,7 @@ def test_a_long_stop_is_convicted_and_the_agent_rejoins_after_probation(live):
     assert r.violations() == []
 
 
+@pytest.mark.slow
 def test_an_agent_convicted_twice_is_paired_with_each_fault_and_reassignment(live):
     """Agent 1 stopped 2 s at step 200 (convicted, replaced by the standby 4), rejoins as
     the standby after probation, takes a role again when agent 4 is killed at 700, and is
@@ -88,7 +91,8 @@ def test_random_fault_schedules_keep_the_chaos_invariants(live, seed):
     assert [v.to_dict() for v in r.violations()] == []
 
 
-@pytest.mark.parametrize("seed", range(100, 105))
+@pytest.mark.parametrize("seed", [100] + [pytest.param(k, marks=pytest.mark.slow)
+                                          for k in range(101, 105)])
 def test_short_schedules_of_every_kind_keep_the_chaos_invariants(live, seed):
     """800 steps, every fault kind a simulated run applies (crash and kill, stop, hang,
     stuck sensor, partition, delay, drop, slow), 5 faults per 1000 steps."""
@@ -103,8 +107,10 @@ def test_short_schedules_of_every_kind_keep_the_chaos_invariants(live, seed):
 
 @pytest.mark.parametrize("fault, kill", [(Fault(200, "monitor"), 400),
                                          (Fault(200, "monitorstop", 0, 1.0), 400),
-                                         (Fault(200, "monitorstop", 0, 5.0), 600),
-                                         (Fault(200, "monitorstop", 0, 30.0), 2000)])
+                                         pytest.param(Fault(200, "monitorstop", 0, 5.0), 600,
+                                                      marks=pytest.mark.slow),
+                                         pytest.param(Fault(200, "monitorstop", 0, 30.0), 2000,
+                                                      marks=pytest.mark.slow)])
 def test_the_monitor_killed_or_paused_hands_over_and_a_later_crash_recovers(live, fault,
                                                                              kill):
     """Two monitors, as up starts them (agent.monitor.core.MonitorSeat): the acting one
@@ -122,6 +128,7 @@ def test_with_every_monitor_gone_a_crash_is_reported_unrecovered(live):
     assert r.recording.no_monitor_since is not None
 
 
+@pytest.mark.slow
 def test_socmon_chaos_simulated_reports_every_seed(tmp_path, capsys, live_gains):
     import json
 

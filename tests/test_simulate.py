@@ -149,6 +149,7 @@ def test_steady_mse_with_delays_matches_exact(paper14, gain0):
     _agrees_with_exact(res, exact)
 
 
+@pytest.mark.slow
 def test_error_coordinates_stay_accurate_for_unstable_A(paper14, gain0):
     """3000 steps with rho(A) = 1.086: x grows ~1e107, the error keeps full precision."""
     D = np.zeros((3, 3), int)

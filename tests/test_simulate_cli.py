@@ -102,6 +102,7 @@ def test_bad_scenario_exit_2(gains_file, capsys):
     assert "bad scenario" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_recover_designs_gains_for_the_new_configuration(gains_file, capsys):
     rc = main(["simulate", "paper-14", "--gains", gains_file, "--trials", "4", "--steps",
                "200", "--fail", "100:1", "--recover", "--json"])
