@@ -22,6 +22,8 @@ Usage: python scripts/bench_monitor.py [--scenario paper-14-live|sampson] [--rep
            fast or refined), peak MSE after the fault over the exact level after, steps
            above 2x, re-issues, recovered, divergence, and the simulator check.
        python scripts/bench_monitor.py --per-failure --taus 3,7,15 [--kill-step 150]
+       python scripts/bench_monitor.py --sequential --taus 3 [--gap 8] [--busy 2]: agent 2
+           killed, agent 1 --gap steps later (the second failure's gain designed on request)
 
 ``--per-failure``: for each delay bound T (``--delays uniform:T``) and every agent of the
 initial configuration, one run with that agent killed (``--kill STEP:A``): detection (verdict
@@ -294,6 +296,55 @@ def _fmt(x):
     return f"{x:.0f}" if isinstance(x, float) else str(x)
 
 
+def sequential(args, tmp, taus):
+    """Two kills a few steps apart (agent 2, then agent 1 ``--gap`` steps later), beside
+    ``--busy`` loops: the second failure comes before the precompute for the configuration
+    that answered the first is done, so its first gain is designed on request (the urgent
+    process). Per run: the wait for that gain (the reassignment's ``mono_sent`` minus its
+    ``mono``), verdict -> roles in force in steps, re-issues, recovered, the simulator's
+    replay."""
+    print(f"{SCENARIO}, 20 ms steps, kill 2 at step {args.kill_step} and 1 at "
+          f"{args.kill_step + args.gap}, {args.busy} busy loops, {args.repeats} runs per T",
+          flush=True)
+    print(f"{'T':>3} {'run':>3} {'2nd: pre':>8} {'gain wait ms':>12} {'v->force steps':>14} "
+          f"{'reissues':>8} {'recovered':>9} {'sim diff':>9} {'load':>5}", flush=True)
+    waits = []
+    for tau in taus:
+        for r in range(args.repeats):
+            out = tmp / f"seq-T{tau}-{r}"
+            stop = busy_loops(args.busy)
+            try:
+                s = up(out, "--kill", f"{args.kill_step}:2", "--kill",
+                       f"{args.kill_step + args.gap}:1", "--delays", f"uniform:{tau}",
+                       "--check-simulator", "--seed", str(r), steps=args.steps)
+            except RuntimeError as e:
+                print(f"{tau:3} {r:3} run failed: {str(e)[-300:]}", flush=True)
+                continue
+            finally:
+                load = os.getloadavg()[0]
+                stop()
+            reassigns = [e for e in events(out) if e["kind"] == "reassign" and e.get("failed")]
+            second = next((e for e in reassigns if 1 in e["failed"]), None)
+            f = next((x for x in s["failures"] if x["agent"] == 1), {})
+            wait = (1e3 * (second["mono_sent"] - second["mono"])
+                    if second and "mono_sent" in second else None)
+            if wait is not None and not second.get("precomputed"):
+                waits.append(wait)
+            force = (f["activate_at"] - f["detected_step"]
+                     if f.get("activate_at") is not None and f.get("detected_step") is not None
+                     else None)
+            print(f"{tau:3} {r:3} {str(second.get('precomputed')) if second else '-':>8} "
+                  f"{'-' if wait is None else f'{wait:.0f}':>12} "
+                  f"{'-' if force is None else force:>14} {len(s.get('reissues', [])):>8} "
+                  f"{str(s.get('recovered')):>9} "
+                  f"{s.get('max_rel_diff_vs_simulator', float('nan')):>9.1e} {load:>5.1f}",
+                  flush=True)
+    if waits:
+        print(f"first gain designed on request: median {statistics.median(waits):.0f} ms, "
+              f"max {max(waits):.0f} ms over {len(waits)} runs")
+    print(f"run folders: {tmp}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="paper-14-live", choices=("paper-14-live", "sampson"))
@@ -314,6 +365,10 @@ def main():
                     help="delay bounds T for --per-failure and --recovery")
     ap.add_argument("--kill-step", type=int, default=150)
     ap.add_argument("--steps", type=int, default=400, help="steps of a --per-failure run")
+    ap.add_argument("--sequential", action="store_true",
+                    help="two kills --gap steps apart: the second one's gain designed on "
+                         "request")
+    ap.add_argument("--gap", type=int, default=8, help="steps between the --sequential kills")
     args = ap.parse_args()
     try:
         taus = [int(t) for t in args.taus.split(",")]
@@ -329,6 +384,8 @@ def main():
     if args.per_failure:
         per_failure(tmp, taus, args.kill_step, args.steps)
         return
+    if args.sequential:
+        return sequential(args, tmp, taus)
     rows = {"crash": [], "hang": []}
     for r in range(args.repeats):
         out = tmp / f"crash{r}"

@@ -5,6 +5,7 @@ test asserts on timing. Children run in their own process group, which is
 always killed at teardown.
 """
 
+import functools
 import os
 import random
 import signal
@@ -21,6 +22,7 @@ from broker_free_net.codec import MessageStats, decode, encode, try_decode
 from broker_free_net.config import NetConfig
 from broker_free_net.peer import Peer
 from broker_free_net.ports import listen_port
+from tests import waiting
 
 pytestmark = pytest.mark.multiprocess
 
@@ -30,19 +32,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 from net_echo_peer import REPLY, REQUEST  # noqa: E402
 
 DEADLINE = 20.0  # seconds; generous for a loaded 2-core machine
+wait_until = functools.partial(waiting.wait_until, timeout=DEADLINE)
 
 
 def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
 
-def wait_until(predicate, timeout=DEADLINE, interval=0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return predicate()
 
 
 @pytest.fixture

@@ -6,6 +6,7 @@ through; the test process plays the legitimate processes, an insider holding age
 credentials, and outsiders. Every wait has a deadline; nothing asserts on timing.
 """
 
+import functools
 import json
 import os
 import signal
@@ -19,6 +20,7 @@ import pytest
 import zenoh
 
 from broker_free_net.ports import listen_port
+from tests import waiting
 from broker_free_net.config import NetConfig, build_zenoh_config
 from broker_free_net.peer import Peer
 from broker_free_net.security import make_run_keys, run_identities
@@ -28,6 +30,7 @@ pytestmark = pytest.mark.multiprocess
 ROOT = Path(__file__).resolve().parents[1]
 CHILD = Path(__file__).with_name("net_secure_peer.py")
 DEADLINE = 20.0
+wait_until = functools.partial(waiting.wait_until, timeout=DEADLINE)
 #: connect timeout of the outsiders' sessions (the fragment's own is 10 s)
 OUTSIDER_TIMEOUT_MS = 1500
 
@@ -140,7 +143,7 @@ def test_insider_with_agent2_credentials_cannot_speak_for_others(child, keyset, 
         assert "alive agent 3" not in lines
         # the other direction: agent 1's own estimate reaches agent 2, its forged est/2 does not
         got = []
-        assert _wait(lambda: got.extend(mine.drain()) or
+        assert wait_until(lambda: got.extend(mine.drain()) or
                      sum(r.key == f"{p}/est/1" for r in got) >= 3), got[-5:]
         assert [r for r in got if r.key == f"{p}/est/2"] == []
         forged_token.undeclare()
@@ -153,7 +156,7 @@ def test_monitor_may_command_and_operator_may_impair(child, keyset, run_id):
             Peer(secure(keyset, run_id, "operator", ep), "inject", "p1") as operator:
         for peer, key in ((monitor, f"{p}/ctl/1"), (operator, f"{p}/impair")):
             peer.publisher(key, block=True)
-        assert _wait(lambda: monitor.put(f"{p}/ctl/1", b"7") or operator.put(f"{p}/impair", b"8") or
+        assert wait_until(lambda: monitor.put(f"{p}/ctl/1", b"7") or operator.put(f"{p}/impair", b"8") or
                      (received(proc.snapshot(), f"{p}/ctl/1") and received(proc.snapshot(), f"{p}/impair")))
         # the operator may not command, the monitor may not impair or estimate
         for peer, key in ((operator, f"{p}/ctl/1"), (monitor, f"{p}/impair"), (monitor, f"{p}/est/1")):
@@ -207,7 +210,7 @@ def test_outsiders_deliver_nothing_and_fail_loudly(child, keyset, run_id, tmp_pa
     # a legitimate peer joins after the outsiders and is heard
     with Peer(secure(keyset, run_id, "world", ep), "world", 0) as world:
         world.publisher(f"{p}/truth", block=True)
-        assert _wait(lambda: world.put(f"{p}/truth", b"5") or received(proc.snapshot(), f"{p}/truth"))
+        assert wait_until(lambda: world.put(f"{p}/truth", b"5") or received(proc.snapshot(), f"{p}/truth"))
     lines = proc.snapshot()
     assert not [line for line in lines if line.startswith("got ") and line.endswith(" 666")]
     assert opened == []
@@ -225,10 +228,3 @@ def test_secure_peer_without_valid_credentials_does_not_open(child, keyset, run_
         zenoh.open(conf)
 
 
-def _wait(predicate, timeout=DEADLINE, interval=0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return bool(predicate())
