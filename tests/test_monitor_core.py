@@ -167,11 +167,26 @@ def test_unconfirmed_assignments_are_resent_then_reissued(core):
     later = core.tick(t)
     (roster,) = [m for m in later if isinstance(m, RosterUpdate)]
     assert roster.epoch == 2 and roster.activate_at > at and roster.ids == (4, 2, 3)
+    # the agents heard it too late: the re-issue gives them twice the head start
+    assert core.lead == 2 * core.config.lead_steps
+    assert roster.activate_at - core.current_step(t) == core.lead
     # confirmations clear them
     for a in (2, 3, 4):
         core.on_status(_status(a, at, epoch=0, pending=2), t + 0.01)
     core.tick(t + 0.01)
     assert core.confirmed()
+    assert core.lead == 2 * core.config.lead_steps     # kept for the next reassignment
+    # the next reassignment goes out with it; confirmed in time, the lead comes back halfway
+    t = 2.0 + (roster.activate_at + 5 - 100) * 0.02        # epoch 2 in force
+    for a in (2, 3, 4):
+        core.on_status(_status(a, roster.activate_at + 5, epoch=2), t)
+    core.on_liveliness("agent", 3, False, t)
+    (msg,) = [m for m in core.tick(t) if isinstance(m, RosterUpdate)]
+    assert msg.activate_at - core.current_step(t) == 2 * core.config.lead_steps
+    for a in msg.ids:
+        core.on_status(_status(a, msg.activate_at - 5, epoch=2, pending=msg.epoch), t + 0.05)
+    core.tick(t + 0.05)
+    assert core.confirmed() and core.lead == (3 * core.config.lead_steps) // 2
 
 
 def test_no_candidate_left_is_said_loudly_and_monitoring_goes_on(core):

@@ -72,7 +72,9 @@ class MonitorConfig:
         Age (steps) of the freshest estimate its listeners hold from an agent, beyond the
         link's delay, past which it counts as silent.
     lead_steps : int
-        ``activate_at`` = the newest step reported + this (the assignment's head start).
+        ``activate_at`` = the newest step reported + this (the assignment's head start);
+        doubled by every re-issue up to twice the hang timeout, halved back towards it by
+        every reassignment confirmed without one (:attr:`MonitorCore.lead`).
     resend_s : float
         Re-send unconfirmed assignments this often.
     confirm_timeout_s : float
@@ -361,6 +363,10 @@ class MonitorCore:
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
         self._unconfirmed: dict = {}      # agent -> Assignment awaiting its status
+        # the assignments' head start (steps): lead_steps, doubled by every re-issue (the
+        # agents heard the roles too late: a loaded host), halved back towards lead_steps
+        # by every reassignment confirmed without one
+        self.lead = config.lead_steps
         self._sent_at: float | None = None
         self._assigned_at: float | None = None
         self._roster_msg: RosterUpdate | None = None
@@ -695,7 +701,8 @@ class MonitorCore:
         a new epoch, every agent of the configuration, a later ``activate_at``."""
         late = sorted(self._unconfirmed)
         self.epoch += 1
-        at = self.current_step(now) + self.config.lead_steps
+        self.lead = min(2 * self.lead, self._lead_cap())
+        at = self.current_step(now) + self.lead
         out = []
         self._unconfirmed = {}
         for agent, spec in self.specs.items():
@@ -711,7 +718,7 @@ class MonitorCore:
         self.reissues.append({"epoch": self.epoch, "activate_at": at, "unconfirmed": late,
                               "reason": f"activate_at passed before agents {late} confirmed"})
         self.events.append(f"epoch {self.epoch}: activate_at passed before agents {late} "
-                           f"confirmed; re-issued from step {at}")
+                           f"confirmed; re-issued from step {at} ({self.lead} steps ahead)")
         return out
 
     def scenario_link(self, link) -> bool:
@@ -766,7 +773,13 @@ class MonitorCore:
                                                 in sorted(above.items())}}}
         return self.check_delays(now)
 
+    def _lead_cap(self) -> int:
+        """The longest head start: twice the hang timeout, in steps."""
+        return max(self.config.lead_steps,
+                   math.ceil(2 * self.config.hang_timeout_s / self.config.step_s))
+
     def _check_confirmations(self, now: float) -> None:
+        waiting = bool(self._unconfirmed)
         for agent, asg in list(self._unconfirmed.items()):
             a = self.agents[agent]
             if a.epoch >= asg.epoch or a.pending >= asg.epoch:
@@ -778,6 +791,9 @@ class MonitorCore:
                 del self._unconfirmed[agent]
                 self.events.append(f"agent {agent} was convicted before it confirmed epoch "
                                    f"{asg.epoch}: not waited for")
+        if waiting and not self._unconfirmed and self.history \
+                and not self.history[-1].get("reissued") and self.lead > self.config.lead_steps:
+            self.lead = (self.lead + self.config.lead_steps) // 2
         if (self._unconfirmed and self._assigned_at is not None
                 and now - self._assigned_at > self.config.confirm_timeout_s):
             for agent in sorted(self._unconfirmed):
@@ -854,7 +870,7 @@ class MonitorCore:
         take_over = {r.by: roster.ids[r.failed] for r in plan.replacements if r.by_standby}
         specs = role_specs(nxt, G, take_over=take_over)
         self.epoch += 1
-        activate_at = max(self.current_step(now), 0) + self.config.lead_steps
+        activate_at = max(self.current_step(now), 0) + self.lead
         # a reassignment still waiting for its activate_at is superseded at the same step
         # (agents replace a pending assignment by a newer one): no agent runs the older
         # configuration for a step while another runs the newer one
@@ -897,14 +913,13 @@ class MonitorCore:
     def _assign_all(self, new, G, info, now: float, record: dict, why: str,
                     lead: int | None = None) -> list:
         """The same roles with new gains (or delays) under a new epoch: every agent of
-        ``new`` gets an assignment, ``lead`` steps ahead (default ``lead_steps``)."""
+        ``new`` gets an assignment, ``lead`` steps ahead (default :attr:`lead`)."""
         from design.roster import role_specs
 
         self.roster, self.G, self.gain_info = new, G, info
         self.specs = role_specs(new, G)
         self.epoch += 1
-        at = max(self.current_step(now), 0) + (self.config.lead_steps if lead is None
-                                               else lead)
+        at = max(self.current_step(now), 0) + (self.lead if lead is None else lead)
         out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
         self._unconfirmed = {m.agent: m for m in out}
         self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
@@ -940,8 +955,7 @@ class MonitorCore:
             return []
         # not urgent: a hang timeout ahead, so that an agent slow under load hears it in
         # time and the network switches together
-        lead = max(self.config.lead_steps,
-                   math.ceil(self.config.hang_timeout_s / self.config.step_s))
+        lead = max(self.lead, math.ceil(self.config.hang_timeout_s / self.config.step_s))
         return self._assign_all(self.roster, G, info, now, {"causes": {"0": "refined"}},
                                 "refined gains for the configuration in force", lead=lead)
 
