@@ -162,8 +162,11 @@ def test_unconfirmed_assignments_are_resent_then_reissued(core):
     assert at == 102 + core.config.lead_steps
     # before the resend period nothing; after it the same assignments again
     assert core.tick(2.10) == []
-    # nobody confirmed and activate_at is reached: same roles, new epoch, later step
+    # nobody confirmed and activate_at is reached while the agents step on: they did not
+    # hear it in time; same roles, new epoch, later step
     t = 2.0 + (at - 100) * 0.02
+    for a in (2, 3, 4):
+        core.on_status(_status(a, at - 1, active=a <= 3), t - 0.01)
     later = core.tick(t)
     (roster,) = [m for m in later if isinstance(m, RosterUpdate)]
     assert roster.epoch == 2 and roster.activate_at > at and roster.ids == (4, 2, 3)
@@ -187,6 +190,24 @@ def test_unconfirmed_assignments_are_resent_then_reissued(core):
         core.on_status(_status(a, msg.activate_at - 5, epoch=2, pending=msg.epoch), t + 0.05)
     core.tick(t + 0.05)
     assert core.confirmed() and core.lead == (3 * core.config.lead_steps) // 2
+
+
+def test_roles_are_not_reissued_to_an_agent_that_stopped_stepping(core):
+    """Agent 1 crashes; agent 2 stops stepping before it confirmed the roles that answer
+    it (dead, not convicted yet) while 3 and 4 confirmed: at activate_at nothing is
+    re-issued (3 and 4 switch together; a re-issue would replace their pending roles
+    before the step, for some of them only)."""
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    (msg,) = [m for m in core.tick(2.05) if isinstance(m, RosterUpdate)]
+    t = 2.05
+    while core.current_step(t) < msg.activate_at + 3:
+        t = round(t + 0.05, 6)
+        for a in (3, 4):
+            core.on_status(_status(a, int(50 * t), epoch=0, pending=msg.epoch), t)
+        # the same roles re-sent to agent 2 at most, never a new epoch
+        assert {m.epoch for m in core.tick(t) if isinstance(m, RosterUpdate)} <= {msg.epoch}
+    assert core.reissues == [] and core.epoch == msg.epoch
 
 
 def test_no_candidate_left_is_said_loudly_and_monitoring_goes_on(core):

@@ -569,7 +569,8 @@ class MonitorCore:
                 self._first_verdict_at = None
                 out += self._reassign(found, now)
         if self._unconfirmed and self._roster_msg is not None \
-                and self.current_step(now) >= self._roster_msg.activate_at - 1:
+                and self.current_step(now) >= self._roster_msg.activate_at - 1 \
+                and self._late_but_running():
             out += self._reissue(now)
         elif self._unconfirmed and self._sent_at is not None and now - self._sent_at >= cfg.resend_s:
             out += list(self._unconfirmed.values())
@@ -695,6 +696,16 @@ class MonitorCore:
         self.events.append(f"residual alert: agent {agent} {verdict.kind} (level "
                            f"{verdict.score:.3g}, from step {first}): "
                            f"{'; '.join(verdict.evidence)}; not convicted (an alert)")
+
+    def _late_but_running(self) -> bool:
+        """Some agent that has not confirmed has stepped since its assignment went out: it
+        runs but did not hear the roles in time, and a re-issue reaches it. One that has not
+        stepped since (it died before its verdict came) is not re-issued to: the others'
+        pending roles would be replaced before their step while some already ran them, a
+        mixed switch (the dead agent is convicted and answered instead)."""
+        sent = self._assigned_at
+        return any(self.agents[a].progress_at is not None and sent is not None
+                   and self.agents[a].progress_at > sent for a in self._unconfirmed)
 
     def _reissue(self, now: float) -> list:
         """``activate_at`` passed before every agent confirmed: the same roles again under
