@@ -39,6 +39,25 @@ def test_the_simulated_runtime_equals_the_design_simulator(live, faults):
         assert 0.3 * exact < r.summary["mse_steady_after_recovery"] < 3 * exact
 
 
+@pytest.mark.slow
+def test_a_crash_before_the_roles_answering_another_replays_in_the_simulator(live):
+    """Agent 2 crashes, agent 1 eight steps later, before the roles answering agent 2 are
+    in force: they go on without it (no re-issue to a dead agent, no roster reported not
+    in force), the next reassignment answers it, and the run equals the simulator's
+    replay. A run that ends before that second switch cannot be replayed, and says why."""
+    faults = [Fault(150, "crash", 2), Fault(158, "crash", 1)]
+    r = _run(live, faults)
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    s = r.summary
+    assert s["reissues"] == [] and s["rosters_not_in_force"] == [] and s["recovered"] is True
+    assert [x["ids"] for x in s["rosters"]][:3] == [[1, 2, 3], [1, 4, 3], [4, 3]]
+    cut = s["rosters"][2]["activate_at"] - 2
+    r = _run(live, faults, steps=cut)
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff == float("inf") and "agent 1 was killed before the configuration" in how
+
+
 def test_a_hang_is_convicted_and_its_role_handed_over(live):
     r = _run(live, [Fault(150, "hang", 2)])
     (f,) = r.summary["failures"]

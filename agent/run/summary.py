@@ -628,6 +628,13 @@ def compare_simulator(config, rec, steps_done):
                     f"agent {a} {'at step ' + str(k) if k is not None else 'never'}"
                     for a, k in sorted(m["switched"].items()))
                 + "): the simulator replays whole configurations only")
+        at_end, ids_end, epoch_end = rosters[-1]
+        dead_at_end = sorted(a for a in ids_end if kills.get(a, math.inf) <= at_end)
+        if len(rosters) > 1 and dead_at_end:
+            return float("inf"), (
+                f"agent {dead_at_end[0]} was killed before the configuration in force at the "
+                f"run's end (epoch {epoch_end}) and not yet replaced: the simulator's last "
+                "configuration holds no failed agent")
         took = sorted(a for a in kills if a > c.scenario.N
                       and any(a in ids for _, ids, _ in rosters[1:]))
         if took:
