@@ -56,6 +56,9 @@ def test_a_crash_before_the_roles_answering_another_replays_in_the_simulator(liv
     r = _run(live, faults, steps=cut)
     diff, how = compare_simulator(r.config, r.recording, r.steps)
     assert diff == float("inf") and "agent 1 was killed before the configuration" in how
+    assert r.summary["recovered"] is False and (
+        "agent 1 was convicted but the roles answering it were not in force by the run's "
+        "end: not recovered") in r.summary["warnings"]
 
 
 def test_a_hang_is_convicted_and_its_role_handed_over(live):

@@ -540,6 +540,14 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                                                   else f"to step {b}")
             + ": a failure in that window was neither detected nor recovered")
     out["no_monitor"] = [{"from": a, "to": None if b == math.inf else b} for a, b in absent]
+    unanswered = sorted({f["agent"] for f in failures if f.get("detected") is not False
+                         and f.get("rejoined_step") is None
+                         and f["agent"] in rosters[-1][1]})
+    if unanswered:
+        out["recovered"] = False
+        out.setdefault("warnings", []).extend(
+            f"agent {a} was convicted but the roles answering it were not in force by the "
+            "run's end: not recovered" for a in unanswered)
     if any(f.get("detected") is False and f.get("role") == "active" for f in failures):
         out["recovered"] = False
         out.setdefault("warnings", []).extend(
