@@ -462,13 +462,9 @@ class _FakeWorker:
         self.requests.append((roster, ("assess",)))
 
 
-def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_them(paper14):
-    """The loop never designs: a configuration without gains is requested from the worker;
-    detection goes on meanwhile; ``activate_at`` counts from when the gains came back (it
-    used to be fixed before a design of seconds, and was past when sent); a fast gain in
-    force is replaced by the refined one under a later epoch."""
-    from agent.monitor.core import GainSource, design_gains_for
-
+def _live_core_with_worker():
+    """paper-14-live's monitor core with a gain worker stepped by hand, every agent up."""
+    from agent.monitor.core import GainSource
     from design.scenario import load_scenario
 
     s = load_scenario("paper-14-live")
@@ -478,6 +474,17 @@ def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_th
                        s.delays, gains=GainSource(worker=worker))
     for a in (1, 2, 3, 4):
         core.on_liveliness("agent", a, True, 0.0)
+    return core, worker
+
+
+def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_them(paper14):
+    """The loop never designs: a configuration without gains is requested from the worker;
+    detection goes on meanwhile; ``activate_at`` counts from when the gains came back (it
+    used to be fixed before a design of seconds, and was past when sent); a fast gain in
+    force is replaced by the refined one under a later epoch."""
+    from agent.monitor.core import design_gains_for
+
+    core, worker = _live_core_with_worker()
     _advance(core, 0.0, 2.0, lambda t: 50 * t)
     core.on_liveliness("agent", 1, False, 2.05)
     assert core.tick(2.05) == []                            # no gains yet: nothing sent
@@ -606,17 +613,9 @@ def test_an_agent_convicted_before_it_confirmed_is_not_waited_for(paper14):
     too, and the roles answering both wait for their gains. The first roles are not
     re-issued to the dead agent meanwhile (epochs churned for nothing): the next epoch
     is the reassignment that answers agent 2."""
-    from agent.monitor.core import GainSource, design_gains_for
+    from agent.monitor.core import design_gains_for
 
-    from design.scenario import load_scenario
-
-    s = load_scenario("paper-14-live")
-    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
-    worker = _FakeWorker()
-    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), s, G,
-                       s.delays, gains=GainSource(worker=worker))
-    for a in (1, 2, 3, 4):
-        core.on_liveliness("agent", a, True, 0.0)
+    core, worker = _live_core_with_worker()
     _advance(core, 0.0, 2.0, lambda t: 50 * t)
     core.on_liveliness("agent", 1, False, 2.05)
     core.tick(2.05)
