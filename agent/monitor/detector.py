@@ -643,9 +643,9 @@ class FailureDetector:
                     return "down", f"link {src}->{b} cut"
         if now - st.progress_at > cfg.hang_timeout_s / 2:
             return "slow", "its step did not move"
-        window = max(cfg.lead_steps, 1)
-        if self.lag_steps(agent) > window:
-            return "slow", f"{self.lag_steps(agent):.0f} steps behind the others"
+        window, lag = max(cfg.lead_steps, 1), self.lag_steps(agent)
+        if lag > window:
+            return "slow", f"{lag:.0f} steps behind the others"
         sensor = st.status.get("sensor") if isinstance(st.status.get("sensor"), dict) else {}
         if sensor.get("labels") and st.step - st.sensor_last > window:
             return "slow", f"sensor readings {st.step - st.sensor_last} steps old"
