@@ -342,7 +342,8 @@ def rosters_in_force(rosters, est_epoch, assigns):
     ([(0, (1, 2, 3), 0), (175, (1, 2, 4), 1)], [])
     """
     out, mixed = [rosters[0]], []
-    last = max((max(e) for e in est_epoch.values() if e), default=-1)
+    newest = {a: max(e) for a, e in est_epoch.items() if e}    # each agent's last step
+    last = max(newest.values(), default=-1)
     newest_at: dict = {}
     for at, ids, epoch in rosters[1:]:
         newest_at[at] = max(newest_at.get(at, epoch), epoch)
@@ -353,10 +354,8 @@ def rosters_in_force(rosters, est_epoch, assigns):
         # an agent that published nothing from the roster's step on had stopped (a crash
         # the monitor had not convicted yet): the roster ran without it, as the simulator
         # replays a failed agent kept in an intermediate configuration
-        stopped = {a for a in assigned if est_epoch.get(a)
-                   and max(est_epoch[a]) < at and any(
-                       max(est_epoch[b]) >= at for b in assigned if est_epoch.get(b))}
-        assigned = [a for a in assigned if a not in stopped]
+        if any(newest.get(b, -1) >= at for b in assigned):
+            assigned = [a for a in assigned if a not in newest or newest[a] >= at]
         switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
         if all(k is None for k in switched.values()):
             if any(est_epoch.get(a) for a in assigned):
