@@ -60,3 +60,4 @@ def test_a_request_and_the_precompute_both_come_back_certified():
     for r, G, info in got:
         assert G is not None and info["rho"] < 1
         assert len(G) == r.scenario.N
+

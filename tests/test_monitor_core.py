@@ -1053,3 +1053,47 @@ def test_residual_isolation_takes_the_picture_at_the_first_alarm(core):
     core.tick(1.2)
     assert [(r["agent"], r["fault"], r["step"]) for r in core.residual_alerts] == \
         [(2, "inconsistent estimates", 61)]
+
+
+class _ScriptedWorker:
+    """Answers ``poll`` with the results given, one per call, then nothing."""
+
+    def __init__(self, results):
+        self.results = list(results)
+
+    def poll(self, timeout=0.0):
+        return [self.results.pop(0)] if self.results else []
+
+
+def _single_failures(delays="uniform:3"):
+    from agent.monitor.gain_worker import plan_failures
+    from design.roster import Roster
+    from design.scenario import load_scenario, resolve_delays
+
+    s = load_scenario("paper-14-live")
+    roster = Roster.initial(s, resolve_delays(s, delays))
+    return roster, [(a, nxt) for a, nxt in plan_failures(roster) if len(a) == 1]
+
+
+class _Never:
+    flag = False
+
+
+@pytest.mark.parametrize("answered, foreseen", [(3, [1, 2, 3]), (2, [1, 2])])
+def test_the_monitor_joins_once_every_single_failure_is_foreseen_or_after_its_bound(
+        answered, foreseen):
+    """foresee_single_failures returns when every single failure has gains (a failure with
+    no stabilising gain counts as known), else after its bound, saying which it foresees."""
+    from agent.monitor.core import GainSource
+    from agent.monitor.process import foresee_single_failures
+
+    roster, singles = _single_failures()
+    results = [(nxt, [[0.0]] if a != [2] else None, {"kind": "fast"})
+               for a, nxt in singles[:answered]]
+    gains = GainSource(worker=_ScriptedWorker(results))
+    out = foresee_single_failures(gains.worker, gains, roster, _Never(), limit=0.3)
+    assert out["planned"] == [1, 2, 3] and out["foreseen"] == foreseen
+    if answered == 3:
+        assert "every agent ([1, 2, 3])" in out["line"]
+    else:
+        assert out["seconds"] >= 0.3 and "of [1, 2, 3] (after 0.3 s" in out["line"]

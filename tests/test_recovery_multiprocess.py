@@ -15,7 +15,9 @@ pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 @pytest.mark.parametrize("agent", [1, 2, 3])
 def test_a_kill_at_15_step_delays_recovers_and_equals_the_simulator(tmp_path, agent):
     """The default gains designed for the run's delays (the monitor's precomputed and
-    refined gains likewise), agent killed at step 150 of 450."""
+    refined gains likewise), agent killed at step 150 of 450. The world starts its clock
+    once the monitor has the gains of every single failure: this one is answered with
+    precomputed gains whatever the machine's load."""
     code, out, err = _socmon("up", "paper-14-live", "--steps", "450", "--delays",
                              "uniform:15", "--kill", f"150:{agent}", "--check-simulator",
                              "--out", str(tmp_path / "run"), "--json", timeout=420)
@@ -26,9 +28,12 @@ def test_a_kill_at_15_step_delays_recovers_and_equals_the_simulator(tmp_path, ag
     assert (f["agent"], f["cause"]) == (agent, "crash")
     assert s["recovered"] is True and s["diverged_at"] is None
     assert s["rosters"][-1]["ids"] != [1, 2, 3] and s["rosters_not_in_force"] == []
-    assert f["activate_at"] > f["detected_step"]
-    # how soon the switch comes depends on the machine's load (a failure the precompute
-    # has not reached yet waits for its first gain): measured by
+    assert f["activate_at"] > f["detected_step"] and f["precomputed"] is True
+    events = [json.loads(line) for line in
+              (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
+    (prepared,) = [e for e in events if e["kind"] == "prepared"]
+    assert prepared["foreseen"] == prepared["planned"] == [1, 2, 3]
+    # how soon the switch comes depends on the machine's load: measured by
     # scripts/bench_monitor.py --recovery, not asserted here
     assert s["max_rel_diff_vs_simulator"] <= 1e-9
 

@@ -122,6 +122,6 @@ def run(args) -> int:
             print(f"monitor {args.id}: warning: {line}", file=sys.stderr, flush=True)
         return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
                            events_out=args.events, precompute=not args.no_precompute,
-                           signer=signer)
+                           signer=signer, prepare_s=timing.monitor_prepare_s)
 
     return run_command(body)

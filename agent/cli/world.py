@@ -21,6 +21,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--wait-agents", default=None, metavar="IDS",
                         help="agent ids to wait for before the clock starts, e.g. 1,2,3 "
                              "(default: every active and standby agent of the scenario)")
+    parser.add_argument("--wait-monitor", type=int_flag(lo=1), default=None, metavar="ID",
+                        help="also wait for monitor ID before the clock starts (it joins "
+                             "once its gains for every single failure are ready, so that a "
+                             "failure soon after the start is answered at once)")
     parser.add_argument("--start-timeout", type=float, default=TIMING.start_timeout_s,
                         help="seconds to wait for the agents "
                              f"(default {TIMING.start_timeout_s:g})")
@@ -56,6 +60,7 @@ def run(args) -> int:
                                   out_of_range="no agent {value} (agents are 1..{hi})")
         net = net_config_arg(args, identity="world")
         return run_world(scenario, net, seed=args.seed, steps=args.steps, step_ms=args.step_ms,
-                         wait_agents=wait, start_timeout=args.start_timeout)
+                         wait_agents=wait, start_timeout=args.start_timeout,
+                         wait_monitor=args.wait_monitor)
 
     return run_command(body)

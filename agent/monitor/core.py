@@ -209,6 +209,11 @@ class GainSource:
     def has(self, roster) -> bool:
         return self.key(roster) in self._cache
 
+    def known(self, roster) -> bool:
+        """Gains for ``roster`` are here, or it is known that none stabilise it."""
+        k = self.key(roster)
+        return k in self._cache or k in self._none
+
     def info(self, roster) -> dict:
         entry = self._cache.get(self.key(roster))
         return dict(entry[1]) if entry is not None else {}

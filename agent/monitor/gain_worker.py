@@ -104,11 +104,17 @@ class GainWorker:
         self._fast.put(("precompute", roster))
         self._background.put((self._generation, roster))
 
-    def poll(self) -> list:
-        """Every result ready now: ``[(roster, G or None, info)]``."""
+    def poll(self, timeout: float = 0.0) -> list:
+        """Every result ready now (waiting up to ``timeout`` s for the first one):
+        ``[(roster, G or None, info)]``."""
         out = []
         if not self._procs:
             return out
+        if timeout > 0:
+            try:
+                out.append(self._results.get(timeout=timeout))
+            except (queue.Empty, EOFError, OSError):
+                return out
         while True:
             try:
                 out.append(self._results.get_nowait())

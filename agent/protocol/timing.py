@@ -92,6 +92,11 @@ class Timing:
     crash_flush_s: float = 0.3
     #: The world waits this long for every agent's first status before the clock starts.
     start_timeout_s: float = 60.0
+    #: The first monitor joins a run once it has gains for every single failure, or after
+    #: this long (it says how many it foresees): a world that waits for it (``socmon world
+    #: --wait-monitor``) starts its clock then, so that a failure soon after the start is
+    #: answered at once instead of waiting seconds for a design on a loaded machine.
+    monitor_prepare_s: float = 20.0
     #: After its last step the world waits this long for the agents' last estimates.
     end_timeout_s: float = 5.0
 
@@ -134,6 +139,10 @@ class Timing:
             out.append(f"rejoin_s: {t.rejoin_s:g} s must exceed hang_timeout_s = "
                        f"{t.hang_timeout_s:g} s (an agent may not rejoin before a verdict "
                        "about it could be reached again)")
+        if t.monitor_prepare_s >= t.start_timeout_s:
+            out.append(f"monitor_prepare_s: {t.monitor_prepare_s:g} s must be below "
+                       f"start_timeout_s = {t.start_timeout_s:g} s (a world waiting for the "
+                       "monitor would give up first)")
         if t.agent_world_gone_s <= t.world_grace_s:
             out.append(f"agent_world_gone_s: {t.agent_world_gone_s:g} s must exceed "
                        f"world_grace_s = {t.world_grace_s:g} s (the hard bound follows the "

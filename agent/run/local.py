@@ -163,7 +163,8 @@ class LocalRun:
         lie = {f.agent: f for f in c.faults if f.kind == "lie"}
         out = {"world": ["world", c.scenario_arg, *common, "--listen", ep[1],
                          "--steps", str(c.steps), "--step-ms", str(c.step_ms),
-                         "--start-timeout", str(c.start_timeout)]}
+                         "--start-timeout", str(c.start_timeout)]
+                         + (["--wait-monitor", "1"] if c.monitor else [])}
         for a in range(1, c.M + 1):
             argv = ["agent", c.scenario_arg, "--id", str(a), *common, "--listen", ep[a + 1],
                     "--connect", ep[1], "--delays", c.delays_spec,

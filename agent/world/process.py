@@ -67,14 +67,17 @@ def _warn_resolution(scenario, world, steps, log) -> int | None:
 START_WORD_S = 5.0
 
 
-def start_wait(expected, heard) -> str:
+def start_wait(expected, heard, monitor=None) -> str:
     """Whom the start waits for, in words: the agents not heard at all, and for each agent
-    heard, the agents it has not heard yet (a route that does not exist yet).
+    heard, the agents it has not heard yet (a route that does not exist yet); ``monitor``:
+    the id of the monitor waited for, while it has not joined.
 
     >>> start_wait({1, 2, 3, 4}, {1: {2}, 2: {1}})
     'waiting for agents [3, 4] (no status heard: not started, or cannot reach the world); agent 1 has not heard [3, 4]; agent 2 has not heard [3, 4]'
     >>> start_wait({1, 2}, {1: {2}, 2: {1}})
     'every agent ready'
+    >>> start_wait({1, 2}, {1: {2}, 2: {1}}, monitor=1)
+    'monitor 1 has not joined (it joins once it foresees every single failure)'
     """
     parts = []
     silent = sorted(a for a in expected if a not in heard)
@@ -85,14 +88,21 @@ def start_wait(expected, heard) -> str:
         lacking = sorted(expected - {a} - set(heard[a]))
         if lacking:
             parts.append(f"agent {a} has not heard {lacking}")
+    if monitor is not None:
+        parts.append(f"monitor {monitor} has not joined (it joins once it foresees every "
+                     "single failure)")
     return "; ".join(parts) or "every agent ready"
 
 
 def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=None,
               start_timeout: float = TIMING.start_timeout_s,
               end_timeout: float = TIMING.end_timeout_s, log=sys.stderr,
-              stop=None, rebase_s: float = TIMING.world_rebase_s) -> int:
-    """Run the world. ``steps=None`` runs until stopped; ``wait_agents`` = ids to wait for."""
+              stop=None, rebase_s: float = TIMING.world_rebase_s,
+              wait_monitor: int | None = None) -> int:
+    """Run the world. ``steps=None`` runs until stopped; ``wait_agents`` = ids to wait for;
+    ``wait_monitor``: the id of a monitor whose token must be alive before the clock starts
+    (it declares it once its gains for every single failure are ready: a failure soon after
+    the start is then answered at once, see :func:`agent.monitor.process.run_monitor`)."""
     stop = stop or _Stop()
     if isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
@@ -129,18 +139,24 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 ready[msg["agent"]] = set(msg["heard"]) >= (expected - {msg["agent"]})
                 last_step[msg["agent"]] = msg["step"]
 
+        def monitor_missing():
+            return wait_monitor is not None and ("monitor", str(wait_monitor)) not in \
+                watch.alive()
+
         print(f"world: waiting for agents {sorted(expected)} (each must hear every other "
-              f"one); up to {start_timeout:g} s", file=log, flush=True)
+              "one)" + ("" if wait_monitor is None else f" and for monitor {wait_monitor}")
+              + f"; up to {start_timeout:g} s", file=log, flush=True)
         started = time.monotonic()
         deadline = started + start_timeout
         next_word = started + START_WORD_S
-        while not all(ready.get(a) for a in expected):
+        while not all(ready.get(a) for a in expected) or monitor_missing():
             if stop.flag:
                 publish_end("stopped")
                 return 130
             now = time.monotonic()
             if now > deadline or now >= next_word:
-                wait = start_wait(expected, heard)
+                wait = start_wait(expected, heard,
+                                  wait_monitor if monitor_missing() else None)
                 if now > deadline:
                     print(f"world: not ready after {start_timeout:g} s: {wait}", file=log)
                     return 1
