@@ -525,6 +525,17 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
         if k and deadline is not None and time.perf_counter() > deadline:
             history.append({"stage": "stop", "note": f"time limit before start {k}"})
             break
+        if (k == 0 and init is not None and objective == "rho"
+                and opts["target"] is not None):
+            rho = model.spectral_radius(x0)        # exact; needed for the result anyway
+            if rho < float(opts["target"]):
+                # a warm start already below the target: no iteration (one eigenvalue
+                # problem instead of the gradient's eigenpairs and then the radius)
+                status = "the start is below the target radius"
+                history.append({"stage": f"start {k} done", "rho": float(rho),
+                                "status": status})
+                best = (rho, x0, status, rho)
+                break
         label = f"start {k} rho"
         if objective == "mse":
             stop = lambda f: f < rho_max            # noqa: E731

@@ -61,3 +61,43 @@ def test_a_request_and_the_precompute_both_come_back_certified():
         assert G is not None and info["rho"] < 1
         assert len(G) == r.scenario.N
 
+
+
+def test_a_newer_precompute_goes_before_a_refinement_and_starts_from_the_gains_in_force():
+    """A refinement (seconds at T = 7) asked just before the precompute of a new
+    configuration gives way to it: every single failure's fast gain comes back before the
+    refined gain, each designed from the gains in force (carried: below the fast design's
+    target already, so no iteration was needed)."""
+    import numpy as np
+
+    from design.closed_loop import closed_loop_for
+    from design.gain_design import design_gains
+    from design.reconfigure import FAST_TARGET
+    from design.roster import carried_gains
+
+    s = load_scenario("paper-14-live")
+    roster = Roster.initial(s, resolve_delays(s, "uniform:7"))
+    G = design_gains(s, delays=roster.delays, starts=1, max_iter=30).G
+    _, in_force = replan(roster, [3])
+    singles = [GainSource.key(nxt) for a, nxt in plan_failures(roster) if len(a) == 1]
+    worker = GainWorker(start=True)
+    try:
+        worker.request(in_force, kinds=("refined",))
+        worker.precompute(roster, G)
+        refined = lambda got: [i for r, _, i in got if i.get("kind") == "refined"]  # noqa
+        got = _collect(worker, lambda g: refined(g), deadline_s=600.0)
+    finally:
+        worker.close()
+    assert refined(got), "no refined gain within 600 s"
+    order = [GainSource.key(r) for r, _, i in got]
+    first_refined = next(k for k, (_, _, i) in enumerate(got) if i.get("kind") == "refined")
+    assert set(singles) <= set(order[:first_refined]), [i for _, _, i in got]
+    kept = 0
+    for r, Gr, info in got[:first_refined]:
+        if info.get("kind") != "fast" or info.get("polished"):
+            continue
+        warm = carried_gains(roster, G, r)
+        if closed_loop_for(r.scenario, warm, r.delays).spectral_radius() < FAST_TARGET:
+            assert all(np.array_equal(a, b) for a, b in zip(Gr, warm))
+            kept += 1
+    assert kept >= 1

@@ -455,8 +455,9 @@ class _FakeWorker:
     def __init__(self):
         self.requests = []
 
-    def request(self, roster, kinds=("fast", "refined")):
+    def request(self, roster, kinds=("fast", "refined"), init=None):
         self.requests.append((roster, tuple(kinds)))
+        self.init = init
 
     def assess(self, roster, G, info):
         self.requests.append((roster, ("assess",)))
@@ -492,6 +493,11 @@ def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_th
     (roster, kinds), = worker.requests
     assert roster.ids == (4, 2, 3) and kinds == ("fast", "refined")
     assert any("designing them in the gain worker" in e for e in core.events)
+    # its warm start: the survivors keep their gains, the standby 4 its reset gain H^T
+    assert np.array_equal(worker.init[1], core.G[1]) and np.array_equal(worker.init[2],
+                                                                         core.G[2])
+    assert np.array_equal(worker.init[0], np.eye(roster.scenario.n)[:, list(
+        roster.scenario.measure[0])])
     # the loop goes on ticking and detecting while the worker designs
     _advance(core, 2.1, 4.0, lambda t: 50 * t, skip=(1,))
     assert core.history == []

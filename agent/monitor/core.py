@@ -218,18 +218,19 @@ class GainSource:
         entry = self._cache.get(self.key(roster))
         return dict(entry[1]) if entry is not None else {}
 
-    def ready(self, roster) -> bool:
-        """True once gains for ``roster`` are known, or known not to exist."""
+    def ready(self, roster, init=None) -> bool:
+        """True once gains for ``roster`` are known, or known not to exist (``init``: a
+        warm start for its first gain, :func:`design.roster.carried_gains`)."""
         k = self.key(roster)
         if k in self._cache or k in self._none:
             return True
         if self.worker is None:
-            self.put(roster, *self._design(roster, "fast"))
+            self.put(roster, *self._design(roster, "fast", init=init))
             return True
         if k not in self._requested:
             self._requested.add(k)
             self._requested.add(("asked",) + k)      # its refined gain is on the way too
-            self.worker.request(roster)
+            self.worker.request(roster, init=init)
         return False
 
     def refine(self, roster) -> None:
@@ -279,7 +280,8 @@ def design_gains_for(roster, kind: str = "fast", progress=None, init=None):
     """``(G, info)`` for the configuration ``roster``, designed against its delays.
 
     ``kind="fast"``: :func:`design.reconfigure.fast_recovery_gains`, a first stabilising
-    gain (a target radius, few iterations); ``"polished"`` (what the precompute sends
+    gain (a target radius, few iterations; from ``init`` first when given, a warm start
+    such as :func:`design.roster.carried_gains`); ``"polished"`` (what the precompute sends
     after its fast pass): that gain (``init`` when given: the fast gain already designed)
     then :func:`design.reconfigure.polished_recovery_gains`, a few MSE iterations,
     reported as a first gain (``kind`` ``"fast"``, ``polished`` True: the refined gain
@@ -309,8 +311,11 @@ def design_gains_for(roster, kind: str = "fast", progress=None, init=None):
         return list(res.G), {"kind": "fast", "polished": True, "rho": float(res.rho),
                              "mse": None, "seconds": float(res.seconds)}
     design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
+    # a fast gain from a warm start (design.roster.carried_gains) tries it first, then the
+    # reset gain: one eigenvalue problem when the start is stable already
+    warm = {"init": init, "starts": 2} if kind == "fast" and init is not None else {}
     try:
-        res = design(roster.scenario, roster.delays, progress=progress)
+        res = design(roster.scenario, roster.delays, progress=progress, **warm)
     except SocmonError:
         res = None
     if res is None or not res.stable:
@@ -751,7 +756,7 @@ class MonitorCore:
 
         if self._delay_pending is not None:
             p = self._delay_pending
-            if not self.gains.ready(p["roster"]):
+            if not self.gains.ready(p["roster"], init=self.warm_start(p["roster"])):
                 return []
             self._delay_pending = None
             G, info = self.gains.get(p["roster"])
@@ -862,6 +867,14 @@ class MonitorCore:
                          "plan": plan, "nxt": nxt, "at": now, "asked": False}
         return self._emit_reassign(now)
 
+    def warm_start(self, nxt):
+        """The gains in force carried over to the configuration ``nxt``
+        (:func:`design.roster.carried_gains`), None when none are known (an adopted
+        configuration)."""
+        from design.roster import carried_gains
+
+        return None if self.G is None else carried_gains(self.roster, self.G, nxt)
+
     def _emit_reassign(self, now: float) -> list:
         """The pending reassignment, once its gains are known; ``activate_at`` counts from
         now (not from the verdict), so it is never already past when it is sent."""
@@ -869,7 +882,7 @@ class MonitorCore:
 
         p = self._pending
         nxt, plan, roster = p["nxt"], p["plan"], p["roster"]
-        if not self.gains.ready(nxt):
+        if not self.gains.ready(nxt, init=self.warm_start(nxt)):
             if not p["asked"]:
                 p["asked"] = True
                 self.events.append(f"gains for ids {list(nxt.ids)} not precomputed: designing "

@@ -78,13 +78,15 @@ class GainWorker:
         for p in self._procs:
             p.start()
 
-    def request(self, roster, kinds=("fast", "refined")) -> None:
-        """Design the gains of ``roster`` now: a fast certified gain (the urgent process),
-        then a refined one (the precompute process, before its fast pass) (``kinds``: only
-        the refined one, for a configuration in force on a fast gain)."""
+    def request(self, roster, kinds=("fast", "refined"), init=None) -> None:
+        """Design the gains of ``roster`` now: a fast certified gain (the urgent process,
+        from the warm start ``init`` first when given), then a refined one (the precompute
+        process, before its fast pass) (``kinds``: only the refined one, for a
+        configuration in force on a fast gain)."""
         self._start()
         if "fast" in kinds:
-            self._urgent.put(("request", roster, ("fast",)))
+            self._urgent.put(("request", roster, ("fast",),
+                              None if init is None else [list(g) for g in init]))
         if "refined" in kinds:
             self._fast.put(("refine", roster))
 
@@ -96,12 +98,13 @@ class GainWorker:
         self._start()
         self._background.put(("assess", roster, list(G), dict(info)))
 
-    def precompute(self, roster) -> None:
-        """Precompute the failures of ``roster`` (the configuration now in force); any
-        earlier precompute still running is abandoned."""
+    def precompute(self, roster, G=None) -> None:
+        """Precompute the failures of ``roster`` (the configuration now in force, ``G`` its
+        gains: the warm start of each failure's fast gain); any earlier precompute still
+        running is abandoned."""
         self._start()
         self._generation += 1
-        self._fast.put(("precompute", roster))
+        self._fast.put(("precompute", roster, None if G is None else [list(g) for g in G]))
         self._background.put((self._generation, roster))
 
     def poll(self, timeout: float = 0.0) -> list:
@@ -162,52 +165,83 @@ def _serve_urgent(requests, results, idle) -> None:
         if item is None:
             idle.set()
             return
-        _, roster, kinds = item
+        _, roster, kinds, init = item
         for kind in kinds:
             if kind == "fast":          # a first gain: the precompute waits meanwhile
                 idle.clear()
             try:
-                results.put((roster, *design_gains_for(roster, kind)))
+                results.put((roster, *design_gains_for(roster, kind,
+                                                       init=init if kind == "fast" else None)))
             finally:
                 idle.set()
 
 
 def _serve_precompute(requests, results, idle) -> None:
     """At the monitor's priority, pausing at every design iteration while the urgent
-    process designs a first gain (``idle`` clear): the refined gain of a configuration
-    put in force on a fast one first, then the fast pass of the newest precompute (so
-    that a foreseen failure has a first gain within seconds even on a loaded machine),
-    then its polish pass (each fast gain given a few MSE iterations, which replaces it);
-    a newer configuration supersedes both passes."""
+    process designs a first gain (``idle`` clear): the fast gains of the single failures
+    of the newest precompute first (so that the next failure is foreseen within a second
+    or two of a switch), then the refined gain of a configuration put in force on a fast
+    one, then the rest of the fast pass (pairs) and the polish pass (each fast gain given
+    a few MSE iterations, which replaces it); a newer configuration supersedes both
+    passes, and a refinement in progress gives way to it (it is started again after the
+    newer single failures). Before, the refinement came first: at T = 15 it holds the
+    process for seconds, and a second failure 96 steps after the first switch found its
+    gains not designed (2.8 s from verdict to gains)."""
     from collections import deque
 
     from agent.monitor.core import GainSource, design_gains_for
+    from design.roster import carried_gains
 
     _quiet_signals()
-
-    def yield_to_urgent(_progress) -> None:
-        while not idle.wait(timeout=1.0):
-            pass
-
     refine, fast = deque(), deque()    # configurations still to design
     first = {}                         # key -> the fast gain its polish starts from
+    arrived = deque()                  # requests read while a refinement was in progress
+    designing = [None]                 # the kind of the design in progress
+
+    def between_iterations(_progress) -> None:
+        """Wait while the urgent process designs a first gain; a refinement gives way to
+        a newer precompute (it starts again after that one's single failures)."""
+        while not idle.wait(timeout=1.0):
+            pass
+        if designing[0] != "refined":
+            return
+        while True:
+            try:
+                arrived.append(requests.get_nowait())
+            except queue.Empty:
+                break
+        if any(it is None or it[0] == "precompute" for it in arrived):
+            raise _GiveWay
+
     while True:
         try:
-            item = requests.get() if not (refine or fast) else requests.get_nowait()
+            if arrived:
+                item = arrived.popleft()
+            else:
+                item = requests.get() if not (refine or fast) else requests.get_nowait()
         except queue.Empty:
             idle.wait()
             init = None
-            if refine:
+            if refine and not (fast and fast[0][3]):
                 nxt, kind = refine.popleft(), "refined"
             else:
-                nxt, kind = fast.popleft()
-                init = first.pop(GainSource.key(nxt), None)
-            G, info = design_gains_for(nxt, kind, progress=yield_to_urgent, init=init)
+                nxt, kind, init, _ = fast.popleft()
+                if kind == "polished":
+                    init = first.pop(GainSource.key(nxt), None)
+            designing[0] = kind
+            try:
+                G, info = design_gains_for(nxt, kind, progress=between_iterations, init=init)
+            except _GiveWay:
+                refine.appendleft(nxt)
+                continue
+            finally:
+                designing[0] = None
             if kind == "fast" and G is not None:
                 first[GainSource.key(nxt)] = G
             elif kind == "fast":               # no stabilising gain: nothing to polish
                 key = GainSource.key(nxt)
-                fast = deque(e for e in fast if GainSource.key(e[0]) != key)
+                fast = deque(e for e in fast if GainSource.key(e[0]) != key
+                             or e[1] != "polished")
             results.put((nxt, G, info))
             continue
         if item is None:
@@ -215,10 +249,17 @@ def _serve_precompute(requests, results, idle) -> None:
         if item[0] == "refine":
             refine.append(item[1])
         else:
-            planned = [nxt for _, nxt in plan_failures(item[1])]
-            fast = deque([(nxt, "fast") for nxt in planned]
-                         + [(nxt, "polished") for nxt in planned])
+            roster, G = item[1], item[2]
+            planned = plan_failures(roster)        # singles first, then pairs
+            # (configuration, kind, warm start, a single failure's first gain)
+            fast = deque([(nxt, "fast", None if G is None else carried_gains(roster, G, nxt),
+                           len(a) == 1) for a, nxt in planned]
+                         + [(nxt, "polished", None, False) for _, nxt in planned])
             first = {}
+
+
+class _GiveWay(Exception):
+    """A refinement in progress gives way to a newer precompute."""
 
 
 def steady_mse_of(roster, G):

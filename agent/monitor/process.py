@@ -149,7 +149,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     def precompute_for(roster):
         if precompute and precomputing[0] is not roster:
             precomputing[0] = roster
-            worker.precompute(roster)
+            worker.precompute(roster, core.G if roster is core.roster else None)
 
     if monitor_id == 1:
         precompute_for(core.roster)  # the scenario's configuration: at once, not once active

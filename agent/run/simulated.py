@@ -134,12 +134,13 @@ class _GainDesigns:
 
     cache: dict = {}
 
-    def _design(self, roster, kind):
+    def _design(self, roster, kind, warm=None):
         from agent.monitor.core import design_gains_for
 
-        key = (roster.scenario.A.tobytes(), GainSource.key(roster), kind)
+        key = (roster.scenario.A.tobytes(), GainSource.key(roster), kind,
+               None if warm is None else b"".join(np.asarray(g).tobytes() for g in warm))
         if key not in self.cache:
-            init = self._design(roster, "fast")[0] if kind == "polished" else None
+            init = self._design(roster, "fast", warm)[0] if kind == "polished" else warm
             if kind == "polished" and init is None:
                 self.cache[key] = (None, {})
             else:
@@ -151,24 +152,25 @@ class _GainDesigns:
         self.ready: list = []
         self.generation = 0
 
-    def _answer(self, roster, kinds):
+    def _answer(self, roster, kinds, init=None):
         for kind in kinds:
-            G, info = self._design(roster, kind)
+            G, info = self._design(roster, kind, init if kind == "fast" else None)
             self.rt.after(self.rt.config.design_s,
                           lambda G=G, info=info: self.ready.append((roster, G, info)))
 
-    def request(self, roster, kinds=("fast",)):
-        self._answer(roster, kinds)
+    def request(self, roster, kinds=("fast",), init=None):
+        self._answer(roster, kinds, init)
 
     def assess(self, roster, G, info):
         pass                                   # the exact MSE of a fast gain: not needed here
 
-    def precompute(self, roster):
+    def precompute(self, roster, in_force=None):
         """The failures of ``roster`` planned (:func:`agent.monitor.gain_worker.plan_failures`,
         as the monitor's worker does) and their fast gains answered one after the other,
         ``precompute_s`` apart, then their polished gains, ``polish_s`` apart; a newer
         precompute abandons the rest of an older one."""
         from agent.monitor.gain_worker import plan_failures
+        from design.roster import carried_gains
 
         self.generation += 1
         generation = self.generation
@@ -178,7 +180,9 @@ class _GainDesigns:
         for kind, dt in (("fast", cfg.precompute_s), ("polished", cfg.polish_s)):
             for nxt in planned:
                 at += dt
-                G, info = self._design(nxt, kind)
+                G, info = self._design(nxt, kind,
+                                       None if in_force is None
+                                       else carried_gains(roster, in_force, nxt))
                 if G is None and kind == "polished":
                     continue
                 self.rt.after(at, lambda G=G, info=info, nxt=nxt:
@@ -567,7 +571,7 @@ class SimRuntime:
         m.seat.lines.clear()
         if m.seat.precompute:
             m.seat.precompute = False
-            m.designs.precompute(m.core.roster)
+            m.designs.precompute(m.core.roster, m.core.G)
         if state != "act":
             return
         for msg in m.core.tick(self.now):
@@ -576,7 +580,7 @@ class SimRuntime:
         for kind, fields in m.core.new_records():
             self._monitor_event(m, kind, fields)
             if kind == "reassign":
-                m.designs.precompute(m.core.roster)
+                m.designs.precompute(m.core.roster, m.core.G)
         roster = m.core.roster_message
         if roster is not None and self.now >= m.roster_at:
             self._roster_out(m, roster)
