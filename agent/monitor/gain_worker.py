@@ -153,6 +153,24 @@ def _quiet_signals():
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def _warm_up(design_gains_for) -> None:
+    """Import what a design needs and run one small design, before the first request:
+    in a cold process the first unforeseen failure's gain waited for them (the roster's
+    unpickling imports the scenario and roster modules, the first design sets up scipy's
+    lazy parts: 1.1 s from verdict to gains beside two busy loops, for a 25 ms design).
+    It runs while the monitor waits for the precompute of the single failures before
+    joining (:func:`agent.monitor.process.foresee_single_failures`): it delays that join,
+    never a foreseen failure's answer (before that gate it did, and a crash at step 100
+    found its failure not precomputed yet under load)."""
+    try:
+        from design.roster import Roster
+        from design.scenario import load_scenario
+
+        design_gains_for(Roster.initial(load_scenario("paper-14")), "fast")
+    except Exception:       # noqa: BLE001 - a warm-up only: the requests are served anyway
+        pass
+
+
 def _serve_urgent(requests, results, idle) -> None:
     """Requests only: a configuration nobody foresaw is designed at once (no precompute
     design is ahead of it in this process). ``idle`` is clear while a request is being
@@ -160,6 +178,7 @@ def _serve_urgent(requests, results, idle) -> None:
     from agent.monitor.core import design_gains_for
 
     _quiet_signals()
+    _warm_up(design_gains_for)
     while True:
         item = requests.get()
         if item is None:
