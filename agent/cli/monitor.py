@@ -53,6 +53,12 @@ def add_arguments(parser) -> None:
                              "RUN_FOLDER/control.key): every assignment and roster is signed")
     parser.add_argument("--no-precompute", action="store_true",
                         help="do not precompute the single failures at start-up")
+    parser.add_argument("--prepare-s", type=float, default=TIMING.monitor_prepare_s,
+                        metavar="S",
+                        help="monitor 1 joins the run once it has the gains of every single "
+                             "failure, waiting at most S seconds (default "
+                             f"{TIMING.monitor_prepare_s:g}; 0 joins at once, as a monitor "
+                             "started again in a run in progress should)")
     add_manifest_argument(parser)
     add_net_arguments(parser)
 
@@ -100,6 +106,10 @@ def run(args) -> int:
         G = load_gains_arg(args.gains, scenario, force=args.force_gains).G
         if args.id < 1:
             raise CommandError(f"--id: must be >= 1, got {args.id}")
+        if not (math.isfinite(args.prepare_s) and 0 <= args.prepare_s
+                < TIMING.start_timeout_s):
+            raise CommandError(f"--prepare-s: must be in [0, {TIMING.start_timeout_s:g}) "
+                               f"(the world's start timeout), got {args.prepare_s}")
         if args.lead_steps < 1:
             raise CommandError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
         net = net_config_arg(args, identity="monitor")
@@ -122,6 +132,6 @@ def run(args) -> int:
             print(f"monitor {args.id}: warning: {line}", file=sys.stderr, flush=True)
         return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
                            events_out=args.events, precompute=not args.no_precompute,
-                           signer=signer, prepare_s=timing.monitor_prepare_s)
+                           signer=signer, prepare_s=args.prepare_s)
 
     return run_command(body)

@@ -155,7 +155,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         precompute_for(core.roster)  # the scenario's configuration: at once, not once active
 
     try:
-        if monitor_id == 1 and precompute:
+        if monitor_id == 1 and precompute and prepare_s > 0:
             foreseen = foresee_single_failures(worker, gains, core.roster, stop, prepare_s)
             print(f"monitor {monitor_id}: {foreseen['line']}; joining the run", file=log,
                   flush=True)

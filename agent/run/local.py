@@ -370,7 +370,9 @@ class LocalRun:
                             raise RunFailed(f"{old} did not exit within 10 s of SIGKILL; "
                                             "not starting a second monitor beside it")
                         restarts += 1
-                        children.start(f"monitor-{restarts + 1}", argv["monitor"],
+                        # in a run in progress: joins at once (no wait for its precompute)
+                        children.start(f"monitor-{restarts + 1}",
+                                       argv["monitor"] + ["--prepare-s", "0"],
                                        self._wrap("monitor"))
                         event(process=f"monitor-{restarts + 1}", started=True, step=k_now)
                     elif f.kind == "sensor":
