@@ -6,7 +6,9 @@ ticks the core every ``TICK_S``, and publishes what the core decides: assignment
 ``ROSTER_S`` so that an agent coming back learns it was replaced. At start-up a
 background process precomputes the plan and the gains of every single failure of the
 configuration in force (again after every reassignment), so that a foreseen failure is
-answered without designing anything. Designs run in the processes of an
+answered without designing anything; the first monitor joins the run (declares its token,
+which a world started with ``--wait-monitor`` waits for) only once every single failure
+is foreseen (:func:`foresee_single_failures`). Designs run in the processes of an
 :class:`agent.monitor.gain_worker.GainWorker`, never in this loop: a configuration nobody foresaw
 waits for its gains while detection goes on, and a fast gain in force is replaced by the
 refined one under a new epoch when it comes back.
