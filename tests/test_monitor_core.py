@@ -1103,3 +1103,17 @@ def test_the_monitor_joins_once_every_single_failure_is_foreseen_or_after_its_bo
         assert "every agent ([1, 2, 3])" in out["line"]
     else:
         assert out["seconds"] >= 0.3 and "of [1, 2, 3] (after 0.3 s" in out["line"]
+
+
+def test_a_standby_is_in_the_pool_before_the_clock_starts_not_once_it_stops_advancing(core):
+    """Before the clock starts nobody's step moves: the standby is available however long
+    the wait (a world waiting for its monitor). Once the others advance and the standby's
+    step does not for the hang timeout, it is not."""
+    _advance(core, 0.0, 6.0, lambda t: -1)                   # the clock has not started
+    assert core.standby_pool(6.0) == (4,)
+    _advance(core, 6.1, 7.0, lambda t: 50 * (t - 6.1))       # every step moves
+    assert core.standby_pool(7.0) == (4,)
+    _advance(core, 7.1, 9.0, lambda t: 50 * (t - 6.1), skip=(4,))
+    stuck = core.agents[4].step
+    core.on_status(_status(4, stuck, active=False), 9.0)    # still reporting its step
+    assert core.standby_pool(9.0) == ()

@@ -39,6 +39,15 @@ def test_the_simulated_runtime_equals_the_design_simulator(live, faults):
         assert 0.3 * exact < r.summary["mse_steady_after_recovery"] < 3 * exact
 
 
+def test_the_clock_starts_once_the_monitor_foresees_every_single_failure(live):
+    """Designs slow (2 s a precomputed gain): the world waits for monitor 1 as ``up``'s
+    does, so a crash at the first step is answered with precomputed gains."""
+    r = _run(live, [Fault(2, "crash", 3)], steps=200, precompute_s=2.0)
+    (f,) = r.summary["failures"]
+    assert (f["agent"], f["precomputed"]) == (3, True), f
+    assert f["activate_at"] - f["detected_step"] <= 15 and r.summary["recovered"] is True
+
+
 @pytest.mark.slow
 def test_a_crash_before_the_roles_answering_another_replays_in_the_simulator(live):
     """Agent 2 crashes, agent 1 eight steps later, before the roles answering agent 2 are

@@ -1038,8 +1038,9 @@ class MonitorCore:
         return self._reassign([], now, unanswered=stuck)
 
     def standby_pool(self, now: float, exclude=()) -> tuple:
-        """Ids that can take a role now: alive, advancing as standbys (no role), and not
-        on probation after a conviction. A replaced agent that came back (SIGCONT, a
+        """Ids that can take a role now: alive, advancing as standbys (no role; a standby
+        whose step has not moved for the hang timeout while the others' did is not), and
+        not on probation after a conviction. A replaced agent that came back (SIGCONT, a
         healed partition) and was fenced into a standby rejoins the pool after probation
         (:meth:`_probation`)."""
         cfg = self.config
@@ -1048,8 +1049,11 @@ class MonitorCore:
             st = self.agents[a]
             if a in self.roster.ids or a in exclude or not st.alive or st.progress_at is None:
                 continue
-            if st.status.get("active") or now - st.progress_at > cfg.hang_timeout_s:
+            if st.status.get("active"):
                 continue
+            if now - st.progress_at > cfg.hang_timeout_s and \
+                    self.detector.newest_step(exclude=a) > st.step:
+                continue        # stale while the others advanced (not: before the clock)
             if a in self.on_probation:
                 continue
             out.append(a)

@@ -40,7 +40,8 @@ import os
 import queue
 import sys
 
-__all__ = ["GainWorker", "BACKGROUND_NICE", "precompute_single_failures"]
+__all__ = ["GainWorker", "BACKGROUND_NICE", "precompute_single_failures",
+           "unforeseen_single_failures"]
 
 #: Niceness of the background (refining) process.
 BACKGROUND_NICE = 10
@@ -317,6 +318,14 @@ def plan_failures(roster) -> list:
         if nxt is not None:
             planned.append((a, nxt))
     return planned
+
+
+def unforeseen_single_failures(gains, planned) -> list:
+    """The ids whose single failure in ``planned`` (:func:`plan_failures`) has no gains
+    known to ``gains`` (a :class:`agent.monitor.core.GainSource`) yet: the first monitor
+    joins a run once there are none (the live monitor and the simulated runtime both ask
+    this)."""
+    return [a[0] for a, nxt in planned if len(a) == 1 and not gains.known(nxt)]
 
 
 def precompute_single_failures(roster, gains, stop=lambda: False, log=None,

@@ -65,19 +65,19 @@ def foresee_single_failures(worker, gains, roster, stop, limit: float) -> dict:
     clock once this monitor has joined, so every single failure is foreseen from step 0.
     Returns ``foreseen`` / ``planned`` (lists of failed ids), ``seconds`` and ``line``,
     the sentence the monitor prints."""
-    from agent.monitor.gain_worker import plan_failures
+    from agent.monitor.gain_worker import plan_failures, unforeseen_single_failures
 
     planned = [(a, nxt) for a, nxt in plan_failures(roster) if len(a) == 1]
     t0 = time.monotonic()
     while True:
         for r, G, info in worker.poll(timeout=0.05):
             gains.put(r, G, info)
-        missing = [a for a, nxt in planned if not gains.known(nxt)]
+        missing = unforeseen_single_failures(gains, planned)
         waited = time.monotonic() - t0
         if not missing or waited > limit or stop.flag:
             break
-    foreseen = [a[0] for a, _ in planned if [a[0]] not in missing]
     ids = [a[0] for a, _ in planned]
+    foreseen = [a for a in ids if a not in missing]
     if missing:
         why = "stopped" if stop.flag else f"after {limit:g} s"
         line = (f"foresees the failure of agents {foreseen} of {ids} ({why}; the others get "

@@ -248,6 +248,7 @@ class SimRuntime:
         self._busy_until: dict = {}
         self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s)
         self.monitors: dict = {}               # id -> _SimMonitor (the newest of that id)
+        self._planned = None                   # monitor 1's single failures, at the start
         self.monitors_alive: set = set()       # ids whose token is up
         self._token_gone: set = set()          # agents whose token is down
         self._restarts = 0
@@ -311,6 +312,21 @@ class SimRuntime:
             self.paused_until.get(name, -1.0) <= self.now
 
     # -- the world -------------------------------------------------------------------
+    def _start_world(self) -> None:
+        """The clock starts once monitor 1 foresees every single failure (bounded by
+        ``Timing.monitor_prepare_s``), as ``up``'s world waits for the live monitor's
+        token (:func:`agent.monitor.process.foresee_single_failures`)."""
+        from agent.monitor.gain_worker import plan_failures, unforeseen_single_failures
+
+        m = self.monitors.get(1)
+        if m is not None and self._planned is None:
+            self._planned = plan_failures(m.core.roster)
+        if (m is not None and self.now < self.config.start_s + TIMING.monitor_prepare_s
+                and unforeseen_single_failures(m.gains, self._planned)):
+            self.after(self.config.tick_s, self._start_world)
+            return
+        self._world_step()
+
     def _world_step(self) -> None:
         w = self.world
         k = w.step
@@ -638,7 +654,7 @@ class SimRuntime:
             self._start_monitor(monitor_id, 0.0 if monitor_id == 1 else c.listen_s)
         for a in self.agents:
             self.after(0.01 * a / self.M, lambda a=a: self._status_loop(a))
-        self.after(c.start_s, self._world_step)
+        self.after(c.start_s, self._start_world)
         while self._queue:
             t, _, fn = heapq.heappop(self._queue)
             if t > self._end_at:
