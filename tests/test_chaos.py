@@ -138,3 +138,23 @@ def test_longer_chaos_runs_keep_every_invariant(tmp_path, seed):
     report = _chaos(tmp_path, seed, "kill,stop,monitor,partition,delay,drop", duration=2500,
                     rate=4.0)
     assert report["violations"] == []
+
+
+def test_the_timeline_places_a_failure_no_verdict_answered_where_the_agent_died(tmp_path):
+    """A standby killed with no verdict (``detected_step`` None) once made ``socmon chaos``
+    die writing its timeline (chaos seed 105): it is placed at the step it died."""
+    from agent.run.chaos import write_timeline
+
+    summary = {"scenario": "paper-14-live", "seed": 105, "agents": 3, "standby": 1,
+               "step_ms": 20.0, "failures": [
+                   {"agent": 1, "cause": "crash", "detected_step": 120},
+                   {"agent": 4, "cause": "crash", "detected_step": None, "died_step": 300},
+                   {"agent": 2, "cause": "crash", "detected_step": None}]}
+    schedule = [Fault(100, "kill", 1), Fault(290, "kill", 4)]
+    steps = list(range(400))
+    write_timeline(tmp_path, summary, steps, [1.0] * 400, schedule,
+                   [(0, (1, 2, 3), 0), (130, (4, 2, 3), 1)])
+    items = json.loads((tmp_path / "timeline.json").read_text())
+    assert [(i["step"], i["what"]) for i in items] == [
+        (100, "fault"), (120, "verdict"), (130, "activation"), (290, "fault"),
+        (300, "undetected")]

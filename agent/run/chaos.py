@@ -370,8 +370,15 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
     from agent.run.jsonable import to_jsonable
 
     items = [{"step": f.step, "what": "fault", **f.to_dict()} for f in schedule]
-    items += [{"step": v["detected_step"], "what": "verdict", "agent": v["agent"],
-               "cause": v["cause"]} for v in summary.get("failures", [])]
+    for v in summary.get("failures", []):
+        # a failure no verdict answered (a standby killed, no monitor alive) has no
+        # detected_step: it is placed where the agent died, when that is known
+        step = v.get("detected_step")
+        what = "verdict" if step is not None else "undetected"
+        step = step if step is not None else v.get("died_step")
+        if step is not None:
+            items.append({"step": step, "what": what, "agent": v["agent"],
+                          "cause": v["cause"]})
     items += [{"step": at, "what": "activation", "ids": list(ids), "epoch": ep}
               for at, ids, ep in rosters[1:]]
     items.sort(key=lambda x: x["step"])
@@ -400,7 +407,8 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
         lane.text(f.step, y + 0.35, f.kind, fontsize=7)
         ax.axvline(f.step, color=colours.get(f.kind, "grey"), lw=0.6, alpha=0.6)
     for v in summary.get("failures", []):
-        lane.plot(v["detected_step"], v["agent"], "kx", ms=6)
+        if v.get("detected_step") is not None:      # no verdict: nothing to mark
+            lane.plot(v["detected_step"], v["agent"], "kx", ms=6)
     for at, ids, _ in rosters[1:]:
         ax.axvline(at, color="tab:green", lw=0.8, ls="--")
         for a in ids:
