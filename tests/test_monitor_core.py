@@ -1117,3 +1117,43 @@ def test_a_standby_is_in_the_pool_before_the_clock_starts_not_once_it_stops_adva
     stuck = core.agents[4].step
     core.on_status(_status(4, stuck, active=False), 9.0)    # still reporting its step
     assert core.standby_pool(9.0) == ()
+
+
+def test_a_pending_reassignment_superseded_too_close_to_its_step_goes_to_every_agent():
+    """Agent 1 crashes and its roles go out for step A; agent 2 crashes a few steps before
+    A, too close to reuse A, and its gains come at once. Every agent of the new
+    configuration gets the new epoch, the ones whose role did not change too: none runs
+    the pending roles from A while the others wait for the new step."""
+    from agent.monitor.core import design_gains_for
+
+    core, worker = _live_core_with_worker()
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 1, False, 2.05)
+    core.tick(2.05)
+    (first, _), = worker.requests
+    core.gains.put(first, *design_gains_for(first, "fast"))
+    (msg,) = [m for m in core.tick(2.06) if isinstance(m, RosterUpdate)]
+    role_of_3 = core.specs[3]                    # agent 3's role in the pending epoch 1
+    t = 2.06
+    while 50 * t < msg.activate_at - 3:                      # 3 steps before A
+        t += 0.02
+        for a in (2, 3, 4):
+            core.on_status(_status(a, int(50 * t), epoch=1 if a != 2 else 0), t)
+        core.tick(t)
+    core.on_liveliness("agent", 2, False, t)
+    out = []
+    for k in range(1, 40):
+        for a in (3, 4):
+            core.on_status(_status(a, int(50 * (t + 0.01 * k)), epoch=1), t + 0.01 * k)
+        if len(worker.requests) > 1 and not core.gains.has(worker.requests[-1][0]):
+            # the gains in force carried over (what a warm-started fast design returns
+            # when they stabilise the new configuration): agent 3's role is unchanged
+            second = worker.requests[-1][0]
+            core.gains.put(second, core.warm_start(second), {"kind": "fast", "rho": 0.9})
+        out = core.tick(t + 0.01 * k)
+        if any(isinstance(m, RosterUpdate) for m in out):
+            break
+    (new,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert new.epoch == 2 and new.activate_at > msg.activate_at and new.ids == (4, 3)
+    sent = {m.agent: m.spec for m in out if isinstance(m, Assignment)}
+    assert set(sent) == {4, 3} and sent[3].same_as(role_of_3)    # unchanged, sent anyway

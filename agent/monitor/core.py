@@ -907,10 +907,16 @@ class MonitorCore:
         if prev is not None and prev.activate_at >= max(self.current_step(now), 0) \
                 + self.config.lead_steps // 2:
             activate_at = min(activate_at, prev.activate_at)
+        # ... else, when it is still pending but too close to reuse its step, every agent
+        # gets the new epoch: one whose role did not change since the pending one would
+        # otherwise run that one from its step while the others wait for the new one
+        # (seen: agents 1 and 2 killed two steps apart, the second answered in 0.09 s)
+        superseded = prev is not None and activate_at != prev.activate_at \
+            and prev.activate_at > max(self.current_step(now), 0)
         self._unconfirmed = {a: asg for a, asg in self._unconfirmed.items() if a in nxt.ids}
         out = []
         for agent, spec in specs.items():
-            if not spec.same_as(self.specs.get(agent)) or spec.take_over:
+            if not spec.same_as(self.specs.get(agent)) or spec.take_over or superseded:
                 asg = Assignment(agent, self.epoch, activate_at, spec)
                 out.append(asg)
                 self._unconfirmed[agent] = asg
