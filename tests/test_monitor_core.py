@@ -614,11 +614,10 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     assert core.tick(2.6) == []                           # nothing more to upgrade
 
 
-def test_an_agent_convicted_before_it_confirmed_is_not_waited_for(paper14):
-    """Agent 1 crashes; before agent 2 confirms the roles that answer it, agent 2 crashes
-    too, and the roles answering both wait for their gains. The first roles are not
-    re-issued to the dead agent meanwhile (epochs churned for nothing): the next epoch
-    is the reassignment that answers agent 2."""
+def _agent_1_replaced():
+    """:func:`_live_core_with_worker` at 50 steps a second; agent 1 crashes at 2.05 s and
+    the roles answering it go out at 2.06 s (fast gains). Returns the core, its worker
+    and the roster message of epoch 1."""
     from agent.monitor.core import design_gains_for
 
     core, worker = _live_core_with_worker()
@@ -628,6 +627,17 @@ def test_an_agent_convicted_before_it_confirmed_is_not_waited_for(paper14):
     (first, _), = worker.requests
     core.gains.put(first, *design_gains_for(first, "fast"))
     (msg,) = [m for m in core.tick(2.06) if isinstance(m, RosterUpdate)]
+    return core, worker, msg
+
+
+def test_an_agent_convicted_before_it_confirmed_is_not_waited_for(paper14):
+    """Agent 1 crashes; before agent 2 confirms the roles that answer it, agent 2 crashes
+    too, and the roles answering both wait for their gains. The first roles are not
+    re-issued to the dead agent meanwhile (epochs churned for nothing): the next epoch
+    is the reassignment that answers agent 2."""
+    from agent.monitor.core import design_gains_for
+
+    core, worker, msg = _agent_1_replaced()
     assert msg.epoch == 1 and msg.ids == (4, 2, 3)
     core.on_liveliness("agent", 2, False, 2.1)
     t = 2.1
@@ -1124,15 +1134,7 @@ def test_a_pending_reassignment_superseded_too_close_to_its_step_goes_to_every_a
     A, too close to reuse A, and its gains come at once. Every agent of the new
     configuration gets the new epoch, the ones whose role did not change too: none runs
     the pending roles from A while the others wait for the new step."""
-    from agent.monitor.core import design_gains_for
-
-    core, worker = _live_core_with_worker()
-    _advance(core, 0.0, 2.0, lambda t: 50 * t)
-    core.on_liveliness("agent", 1, False, 2.05)
-    core.tick(2.05)
-    (first, _), = worker.requests
-    core.gains.put(first, *design_gains_for(first, "fast"))
-    (msg,) = [m for m in core.tick(2.06) if isinstance(m, RosterUpdate)]
+    core, worker, msg = _agent_1_replaced()
     role_of_3 = core.specs[3]                    # agent 3's role in the pending epoch 1
     t = 2.06
     while 50 * t < msg.activate_at - 3:                      # 3 steps before A
