@@ -41,6 +41,7 @@ class Children:
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict = {}
+        self._unreported: list = []   # exited children not yet returned by reap()
 
     def start(self, name: str, argv: list, wrap=()) -> Child:
         """Start ``python -m agent.cli *argv`` as ``name``; ``wrap`` is an argv prefix that
@@ -64,8 +65,13 @@ class Children:
         return child
 
     def reap(self) -> list:
-        """Collect children that have exited; return those newly found."""
-        done = []
+        """Children that exited since the last call, each returned exactly once (also when
+        :meth:`running` found it first)."""
+        self._collect()
+        done, self._unreported = self._unreported, []
+        return done
+
+    def _collect(self) -> None:
         for child in self.children.values():
             if child.returncode is not None:
                 continue
@@ -80,11 +86,11 @@ class Children:
             child.cpu_s = (usage.ru_utime + usage.ru_stime) if usage is not None else None
             child.ended_at = time.monotonic()
             child._log.close()
-            done.append(child)
-        return done
+            self._unreported.append(child)
 
     def running(self) -> list:
-        self.reap()
+        """Children still running; one that exited is kept for the next :meth:`reap`."""
+        self._collect()
         return [c for c in self.children.values() if c.returncode is None]
 
     def signal_all(self, sig) -> None:
