@@ -30,6 +30,8 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -247,12 +249,15 @@ def role_specs(roster: Roster, G, take_over=None) -> dict:
     return out
 
 
-def roster_from_specs(scenario, table, ids, specs: dict):
+def roster_from_specs(scenario, table, ids, specs: dict, transient: bool = False):
     """The configuration held by ``ids`` whose roles are ``specs`` ({id: RoleSpec}).
 
     Returns ``(Scenario, G, delays)`` by row (row i = ``ids[i]``), delays from the run's
     link delay ``table``: what a recorder rebuilds from the assignments it saw, to predict
     the new configuration's error exactly and to replay it in the simulator.
+    ``transient``: the roles some agents ran for a few steps while others still ran older
+    ones (an assignment heard too late), replayed as the agents ran them: not validated as
+    a network (it need not be strongly connected).
     """
     ids = [int(a) for a in ids]
     n = len(ids)
@@ -272,5 +277,8 @@ def roster_from_specs(scenario, table, ids, specs: dict):
     idx = [a - 1 for a in ids]
     D = np.asarray(table)[np.ix_(idx, idx)]
     D = np.where((W > 0) & ~np.eye(n, dtype=bool), D, 0)
-    new = scenario.replace(W=W, measure=tuple(measure), delays=D, standby=0)
+    if transient:
+        new = dataclasses.replace(scenario, W=W, measure=tuple(measure), delays=D, standby=0)
+    else:
+        new = scenario.replace(W=W, measure=tuple(measure), delays=D, standby=0)
     return new, G, D

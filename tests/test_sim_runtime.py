@@ -189,3 +189,44 @@ def test_a_foreseen_crash_switches_first_to_the_precomputed_polished_gain(live):
     first, *later = history
     assert first["precomputed"] and first["gains"] == "fast" and first.get("gains_polished")
     assert [h["gains"] for h in later] == ["refined"]
+
+
+class _LateAssignment(SimRuntime):
+    """Agent ``agent`` hears every assignment of ``epoch`` ``late_s`` late (a slow link)."""
+
+    agent, epoch, late_s = 3, 1, 0.5
+
+    def _publish(self, src, msg):
+        from agent.monitor.core import Assignment
+
+        if isinstance(msg, Assignment) and msg.agent == self.agent and msg.epoch == self.epoch:
+            self.after(self.late_s, lambda: SimRuntime._publish(self, src, msg))
+            return
+        super()._publish(src, msg)
+
+
+@pytest.mark.slow
+def test_an_agent_that_hears_its_roles_too_late_is_replayed_as_it_ran(live):
+    """Agent 1 crashes; standby 4 takes its role and agents 2 and 3 get new gains, but
+    agent 3 hears its assignment after its step: it runs its older role (still listening
+    to the dead agent 1) until the re-issue while 2 and 4 run the new ones. The record
+    says so, the simulator replays that mixed configuration as the agents ran it, and the
+    refined gains wait for the re-issue's step instead of superseding it (they came back
+    before it: a later ``activate_at`` would have left agent 3 behind 46 steps more). Then
+    agent 2 crashes: answered within the head start (15 steps, grown by the re-issue)."""
+    s, G = live
+    r = _LateAssignment(s, G, s.delays, seed=1,
+                        faults=[Fault(150, "crash", 1), Fault(260, "crash", 2)]).run(450)
+    summary = r.summary
+    (reissue,) = summary["reissues"]
+    assert reissue["reason"] == "activate_at passed before agents [3] confirmed"
+    assert any("was not run by all its agents" in w and "agent 3 never" in w
+               for w in summary["warnings"]), summary["warnings"]
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    in_force = [(x["epoch"], x["activate_at"]) for x in summary["rosters"]]
+    assert in_force[1] == (reissue["epoch"], reissue["activate_at"]), in_force
+    second = next(f for f in summary["failures"] if f["agent"] == 2)
+    assert any(x["ids"] == [4, 3] and x["activate_at"] <= second["detected_step"] + 20
+               for x in summary["rosters"]), (second, summary["rosters"])
+    assert summary["recovered"] is True

@@ -558,7 +558,7 @@ class MonitorCore:
         self._note_gain_mse()
         self._residual_alerts(now)
         if not suspended and self.last_step_reported >= 0 and not self._unconfirmed \
-                and self._pending is None:
+                and self._pending is None and not self._switch_ahead(now):
             out += self.check_delays(now)
             if not out:
                 out += self._upgrade_gains(now)
@@ -706,6 +706,13 @@ class MonitorCore:
         self.events.append(f"residual alert: agent {agent} {verdict.kind} (level "
                            f"{verdict.score:.3g}, from step {first}): "
                            f"{'; '.join(verdict.evidence)}; not convicted (an alert)")
+
+    def _switch_ahead(self, now: float) -> bool:
+        """The roles last sent are confirmed but not yet in force: new gains for them (the
+        refinement, the learned delays) wait for that step, so that they never postpone
+        a recovery by superseding it with a later ``activate_at``."""
+        return self._roster_msg is not None \
+            and self.current_step(now) < self._roster_msg.activate_at
 
     def _late_but_running(self) -> bool:
         """Some agent that has not confirmed has stepped since its assignment went out: it

@@ -371,6 +371,73 @@ def rosters_in_force(rosters, est_epoch, assigns):
     return out, mixed
 
 
+def configurations_run(rosters, est_epoch, assigns, kills, neighbours0):
+    """Every configuration the agents ran, agent by agent: ``[(step, ids, {id: epoch})]``
+    from each step at which some agent switched to a newer epoch, each agent running the
+    role of the newest epoch it had switched to (read from the epochs its estimates
+    carried). Where an epoch's agents switched together this is :func:`rosters_in_force`;
+    where they did not (one heard its assignment after its ``activate_at`` and ran the
+    older role until the re-issue), the steps between are a configuration of their own
+    that the simulator replays like any other. ``ids`` are the newest epoch's, then the
+    agents still running an older role, then the failed agents those roles still listen
+    to. ``kills``: agent -> the step of its scripted crash; ``neighbours0``: agent -> the
+    ids it listens to in the initial configuration.
+
+    Returns a sentence instead when an agent of a configuration neither ran a role nor
+    had failed by then (a standby that heard its assignment too late): it computed
+    nothing the simulator's rows could hold.
+
+    >>> rosters = [(0, (1, 2, 3), 0), (175, (1, 3), 1), (190, (1, 3), 2)]
+    >>> est = {1: {174: 0, 175: 1, 189: 1, 190: 2}, 2: {160: 0},
+    ...        3: {175: 0, 176: 0, 189: 0, 190: 2}}      # 3 heard epoch 1 too late
+    >>> assigns = {(1, 1): {"neighbours": {3: 0.5}}, (3, 1): {"neighbours": {1: 0.5}},
+    ...            (1, 2): {"neighbours": {3: 0.5}}, (3, 2): {"neighbours": {1: 0.5}}}
+    >>> ring = {1: {2}, 2: {3}, 3: {2}}
+    >>> for row in configurations_run(rosters, est, assigns, {2: 161}, ring): print(row)
+    (175, (1, 3, 2), {1: 1, 3: 0, 2: 0})
+    (190, (1, 3), {1: 2, 3: 2})
+    """
+    ids_of = {epoch: tuple(ids) for _, ids, epoch in rosters}
+
+    def listens_to(agent, epoch):
+        """The neighbours of ``agent`` in the role it ran under ``epoch``."""
+        recorded = [e for (a, e) in assigns if a == agent and e <= epoch]
+        if not recorded:
+            return set(neighbours0.get(agent, ()))
+        return {int(b) for b in assigns[(agent, max(recorded))].get("neighbours", {})}
+
+    switches = {}                      # agent -> [(step, epoch)], steps increasing
+    for a, by_step in est_epoch.items():
+        found = sorted((0 if e == 0 else switch_steps(by_step, e), e)
+                       for e in set(by_step.values()))
+        switches[a] = [(k, e) for k, e in found if k is not None]
+    steps = sorted({k for sw in switches.values() for k, _ in sw if k > 0})
+    out = []
+    for s in steps:
+        running = {a: max((e for k, e in sw if k <= s), default=None)
+                   for a, sw in switches.items()}
+        running = {a: e for a, e in running.items() if e is not None}
+        alive = [a for a in running if kills.get(a, math.inf) > s]
+        newest = max((running[a] for a in alive), default=0)
+        ids = list(ids_of.get(newest, ()))
+        ids += [a for a in sorted(alive) if a not in ids]
+        epochs = {a: running.get(a, newest) for a in ids}
+        i = 0
+        while i < len(ids):            # the failed agents the roles still listen to
+            heard = listens_to(ids[i], epochs[ids[i]])
+            for b in sorted(heard - set(ids)):
+                ids.append(b)
+                epochs[b] = running.get(b, epochs[ids[i]])
+            i += 1
+        late = [a for a in ids if a not in running and kills.get(a, math.inf) > s]
+        if late:
+            return (f"agent {late[0]} holds a role in epoch {newest} but had not started it "
+                    f"at step {s}, when others ran it: it computed nothing the simulator "
+                    "could replay")
+        out.append((s, tuple(ids), epochs))
+    return out
+
+
 def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
     """``(ids, {id: RoleSpec})`` of the last roster (or of the one of ``epoch``), from the
     assignments recorded up to that epoch."""
@@ -629,12 +696,15 @@ def compare_simulator(config, rec, steps_done):
                 for f in steps_of] or None
         rosters, mixed = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)
         if mixed:
-            m = mixed[0]
-            return float("inf"), (
-                f"the agents of epoch {m['epoch']} did not switch together (" + ", ".join(
-                    f"agent {a} {'at step ' + str(k) if k is not None else 'never'}"
-                    for a, k in sorted(m["switched"].items()))
-                + "): the simulator replays whole configurations only")
+            W0 = c.scenario.W
+            neighbours0 = {i + 1: {j + 1 for j in range(c.scenario.N) if j != i and W0[i, j] > 0}
+                           for i in range(c.scenario.N)}
+            phases = configurations_run(rec.rosters, rec.est_epoch, rec.assigns, kills,
+                                        neighbours0)
+            if isinstance(phases, str):
+                return float("inf"), phases
+        else:
+            phases = [(at, ids, {a: epoch for a in ids}) for at, ids, epoch in rosters[1:]]
         at_end, ids_end, epoch_end = rosters[-1]
         dead_at_end = sorted(a for a in ids_end if kills.get(a, math.inf) <= at_end)
         if len(rosters) > 1 and dead_at_end:
@@ -643,21 +713,26 @@ def compare_simulator(config, rec, steps_done):
                 f"run's end (epoch {epoch_end}) and not yet replaced: the simulator's last "
                 "configuration holds no failed agent")
         took = sorted(a for a in kills if a > c.scenario.N
-                      and any(a in ids for _, ids, _ in rosters[1:]))
+                      and any(a in ids for _, ids, _ in phases))
         if took:
             return float("inf"), (
                 f"agent {took[0]} was killed after it took a role: the simulator fails "
                 "agents of the initial configuration only")
         table = link_delay_table(c.scenario, c.delays)
-        chain = []
-        for i, (at, ids, epoch) in enumerate(rosters[1:], start=1):
-            _, specs = specs_in_force(rec.rosters, rec.assigns, c.scenario, G, epoch=epoch)
-            new, G_new, D_new = roster_from_specs(c.scenario, table, ids, specs)
-            before = set(rosters[i - 1][1])
+        specs_of: dict = {}           # epoch -> {id: RoleSpec} as of that epoch
+        chain, before = [], set(rosters[0][1])
+        for at, ids, epochs in phases:
+            for e in set(epochs.values()) - set(specs_of):
+                specs_of[e] = specs_in_force(rec.rosters, rec.assigns, c.scenario, G,
+                                             epoch=e)[1]
+            specs = {a: specs_of[epochs[a]][a] for a in ids}
+            new, G_new, D_new = roster_from_specs(c.scenario, table, ids, specs,
+                                                  transient=len(set(epochs.values())) > 1)
             replaces = {a: specs[a].take_over - 1 for a in ids
                         if a not in before and specs[a].take_over is not None}
             chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
                                   activate_at=at))
+            before = set(ids)
         recover = chain or None
         if recover is not None and fail is None:
             return float("inf"), ("a reassignment after the kill of a standby only cannot "
