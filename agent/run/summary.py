@@ -677,7 +677,8 @@ def compare_simulator(config, rec, steps_done):
     monitor's reassignments, the simulator replays every crash at its step (any number,
     at different steps; a standby killed before it took a role computed nothing) and the
     chain of configurations in force (:func:`rosters_in_force`: the step the agents
-    switched, the roles and gains of their assignments).
+    switched, the roles and gains of their assignments; where they did not switch
+    together, :func:`configurations_run`, agent by agent).
     Returns ``(difference, what was compared)``.
     """
     from design.roster import link_delay_table, roster_from_specs
