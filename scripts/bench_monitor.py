@@ -224,8 +224,14 @@ def recovery_table(args, tmp):
         gains = ("precomputed " if r["precomputed"] else "designed ") + "/".join(r["gains"])
         print(f"{r['tau']:<3} {r['killed']:<7} {str(r['switch_steps']):>13}  {conf:>13}  "
               f"{gains:<16} {peak:>10}  {r['steps_above_2x']:>3}  {r['reissues']:>8}  "
-              f"{str(r['recovered']):>9}  {str(r['diverged_at']):>8}  {r['check']:.2g}")
+              f"{str(r['recovered']):>9}  {str(r['diverged_at']):>8}  {_figure(r['check'])}")
     print(f"run folders: {tmp}")
+
+
+def _figure(value) -> str:
+    """A number as ``.2g``; what is not a number (``inf`` read back from JSON as a string,
+    None) as it is."""
+    return f"{value:.2g}" if isinstance(value, (int, float)) else str(value)
 STEP_S = 0.02           # socmon up's default step period
 
 
