@@ -54,3 +54,21 @@ def test_kills_at_two_different_steps_replay_in_the_simulator(tmp_path):
     assert s["final_roles"]["1"]["dead"] and s["final_roles"]["2"]["dead"]
     assert not s["final_roles"]["1"]["active"] and s["final_roles"]["4"]["active"]
     assert s["max_rel_diff_vs_simulator"] <= 1e-9
+
+
+def test_the_standby_killed_then_an_agent_replays_in_the_simulator(tmp_path):
+    """The standby (agent 4) dies first: the monitor convicts it and takes it out of the
+    pool, no role changes; then agent 1 dies and, no standby left, a survivor takes its
+    node. The run recovers and equals the simulator's replay (the standby computed
+    nothing: only agent 1's crash and the configuration answering it are replayed)."""
+    code, out, err = _socmon("up", "paper-14-live", "--steps", "400", "--kill", "100:4",
+                             "--kill", "220:1", "--check-simulator",
+                             "--out", str(tmp_path / "run"), "--json", timeout=420)
+    assert code == 0, err
+    s = json.loads(out)
+    assert sorted(f["agent"] for f in s["failures"]) == [1, 4], \
+        (s["failures"], monitor_story(tmp_path / "run"))
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert s["rosters"][-1]["ids"] in ([2, 3], [3, 2])
+    assert s["final_roles"]["4"]["dead"] and not s["final_roles"]["4"]["active"]
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9
