@@ -74,3 +74,33 @@ def test_the_documented_recipe_runs_a_whole_run_and_every_process_says_what_it_w
         assert "clock started at step 0; measures" in logs[f"agent-{a}"]
     assert "clock started at step 0; standby" in logs["agent-4"]
     assert "active" in logs["monitor"] and "the world ended after step 300" in logs["monitor"]
+
+
+def test_a_monitor_started_by_hand_warns_of_a_diverging_gap_as_up_does(tmp_path):
+    """Gains designed without the gap terms leave agent 3's gap diverging (tests/test_gap.py):
+    the first monitor says so at its start, before it joins a run."""
+    from agent.run.launcher import Children
+    from tests.waiting import wait_until
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    gains = tmp_path / "g.npz"
+    design = subprocess.run(
+        [sys.executable, "-m", "agent.cli", "design", "paper-14-live", "--delays", "uniform:3",
+         "--target", "0.95", "--starts", "2", "--max-iter", "60", "--no-gaps",
+         "--out", str(gains)], cwd=tmp_path, env=env, capture_output=True, text=True,
+        timeout=DEADLINE)
+    assert design.returncode == 0, design.stderr
+    children = Children(tmp_path / "logs")
+    try:
+        children.start("monitor", ["monitor", "paper-14-live", "--run", "gapwarn", "--gains",
+                                   str(gains), "--delays", "uniform:3", "--prepare-s", "2",
+                                   "--listen", f"tcp/127.0.0.1:{listen_port()}"])
+        log = tmp_path / "logs" / "monitor.log"
+        assert wait_until(lambda: "watching run gapwarn" in log.read_text(), DEADLINE), \
+            log.read_text()
+        text = log.read_text()
+        assert "monitor 1: warning: agent 3 fails: the others run a loop of exact radius" \
+            in text, text
+        assert text.index("warning: agent 3 fails") < text.index("watching run gapwarn")
+    finally:
+        children.stop_all(grace=5.0)
