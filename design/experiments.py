@@ -15,8 +15,8 @@ What ``socmon reproduce`` reports, as plain records: for the pedagogical example
 
 Delays: for a delay bound tau every inter-agent link carries tau steps (self links 0),
 the worst case of the bound. :func:`reproduce_section5` runs everything; the command line
-(:mod:`agent.cli.reproduce`) parses flags, calls it, and writes the figures, the
-report and ``results.json``.
+(:mod:`agent.cli.reproduce`) parses flags and calls it, and :mod:`agent.run.reproduce`
+writes the figures, the report and ``results.json``.
 """
 
 from __future__ import annotations

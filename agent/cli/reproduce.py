@@ -1,36 +1,18 @@
 """``socmon reproduce [--sampson PATH] --out DIR``: the paper's Section 5, recomputed.
 
-For the pedagogical example (paper-14) and, given its edge list, Sampson's monastery:
-
-* the table of rho against the delay bound: the paper's printed value, the paper's
-  formula ``rho(Ahat)^(1/(tau+1))`` for our delay-free gain, the exact radius of that
-  gain under the delay, the paper's Theorem 1 radius, and the exact radius of the gain
-  designed for that delay;
-* MSE figures (mean and 10-90 percentile band over the paper's number of trials): no
-  failure, and for paper-14 the failure of the agents measuring 7 and 9 replaced by
-  agents measuring 8 and 10 (recovery planner, gains designed for the new network);
-* the steady MSE of each simulation beside the exact (Lyapunov) prediction and the
-  paper's Phi (its printed value and Remark 2's formula for our gain);
-* ``report.md`` saying where our numbers differ from the paper's and why, and
-  ``results.json`` with every number.
-
-Delays: for a delay bound tau every inter-agent link carries tau steps (self links 0),
-the worst case of the bound. Exit status: 0 done, 1 some configuration had no
+Rho tables, MSE figures (with and without the failure of the agents measuring 7 and 9)
+and steady MSE for paper-14 and, given its edge list, Sampson's monastery, with
+``report.md`` and ``results.json``: what is computed and written is described in
+:mod:`agent.run.reproduce`. Exit status: 0 done, 1 some configuration had no
 stabilising gain or a run diverged, 2 bad input.
 """
 
 from __future__ import annotations
 
-import json
-import math
-from pathlib import Path
-
-from design.errors import ScenarioError
-from design.experiments import PAPER, explain_failure, reproduce_section5, steady_z
-
-from agent.cli._common import (EXIT_NEGATIVE, EXIT_OK, CommandError, parse_int, run_command,
-                      to_jsonable, versioned)
+from agent.cli._common import EXIT_NEGATIVE, EXIT_OK, parse_int, run_command
+from agent.cli._plot import plot_mse
 from agent.cli._progress import ProgressLine
+from agent.run.reproduce import reproduce_options, run_section5, write_reproduction
 
 HELP = "regenerate the paper's Section 5 (rho tables, MSE figures, steady MSE) with a report"
 
@@ -60,296 +42,21 @@ def run(args) -> int:
     return run_command(lambda: _run(args))
 
 
-# ---------------------------------------------------------------------------------
-# report
-
-
-def _f(x, d=4):
-    if x is None:
-        return "-"
-    if isinstance(x, float) and not math.isfinite(x):
-        return "inf"
-    return f"{x:.{d}f}" if abs(x) >= 1e-3 or x == 0 else f"{x:.2e}"
-
-
-def _rho_section(title, rows, with_theorem=True):
-    head = ("| tau | paper | paper's formula, our delay-free gain | exact, our delay-free gain |"
-            + (" Theorem 1 rho, delay-free gain |" if with_theorem else "")
-            + " exact, gain designed for tau |")
-    sep = "|---" * (head.count("|") - 1) + "|"
-    lines = [f"### {title}", "", head, sep]
-    for r in rows:
-        lines.append(
-            f"| {r['tau']} | {_f(r['paper'], 3)} | {_f(r['paper_formula_ours'])} | "
-            f"{_f(r['exact_delay_free_gain'])} |"
-            + (f" {_f(r['theorem1_delay_free_gain'])} |" if with_theorem else "")
-            + f" {_f(r['exact_designed_gain'])} |")
-    return lines
-
-
-def _mse_section(title, sims, paper_phi, our_phi):
-    lines = [f"### {title}", "",
-             "| tau | exact radius | simulated steady MSE (± s.e.) | exact steady MSE (Lyapunov) |"
-             " \\|sim - exact\\| / s.e. | paper's Phi | Phi (Remark 2) for our gain |",
-             "|---|---|---|---|---|---|---|"]
-    for i, s in enumerate(sims):
-        se = s["mse_steady_se"]
-        sim = _f(s["mse_steady"]) + (f" ± {_f(se)}" if se is not None else "")
-        if s["diverged"]:
-            sim += " (diverged)"
-        z = steady_z(s)
-        lines.append(
-            f"| {s['tau']} | {_f(s['rho_exact'])} | {sim} | {_f(s['mse_steady_exact'])} | "
-            f"{'-' if z is None else f'{z:.1f}'} | "
-            f"{_f(paper_phi, 3) if i == 0 else '-'} | "
-            f"{_f(our_phi.get('phi')) if i == 0 else '-'} |")
-    return lines
-
-
-def write_report(out: Path, results: dict) -> Path:
-    L = ["# The paper's Section 5, recomputed by socmon", "",
-         f"Command: `{results['command']}`. Every figure below is recomputed; "
-         f"`results.json` has all numbers, per-step MSE included.", "",
-         "Conventions: A of the pedagogical example is the transpose of the printed matrix "
-         "(docs and NOTES section 1); for a delay bound tau every inter-agent link is delayed "
-         "tau steps, the worst case of the bound, self links undelayed; MSE = mean over "
-         "agents and states of e^2; simulated steady MSE = mean over the last quarter of "
-         "the steps, ± its standard error across trials. Gains: `design_gains` with "
-         f"objective `{results.get('objective', 'rho')}` for each network and delay "
-         "bound, each started from the neighbouring design and certified by the exact "
-         "radius of its delayed loop.", ""]
-    for key, title in (("paper-14", "Pedagogical example (Section 5.1)"),
-                       ("sampson", "Sampson's monastery (Section 5.2)")):
-        if key not in results:
-            continue
-        r = results[key]
-        L += [f"## {title}", "",
-              f"n = {r['n']}, N = {r['N']}, rho(A) = {r['rho_A']:.4f}; {r['trials']} trials x "
-              f"{r['steps']} steps, seed {r['seed']}.", ""]
-        L += _rho_section("Spectral radius against the delay bound", r["rho_table"])
-        L += ["", f"![MSE]({r['figure']})", ""]
-        L += _mse_section("Steady MSE", r["simulations"], r["paper_phi"],
-                          r["phi_delay_free_gain"])
-        L.append("")
-        if "failure" in r:
-            f = r["failure"]
-            L += [f"### Failure of the agents measuring {', '.join(f['failed_nodes'])} "
-                  f"(agents {f['failed_agents']}) at step {f['fail_step']}", "",
-                  f"Recovery planner: replacement nodes {f.get('replacement_nodes')}; agents "
-                  f"after: {f.get('agents_after')} measuring {f.get('measure_after')}. "
-                  "Replacement agents take over the failed agents' last estimates and the "
-                  "gains designed for the new network.", ""]
-            if "rho_table" in f:
-                L += _rho_section("Recovered network: spectral radius", f["rho_table"],
-                                  with_theorem=False)
-                L += ["", f"![MSE with failure]({f['figure']})", ""]
-                L += _mse_section("Recovered network: steady MSE", f["simulations"],
-                                  PAPER["paper-14-recovered"]["phi"],
-                                  f.get("phi_delay_free_gain", {}))
-                nr = f["no_recovery"]
-                rad = f.get("unmeasured_parent_radius")
-                L += ["", f"Without recovery (tau = {nr['tau']}): steady MSE "
-                      f"{_f(nr['mse_steady'])}"
-                      + (" (diverged)" if nr["diverged"] else "")
-                      + ", the mean over the agents still running (their own gains, the "
-                      "failed neighbours' weights on themselves)."
-                      + ("" if rad is None else
-                         f" The parent SCCs left unmeasured have spectral radius {rad:.4f}"
-                         + (" < 1: the survivors' pair stays detectable, so their error "
-                            "can stay bounded without recovery; recovery restores "
-                            "observability." if rad < 1 else
-                            " >= 1: without recovery the error cannot stay bounded.")), ""]
-        if r["problems"]:
-            L += ["Problems: " + "; ".join(r["problems"]), ""]
-    why = explain_failure(results)
-    if why:
-        L += ["## What the failure figure shows, and why", ""] + why + [""]
-    L += ["## Where our numbers differ from the paper's, and why", ""]
-    L += differences(results)
-    path = out / "report.md"
-    path.write_text("\n".join(L) + "\n")
-    return path
-
-
-def _mse_statement(name, sim, paper_phi, our_phi, note) -> str:
-    exact = sim["mse_steady_exact"]
-    ratio = f" ({exact / paper_phi:.2g} times the paper's Phi)" if exact else ""
-    phi_text = _f(our_phi) if our_phi is not None else f"undefined ({note})"
-    return (
-        f"- **Steady MSE against Phi ({name}, delay-free).** The paper's Phi is {paper_phi}; "
-        f"for our gain the exact steady MSE (Lyapunov) is {_f(exact)}{ratio}, the "
-        f"simulation gives {_f(sim['mse_steady'])}, and Remark 2's Phi for our gain is "
-        f"{phi_text}. Phi is an approximation with an unspecified beta, neither a bound nor "
-        "an exact value, and depends on the gain; the Lyapunov value is exact for our gain"
-        + _agreement(sim) + ".")
-
-
-def _agreement(sim) -> str:
-    exact, got, se = sim["mse_steady_exact"], sim["mse_steady"], sim["mse_steady_se"]
-    if exact is None or se is None:
-        return ""
-    z = abs(got - exact) / se if se > 0 else math.inf
-    if z <= 3:
-        return f"; the simulated value is within {z:.1f} standard errors of it"
-    return (f"; the simulated value is {z:.1f} standard errors away from it (the run may be "
-            "too short for the transient to die out)")
-
-
-def differences(results) -> list:
-    """Plain statements comparing our numbers with the paper's."""
-    out = []
-    p = results.get("paper-14")
-    if p:
-        row0 = p["rho_table"][0]
-        out.append(
-            f"- **Delay-free radius.** The paper reports rho(Ahat) = {row0['paper']:.3f} for "
-            f"paper-14; our designed gain gives {row0['exact_designed_gain']:.4f}. The "
-            "printed gains are rounded and the cycle weights are not given, so they cannot "
-            "be reused; any stabilising design gives a different radius.")
-        worst = max(p["rho_table"], key=lambda r: r["tau"])
-        out.append(
-            f"- **The tables for tau > 0 are the paper's formula, not a certificate.** The "
-            f"paper's values equal rho(Ahat)^(1/(tau+1)) (ours: {worst['paper_formula_ours']:.4f} "
-            f"at tau = {worst['tau']}, paper {worst['paper']:.3f}). The exact radius of the "
-            f"delayed closed loop for our delay-free gain is "
-            f"{worst['exact_delay_free_gain']:.4f} at tau = {worst['tau']}"
-            + (" (UNSTABLE)" if worst["exact_delay_free_gain"] >= 1 else "")
-            + ": delays can destabilise a delay-free design (NOTES section 3; with "
-            "rho(A) > 1 as here, and with a stable A too), contrary to the claim that "
-            f"the gain works irrespective of the delays. A gain designed for the delay gives {worst['exact_designed_gain']:.4f}.")
-        unstable = [r["tau"] for r in p["rho_table"] if r["exact_delay_free_gain"] >= 1]
-        if unstable:
-            out.append(f"- Our delay-free gain is unstable under delays tau = {unstable}; "
-                       "the MSE figures therefore use, for each tau, the gain designed for it.")
-        s0 = p["simulations"][0]
-        phi = p["phi_delay_free_gain"].get("phi")
-        out.append(_mse_statement("paper-14", s0, p["paper_phi"], phi,
-                                  p["phi_delay_free_gain"].get("phi_note", "")))
-        f = p.get("failure")
-        if f and "rho_table" in f:
-            out.append(
-                f"- **Recovery.** The planner replaces the measurements of "
-                f"{f['failed_nodes']} by {f.get('replacement_nodes')} (paper: 8 and 10); "
-                f"recovered delay-free radius {f['rho_table'][0]['exact_designed_gain']:.4f} "
-                f"(paper 0.851).")
-        out.append(
-            "- **Observability.** The distributed pair (W (x) A, D_H) of paper-14 is not "
-            "observable (numerical rank 33 of 42: nodes 6..14 have a_ii = 0); its "
-            "unobservable modes are stable, so it is detectable and stabilising gains exist.")
-    slow = []
-    for key in ("paper-14", "sampson"):
-        r = results.get(key)
-        if not r:
-            continue
-        for label, sims in ((key, r["simulations"]),
-                            (key + " recovered", r.get("failure", {}).get("simulations", []))):
-            for sim in sims:
-                z = steady_z(sim)
-                if z is not None and z > 3:
-                    slow.append(f"{label} tau = {sim['tau']} (radius {sim['rho_exact']:.4f})")
-    if slow:
-        out.append(
-            "- **Runs too short for slow loops.** The simulated steady MSE is more than 3 "
-            "standard errors from the exact value for " + ", ".join(slow) + ": with a "
-            "radius near 1 the transient decays like radius^k and has not died out within "
-            "the run (the band in the figure shows it); use more `--steps`. The exact "
-            "value is the steady state.")
-    s = results.get("sampson")
-    if s:
-        row0, last = s["rho_table"][0], s["rho_table"][-1]
-        out.append(
-            f"- **Sampson.** The paper's random weights are not published; ours are drawn "
-            f"from seed {s.get('weights_seed', 0)} and rescaled to rho(A) = 1.1, so A and "
-            f"every number differ: delay-free radius {row0['exact_designed_gain']:.4f} "
-            f"(paper {row0['paper']:.3f}); at tau = {last['tau']} the paper's formula gives "
-            f"{last['paper_formula_ours']:.4f} (paper {last['paper']:.3f}), the exact radius "
-            f"of our delay-free gain is {last['exact_delay_free_gain']:.4f}"
-            + (" (UNSTABLE)" if last["exact_delay_free_gain"] >= 1 else "")
-            + f" and that of the gain designed for it {last['exact_designed_gain']:.4f}.")
-        phi = s["phi_delay_free_gain"].get("phi")
-        out.append(_mse_statement("sampson", s["simulations"][0], s["paper_phi"], phi,
-                                  s["phi_delay_free_gain"].get("phi_note", "")))
-    if not out:
-        out.append("- (no experiment run)")
-    return out
-
-
-# ---------------------------------------------------------------------------------
-
-
 def _run(args) -> int:
     steps = parse_int(args.steps, "--steps", lo=1)
     seed = parse_int(args.seed, "--seed", lo=0)
     trials = parse_int(args.trials, "--trials", lo=1) if args.trials is not None else None
-    time_limit = None
-    if args.time_limit is not None:
-        try:
-            time_limit = float(args.time_limit)
-        except ValueError:
-            time_limit = -1.0
-        if not time_limit > 0:
-            raise CommandError(f"--time-limit: expected a positive number of seconds, got "
-                               f"{args.time_limit!r}")
-    if args.sampson and not Path(args.sampson).is_file():
-        raise CommandError(f"--sampson: no such file {str(args.sampson)!r}")
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CommandError(f"--out: cannot create {str(out)!r}: {exc.strerror}") from None
-
-    line = ProgressLine("reproduce")        # a terminal only: nothing in pipes and files
-    try:
-        results = reproduce_section5(steps=steps, seed=seed, trials=trials,
-                                     objective=args.objective, time_limit=time_limit,
-                                     sampson_path=args.sampson or None, log=line.note,
-                                     progress=line.design, sim_progress=line.simulation)
-    except ScenarioError as exc:
-        raise CommandError(f"--sampson: {exc}") from None
-    finally:
-        line.close()
-    results["command"] = "socmon reproduce" \
-        + (f" --sampson {args.sampson}" if args.sampson else "") \
-        + f" --out {args.out} --steps {steps} --seed {seed}" \
-        + (f" --trials {trials}" if trials else "") + f" --objective {args.objective}" \
-        + (f" --time-limit {args.time_limit}" if args.time_limit is not None else "")
-    write_figures(out, results)
-    report = write_report(out, results)
-    clean = _strip(results)
-    (out / "results.json").write_text(json.dumps(to_jsonable(versioned(clean)), indent=1) + "\n")
+    options = reproduce_options(args.out, steps=steps, seed=seed, trials=trials,
+                                objective=args.objective, time_limit=args.time_limit,
+                                sampson=args.sampson)
+    with ProgressLine("reproduce") as line:     # a terminal only: nothing in pipes and files
+        results = run_section5(options, log=line.note, progress=line.design,
+                               sim_progress=line.simulation)
+    report = write_reproduction(options.out, results, plot_mse)
     print(f"report: {report}")
     for p in results["problems"]:
         print(f"problem: {p}")
-    for run in results["diverged_runs"]:
-        print(f"diverged: the simulation of {run} (its MSE still growing at the end: "
+    for run_name in results["diverged_runs"]:
+        print(f"diverged: the simulation of {run_name} (its MSE still growing at the end: "
               "see the report; a short --steps can end inside a transient)")
     return EXIT_NEGATIVE if results["problems"] or results["diverged"] else EXIT_OK
-
-
-def write_figures(out: Path, results: dict) -> None:
-    """The MSE figures of every record (names stored in the records as ``figure``)."""
-    from agent.cli._plot import plot_mse
-
-    for key in ("paper-14", "sampson"):
-        r = results.get(key)
-        if r is None:
-            continue
-        r["figure"] = f"{r['scenario']}-mse.png"
-        plot_mse(out / r["figure"], r["curves"], title=f"{r['scenario']}: MSE, "
-                 f"{r['trials']} trials, delay bound tau (every link)")
-        f = r.get("failure")
-        if f and "curves" in f:
-            f["figure"] = f"{r['scenario']}-failure-mse.png"
-            plot_mse(out / f["figure"], f["curves"],
-                     title=f"{r['scenario']}: agents measuring {', '.join(f['failed_nodes'])} "
-                           f"fail at step {f['fail_step']}",
-                     events=[(f["fail_step"], "failure / recovery")])
-
-
-def _strip(obj):
-    """Drop Scenario and SimulationResult objects from the record before writing JSON."""
-    if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in ("new_scenario", "curves")}
-    if isinstance(obj, list):
-        return [_strip(v) for v in obj]
-    return obj
