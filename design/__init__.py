@@ -24,7 +24,10 @@ Layers, lowest first. A module imports only from its own layer or the layers bel
 4. **estimation** -- gains and Monte-Carlo runs: :mod:`~design.ccl`,
    :mod:`~design.gradient`, :mod:`~design.gain_design`, :mod:`~design.simulate`.
 5. **experiments** -- pipelines over all of the above: :mod:`~design.experiments`,
-   :mod:`~design.reconfigure`, and :mod:`~design.interop` (python-control, networkx).
+   :mod:`~design.reconfigure`, :mod:`~design.simulation_report` (a Monte-Carlo run beside
+   the exact figures of its loop), :mod:`~design.reports` (the records of ``analyze``,
+   ``certify``, ``plan`` and ``design``), and :mod:`~design.interop` (python-control,
+   networkx).
 
 Heavy imports (cvxpy) happen inside the functions that need them.
 """
@@ -37,5 +40,6 @@ LAYERS = {
     "estimator": 3, "closed_loop": 3, "structured": 3, "certificates": 3, "gap": 3,
     "residuals": 3,
     "ccl": 4, "gradient": 4, "gain_design": 4, "simulate": 4,
-    "reconfigure": 5, "experiments": 5, "interop": 5,
+    "reconfigure": 5, "experiments": 5, "interop": 5, "simulation_report": 5,
+    "reports": 5,
 }

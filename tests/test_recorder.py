@@ -217,7 +217,7 @@ def test_with_the_run_control_key_only_signed_rosters_are_recorded():
 def test_watch_takes_the_control_key_from_the_runs_manifest(tmp_path):
     """``watch --manifest`` (or ``--attach``): the recorder drops rosters not signed with the
     manifest's control key; a manifest of another scenario is refused by name."""
-    from agent.cli.watch import _control_key
+    from agent.run.watch import control_key as _control_key
     from agent.protocol.control_auth import ControlSigner
     from agent.protocol.manifest import write_manifest
     from design.scenario import load_scenario

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from agent.cli.main import main
-from agent.cli.simulate import format_text
+from agent.run.simulate import format_text
 from design.gains import gains_meta, save_gains
 
 from design.gain_design import design_gains

@@ -4,4 +4,9 @@ runtime in one process under simulated time, :mod:`~agent.run.recorder` what a p
 of a run, :mod:`~agent.run.folder` the run folder and its atomic writes,
 :mod:`~agent.run.summary` what the record says, :mod:`~agent.run.chaos` random fault
 schedules and the invariants a run must keep, :mod:`~agent.run.watch` attaching to a
-run."""
+run, :mod:`~agent.run.inject` changing a running deployment's links.
+
+What the offline commands do beyond parsing their flags: :mod:`~agent.run.simulate`
+(``socmon simulate``: a Monte-Carlo run of :mod:`design.simulate`, its figure and text)
+and :mod:`~agent.run.reproduce` (``socmon reproduce``: the paper's Section 5 written to a
+folder)."""

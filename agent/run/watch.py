@@ -107,3 +107,110 @@ def watch(config: WatchConfig, view) -> WatchResult:
         save_estimates(c.out / "estimates.npz", steps, rec.truth, rec.est, active, s.n)
         summary["out"] = str(c.out)
     return WatchResult(rec, summary, steps, mse, ended)
+
+
+# ---------------------------------------------------------------------------------
+# ``socmon watch``: its flags to a WatchConfig, its live view, what it prints at the end
+
+
+def control_key(manifest, scenario, gains) -> bytes | None:
+    """The run's control public key from its manifest (None without one); the manifest's
+    scenario and gains must be the ones given (InputError otherwise)."""
+    if manifest is None:
+        return None
+    from agent.protocol.manifest import ManifestMismatch, check_manifest, public_key
+    from agent.run.inputs import InputError
+
+    try:
+        return public_key(check_manifest(manifest, scenario, gains, None, None),
+                          "control_public_key")
+    except ManifestMismatch as exc:
+        raise InputError(str(exc)) from None
+
+
+def watch_config(args, info=None) -> WatchConfig:
+    """The :class:`WatchConfig` of ``socmon watch``'s arguments; what they leave out comes
+    from ``info`` (the :class:`agent.run.folder.RunInfo` of ``--attach``) when given. Bad
+    input is an InputError naming the flag."""
+    import math
+
+    from broker_free_net.config import InvalidNetConfig, net_config_from_args
+    from design.errors import ScenarioError
+    from design.scenario import resolve_delays
+
+    from agent.run.inputs import InputError, load_gains_arg, load_scenario_arg
+
+    scenario_arg = args.scenario or (info.scenario_arg if info else None)
+    if scenario_arg is None:
+        raise InputError("SCENARIO: give the run's scenario (or --attach RUN_DIR)")
+    scenario = load_scenario_arg(scenario_arg)
+    delays_spec = args.delays or (info.delays if info and info.delays else "scenario")
+    try:
+        delays = resolve_delays(scenario, delays_spec)
+    except ScenarioError as exc:
+        raise InputError(f"--delays: {exc}") from None
+    gains = args.gains or (str(info.gains) if info and info.gains else None)
+    G = list(load_gains_arg(gains, scenario).G) if gains else None
+    control_public = control_key(args.manifest or (info.manifest if info else None),
+                                 scenario, gains)
+    for flag, value in (("--interval", args.interval), ("--timeout", args.timeout),
+                        ("--step-ms", args.step_ms)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(f"{flag}: must be a positive number, got {value}")
+    try:
+        net = net_config_from_args(args, identity="recorder")
+    except InvalidNetConfig as exc:
+        raise InputError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+    if not net.connect and not net.multicast:
+        raise InputError("--connect: give the endpoint of a process of the run "
+                         "(or --attach RUN_DIR, or --multicast on a LAN)")
+    return WatchConfig(
+        scenario=scenario, scenario_arg=scenario_arg, net=net, delays=delays,
+        delays_spec=delays_spec, G=G, gains_path=Path(gains).resolve() if gains else None,
+        seed=args.seed if args.seed is not None else (info.seed if info else None),
+        steps=args.steps,
+        step_ms=args.step_ms if args.step_ms is not None else (info.step_ms if info else None),
+        out=Path(args.out) if args.out else None, timeout=args.timeout,
+        keep_steps=args.keep_steps, control_public=control_public)
+
+
+def live_view_for(stream, as_json: bool = False, interval: float | None = None):
+    """The :class:`agent.run.live_view.LiveView` of ``socmon watch`` on ``stream``: JSON
+    lines with ``as_json``, else redrawn in place on a terminal or plain lines; updated
+    every ``interval`` seconds (default 0.25 on a terminal, else 1)."""
+    from agent.run.live_view import LiveView
+
+    tty = stream.isatty()
+    mode = "json" if as_json else ("tty" if tty else "plain")
+    return LiveView(stream, mode, interval if interval is not None else (0.25 if tty else 1.0))
+
+
+def summary_json(result: WatchResult) -> str:
+    """The last line of ``socmon watch --json``: ``{"kind": "summary", ...}``."""
+    from agent.run.jsonable import to_jsonable, versioned
+
+    return json.dumps(to_jsonable(versioned({"kind": "summary", **result.summary})))
+
+
+def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = None) -> list:
+    """What ``socmon watch`` prints at the end: how the watch ended and the MSE against its
+    prediction, the failures, and the run folder ``out`` (as the user named it)."""
+    from agent.run.summary import failure_lines
+
+    summary = result.summary
+    pred = summary.get("mse_steady_exact")
+    how = {"steps": "recorded up to --steps", "world ended": "ended with its world",
+           "interrupted": "watched until interrupted"}.get(result.ended, result.ended)
+    lines = [f"{config.scenario.name}: run {config.net.run} {how}, last step "
+             f"{summary['steps']}: mse_steady {summary['mse_steady']:.4g}"
+             + (f" (predicted {pred:.4g})" if pred is not None else " (no --gains: no "
+                "prediction)")
+             + f", drops {summary['drops']}, late {summary['late']}, malformed "
+               f"{summary['malformed']}"]
+    lines += failure_lines(summary)
+    if out:
+        lines.append(f"run folder: {out}")
+    return lines
+
+
+__all__ += ["control_key", "watch_config", "live_view_for", "summary_json", "summary_lines"]
