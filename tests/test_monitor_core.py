@@ -630,6 +630,40 @@ def _agent_1_replaced():
     return core, worker, msg
 
 
+def test_a_failure_before_the_last_roles_are_in_force_is_planned_with_it_when_known(paper14):
+    """Agents 1 and 2 killed together, their verdicts apart (under load): the roles
+    answering agent 1 went out, not yet in force, when agent 2 is convicted. The gains of
+    the pair's configuration, planned on the configuration still in force, are known (the
+    precompute does pairs for small networks): that plan goes out at once under a new
+    epoch, to every agent of it, instead of one planned on the roles not yet in force,
+    whose gains nobody foresaw (requested from the worker: a design of seconds)."""
+    import dataclasses
+
+    from agent.monitor.core import design_gains_for
+    from design.roster import replan
+
+    core, worker, msg = _agent_1_replaced()
+    assert msg.epoch == 1 and msg.ids == (4, 2, 3)
+    from design.roster import Roster
+
+    base = dataclasses.replace(Roster.initial(core.scenario, core.roster.delays),
+                               standby_ids=(4,))
+    _, joint = replan(base, [1, 2])
+    core.gains.put(joint, *design_gains_for(joint, "fast"))
+    requested = len(worker.requests)
+    core.on_liveliness("agent", 2, False, 2.1)
+    out = core.tick(2.1)
+    (roster_msg,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert roster_msg.epoch == 2 and roster_msg.ids == joint.ids
+    assert roster_msg.activate_at <= msg.activate_at + core.lead
+    assert sorted(m.agent for m in out if isinstance(m, Assignment)) == sorted(joint.ids)
+    # no first gain designed on request (the refinement of the fast gain in force follows)
+    assert all("fast" not in kinds for _, kinds in worker.requests[requested:])
+    assert core.history[-1]["failed"] == [1, 2] and core.history[-1]["precomputed"]
+    assert any("planned together on the configuration still in force" in e
+               for e in core.events)
+
+
 def test_an_agent_convicted_before_it_confirmed_is_not_waited_for(paper14):
     """Agent 1 crashes; before agent 2 confirms the roles that answer it, agent 2 crashes
     too, and the roles answering both wait for their gains. The first roles are not

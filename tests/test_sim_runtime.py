@@ -48,21 +48,38 @@ def test_the_clock_starts_once_the_monitor_foresees_every_single_failure(live):
     assert f["activate_at"] - f["detected_step"] <= 15 and r.summary["recovered"] is True
 
 
+def test_a_crash_before_the_roles_answering_another_is_answered_with_it(live):
+    """Agent 2 crashes, agent 1 eight steps later, before the roles answering agent 2 are
+    in force: the pair's gains, planned on the configuration still in force, are
+    precomputed (pairs for small networks), so one epoch answers both, at once, and the
+    run equals the simulator's replay."""
+    r = _run(live, [Fault(150, "crash", 2), Fault(158, "crash", 1)])
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    s = r.summary
+    assert s["reissues"] == [] and s["rosters_not_in_force"] == [] and s["recovered"] is True
+    assert [x["ids"] for x in s["rosters"]][:2] == [[1, 2, 3], [4, 3]]
+    assert [(f["agent"], f["epoch"], f["precomputed"]) for f in s["failures"]] == \
+        [(2, 2, True), (1, 2, True)]
+    assert s["rosters"][1]["activate_at"] - s["failures"][1]["detected_step"] <= 15
+
+
 @pytest.mark.slow
 def test_a_crash_before_the_roles_answering_another_replays_in_the_simulator(live):
-    """Agent 2 crashes, agent 1 eight steps later, before the roles answering agent 2 are
-    in force: they go on without it (no re-issue to a dead agent, no roster reported not
-    in force), the next reassignment answers it, and the run equals the simulator's
-    replay. A run that ends before that second switch cannot be replayed, and says why."""
+    """The same crashes with slow designs (2 s a precomputed gain: the pair's gains are not
+    known yet): the roles answering agent 2 come into force without agent 1 (no re-issue
+    to a dead agent, no roster reported not in force), the next reassignment answers it,
+    and the run equals the simulator's replay. A run that ends before that second switch
+    cannot be replayed, and says why."""
     faults = [Fault(150, "crash", 2), Fault(158, "crash", 1)]
-    r = _run(live, faults)
+    r = _run(live, faults, precompute_s=2.0)
     diff, how = compare_simulator(r.config, r.recording, r.steps)
     assert diff <= 1e-12, how
     s = r.summary
     assert s["reissues"] == [] and s["rosters_not_in_force"] == [] and s["recovered"] is True
     assert [x["ids"] for x in s["rosters"]][:3] == [[1, 2, 3], [1, 4, 3], [4, 3]]
     cut = s["rosters"][2]["activate_at"] - 2
-    r = _run(live, faults, steps=cut)
+    r = _run(live, faults, steps=cut, precompute_s=2.0)
     diff, how = compare_simulator(r.config, r.recording, r.steps)
     assert diff == float("inf") and "agent 1 was killed before the configuration" in how
     assert r.summary["recovered"] is False and (

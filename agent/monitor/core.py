@@ -380,6 +380,9 @@ class MonitorCore:
         self._sent_at: float | None = None
         self._assigned_at: float | None = None
         self._roster_msg: RosterUpdate | None = None
+        # the last reassignment sent: the configuration it was planned on (standbys
+        # included), its failures and verdicts, the agents it assigned (see _joint_plan)
+        self._last_plan: dict | None = None
         self.history: list = []           # [{epoch, activate_at, verdicts, ids, specs}]
         self.reissues: list = []          # [{epoch, activate_at, unconfirmed, reason}]
         self._first_verdict_at = None     # the settle window of simultaneous failures
@@ -856,6 +859,10 @@ class MonitorCore:
         if self._pending is not None:
             verdicts = self._pending["verdicts"] + verdicts
             failed = sorted(set(self._pending["failed"]) | set(failed))
+        joint = self._joint_plan(verdicts, failed, now) if self._pending is None else None
+        if joint is not None:
+            self._pending = joint
+            return self._emit_reassign(now)
         roster = dataclasses.replace(self.roster, standby_ids=self.standby_pool(now, failed))
         try:
             plan, nxt = replan(roster, failed)
@@ -873,6 +880,48 @@ class MonitorCore:
         self._pending = {"verdicts": verdicts, "failed": failed, "roster": roster,
                          "plan": plan, "nxt": nxt, "at": now, "asked": False}
         return self._emit_reassign(now)
+
+    def _joint_plan(self, verdicts, failed, now: float):
+        """A failure found after the last reassignment went out but before it came into
+        force (agents killed together whose verdicts came apart under load): planned with
+        that one's failures on the configuration still in force, when the gains of that
+        joint configuration are known already (the precompute does pairs of failures for
+        small networks), instead of one after the other on the configuration not yet in
+        force, whose gains nobody foresaw. Sampson-like at T = 7, agents 1 and 2 killed at
+        one step, verdicts 0.1 s apart: the second plan waited 1.5 s for its gains and the
+        roles came 83 steps after the verdict. The pending roles are superseded (every
+        agent of the joint configuration gets the new epoch). None when that does not
+        apply: the last reassignment is in force already, the joint plan is not known, or
+        it leaves out a live agent that the last one assigned a role (its pending role
+        would not be replaced)."""
+        from design.errors import SocmonError
+        from design.roster import replan
+
+        last = self._last_plan
+        if last is None or self._roster_msg is None \
+                or self.current_step(now) >= self._roster_msg.activate_at - 1 \
+                or last["epoch"] != self.epoch:
+            return None
+        both = sorted(set(last["failed"]) | set(failed))
+        # its standbys as that plan had them (the one it took is in the roles not yet in
+        # force, not out of the pool), less any convicted since
+        base = last["roster"]
+        base = dataclasses.replace(base, standby_ids=tuple(
+            a for a in base.standby_ids if a not in both and a not in self.failed))
+        try:
+            plan, nxt = replan(base, both)
+        except SocmonError:
+            return None
+        if nxt is None or not plan.structurally_observable_after \
+                or not self.gains.has(nxt) \
+                or not set(last["assigned"]) - set(both) <= set(nxt.ids):
+            return None
+        self.failed.difference_update(nxt.ids)
+        self.events.append(f"agents {both} planned together on the configuration still in "
+                           f"force (ids {list(base.ids)}): epoch {self.epoch} was not in "
+                           "force yet and their joint gains are known")
+        return {"verdicts": last["verdicts"] + verdicts, "failed": both, "roster": base,
+                "plan": plan, "nxt": nxt, "at": now, "asked": False, "joint": True}
 
     def warm_start(self, nxt):
         """The gains in force carried over to the configuration ``nxt``
@@ -918,8 +967,9 @@ class MonitorCore:
         # gets the new epoch: one whose role did not change since the pending one would
         # otherwise run that one from its step while the others wait for the new one
         # (seen: agents 1 and 2 killed two steps apart, the second answered in 0.09 s)
-        superseded = prev is not None and activate_at != prev.activate_at \
-            and prev.activate_at > max(self.current_step(now), 0)
+        superseded = (prev is not None and activate_at != prev.activate_at
+                      and prev.activate_at > max(self.current_step(now), 0)) \
+            or p.get("joint", False)
         self._unconfirmed = {a: asg for a, asg in self._unconfirmed.items() if a in nxt.ids}
         out = []
         for agent, spec in specs.items():
@@ -932,6 +982,9 @@ class MonitorCore:
         self._roster_msg = roster_msg
         self._sent_at = self._assigned_at = now
         verdicts = p["verdicts"]
+        self._last_plan = {"epoch": self.epoch, "roster": roster, "failed": p["failed"],
+                           "verdicts": verdicts,
+                           "assigned": sorted(m.agent for m in out if isinstance(m, Assignment))}
         self.history.append({
             "epoch": self.epoch, "activate_at": activate_at, "failed": p["failed"],
             "causes": {v.agent: v.cause for v in verdicts}, "ids": list(nxt.ids),

@@ -325,6 +325,8 @@ class SimRuntime:
                 and unforeseen_single_failures(m.gains, self._planned)):
             self.after(self.config.tick_s, self._start_world)
             return
+        # the run's end counts from the clock's start, however long the monitor prepared
+        self._end_at = self.now + (self._steps + 20) * self.config.step_s + 2.0
         self._world_step()
 
     def _world_step(self) -> None:
@@ -648,7 +650,7 @@ class SimRuntime:
 
         c = self.config
         self._steps = int(steps)
-        self._end_at = c.start_s + (steps + 20) * c.step_s + 2.0
+        self._end_at = math.inf            # set when the world's clock starts
         for monitor_id in range(1, c.monitors + 1):
             # the first acts at once (the run's start: nothing to adopt), the others stand by
             self._start_monitor(monitor_id, 0.0 if monitor_id == 1 else c.listen_s)
