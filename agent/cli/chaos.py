@@ -1,8 +1,17 @@
 """``socmon chaos SCENARIO --seed S``: a live run under a random fault schedule, checked;
-``--simulated A:B``: seeds A..B-1 under simulated time (:mod:`agent.run.simulated`)."""
+``--simulated A:B``: seeds A..B-1 under simulated time (:mod:`agent.run.simulated`).
+
+The flags checked together, the schedule, the run and its invariants:
+:func:`agent.run.chaos.live_chaos` and :func:`agent.run.simulated.simulated_chaos`;
+the seeds of ``--simulated`` and the report printed: :mod:`agent.run.chaos_report`.
+Exit status: 0 no violation, 1 a violation or a failed run, 2 bad input.
+"""
 
 from __future__ import annotations
 
+import sys
+
+from agent.cli._common import parse_int, run_command
 from agent.protocol.timing import DEFAULT as TIMING
 
 HELP = "run live under a random fault schedule drawn from a seed and check the invariants"
@@ -44,53 +53,25 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from agent.cli._common import run_command
-
     return run_command(lambda: _chaos(args))
 
 
 def _chaos(args) -> int:
-    import json
-    import sys
-
-    from agent.cli._common import parse_int, to_jsonable, versioned
     from agent.run.chaos import live_chaos
-    from agent.run.simulated import report_lines, simulated_chaos
+    from agent.run.chaos_report import (NO_FAULT_WARNING, live_report_text, seed_range,
+                                        simulated_report_text)
+    from agent.run.simulated import simulated_chaos
+    from agent.run.terminal import say_on_stderr
 
     if args.simulated:
-        first, _, last = str(args.simulated).partition(":")
-        a = parse_int(first, "--simulated")
-        b = parse_int(last, "--simulated", lo=a + 1) if last else a + 1
-        report = simulated_chaos(args, range(a, b))
-        name, kinds = report.pop("scenario_name"), report.pop("kinds")
-        if args.json:
-            print(json.dumps(to_jsonable(versioned(report)), indent=2))
-        else:
-            print(f"{name} under simulated time, seeds {a}..{b - 1}, faults "
-                  f"{','.join(kinds)}, rate {args.rate:g}")
-            print("\n".join(report_lines(report)))
+        seeds = seed_range(args.simulated, parse_int)
+        report = simulated_chaos(args, seeds)
+        print(simulated_report_text(report, seeds, args.rate, as_json=args.json))
         return 1 if report["violations"] else 0
-
-    def say(text):
-        if not args.quiet:
-            print(f"chaos: {text}", file=sys.stderr, flush=True)
-
-    report, status, reassignments = live_chaos(args, say)
+    report, status, reassignments = live_chaos(args, say_on_stderr("chaos", args.quiet))
     if not report["faults"]:
-        print("chaos: warning: no fault was drawn (--rate, --duration): the run tested "
-              "nothing", file=sys.stderr)
-    if args.json:
-        print(json.dumps(to_jsonable(report), indent=2))
-    else:
-        violations = report["violations"]
-        print(f"{report['scenario']}, seed {args.seed}: {len(report['faults'])} faults, "
-              f"{len(report['failures'])} verdicts, {reassignments} reassignments, "
-              f"{len(violations)} violations")
-        for v in violations:
-            print(f"  VIOLATION {v['invariant']} at step {v['step']}: {v['evidence']}")
-        print(f"run folder: {report['out']}")
-        if violations or report["error"]:
-            print(f"replay: {report['replay']}")
+        print(NO_FAULT_WARNING, file=sys.stderr)
+    print(live_report_text(report, reassignments, as_json=args.json))
     if report["error"]:
         print(f"socmon chaos: {report['error']}", file=sys.stderr)
     return status

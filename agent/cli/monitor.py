@@ -1,7 +1,15 @@
-"""``socmon monitor SCENARIO --run RUN``: detect failed agents and hand their roles over."""
+"""``socmon monitor SCENARIO --run RUN``: detect failed agents and hand their roles over.
+
+The flags checked together (with what ``--attach RUN_DIR`` gives), the monitor's
+configuration and its start: :mod:`agent.run.monitor_options`. Exit status: 0 stopped
+or the run over, 2 bad input (the message names the flag).
+"""
 
 from __future__ import annotations
 
+import sys
+
+from agent.cli._common import attach_run, load_signer, net_config_arg, run_command
 from agent.protocol.timing import DEFAULT as TIMING
 
 HELP = "run the monitor: detect failed agents and reassign their roles to equivalent agents"
@@ -64,74 +72,14 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from agent.cli._common import CommandError, run_command, timing_arg
+    return run_command(lambda: _run(args))
 
-    def body():
-        import math
 
-        from design.errors import ScenarioError
-        from design.scenario import resolve_delays
+def _run(args) -> int:
+    from agent.run.monitor_options import monitor_options, start_monitor, start_warnings
 
-        from agent.monitor.core import MonitorConfig
-        from agent.monitor.process import run_monitor
-        from agent.cli._common import attach_run, load_gains_arg, load_scenario_arg, net_config_arg
-
-        info = attach_run(args)
-        if info is not None:
-            args.scenario = args.scenario or info.scenario_arg
-            args.gains = args.gains or (str(info.gains) if info.gains else None)
-            args.delays = args.delays or info.delays
-            args.seed = args.seed if args.seed is not None else info.seed
-            args.manifest = args.manifest or (str(info.manifest) if info.manifest else None)
-            args.control_key = args.control_key or (str(info.control_key)
-                                                    if info.control_key else None)
-        args.delays = args.delays or "scenario"
-        if args.scenario is None:
-            raise CommandError("SCENARIO: give the run's scenario (or --attach RUN_DIR)")
-        if args.gains is None:
-            raise CommandError("--gains: give the gains file the agents run (or --attach "
-                               "RUN_DIR)")
-        scenario = load_scenario_arg(args.scenario)
-        if args.manifest:
-            from agent.protocol.manifest import ManifestMismatch, check_manifest
-
-            try:
-                check_manifest(args.manifest, scenario, args.gains, args.seed, args.delays)
-            except ManifestMismatch as exc:
-                raise CommandError(str(exc)) from None
-        try:
-            delays = resolve_delays(scenario, args.delays)
-        except ScenarioError as exc:
-            raise CommandError(f"--delays: {exc}") from None
-        G = load_gains_arg(args.gains, scenario, force=args.force_gains).G
-        if args.id < 1:
-            raise CommandError(f"--id: must be >= 1, got {args.id}")
-        if not (math.isfinite(args.prepare_s) and 0 <= args.prepare_s
-                < TIMING.start_timeout_s):
-            raise CommandError(f"--prepare-s: must be in [0, {TIMING.start_timeout_s:g}) "
-                               f"(the world's start timeout), got {args.prepare_s}")
-        if args.lead_steps < 1:
-            raise CommandError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
-        net = net_config_arg(args, identity="monitor")
-        step_ms = args.step_ms if args.step_ms is not None else scenario.step_ms
-        if not (math.isfinite(step_ms) and step_ms > 0):
-            raise CommandError(f"--step-ms: must be > 0, got {step_ms}")
-        timing = timing_arg(step_s=step_ms / 1000.0, lead_steps=args.lead_steps,
-                            hang_timeout_s=args.hang_timeout,
-                            hang_timeout_max_s=args.hang_timeout_max)
-        config = MonitorConfig.from_timing(timing, lead_steps=args.lead_steps,
-                                           step_s=step_ms / 1000.0)
-        from agent.cli._common import load_signer
-
-        signer = load_signer(args.control_key) if args.control_key else None
-        import sys
-
-        from design.gap import gap_warnings
-
-        for line in gap_warnings(scenario, list(G), delays):
-            print(f"monitor {args.id}: warning: {line}", file=sys.stderr, flush=True)
-        return run_monitor(scenario, list(G), delays, net, monitor_id=args.id, config=config,
-                           events_out=args.events, precompute=not args.no_precompute,
-                           signer=signer, prepare_s=args.prepare_s)
-
-    return run_command(body)
+    options = monitor_options(args, attach_run(args), net_config_arg=net_config_arg,
+                              load_signer=load_signer)
+    for line in start_warnings(options):
+        print(line, file=sys.stderr, flush=True)
+    return start_monitor(options)

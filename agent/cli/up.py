@@ -1,11 +1,20 @@
-"""``socmon up SCENARIO``: a whole live run on this machine, recorded into a run folder."""
+"""``socmon up SCENARIO``: a whole live run on this machine, recorded into a run folder.
+
+The flags checked together, the run, its check and its folder:
+:func:`agent.run.setup.live_run`; what is said on the terminal: :mod:`agent.run.terminal`.
+Exit status: 0 done, 1 a negative result (a failure, a divergence, a role lost, the
+simulator check), 2 bad input, 130 interrupted, or the run folder could not be written
+(:data:`agent.run.folder.EXIT_FOLDER`).
+"""
 
 from __future__ import annotations
 
+import sys
+
+from agent.cli._common import run_command
 from agent.protocol.timing import DEFAULT as TIMING
 
 HELP = "run world + one process per agent on this machine, record, and write a run folder"
-
 
 
 def add_arguments(parser) -> None:
@@ -95,35 +104,23 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from agent.cli._common import run_command
-
     return run_command(lambda: _up(args))
 
 
 def _up(args) -> int:
-    import json
-    import sys
-
-    from agent.cli._common import to_jsonable
     from agent.cli._progress import ProgressLine
     from agent.run.setup import live_run
-    from agent.run.summary import headline_lines
-
-    def say(text):
-        if not args.quiet:
-            print(f"up: {text}", file=sys.stderr, flush=True)
+    from agent.run.terminal import finished_run_text, say_on_stderr
 
     line = ProgressLine("up", enabled=not (args.quiet or args.json))
     try:
-        done = live_run(args, say, design_progress=line.design, on_designed=line.close)
+        done = live_run(args, say_on_stderr("up", args.quiet), design_progress=line.design,
+                        on_designed=line.close)
     finally:
         line.close()
     for warning in done.summary.get("warnings", []):
         print(f"warning: {warning}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(to_jsonable(done.summary), indent=2))
-    else:
-        print("\n".join(headline_lines(done.summary, done.config.scenario)))
+    print(finished_run_text(done, as_json=args.json))
     for problem in done.problems:
         print(f"socmon up: {problem}", file=sys.stderr)
     return done.status

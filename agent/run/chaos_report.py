@@ -1,0 +1,73 @@
+"""What ``socmon chaos`` reports: the seeds of ``--simulated A:B``, and the report of a
+chaos run as text or JSON, live (:func:`agent.run.chaos.live_chaos`) or under simulated
+time (:func:`agent.run.simulated.simulated_chaos`).
+"""
+
+from __future__ import annotations
+
+import json
+
+from agent.run.jsonable import to_jsonable, versioned
+
+__all__ = ["NO_FAULT_WARNING", "seed_range", "simulated_report_text", "live_report_text"]
+
+#: said on stderr when the schedule of a live run drew no fault
+NO_FAULT_WARNING = ("chaos: warning: no fault was drawn (--rate, --duration): the run tested "
+                    "nothing")
+
+
+def seed_range(text, parse_int) -> range:
+    """The seeds of ``--simulated A:B`` (A..B-1; ``A`` alone: seed A); ``parse_int(text,
+    flag, lo=...)`` reads each bound (the command line's reader, with its messages).
+
+    >>> seed_range("3:7", lambda text, flag, lo=0: int(text))
+    range(3, 7)
+    >>> seed_range("5", lambda text, flag, lo=0: int(text))
+    range(5, 6)
+    """
+    first, _, last = str(text).partition(":")
+    a = parse_int(first, "--simulated")
+    b = parse_int(last, "--simulated", lo=a + 1) if last else a + 1
+    return range(a, b)
+
+
+def simulated_report_text(report: dict, seeds: range, rate: float,
+                          as_json: bool = False) -> str:
+    """What ``socmon chaos --simulated`` prints of the report of ``seeds`` (from
+    :func:`agent.run.simulated.simulated_chaos`, drawn at ``rate`` faults per 1000
+    steps): the report as JSON (without ``scenario_name`` and ``kinds``), or a headline
+    and :func:`agent.run.simulated.report_lines`."""
+    from agent.run.simulated import report_lines
+
+    name, kinds = report["scenario_name"], report["kinds"]
+    record = {k: v for k, v in report.items() if k not in ("scenario_name", "kinds")}
+    if as_json:
+        return json.dumps(to_jsonable(versioned(record)), indent=2)
+    return "\n".join([f"{name} under simulated time, seeds {seeds.start}..{seeds.stop - 1}, "
+                      f"faults {','.join(kinds)}, rate {rate:g}"] + report_lines(record))
+
+
+def live_report_text(report: dict, reassignments: int, as_json: bool = False) -> str:
+    """What ``socmon chaos`` prints of the report of a live run (from
+    :func:`agent.run.chaos.live_chaos`, with its number of ``reassignments``): the
+    report as JSON, or the counts, each violation, the run folder and, after a
+    violation or a failure, the command that replays the run.
+
+    >>> print(live_report_text({"scenario": "paper-14-live", "seed": 0, "faults": [],
+    ...     "failures": [], "violations": [], "error": None, "out": "runs/c",
+    ...     "replay": "socmon chaos paper-14-live --seed 0"}, 0))
+    paper-14-live, seed 0: 0 faults, 0 verdicts, 0 reassignments, 0 violations
+    run folder: runs/c
+    """
+    if as_json:
+        return json.dumps(to_jsonable(report), indent=2)
+    violations = report["violations"]
+    lines = [f"{report['scenario']}, seed {report['seed']}: {len(report['faults'])} faults, "
+             f"{len(report['failures'])} verdicts, {reassignments} reassignments, "
+             f"{len(violations)} violations"]
+    lines += [f"  VIOLATION {v['invariant']} at step {v['step']}: {v['evidence']}"
+              for v in violations]
+    lines.append(f"run folder: {report['out']}")
+    if violations or report["error"]:
+        lines.append(f"replay: {report['replay']}")
+    return "\n".join(lines)
