@@ -575,7 +575,9 @@ class MonitorCore:
                                 if any(v.agent == a for v in found)}
             for v in found:
                 self._first_seen.setdefault(v.agent, now)
-            found = [dataclasses.replace(v, at=self._first_seen[v.agent]) for v in found]
+            found = [dataclasses.replace(v, at=self._first_seen[v.agent],
+                                         step=min(v.step, self.current_step(
+                                             self._first_seen[v.agent]))) for v in found]
             if found and self._first_verdict_at is None:
                 self._first_verdict_at = now
             if found and now - self._first_verdict_at >= cfg.settle_s:
@@ -796,7 +798,7 @@ class MonitorCore:
                                f"exact loop is still stable (radius {rho:.4f})")
             return []
         v = Verdict(0, "delay", f"{evidence}; exact radius {rho:.4f} >= 1", now,
-                    self.last_step_reported)
+                    self.current_step(now))
         self.verdicts.append(v)
         self.events.append(f"verdict: delay ({v.evidence})")
         self._delay_pending = {"roster": new, "record": {

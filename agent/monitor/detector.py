@@ -131,7 +131,7 @@ class Verdict:
     cause: str           # crash, hang, sensor, unconfirmed
     evidence: str
     at: float            # monitor time of the verdict
-    step: int            # newest step reported by any agent then
+    step: int            # the run's step then: the newest reported, extrapolated to ``at``
 
 
 @dataclass
@@ -487,7 +487,7 @@ class FailureDetector:
         gone = [i for i in self.roster.ids if not self.agents[i].alive]
         if 2 * len(gone) >= len(self.roster.ids):
             return []
-        return [Verdict(i, "crash", "liveliness token deleted", now, self._clock[0])
+        return [Verdict(i, "crash", "liveliness token deleted", now, self.current_step(now))
                 for i in gone if i not in self.failed
                 and self.agents[i].progress_at is not None
                 and self.agents[i].gone_at is not None
@@ -499,6 +499,10 @@ class FailureDetector:
         cfg = self.config
         found = []
         newest = self._clock[0]
+        # the step of a verdict is the run's step when it is reached: the newest step
+        # reported is up to a status period (10 steps) old, and a crash read from a token
+        # came out "detected" a step or more before the crash
+        at_step = self.current_step(now)
         silent_s = cfg.silent_steps * cfg.step_s
         hang_s = self.hang_timeout(now)
         for i in self.roster.ids:
@@ -506,16 +510,16 @@ class FailureDetector:
                 continue
             a = self.agents[i]
             if not a.alive and a.progress_at is not None:
-                found.append(Verdict(i, "crash", "liveliness token deleted", now, newest))
+                found.append(Verdict(i, "crash", "liveliness token deleted", now, at_step))
             elif a.contested_at is not None and a.token is None and now - max(
                     a.contested_at, a.estimate_at or a.contested_at) > silent_s:
                 found.append(Verdict(i, "crash", "its liveliness token went, another process "
                                      "holds one for its id, and no estimate of it for "
-                                     f"{cfg.silent_steps} steps", now, newest))
+                                     f"{cfg.silent_steps} steps", now, at_step))
             elif a.progress_at is None and now - self._started > cfg.hang_timeout_s:
                 # a (re)started monitor never saw it: no token, no status, others advance
                 found.append(Verdict(i, "crash", "no liveliness token and no status since "
-                                     "the monitor started", now, newest))
+                                     "the monitor started", now, at_step))
             elif (a.progress_at is not None and now - a.progress_at > hang_s
                   and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
                 # stuck: a quiet sensor if its loop still reports (statuses arrive) and its
@@ -524,14 +528,14 @@ class FailureDetector:
                 if talking and a.sensor_last >= 0 and newest - a.sensor_last > cfg.sensor_lag_steps:
                     found.append(Verdict(
                         i, "sensor", f"no reading since step {a.sensor_last} while the others "
-                        f"reached step {newest}; its loop still reports", now, newest))
+                        f"reached step {newest}; its loop still reports", now, at_step))
                 else:
                     found.append(Verdict(
                         i, "hang", f"step {a.step} for {now - a.progress_at:.2f} s while the "
                         f"others reached step {newest}"
                         + ("" if talking else "; no status either")
                         + (f" (hang timeout {hang_s:.2f} s at the statuses' pace)"
-                           if hang_s > cfg.hang_timeout_s else ""), now, newest))
+                           if hang_s > cfg.hang_timeout_s else ""), now, at_step))
             else:
                 ages = self._listener_ages(i)
                 if ages and min(age - self._link_delay(j, i) for j, age in ages.items()) \
@@ -541,7 +545,7 @@ class FailureDetector:
                         found.append(Verdict(
                             i, "silent", "its listeners hold nothing fresher than "
                             + ", ".join(f"{age} steps (agent {r})" for r, age in sorted(ages.items())),
-                            now, newest))
+                            now, at_step))
                 else:
                     self._silent_since.pop(i, None)
         return found
