@@ -4,14 +4,14 @@ Knows nothing of estimation: never imports :mod:`design` nor :mod:`agent`
 (``tests/test_layers.py`` checks it). Submodules:
 
 - :mod:`broker_free_net.config` -- NetConfig and the zenoh.Config builder
-- :mod:`broker_free_net.keys` -- key expressions of a run
+- :mod:`broker_free_net.keys` -- key chunks, liveliness-token keys (the topics: :mod:`agent.protocol.topics`)
 - :mod:`broker_free_net.codec` -- msgpack wire format and validation
 - :mod:`broker_free_net.impair` -- receiver-side link impairments
 - :mod:`broker_free_net.peer` -- Peer: session, liveliness token, inboxes
 - :mod:`broker_free_net.linger` -- LingerGuard: zenoh links that do not linger on close
 - :mod:`broker_free_net.ports` -- listen ports below the ephemeral range
 - :mod:`broker_free_net.router` -- socmon router (zenoh router mode)
-- :mod:`broker_free_net.security` -- TLS, mutual TLS and access control configs
+- :mod:`broker_free_net.security` -- TLS, mutual TLS and access control configs from a caller's rights table
 """
 
 import importlib

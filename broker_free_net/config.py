@@ -475,8 +475,8 @@ def net_config_from_args(args: argparse.Namespace, identity: str | None = None) 
     ----------
     args : argparse.Namespace
     identity : str or None
-        The process name whose credentials ``--keys`` holds (e.g. ``"agent-3"``, see
-        :func:`broker_free_net.security.identity_name`); required with ``--keys``.
+        The process name whose credentials ``--keys`` holds (e.g. ``"agent-3"``; socmon's
+        names: :func:`agent.protocol.topics.identity_name`); required with ``--keys``.
 
     Raises
     ------

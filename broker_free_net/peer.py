@@ -208,16 +208,16 @@ class LivelinessWatch(Inbox):
     same, later) drains the events.
     """
 
-    def __init__(self, run: str, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None):
+    def __init__(self, prefix: str, maxlen: int = DEFAULT_INBOX_SIZE, wakeup: threading.Event | None = None):
         super().__init__(maxlen, wakeup)
-        self.run = run
+        self.prefix = prefix
         self._tokens: dict[tuple[str, str], frozenset] = {}   # (role, id) -> live sessions
 
     def _on_sample(self, sample) -> None:
         try:
             key = str(sample.key_expr)
             try:
-                role, id_, session = keys.parse_alive_key(self.run, key)
+                role, id_, session = keys.parse_token_key(self.prefix, key)
             except keys.InvalidKey:
                 self._ignore()
                 return
@@ -272,10 +272,10 @@ def _direct(callback):
 
 
 class Peer:
-    """A socmon process on the zenoh mesh.
+    """A process on the zenoh mesh.
 
     Opens one zenoh session in peer mode and declares the liveliness token
-    ``socmon/<run>/alive/<role>/<id>/<zid>`` (the session's own zid). Closing (context manager exit,
+    ``<alive_prefix>/<role>/<id>/<zid>`` (the session's own zid). Closing (context manager exit,
     :meth:`close`, or interpreter exit) undeclares everything; it is
     idempotent.
 
@@ -286,6 +286,10 @@ class Peer:
         ``"agent"``, ``"world"``, ``"monitor"``, ... (a key chunk).
     id : int or str
         Process id within its role.
+    alive_prefix : str
+        Key expression the liveliness tokens of the mesh live under, the caller's
+        (socmon's: :func:`agent.protocol.topics.alive_prefix`, or open the peer with
+        :func:`agent.protocol.topics.open_peer`).
 
     Raises
     ------
@@ -296,20 +300,21 @@ class Peer:
 
     Examples
     --------
-    >>> with Peer(NetConfig(run="demo"), "agent", 3) as peer:        # doctest: +SKIP
-    ...     inbox = peer.subscribe(keys.any_agent_pattern("demo", "est"))
-    ...     peer.put(keys.est_key("demo", 3), payload)
+    >>> with Peer(NetConfig(run="demo"), "agent", 3, alive_prefix="app/demo/alive") as peer:  # doctest: +SKIP
+    ...     inbox = peer.subscribe("app/demo/est/*")
+    ...     peer.put("app/demo/est/3", payload)
     ...     item = inbox.get(timeout=1.0)
     """
 
-    def __init__(self, net: NetConfig, role: str, id):
+    def __init__(self, net: NetConfig, role: str, id, *, alive_prefix: str):
         if not isinstance(net, NetConfig):
             raise TypeError(f"net: expected NetConfig, got {type(net).__name__}")
         self.net = net
         self.run = net.run
         self.role = role
         self.id = id
-        keys.alive_key(net.run, role, id, "0")  # validates role and id before opening
+        self.alive_prefix = alive_prefix
+        keys.token_key(alive_prefix, role, id, "0")  # validates role and id before opening
         self._pid = os.getpid()
         self._lock = threading.Lock()
         self._publishers: dict[str, tuple[zenoh.Publisher, bool]] = {}
@@ -323,7 +328,7 @@ class Peer:
         self._linger = LingerGuard()
         try:
             self._token = self._session.liveliness().declare_token(
-                keys.alive_key(net.run, role, id, str(self._session.zid())))
+                keys.token_key(alive_prefix, role, id, str(self._session.zid())))
         except BaseException:
             self._linger.stop()
             self._session.close()
@@ -498,14 +503,14 @@ class Peer:
         return inbox
 
     def watch_liveliness(self, maxlen: int = DEFAULT_INBOX_SIZE) -> LivelinessWatch:
-        """Watch ``socmon/<run>/alive/**`` (with history: peers already alive are reported).
+        """Watch ``<alive_prefix>/**`` (with history: peers already alive are reported).
 
         Returns a :class:`LivelinessWatch`; this peer's own token is included.
         """
         self._check_usable()
-        watch = LivelinessWatch(self.run, maxlen, self._activity)
+        watch = LivelinessWatch(self.alive_prefix, maxlen, self._activity)
         watch._subscriber = self._session.liveliness().declare_subscriber(
-            keys.alive_pattern(self.run), _direct(watch._on_sample), history=True)
+            keys.token_pattern(self.alive_prefix), _direct(watch._on_sample), history=True)
         self._inboxes.append(watch)
         return watch
 

@@ -6,17 +6,10 @@ with ``default_permission: "deny"`` on every peer. The subject of a rule is the 
 (CN) of the remote certificate, so a message is accepted only if the process that sent it
 over the link holds the credentials of a role allowed to publish that key.
 
-Processes and their names (the CN of their certificate)::
-
-    world        puts socmon/<run>/sensors, socmon/<run>/truth, socmon/<run>/end
-    agent-<i>    puts socmon/<run>/est/<i>, socmon/<run>/status/<i>
-    monitor      puts socmon/<run>/ctl/*, socmon/<run>/monitor/**
-    operator     puts socmon/<run>/impair          (socmon inject)
-    recorder     puts nothing                       (socmon up's recorder, socmon watch)
-
-Everyone may subscribe to any key of the run and watch liveliness; a process may declare
-only its own liveliness token (``socmon/<run>/alive/<role>/<id>/<zid>`` of its role; the
-last chunk is the declaring session's zid, any value the identity chooses).
+The rights are the caller's: a table of process names (certificate CNs) and, for each, the
+key expressions it may put and the liveliness tokens it may declare (:class:`Permissions`),
+plus one scope every process may subscribe to and watch (:func:`build_access_control`).
+socmon's table is :func:`agent.protocol.topics.permissions`.
 
 Layout of a key directory made by :func:`make_run_keys`::
 
@@ -43,21 +36,16 @@ __all__ = [
     "CONNECT_TIMEOUT_MS",
     "FRAGMENT_NAME",
     "MANIFEST_NAME",
-    "ROLES",
     "InvalidKeys",
     "KeySet",
-    "access_control",
-    "identity_name",
+    "Permissions",
+    "build_access_control",
+    "check_run",
     "load_fragment",
     "load_key_set",
     "make_run_keys",
-    "parse_identity",
-    "put_keys",
-    "run_identities",
 ]
 
-#: The process roles of a run (the CN of a certificate is the role, or ``agent-<i>``).
-ROLES = ("world", "agent", "monitor", "operator", "recorder")
 #: How long a secured process keeps trying its connect endpoints before ``zenoh.open``
 #: fails (``connect/timeout_ms``, with ``connect/exit_on_failure: true``). zenoh's peer
 #: default is to retry forever in the background and run disconnected.
@@ -71,11 +59,9 @@ KEY_NAME = "key.pem"
 DEFAULT_VALID_DAYS = 30
 MANIFEST_VERSION = 1
 
-_AGENT_RE = re.compile(r"^agent-([1-9][0-9]{0,8})$")
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
-#: Liveliness roles (``Peer(net, role, id)``) each identity may declare a token for.
-_TOKEN_ROLES = {"world": ("world",), "monitor": ("monitor",), "operator": ("inject", "operator"),
-                "recorder": ("recorder", "watch")}
+#: A process name (certificate CN, ACL subject, directory name in a key set).
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
 class InvalidKeys(ValueError):
@@ -92,129 +78,92 @@ class InvalidKeys(ValueError):
         super().__init__(f"{field}: {message}")
 
 
-# --------------------------------------------------------------------------- identities
+# --------------------------------------------------------------------------- access control
 
 
-def identity_name(role: str, id=None) -> str:
-    """The certificate name of a process: ``"agent-3"`` for an agent, else the role.
+@dataclass(frozen=True)
+class Permissions:
+    """What one process (one certificate CN) may send into the mesh.
 
-    >>> identity_name("agent", 3), identity_name("world"), identity_name("operator")
-    ('agent-3', 'world', 'operator')
+    Attributes
+    ----------
+    put : tuple of str
+        Key expressions it may put (publish).
+    tokens : tuple of str
+        Key expressions of the liveliness tokens it may declare.
     """
-    if role not in ROLES:
-        raise InvalidKeys("role", f"{role!r} is not one of {', '.join(ROLES)}")
-    if role == "agent":
-        if isinstance(id, bool) or not isinstance(id, int) or id < 1:
-            raise InvalidKeys("id", f"an agent needs a positive int id, got {id!r}")
-        return f"agent-{id}"
-    return role
+
+    put: tuple[str, ...] = ()
+    tokens: tuple[str, ...] = ()
 
 
-def parse_identity(name: str) -> tuple[str, int | None]:
-    """``"agent-3"`` -> ``("agent", 3)``; ``"world"`` -> ``("world", None)``.
-
-    >>> parse_identity("agent-12"), parse_identity("monitor")
-    (('agent', 12), ('monitor', None))
-    """
-    if not isinstance(name, str):
-        raise InvalidKeys("name", f"expected str, got {type(name).__name__}")
-    m = _AGENT_RE.match(name)
-    if m:
-        return "agent", int(m.group(1))
-    if name in ROLES and name != "agent":
-        return name, None
-    raise InvalidKeys("name", f"{name!r} is not a process name (world, agent-<i>, monitor, operator, recorder)")
-
-
-def run_identities(n_agents: int) -> tuple[str, ...]:
-    """Every process name of a run with agents 1..`n_agents` (active and standby).
-
-    >>> run_identities(2)
-    ('world', 'agent-1', 'agent-2', 'monitor', 'operator', 'recorder')
-    """
-    if isinstance(n_agents, bool) or not isinstance(n_agents, int) or n_agents < 1:
-        raise InvalidKeys("agents", f"expected a positive int, got {n_agents!r}")
-    return ("world", *(f"agent-{i}" for i in range(1, n_agents + 1)), "monitor", "operator", "recorder")
-
-
-def _check_run(run) -> str:
+def check_run(run) -> str:
+    """Check a run id (letters, digits, ``_ . -``) and return it."""
     if not isinstance(run, str) or not _RUN_RE.match(run):
         raise InvalidKeys("run", f"invalid run id {run!r} (letters, digits, '_', '.', '-')")
     return run
 
 
-def put_keys(run: str, name: str) -> list[str]:
-    """Key expressions process `name` may put (publish) in run `run`.
-
-    >>> put_keys("r", "agent-2")
-    ['socmon/r/est/2', 'socmon/r/status/2']
-    >>> put_keys("r", "recorder")
-    []
-    """
-    _check_run(run)
-    role, i = parse_identity(name)
-    p = f"socmon/{run}"
-    return {
-        "world": [f"{p}/sensors", f"{p}/truth", f"{p}/end"],
-        "agent": [f"{p}/est/{i}", f"{p}/status/{i}"],
-        "monitor": [f"{p}/ctl/*", f"{p}/monitor/**"],
-        "operator": [f"{p}/impair"],
-        "recorder": [],
-    }[role]
-
-
-def token_keys(run: str, name: str) -> list[str]:
-    """Liveliness tokens process `name` may declare.
-
-    >>> token_keys("r", "agent-2"), token_keys("r", "operator")
-    (['socmon/r/alive/agent/2/*'], ['socmon/r/alive/inject/*/*', 'socmon/r/alive/operator/*/*'])
-    """
-    _check_run(run)
-    role, i = parse_identity(name)
-    if role == "agent":
-        return [f"socmon/{run}/alive/agent/{i}/*"]
-    return [f"socmon/{run}/alive/{r}/*/*" for r in _TOKEN_ROLES[role]]
-
-
-def access_control(run: str, names) -> dict:
-    """The zenoh ``access_control`` block of every process of a run.
-
-    Default deny in both directions. Ingress: a subject (certificate CN) may put only its
-    :func:`put_keys` and declare only its :func:`token_keys`; every subject of the run may
-    declare subscribers and liveliness subscribers and query liveliness on ``socmon/<run>/**``
-    (without that the publishers would not learn whom to send to). Egress: everything of
-    the run may go to the subjects of the run, so that this process's own puts, tokens and
-    subscriptions leave it. Nothing is allowed to or from a link without a certificate of
-    the run; queries, replies and deletes are denied.
-    """
-    _check_run(run)
-    names = list(names)
+def _check_names(names) -> tuple[str, ...]:
+    names = tuple(names)
     if not names:
         raise InvalidKeys("names", "no process names")
     for n in names:
-        parse_identity(n)
+        if not isinstance(n, str) or not _NAME_RE.match(n):
+            raise InvalidKeys("name", f"{n!r} is not a process name (letters, digits, '_', '.', '-')")
     if len(set(names)) != len(names):
         raise InvalidKeys("names", "a name is listed twice")
-    run_ke = f"socmon/{run}/**"
+    return names
+
+
+def build_access_control(scope: str, permissions) -> dict:
+    """The zenoh ``access_control`` block of every process of a run, from its rights table.
+
+    Default deny in both directions. Ingress: a subject (certificate CN) may put only its
+    ``permissions[name].put`` and declare only its ``permissions[name].tokens``; every
+    subject may declare subscribers and liveliness subscribers and query liveliness on
+    `scope` (without that the publishers would not learn whom to send to). Egress:
+    everything in `scope` may go to the subjects, so that this process's own puts, tokens
+    and subscriptions leave it. Nothing is allowed to or from a link without a certificate
+    of the run; queries, replies and deletes are denied.
+
+    Parameters
+    ----------
+    scope : str
+        Key expression of everything the run uses (e.g. ``"app/run7/**"``).
+    permissions : mapping of str to Permissions
+        Process name (certificate CN) -> its rights, in the order of the subjects.
+
+    Examples
+    --------
+    >>> acl = build_access_control("app/r/**", {"a": Permissions(put=("app/r/x",))})
+    >>> [r["id"] for r in acl["rules"]], acl["default_permission"]
+    (['egress-run', 'ingress-subscribe', 'token-a', 'put-a'], 'deny')
+    """
+    if not isinstance(scope, str) or not scope:
+        raise InvalidKeys("scope", f"expected a key expression, got {scope!r}")
+    names = _check_names(permissions)
     rules = [
         {"id": "egress-run", "permission": "allow", "flows": ["egress"],
          "messages": ["put", "declare_subscriber", "liveliness_token", "liveliness_query",
                       "declare_liveliness_subscriber"],
-         "key_exprs": [run_ke]},
+         "key_exprs": [scope]},
         {"id": "ingress-subscribe", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"],
-         "key_exprs": [run_ke]},
+         "key_exprs": [scope]},
     ]
     subjects = [{"id": n, "cert_common_names": [n]} for n in names]
     policies = [{"id": "run", "rules": ["egress-run", "ingress-subscribe"], "subjects": list(names)}]
     for n in names:
+        rights = permissions[n]
+        if not isinstance(rights, Permissions):
+            raise InvalidKeys("permissions", f"{n}: expected Permissions, got {type(rights).__name__}")
         own = [f"token-{n}"]
         rules.append({"id": f"token-{n}", "permission": "allow", "flows": ["ingress"],
-                      "messages": ["liveliness_token"], "key_exprs": token_keys(run, n)})
-        keys_ = put_keys(run, n)
-        if keys_:
+                      "messages": ["liveliness_token"], "key_exprs": list(rights.tokens)})
+        if rights.put:
             rules.append({"id": f"put-{n}", "permission": "allow", "flows": ["ingress"],
-                          "messages": ["put"], "key_exprs": keys_})
+                          "messages": ["put"], "key_exprs": list(rights.put)})
             own.append(f"put-{n}")
         policies.append({"id": f"own-{n}", "rules": own, "subjects": [n]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
@@ -253,7 +202,6 @@ class KeySet:
         return self.dir / CA_NAME
 
     def _member(self, name: str) -> Path:
-        parse_identity(name)
         if name not in self.names:
             raise InvalidKeys("name", f"no credentials for {name!r} in {self.dir} "
                                       f"(has {', '.join(self.names)})")
@@ -289,13 +237,13 @@ def _tls_block(ca: Path, cert: Path, key: Path) -> dict:
     }
 
 
-def fragment(run: str, names, name: str, ca: Path, cert: Path, key: Path,
-             listen=None, connect=None) -> dict:
-    """The zenoh config fragment of process `name` (a plain dict, JSON-serialisable)."""
+def fragment(acl: dict, ca: Path, cert: Path, key: Path, listen=None, connect=None) -> dict:
+    """The zenoh config fragment of one process (a plain dict, JSON-serialisable), with
+    the run's access-control block `acl` (:func:`build_access_control`)."""
     frag = {
         "transport": {"link": {"protocols": ["tls"], "tls": _tls_block(ca, cert, key)}},
         "connect": {"timeout_ms": CONNECT_TIMEOUT_MS, "exit_on_failure": True},
-        "access_control": access_control(run, names),
+        "access_control": acl,
     }
     if listen:
         frag["listen"] = {"endpoints": list(listen)}
@@ -310,7 +258,8 @@ def _write_private(path: Path, data: bytes) -> None:
         f.write(data)
 
 
-def make_run_keys(dir, run: str, names, *, hosts=("127.0.0.1",), port_base: int | None = None,
+def make_run_keys(dir, run: str, permissions, *, scope: str, hosts=("127.0.0.1",),
+                  port_base: int | None = None,
                   valid_days: int = DEFAULT_VALID_DAYS, now: _dt.datetime | None = None) -> KeySet:
     """Make a run's CA, one certificate and key per process, and each process's zenoh config.
 
@@ -320,9 +269,14 @@ def make_run_keys(dir, run: str, names, *, hosts=("127.0.0.1",), port_base: int 
         Directory to create; it must not exist or be empty (a key set is never
         overwritten: make a new one per run).
     run : str
-        Run id; the ACL covers ``socmon/<run>/**`` only.
-    names : sequence of str
-        Process names, e.g. :func:`run_identities` ``(M)``.
+        Run id (letters, digits, ``_ . -``), written in the manifest.
+    permissions : mapping of str to Permissions
+        Process names (certificate CNs, in order: the first is the one every other
+        connects to with `port_base`) and their rights, e.g.
+        :func:`agent.protocol.topics.permissions`.
+    scope : str
+        Key expression every process may subscribe to, e.g. ``socmon/<run>/**``; the
+        ACL covers it only (:func:`build_access_control`).
     hosts : sequence of str
         Addresses written into the certificates' subjectAltName (informational: the
         configs do not verify names, see :func:`fragment`), and with `port_base` the host
@@ -342,9 +296,10 @@ def make_run_keys(dir, run: str, names, *, hosts=("127.0.0.1",), port_base: int 
     --------
     >>> import tempfile, pathlib
     >>> d = pathlib.Path(tempfile.mkdtemp()) / "keys"
-    >>> ks = make_run_keys(d, "demo", run_identities(2))
-    >>> ks.names[:3], ks.cert("agent-2").name
-    (('world', 'agent-1', 'agent-2'), 'cert.pem')
+    >>> ks = make_run_keys(d, "demo", {"hub": Permissions(), "a-1": Permissions(put=("app/demo/x",))},
+    ...                    scope="app/demo/**")
+    >>> ks.names, ks.cert("a-1").name
+    (('hub', 'a-1'), 'cert.pem')
     """
     import ipaddress
 
@@ -353,9 +308,9 @@ def make_run_keys(dir, run: str, names, *, hosts=("127.0.0.1",), port_base: int 
     from cryptography.hazmat.primitives.asymmetric import ec
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-    _check_run(run)
-    names = tuple(names)
-    access_control(run, names)  # validates the names
+    check_run(run)
+    acl = build_access_control(scope, permissions)  # validates the names
+    names = tuple(permissions)
     if isinstance(valid_days, bool) or not isinstance(valid_days, int) or not 1 <= valid_days <= 3650:
         raise InvalidKeys("valid_days", f"expected an int in 1..3650, got {valid_days!r}")
     hosts = tuple(hosts)
@@ -434,7 +389,7 @@ def make_run_keys(dir, run: str, names, *, hosts=("127.0.0.1",), port_base: int 
             serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()))
         listen = [endpoints[name]] if endpoints else None
         connect = [endpoints[names[0]]] if endpoints and name != names[0] else None
-        frag = fragment(run, names, name, ca_path, sub / CERT_NAME, sub / KEY_NAME, listen, connect)
+        frag = fragment(acl, ca_path, sub / CERT_NAME, sub / KEY_NAME, listen, connect)
         header = (f"// zenoh config of {name} in socmon run {run} (made by socmon keys init).\n"
                   f"// Usable as is with --zenoh-config; socmon --keys re-bases the paths below.\n")
         (sub / FRAGMENT_NAME).write_text(header + json.dumps(frag, indent=2) + "\n")
@@ -474,9 +429,8 @@ def load_key_set(dir) -> KeySet:
     if not isinstance(manifest, dict) or manifest.get("version") != MANIFEST_VERSION:
         raise InvalidKeys("keys", f"{str(path)!r} is not a version-{MANIFEST_VERSION} socmon key manifest")
     try:
-        run = _check_run(manifest.get("run"))
-        names = tuple(manifest.get("names") or ())
-        access_control(run, names)
+        run = check_run(manifest.get("run"))
+        names = _check_names(manifest.get("names") or ())
     except InvalidKeys as exc:
         raise InvalidKeys("keys", f"{str(path)!r}: {exc}") from None
     if not (dir / CA_NAME).is_file():
@@ -499,7 +453,7 @@ def load_fragment(dir, name: str, run: str | None = None) -> dict:
     ----------
     dir : path
     name : str
-        Process name (:func:`identity_name`).
+        Process name (certificate CN; socmon's: :func:`agent.protocol.topics.identity_name`).
     run : str or None
         If given, the key set must have been made for this run.
 

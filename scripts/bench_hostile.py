@@ -54,7 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agent.protocol import wire  # noqa: E402
-from broker_free_net import keys  # noqa: E402
+from agent.protocol import topics  # noqa: E402
 from broker_free_net.codec import MAX_PAYLOAD_BYTES  # noqa: E402
 from design.gains import save_gains  # noqa: E402
 from design.scenario import load_scenario  # noqa: E402
@@ -70,7 +70,7 @@ def rss_mb(pid: int) -> float:
 
 def classes(run: str, n: int, rng):
     """(name, key, make_payload) of every hostile class."""
-    est, ctl, sensor = keys.est_key(run, 2), keys.ctl_key(run, 1), keys.sensors_key(run)
+    est, ctl, sensor = topics.est_key(run, 2), topics.ctl_key(run, 1), topics.sensors_key(run)
     good_est = wire.encode_est(2, 3, np.zeros(n), 0, 0.0)
     junk = rng.bytes(250_000)
     deep = b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0"
@@ -165,16 +165,16 @@ def _live_classes(run: str, n: int, rng):
     monitor and the recorder read."""
     deep = b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0"
     return [
-        ("random bytes on status/2", keys.status_key(run, 2),
+        ("random bytes on status/2", topics.status_key(run, 2),
          lambda: rng.bytes(int(rng.integers(0, 50))), 1.0),
-        ("nested 5000 deep on status/3", keys.status_key(run, 3), lambda: deep, 1.0),
-        ("250 kB junk on the roster key", keys.ctl_key(run, 0), lambda: rng.bytes(250_000),
+        ("nested 5000 deep on status/3", topics.status_key(run, 3), lambda: deep, 1.0),
+        ("250 kB junk on the roster key", topics.ctl_key(run, 0), lambda: rng.bytes(250_000),
          0.02),
-        ("random bytes on est/1", keys.est_key(run, 1),
+        ("random bytes on est/1", topics.est_key(run, 1),
          lambda: rng.bytes(int(rng.integers(0, 50))), 1.0),
-        ("NaN truth", keys.truth_key(run),
+        ("NaN truth", topics.truth_key(run),
          lambda: wire.encode_truth(int(rng.integers(0, 10**5)), np.full(n, np.nan)), 1.0),
-        ("random bytes on monitor events", keys.monitor_events_key(run),
+        ("random bytes on monitor events", topics.monitor_events_key(run),
          lambda: rng.bytes(int(rng.integers(0, 200))), 1.0),
     ]
 
@@ -220,7 +220,6 @@ def live(count: int, step_ms: int, attack_steps: int) -> int:
     from agent.protocol.control_auth import ControlSigner
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
-    from broker_free_net.peer import Peer
     from tests.test_evidence_multiprocess import _status, _step_of
 
     s = load_scenario("paper-14-live")
@@ -236,11 +235,11 @@ def live(count: int, step_ms: int, attack_steps: int) -> int:
             rid = run["run"]
             net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
             rss = {}
-            with Peer(net, "attacker", 0) as peer:
-                truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
-                evidence = (keys.ctl_key(rid, 0), keys.status_key(rid, 1),
-                            keys.status_key(rid, 2), keys.est_key(rid, 1),
-                            keys.sensors_key(rid))
+            with topics.open_peer(net, "attacker", 0) as peer:
+                truth_in = peer.subscribe(topics.truth_key(rid), maxlen=64)
+                evidence = (topics.ctl_key(rid, 0), topics.status_key(rid, 1),
+                            topics.status_key(rid, 2), topics.est_key(rid, 1),
+                            topics.sensors_key(rid))
                 for key in evidence:
                     peer.publisher(key, block=True)
                 outsider = ControlSigner.generate()
@@ -256,16 +255,16 @@ def live(count: int, step_ms: int, attack_steps: int) -> int:
                     step, heard = _step_of(truth_in, stats, step)
                     if not heard:
                         continue
-                    peer.put(keys.status_key(rid, 2), wire.encode_status(
+                    peer.put(topics.status_key(rid, 2), wire.encode_status(
                         _status(1, step + 5, 2 ** 62)))
-                    peer.put(keys.status_key(rid, 1), wire.encode_status(
+                    peer.put(topics.status_key(rid, 1), wire.encode_status(
                         _status(1, step, 2 ** 61)))
-                    peer.put(keys.ctl_key(rid, 0), wire.encode_roster(2 ** 62, 10 ** 6, [1, 2, 3]))
-                    peer.put(keys.ctl_key(rid, 0), wire.encode_roster(
+                    peer.put(topics.ctl_key(rid, 0), wire.encode_roster(2 ** 62, 10 ** 6, [1, 2, 3]))
+                    peer.put(topics.ctl_key(rid, 0), wire.encode_roster(
                         7, 10 ** 6, [2, 3, 4], signer=outsider, run=rid))
-                    peer.put(keys.est_key(rid, 1), wire.encode_est(
+                    peer.put(topics.est_key(rid, 1), wire.encode_est(
                         1, step + 1, np.full(s.n, 1e300), 0, time.time()))
-                    peer.put(keys.sensors_key(rid), wire.encode_sensors(
+                    peer.put(topics.sensors_key(rid), wire.encode_sensors(
                         step + 1, np.full(s.n, 1e300)))
                     sent += 6
                 print(f"evidence: {sent} forged messages over {time.monotonic() - t0:.1f} s "

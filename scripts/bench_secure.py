@@ -36,8 +36,8 @@ if str(ROOT) not in sys.path:
 
 from broker_free_net.ports import listen_port  # noqa: E402
 from broker_free_net.config import NetConfig  # noqa: E402
-from broker_free_net.peer import Peer  # noqa: E402
-from broker_free_net.security import make_run_keys, run_identities  # noqa: E402
+from agent.protocol.topics import open_peer
+from agent.protocol.topics import make_run_keys, run_identities  # noqa: E402
 
 PAYLOAD_BYTES = 1000
 END = b"END"
@@ -60,7 +60,7 @@ def run_pong(run, listen, keys_dir) -> int:
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
     k = _keys(run)
-    with Peer(_net(run, keys_dir, "agent-1", listen=listen), "agent", 1) as peer:
+    with open_peer(_net(run, keys_dir, "agent-1", listen=listen), "agent", 1) as peer:
         ping_in = peer.subscribe(k["ping"], maxlen=1 << 16)
         flood_in = peer.subscribe(k["flood"], maxlen=1 << 17)
         peer.publisher(k["pong"], block=True)
@@ -108,7 +108,7 @@ def bench_mode(mode, n, warmup, flood) -> dict:
         deadline = time.monotonic() + 30
         while True:  # the pong may not listen yet; a secure connect retries for 10 s only
             try:
-                peer = Peer(_net(run, keys_dir, "agent-2", connect=listen), "agent", 2)
+                peer = open_peer(_net(run, keys_dir, "agent-2", connect=listen), "agent", 2)
                 break
             except Exception:
                 if time.monotonic() > deadline:

@@ -37,10 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from broker_free_net import keys  # noqa: E402
+from agent.protocol import topics  # noqa: E402
 from broker_free_net.codec import F64Array, Int, Schema, decode, encode  # noqa: E402
 from broker_free_net.config import NetConfig  # noqa: E402
-from broker_free_net.peer import Peer  # noqa: E402
 
 MSG = Schema({"seq": Int(0), "x": F64Array((14,))})
 RAW_PAYLOAD = b"0123456789abcdef"
@@ -48,10 +47,10 @@ RAW_PAYLOAD = b"0123456789abcdef"
 
 def bench_keys(run: str) -> dict:
     return {
-        "raw_ping": keys.ctl_key(run, 1), "raw_pong": keys.status_key(run, 1),
-        "msg_ping": keys.ctl_key(run, 2), "msg_pong": keys.status_key(run, 2),
-        "cb_ping": keys.ctl_key(run, 4), "cb_pong": keys.status_key(run, 4),
-        "flood": keys.est_key(run, 0), "flood_end": keys.ctl_key(run, 3), "flood_report": keys.status_key(run, 3),
+        "raw_ping": topics.ctl_key(run, 1), "raw_pong": topics.status_key(run, 1),
+        "msg_ping": topics.ctl_key(run, 2), "msg_pong": topics.status_key(run, 2),
+        "cb_ping": topics.ctl_key(run, 4), "cb_pong": topics.status_key(run, 4),
+        "flood": topics.est_key(run, 0), "flood_end": topics.ctl_key(run, 3), "flood_report": topics.status_key(run, 3),
     }
 
 
@@ -60,7 +59,7 @@ def run_pong(run: str, listen: str) -> int:
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
     k = bench_keys(run)
-    with Peer(NetConfig(run=run, listen=(listen,)), "bench", "pong") as peer:
+    with topics.open_peer(NetConfig(run=run, listen=(listen,)), "bench", "pong") as peer:
         raw_in = peer.subscribe(k["raw_ping"])
         msg_in = peer.subscribe(k["msg_ping"])
         flood_in = peer.subscribe(k["flood"], maxlen=1 << 20)
@@ -159,7 +158,7 @@ def main(n: int = 2000, warmup: int = 200, flood: int = 20000) -> list[dict]:
     k = bench_keys(run)
     rows = []
     try:
-        with Peer(NetConfig(run=run, connect=(listen,)), "bench", "ping") as peer:
+        with topics.open_peer(NetConfig(run=run, connect=(listen,)), "bench", "ping") as peer:
             raw_in = peer.subscribe(k["raw_pong"])
             msg_in = peer.subscribe(k["msg_pong"])
             report_in = peer.subscribe(k["flood_report"])

@@ -11,10 +11,9 @@ import argparse
 import signal
 import sys
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import F64Array, Int, MessageStats, Schema, encode, try_decode
 from broker_free_net.config import NetConfig
-from broker_free_net.peer import Peer
 
 REQUEST = Schema({"seq": Int(0, 2**31), "x": F64Array((None,), required=False)})
 REPLY = Schema({
@@ -30,9 +29,9 @@ def main(run: str, id: int, listen: list[str], connect: list[str]) -> int:
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
     net = NetConfig(run=run, listen=tuple(listen), connect=tuple(connect))
-    with Peer(net, "echo", id) as peer:
-        inbox = peer.subscribe(keys.ctl_key(run, id))
-        out_key = keys.status_key(run, id)
+    with topics.open_peer(net, "echo", id) as peer:
+        inbox = peer.subscribe(topics.ctl_key(run, id))
+        out_key = topics.status_key(run, id)
         peer.publisher(out_key, block=True)
         stats = MessageStats()
         print("ready", flush=True)

@@ -19,8 +19,8 @@ import signal
 import sys
 
 from broker_free_net.config import NetConfig
-from broker_free_net.peer import Peer
-from broker_free_net.security import parse_identity
+from agent.protocol.topics import open_peer
+from agent.protocol.topics import parse_identity
 
 
 def main(keys_dir, identity, run, listen, connect, puts, peer_id=None) -> int:
@@ -29,7 +29,7 @@ def main(keys_dir, identity, run, listen, connect, puts, peer_id=None) -> int:
     role, i = parse_identity(identity)
     net = NetConfig(run=run, listen=tuple(listen) or None, connect=tuple(connect) or None,
                     keys=keys_dir, identity=identity)
-    with Peer(net, "inject" if role == "operator" else role, peer_id or i or 0) as peer:
+    with open_peer(net, "inject" if role == "operator" else role, peer_id or i or 0) as peer:
         inbox = peer.subscribe(f"socmon/{run}/**", maxlen=1 << 16, include_local=False)
         watch = peer.watch_liveliness()
         for key in puts:

@@ -15,10 +15,9 @@ from pathlib import Path
 from agent.protocol import wire
 from agent.run.launcher import ROOT, Children
 from broker_free_net.ports import listen_port
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.config import NetConfig
-from broker_free_net.peer import Peer
 
 DEADLINE = 60.0  # generous: a loaded 2-core machine
 
@@ -31,9 +30,9 @@ class Deployment:
         self.n = n
         port = [listen_port() for _ in range(len(agents) + 2)]
         self.ep = [f"tcp/127.0.0.1:{p}" for p in port]
-        self.peer = Peer(NetConfig(run=self.run, listen=(self.ep[0],)), "monitor", 0)
-        self.status_in = self.peer.subscribe(keys.any_agent_pattern(self.run, "status"))
-        self.est_in = self.peer.subscribe(keys.any_agent_pattern(self.run, "est"), maxlen=1 << 16)
+        self.peer = topics.open_peer(NetConfig(run=self.run, listen=(self.ep[0],)), "monitor", 0)
+        self.status_in = self.peer.subscribe(topics.any_agent_pattern(self.run, "status"))
+        self.est_in = self.peer.subscribe(topics.any_agent_pattern(self.run, "est"), maxlen=1 << 16)
         self.status, self.est_epochs, self.stats = {}, {}, MessageStats()
         common = ["--run", self.run, "--connect", self.ep[0], "--seed", str(seed)]
         self.children.start("world", ["world", scenario, *common, "--listen", self.ep[1],

@@ -67,20 +67,19 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
                                                                             live_gains):
     from agent.protocol import wire
     from agent.protocol.control_auth import ControlSigner
-    from broker_free_net import keys
+    from agent.protocol import topics
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
-    from broker_free_net.peer import Peer
 
     with _attached(tmp_path, live_gains, "--fault", "monitor:250", "--kill", "450:1",
                    steps=650) as (run, alive, result):
         rid = run["run"]
         # a client: it brokers nobody's traffic (a slow peer in the mesh would)
         net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
-        with Peer(net, "attacker", 0) as peer:
-            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
-            roster_key = keys.ctl_key(rid, 0)
-            for key in (roster_key, keys.status_key(rid, 1), keys.status_key(rid, 2)):
+        with topics.open_peer(net, "attacker", 0) as peer:
+            truth_in = peer.subscribe(topics.truth_key(rid), maxlen=64)
+            roster_key = topics.ctl_key(rid, 0)
+            for key in (roster_key, topics.status_key(rid, 1), topics.status_key(rid, 2)):
                 peer.publisher(key)
             outsider = ControlSigner.generate()
             stats, step, sent = MessageStats(), -1, 0
@@ -90,10 +89,10 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
                 if not heard or step % 5:
                     continue
                 # agent 2's key, agent 1's name and an epoch far ahead
-                peer.put(keys.status_key(rid, 2), wire.encode_status(
+                peer.put(topics.status_key(rid, 2), wire.encode_status(
                     _status(1, step + 5, 2 ** 62)))
                 # agent 1's own key, an epoch far ahead
-                peer.put(keys.status_key(rid, 1), wire.encode_status(
+                peer.put(topics.status_key(rid, 1), wire.encode_status(
                     _status(1, step, 2 ** 61)))
                 # rosters: unsigned, and signed with a key that is not the run's
                 peer.put(roster_key, wire.encode_roster(2 ** 62, 10 ** 6, [1, 2, 3]))
@@ -119,10 +118,9 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
     it does listen to) 500 steps stale. Nothing of it is
     taken: no healthy agent is convicted and a later crash of agent 1 is recovered."""
     from agent.protocol import wire
-    from broker_free_net import keys
+    from agent.protocol import topics
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
-    from broker_free_net.peer import Peer
 
     from broker_free_net.ports import listen_port
 
@@ -132,9 +130,9 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
         net = NetConfig(run=rid, listen=(f"tls/127.0.0.1:{listen_port()}",),
                         connect=(run["connect"],), keys=str(tmp_path / "run" / "keys"),
                         identity="agent-2")
-        with Peer(net, "agent", 2) as peer:
-            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
-            mine = keys.status_key(rid, 2)
+        with topics.open_peer(net, "agent", 2) as peer:
+            truth_in = peer.subscribe(topics.truth_key(rid), maxlen=64)
+            mine = topics.status_key(rid, 2)
             peer.publisher(mine)
             stats, step, sent = MessageStats(), -1, 0
             while step < 420:
@@ -166,17 +164,16 @@ def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, l
     (counted ``implausible`` and ``sensor_future``), nobody is convicted, the agents do
     not race ahead, and the run's steady MSE stays within 3x of the exact prediction."""
     from agent.protocol import wire
-    from broker_free_net import keys
+    from agent.protocol import topics
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
-    from broker_free_net.peer import Peer
 
     with _attached(tmp_path, live_gains, steps=500) as (run, alive, result):
         rid = run["run"]
         net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
-        with Peer(net, "attacker", 0) as peer:
-            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
-            for key in (keys.est_key(rid, 1), keys.sensors_key(rid)):
+        with topics.open_peer(net, "attacker", 0) as peer:
+            truth_in = peer.subscribe(topics.truth_key(rid), maxlen=64)
+            for key in (topics.est_key(rid, 1), topics.sensors_key(rid)):
                 peer.publisher(key)
             stats, step, sent = MessageStats(), -1, 0
             while step < 250:
@@ -185,11 +182,11 @@ def test_absurd_estimates_and_readings_are_refused_and_the_run_holds(tmp_path, l
                 if not heard or step < 100:
                     continue
                 for value in (1e300, -1e30):
-                    peer.put(keys.est_key(rid, 1), wire.encode_est(
+                    peer.put(topics.est_key(rid, 1), wire.encode_est(
                         1, step + 1, [value] * 14, 0, time.time()))
-                peer.put(keys.sensors_key(rid), wire.encode_sensors(step + 1, [1e300] * 14))
+                peer.put(topics.sensors_key(rid), wire.encode_sensors(step + 1, [1e300] * 14))
                 for ahead in (99_998, 99_999):    # plausible values, stamps from the future
-                    peer.put(keys.sensors_key(rid), wire.encode_sensors(step + ahead,
+                    peer.put(topics.sensors_key(rid), wire.encode_sensors(step + ahead,
                                                                         [1.0] * 14))
                 sent += 1
     assert sent > 50
@@ -208,17 +205,16 @@ def test_a_dead_agent_is_not_hidden_behind_a_token_and_statuses_in_its_name(tmp_
     (refused, ``token``) and the end of agent 1's own token: the crash is convicted and
     recovered although the outsider's token and statuses go on."""
     from agent.protocol import wire
-    from broker_free_net import keys
+    from agent.protocol import topics
     from broker_free_net.codec import MessageStats
     from broker_free_net.config import NetConfig
-    from broker_free_net.peer import Peer
 
     with _attached(tmp_path, live_gains, "--kill", "300:1", steps=600) as (run, alive, result):
         rid = run["run"]
         net = NetConfig(run=rid, mode="client", connect=(run["connect"],))
-        with Peer(net, "attacker", 0) as peer:
-            truth_in = peer.subscribe(keys.truth_key(rid), maxlen=64)
-            peer.publisher(keys.status_key(rid, 1))
+        with topics.open_peer(net, "attacker", 0) as peer:
+            truth_in = peer.subscribe(topics.truth_key(rid), maxlen=64)
+            peer.publisher(topics.status_key(rid, 1))
             stats, step, sent, token = MessageStats(), -1, 0, None
             while step < 450:
                 assert alive(), step
@@ -227,8 +223,8 @@ def test_a_dead_agent_is_not_hidden_behind_a_token_and_statuses_in_its_name(tmp_
                     continue
                 if token is None:          # agent 1's id, in the outsider's own session
                     token = peer.session.liveliness().declare_token(
-                        keys.alive_key(rid, "agent", 1, peer.zid()))
-                peer.put(keys.status_key(rid, 1), wire.encode_status(_status(1, step, 0)))
+                        topics.alive_key(rid, "agent", 1, peer.zid()))
+                peer.put(topics.status_key(rid, 1), wire.encode_status(_status(1, step, 0)))
                 sent += 1
             token.undeclare()
     assert sent > 100

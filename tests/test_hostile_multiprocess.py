@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from agent.protocol import wire
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MAX_ERROR_CHARS, MAX_PAYLOAD_BYTES
 from design.gains import save_gains
 from design.scenario import load_scenario
@@ -27,16 +27,16 @@ def test_hostile_flood_leaves_the_agent_stepping_and_sigterm_stops_it(tmp_path):
         bad_ctl = wire.encode_ctl(1, 1, 10, [f"no-such-node-{i:0>60}" for i in range(400)],
                                   {2: 0.5}, 0.5, np.zeros((s.n, 400)))
         flood = [
-            (keys.sensors_key(run), wire.encode_sensors(wire.MAX_STEP, np.full(s.n, 1e9)), 20),
-            (keys.sensors_key(run), wire.encode_sensors(dep.step_of(1) + 500, np.full(s.n, 1e9)),
+            (topics.sensors_key(run), wire.encode_sensors(wire.MAX_STEP, np.full(s.n, 1e9)), 20),
+            (topics.sensors_key(run), wire.encode_sensors(dep.step_of(1) + 500, np.full(s.n, 1e9)),
              1),
             # nested deeper than the codec's limit, small enough to reach the decoder
-            (keys.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 200 + b"\xc0", 50),
+            (topics.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 200 + b"\xc0", 50),
             # larger than any estimate: refused by the inbox before it is copied
-            (keys.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0", 50),
-            (keys.sensors_key(run), bytes(250_000), 50),
-            (keys.ctl_key(run, 1), bytes(MAX_PAYLOAD_BYTES + 1024), 20),
-            (keys.ctl_key(run, 1), bad_ctl, 50),
+            (topics.est_key(run, 2), b"\x82\xa1v\x01\xa1x" + b"\x91" * 5000 + b"\xc0", 50),
+            (topics.sensors_key(run), bytes(250_000), 50),
+            (topics.ctl_key(run, 1), bytes(MAX_PAYLOAD_BYTES + 1024), 20),
+            (topics.ctl_key(run, 1), bad_ctl, 50),
         ]
         for key, payload, count in flood:
             dep.peer.publisher(key, block=True)

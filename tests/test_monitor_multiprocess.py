@@ -136,10 +136,9 @@ def test_forged_control_messages_are_rejected_and_the_monitor_still_commands(tmp
 
     from agent.protocol import wire
     from agent.protocol.control_auth import ControlSigner
-    from broker_free_net import keys
+    from agent.protocol import topics
     from broker_free_net.codec import MessageStats, try_decode
     from broker_free_net.config import NetConfig
-    from broker_free_net.peer import Peer
 
     out = tmp_path / "run"
     result = {}
@@ -153,9 +152,9 @@ def test_forged_control_messages_are_rejected_and_the_monitor_still_commands(tmp
             time.sleep(0.05)
         run = json.loads((out / "run.json").read_text())
         net = NetConfig(run=run["run"], listen=("tcp/127.0.0.1:0",), connect=(run["connect"],))
-        with Peer(net, "attacker", 0) as peer:
-            status_in = peer.subscribe(keys.any_agent_pattern(run["run"], "status"))
-            ctl = keys.ctl_key(run["run"], 1)
+        with topics.open_peer(net, "attacker", 0) as peer:
+            status_in = peer.subscribe(topics.any_agent_pattern(run["run"], "status"))
+            ctl = topics.ctl_key(run["run"], 1)
             peer.publisher(ctl, block=True)
             G = np.zeros((14, 1))
             forged = [

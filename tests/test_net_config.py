@@ -187,7 +187,7 @@ def test_argparse_helpers():
 
 
 def test_keys_flag_needs_an_identity(tmp_path):
-    from broker_free_net.security import make_run_keys, run_identities
+    from agent.protocol.topics import make_run_keys, run_identities
 
     ks = make_run_keys(tmp_path / "k", "r9", run_identities(1))
     parser = add_net_arguments(argparse.ArgumentParser())

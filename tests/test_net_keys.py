@@ -2,48 +2,48 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.keys import InvalidKey
 
 
 def test_builders():
-    assert keys.est_key("r", 3) == "socmon/r/est/3"
-    assert keys.ctl_key("r", 0) == "socmon/r/ctl/0"
-    assert keys.status_key("r", 12) == "socmon/r/status/12"
-    assert keys.sensors_key("r") == "socmon/r/sensors"
-    assert keys.truth_key("r") == "socmon/r/truth"
-    assert keys.impair_key("r") == "socmon/r/impair"
-    assert keys.alive_key("r", "agent", 4, "z1") == "socmon/r/alive/agent/4/z1"
-    assert keys.alive_key("r", "world", "w", "z2") == "socmon/r/alive/world/w/z2"
-    assert keys.alive_pattern("r") == "socmon/r/alive/**"
-    assert keys.any_agent_pattern("r", "est") == "socmon/r/est/*"
+    assert topics.est_key("r", 3) == "socmon/r/est/3"
+    assert topics.ctl_key("r", 0) == "socmon/r/ctl/0"
+    assert topics.status_key("r", 12) == "socmon/r/status/12"
+    assert topics.sensors_key("r") == "socmon/r/sensors"
+    assert topics.truth_key("r") == "socmon/r/truth"
+    assert topics.impair_key("r") == "socmon/r/impair"
+    assert topics.alive_key("r", "agent", 4, "z1") == "socmon/r/alive/agent/4/z1"
+    assert topics.alive_key("r", "world", "w", "z2") == "socmon/r/alive/world/w/z2"
+    assert topics.alive_pattern("r") == "socmon/r/alive/**"
+    assert topics.any_agent_pattern("r", "est") == "socmon/r/est/*"
     with pytest.raises(InvalidKey):
-        keys.any_agent_pattern("r", "sensor")
+        topics.any_agent_pattern("r", "sensor")
 
 
 @pytest.mark.parametrize("bad", ["", "a*", "a$b", "a/b", "#", "x?", "@x", "a b", "a\nb", 5, None])
 def test_bad_chunks(bad):
     with pytest.raises(InvalidKey) as info:
-        keys.alive_key("r", bad, 1, "z")
+        topics.alive_key("r", bad, 1, "z")
     assert info.value.field == "role"
     with pytest.raises(InvalidKey) as info:
-        keys.alive_key("r", "agent", 1, bad)
+        topics.alive_key("r", "agent", 1, bad)
     assert info.value.field == "session"
     with pytest.raises(InvalidKey) as info:
-        keys.truth_key(bad)
+        topics.truth_key(bad)
     assert info.value.field == "run"
 
 
 @pytest.mark.parametrize("bad", [-1, True, "3", 1.0])
 def test_bad_agent_ids(bad):
     with pytest.raises(InvalidKey) as info:
-        keys.est_key("r", bad)
+        topics.est_key("r", bad)
     assert info.value.field == "agent"
 
 
 def test_parsers():
-    assert keys.parse_agent_key("r", "est", "socmon/r/est/7") == 7
-    assert keys.parse_alive_key("r", "socmon/r/alive/agent/7/ab") == ("agent", "7", "ab")
+    assert topics.parse_agent_key("r", "est", "socmon/r/est/7") == 7
+    assert topics.parse_alive_key("r", "socmon/r/alive/agent/7/ab") == ("agent", "7", "ab")
 
 
 @pytest.mark.parametrize("key", [
@@ -53,7 +53,7 @@ def test_parsers():
 ])
 def test_parse_agent_rejects(key):
     with pytest.raises(InvalidKey):
-        keys.parse_agent_key("r", "est", key)
+        topics.parse_agent_key("r", "est", key)
 
 
 @pytest.mark.parametrize("key", [
@@ -63,21 +63,35 @@ def test_parse_agent_rejects(key):
 ])
 def test_parse_alive_rejects(key):
     with pytest.raises(InvalidKey):
-        keys.parse_alive_key("r", key)
+        topics.parse_alive_key("r", key)
 
 
 @given(agent=st.integers(0, 10**9 - 1))
 @settings(deadline=None)
 def test_agent_round_trip(agent):
-    for kind in keys.AGENT_KINDS:
-        assert keys.parse_agent_key("run1", kind, keys.agent_key("run1", kind, agent)) == agent
+    for kind in topics.AGENT_KINDS:
+        assert topics.parse_agent_key("run1", kind, topics.agent_key("run1", kind, agent)) == agent
 
 
 @given(text=st.text(max_size=20))
 @settings(deadline=None)
 def test_parse_never_raises_other_errors(text):
-    for parse in (lambda k: keys.parse_alive_key("r", k), lambda k: keys.parse_agent_key("r", "est", k)):
+    for parse in (lambda k: topics.parse_alive_key("r", k), lambda k: topics.parse_agent_key("r", "est", k)):
         try:
             parse("socmon/r/" + text)
         except InvalidKey:
             pass
+
+
+def test_token_keys_take_the_callers_prefix():
+    """The transport lays out liveliness tokens under any prefix; socmon's is alive_prefix."""
+    from broker_free_net.keys import parse_token_key, token_key, token_pattern
+
+    assert token_key("app/x/live", "node", 2, "z") == "app/x/live/node/2/z"
+    assert token_pattern("app/x/live") == "app/x/live/**"
+    assert parse_token_key("app/x/live", "app/x/live/node/2/z") == ("node", "2", "z")
+    for bad in ("app/x/live/node/2", "app/y/live/node/2/z", "app/x/live/node/2/z/w"):
+        with pytest.raises(InvalidKey):
+            parse_token_key("app/x/live", bad)
+    assert topics.alive_prefix("r") == "socmon/r/alive"
+    assert token_key(topics.alive_prefix("r"), "agent", 4, "z1") == topics.alive_key("r", "agent", 4, "z1")

@@ -17,10 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MessageStats, decode, encode, try_decode
 from broker_free_net.config import NetConfig
-from broker_free_net.peer import Peer
 from broker_free_net.ports import listen_port
 from tests import waiting
 
@@ -77,7 +76,7 @@ def handshake(peer, inbox, run, id_, timeout=DEADLINE):
     """Ping until the echo answers: routes are declared both ways afterwards."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        peer.put(keys.ctl_key(run, id_), encode({"seq": 0}))
+        peer.put(topics.ctl_key(run, id_), encode({"seq": 0}))
         item = inbox.get(timeout=0.25)
         if item is not None:
             inbox.drain()
@@ -87,30 +86,30 @@ def handshake(peer, inbox, run, id_, timeout=DEADLINE):
 
 def test_echo_round_trip(spawn, run_id):
     _, ep = spawn(1)
-    with Peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
-        inbox = me.subscribe(keys.status_key(run_id, 1))
-        me.publisher(keys.ctl_key(run_id, 1), block=True)
+    with topics.open_peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
+        inbox = me.subscribe(topics.status_key(run_id, 1))
+        me.publisher(topics.ctl_key(run_id, 1), block=True)
         assert me.wait_for_peers(lambda alive: ("echo", "1") in alive, DEADLINE)
         handshake(me, inbox, run_id, 1)
         n = 300
         xs = [np.random.default_rng(i).normal(size=14) for i in range(n)]
         for i, x in enumerate(xs, start=1):
-            me.put(keys.ctl_key(run_id, 1), encode({"seq": i, "x": x}))
+            me.put(topics.ctl_key(run_id, 1), encode({"seq": i, "x": x}))
         replies = []
         assert wait_until(lambda: replies.extend(inbox.drain()) or len(replies) >= n), len(replies)
         msgs = [decode(r.payload, REPLY, senders={1}) for r in replies]
         assert [m["seq"] for m in msgs] == list(range(1, n + 1))  # in order, none lost
         for m, x in zip(msgs, xs):
             np.testing.assert_array_equal(m["x"], x)
-        assert all(r.key == keys.status_key(run_id, 1) for r in replies)
+        assert all(r.key == topics.status_key(run_id, 1) for r in replies)
         assert inbox.overflows == 0
 
 
 def test_malformed_flood_is_counted_and_good_message_gets_through(spawn, run_id):
     _, ep = spawn(1)
-    with Peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
-        inbox = me.subscribe(keys.status_key(run_id, 1))
-        key = keys.ctl_key(run_id, 1)
+    with topics.open_peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
+        inbox = me.subscribe(topics.status_key(run_id, 1))
+        key = topics.ctl_key(run_id, 1)
         me.publisher(key, block=True)
         first = handshake(me, inbox, run_id, 1)
         rng = random.Random(1)
@@ -140,7 +139,7 @@ def test_malformed_flood_is_counted_and_good_message_gets_through(spawn, run_id)
 
 def test_sigkill_withdraws_liveliness(spawn, run_id):
     proc, ep = spawn(1)
-    with Peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
+    with topics.open_peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
         watch = me.watch_liveliness()
         assert watch.wait_until(lambda alive: ("echo", "1") in alive, DEADLINE)
         assert ("monitor", "0") in watch.alive()  # own token, through history
@@ -154,7 +153,7 @@ def test_sigkill_withdraws_liveliness(spawn, run_id):
 def test_hung_peer_expires_by_lease(spawn, run_id):
     """SIGSTOP keeps the socket open: only the link lease (1 s) can detect it."""
     proc, ep = spawn(1)
-    with Peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
+    with topics.open_peer(NetConfig(run=run_id, connect=(ep,)), "monitor", 0) as me:
         assert me.wait_for_peers(lambda alive: ("echo", "1") in alive, DEADLINE)
         os.killpg(proc.pid, signal.SIGSTOP)
         try:
@@ -168,8 +167,8 @@ def test_hung_peer_expires_by_lease(spawn, run_id):
 def test_gossip_finds_peers_through_one_seed(spawn, run_id):
     _, seed = spawn(1)
     spawn(2, connect=(seed,))
-    with Peer(NetConfig(run=run_id, connect=(seed,)), "monitor", 0) as me:
-        inbox = me.subscribe(keys.any_agent_pattern(run_id, "status"))
+    with topics.open_peer(NetConfig(run=run_id, connect=(seed,)), "monitor", 0) as me:
+        inbox = me.subscribe(topics.any_agent_pattern(run_id, "status"))
         assert me.wait_for_peers(lambda alive: {("echo", "1"), ("echo", "2")} <= alive, DEADLINE)
         assert handshake(me, inbox, run_id, 2)["from"] == 2
         assert wait_until(lambda: len(me.connected_peers()) == 2)
@@ -177,15 +176,15 @@ def test_gossip_finds_peers_through_one_seed(spawn, run_id):
 
 def test_peer_close_is_idempotent_and_withdraws_token(run_id):
     port = listen_port()
-    a = Peer(NetConfig(run=run_id, listen=(endpoint(port),)), "agent", 0)
-    with Peer(NetConfig(run=run_id, connect=(endpoint(port),)), "agent", 1) as b:
+    a = topics.open_peer(NetConfig(run=run_id, listen=(endpoint(port),)), "agent", 0)
+    with topics.open_peer(NetConfig(run=run_id, connect=(endpoint(port),)), "agent", 1) as b:
         assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, DEADLINE)
         a.close()
         a.close()
         assert a.closed
         with pytest.raises(RuntimeError):
-            a.put(keys.est_key(run_id, 0), b"x")
+            a.put(topics.est_key(run_id, 0), b"x")
         with pytest.raises(ValueError):
-            b.publisher(keys.est_key(run_id, 1), block=True)
-            b.publisher(keys.est_key(run_id, 1), block=False)
+            b.publisher(topics.est_key(run_id, 1), block=True)
+            b.publisher(topics.est_key(run_id, 1), block=False)
         assert b.wait_for_peers(lambda alive: ("agent", "0") not in alive, DEADLINE)

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.config import NetConfig
 from broker_free_net.keys import InvalidKey
 from broker_free_net.peer import Inbox, LivelinessWatch, Peer, Received
@@ -49,7 +49,7 @@ class FakeSample:
 def test_liveliness_watch_tracks_alive_and_ignores_bad_keys():
     import zenoh
 
-    watch = LivelinessWatch("r")
+    watch = LivelinessWatch("socmon/r/alive")
     watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.PUT))
     watch._on_sample(FakeSample("socmon/r/alive/world/w/zw", zenoh.SampleKind.PUT))
     watch._on_sample(FakeSample("socmon/r/alive/agent/1", zenoh.SampleKind.PUT))
@@ -67,7 +67,7 @@ def test_liveliness_watch_sees_two_sessions_claiming_one_id():
     process claiming agent 1 is a second token, and the first one's end is seen."""
     import zenoh
 
-    watch = LivelinessWatch("r")
+    watch = LivelinessWatch("socmon/r/alive")
     watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.PUT))
     watch._on_sample(FakeSample("socmon/r/alive/agent/1/zb", zenoh.SampleKind.PUT))
     watch._on_sample(FakeSample("socmon/r/alive/agent/1/za", zenoh.SampleKind.DELETE))
@@ -82,9 +82,9 @@ def test_liveliness_watch_sees_two_sessions_claiming_one_id():
 
 def test_peer_rejects_bad_role_and_config():
     with pytest.raises(TypeError):
-        Peer({"run": "r"}, "agent", 0)
+        Peer({"run": "r"}, "agent", 0, alive_prefix="socmon/r/alive")
     with pytest.raises(InvalidKey):
-        Peer(NetConfig(), "a/b", 0)
+        Peer(NetConfig(), "a/b", 0, alive_prefix="socmon/default/alive")
 
 
 def wait_for_item(inbox, predicate, timeout=20):
@@ -99,24 +99,24 @@ def wait_for_item(inbox, predicate, timeout=20):
 def test_two_peers_in_one_process_wait_and_drain():
     run = f"inproc{listen_port()}"
     port = listen_port()
-    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
-            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
-        inbox = b.subscribe(keys.any_agent_pattern(run, "est"))
-        remote_only = b.subscribe(keys.any_agent_pattern(run, "est"), include_local=False)
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            topics.open_peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        inbox = b.subscribe(topics.any_agent_pattern(run, "est"))
+        remote_only = b.subscribe(topics.any_agent_pattern(run, "est"), include_local=False)
         assert b.wait_for_peers(lambda alive: {("agent", "0"), ("agent", "1")} <= alive, 20)
         deadline = time.monotonic() + 20
         got, remote = [], []
         # until both subscriptions have heard a (seen once on a loaded machine: the
         # first put reached one of them and not the other)
         while not (got and remote) and time.monotonic() < deadline:
-            a.put(keys.est_key(run, 0), b"hello")
+            a.put(topics.est_key(run, 0), b"hello")
             b.wait(timeout=0.2)
             got += inbox.drain()
             remote += remote_only.drain()
-        assert got and got[0].payload == b"hello" and got[0].key == keys.est_key(run, 0)
-        assert keys.parse_agent_key(run, "est", got[0].key) == 0
+        assert got and got[0].payload == b"hello" and got[0].key == topics.est_key(run, 0)
+        assert topics.parse_agent_key(run, "est", got[0].key) == 0
         assert a.zid() != b.zid()
-        b.put(keys.est_key(run, 1), b"own")
+        b.put(topics.est_key(run, 1), b"own")
         assert wait_for_item(inbox, lambda r: r.payload == b"own")  # local delivery
         # the local put reached `inbox`, and not the remote-only subscription
         assert {r.payload for r in remote + remote_only.drain()} == {b"hello"}
@@ -155,8 +155,8 @@ def test_links_do_not_linger_on_close():
     one it accepted, within a scan period."""
     run = f"linger{listen_port()}"
     port = listen_port()
-    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0), \
-            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0), \
+            topics.open_peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
         assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
@@ -195,8 +195,8 @@ def test_start_order_does_not_matter():
     """A peer whose seed is not up yet keeps retrying and joins when it starts."""
     run = f"late{listen_port()}"
     port = listen_port()
-    with Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as early:
-        with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0):
+    with topics.open_peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as early:
+        with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0):
             assert early.wait_for_peers(lambda alive: ("agent", "0") in alive, 30)
 
 
@@ -232,11 +232,11 @@ def test_payloads_over_the_limit_are_not_delivered():
 
     run = f"big{listen_port()}"
     port = listen_port()
-    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
-            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
-        inbox = b.subscribe(keys.est_key(run, 0), include_local=False)
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            topics.open_peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        inbox = b.subscribe(topics.est_key(run, 0), include_local=False)
         assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
-        key = keys.est_key(run, 0)
+        key = topics.est_key(run, 0)
         a.publisher(key, block=True)
         got = []
         deadline = time.monotonic() + 20
@@ -263,11 +263,11 @@ def test_publisher_latency_options_are_checked_and_delivered():
     """An express, high-priority publisher delivers; an unknown priority is refused."""
     run = f"prio{listen_port()}"
     port = listen_port()
-    with Peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
-            Peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
-        key = keys.est_key(run, 0)
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 0) as a, \
+            topics.open_peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as b:
+        key = topics.est_key(run, 0)
         with pytest.raises(ValueError, match="priority"):
-            a.publisher(keys.status_key(run, 0), priority="URGENT")
+            a.publisher(topics.status_key(run, 0), priority="URGENT")
         inbox = b.subscribe(key, include_local=False)
         assert b.wait_for_peers(lambda alive: ("agent", "0") in alive, 20)
         a.publisher(key, express=True, priority="DATA_HIGH")

@@ -15,7 +15,7 @@ from agent.run.local import RunConfig
 from agent.run.recorder import Recorder
 from agent.run.folder import InvalidRunFolder, read_run_info, write_run_json
 from agent.run.summary import mse_by_step, summarize
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.ports import listen_port
 
 RUN = "t"
@@ -35,14 +35,14 @@ def fed():
     r = Recorder(RUN, n=2, N=2, M=3)
     truth = {k: np.array([k, -k], float) for k in range(4)}
     for k, x in truth.items():
-        r.feed(keys.truth_key(RUN), wire.encode_truth(k, x))
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, x))
     # agent 1 is off by (1, 1) at every step, agent 2 by (0, 2); agent 2 misses step 3
     for k, x in truth.items():
-        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, x + [1, 1], epoch=0, t=0.0))
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, x + [1, 1], epoch=0, t=0.0))
         if k < 3:
-            r.feed(keys.est_key(RUN, 2), wire.encode_est(2, k, x + [0, 2], epoch=0, t=0.0))
-    r.feed(keys.status_key(RUN, 1), _status(1, 3, drops=2, late=1))
-    r.feed(keys.status_key(RUN, 2), _status(2, 2, drops=1))
+            r.feed(topics.est_key(RUN, 2), wire.encode_est(2, k, x + [0, 2], epoch=0, t=0.0))
+    r.feed(topics.status_key(RUN, 1), _status(1, 3, drops=2, late=1))
+    r.feed(topics.status_key(RUN, 2), _status(2, 2, drops=1))
     return r
 
 
@@ -60,11 +60,11 @@ def test_recorder_fed_by_hand_gives_the_mse_of_truth_and_estimates(fed):
 
 
 def test_recorder_rosters_assignments_and_monitor_events(fed):
-    fed.feed(keys.ctl_key(RUN, 0), wire.encode_roster(1, 2, [1, 3]))
-    fed.feed(keys.ctl_key(RUN, 0), wire.encode_roster(1, 2, [1, 2]))   # not newer: ignored
-    fed.feed(keys.ctl_key(RUN, 3), wire.encode_ctl(3, 1, 2, ["1"], {1: 0.5}, 0.5,
+    fed.feed(topics.ctl_key(RUN, 0), wire.encode_roster(1, 2, [1, 3]))
+    fed.feed(topics.ctl_key(RUN, 0), wire.encode_roster(1, 2, [1, 2]))   # not newer: ignored
+    fed.feed(topics.ctl_key(RUN, 3), wire.encode_ctl(3, 1, 2, ["1"], {1: 0.5}, 0.5,
                                                    np.ones((2, 1)), take_over=2))
-    fed.feed(keys.monitor_events_key(RUN), wire.encode_monitor_event(
+    fed.feed(topics.monitor_events_key(RUN), wire.encode_monitor_event(
         {"kind": "verdict", "agent": 2, "cause": "crash", "evidence": "token", "step": 1}))
     rec = fed.recording
     assert rec.rosters == [(0, (1, 2), 0), (2, (1, 3), 1)]
@@ -79,12 +79,12 @@ def test_recorder_rosters_assignments_and_monitor_events(fed):
 
 def test_recorder_counts_and_drops_malformed_messages(fed):
     before = fed.recording.recorder_malformed
-    fed.feed(keys.truth_key(RUN), b"\xc1 not msgpack")
-    fed.feed(keys.truth_key(RUN), wire.encode_truth(9, np.zeros(3)))          # wrong n
-    fed.feed(keys.est_key(RUN, 1), wire.encode_est(7, 9, np.zeros(2), 0, 0.0))  # unknown agent
-    fed.feed(keys.monitor_events_key(RUN), wire.encode({"kind": "monitor_event",
+    fed.feed(topics.truth_key(RUN), b"\xc1 not msgpack")
+    fed.feed(topics.truth_key(RUN), wire.encode_truth(9, np.zeros(3)))          # wrong n
+    fed.feed(topics.est_key(RUN, 1), wire.encode_est(7, 9, np.zeros(2), 0, 0.0))  # unknown agent
+    fed.feed(topics.monitor_events_key(RUN), wire.encode({"kind": "monitor_event",
                                                         "event": "[not a map]"}))
-    fed.feed(keys.monitor_events_key(RUN), wire.encode({"kind": "monitor_event",
+    fed.feed(topics.monitor_events_key(RUN), wire.encode({"kind": "monitor_event",
                                                         "event": "{bad json"}))
     rec = fed.recording
     assert rec.recorder_malformed == before + 5
@@ -108,8 +108,8 @@ def test_summary_of_a_watched_recording(fed, tmp_path):
 
 def test_live_view_forms():
     r = Recorder(RUN, n=1, N=1, M=1)
-    r.feed(keys.truth_key(RUN), wire.encode_truth(0, [2.0]))
-    r.feed(keys.est_key(RUN, 1), wire.encode_est(1, 0, [1.0], epoch=0, t=0.0))
+    r.feed(topics.truth_key(RUN), wire.encode_truth(0, [2.0]))
+    r.feed(topics.est_key(RUN, 1), wire.encode_est(1, 0, [1.0], epoch=0, t=0.0))
     out = io.StringIO()
     view = LiveView(out, "json", interval=0)
     view.show(r.view())
@@ -172,8 +172,8 @@ def test_up_run_and_listen_checked():
 def test_recorder_keeps_the_newest_steps_only():
     r = Recorder(RUN, n=1, N=1, M=1, keep_steps=5)
     for k in range(20):
-        r.feed(keys.truth_key(RUN), wire.encode_truth(k, [float(k)]))
-        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, [float(k)]))
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
     rec = r.recording
     assert sorted(rec.truth) == list(range(15, 20)) and r.step == 19
     assert sorted(rec.est[1]) == list(range(15, 20))
@@ -182,13 +182,13 @@ def test_recorder_keeps_the_newest_steps_only():
 
 def test_a_stamp_far_ahead_or_a_wrong_sender_is_dropped_and_trimming_goes_on():
     r = Recorder(RUN, n=1, N=2, M=2, keep_steps=5)
-    r.feed(keys.truth_key(RUN), wire.encode_truth(0, [0.0]))
-    r.feed(keys.est_key(RUN, 1), wire.encode_est(1, 10**6, [1.0], epoch=0, t=0.0))  # future
-    r.feed(keys.est_key(RUN, 2), wire.encode_est(1, 0, [9.0], epoch=0, t=0.0))  # not agent 2's
+    r.feed(topics.truth_key(RUN), wire.encode_truth(0, [0.0]))
+    r.feed(topics.est_key(RUN, 1), wire.encode_est(1, 10**6, [1.0], epoch=0, t=0.0))  # future
+    r.feed(topics.est_key(RUN, 2), wire.encode_est(1, 0, [9.0], epoch=0, t=0.0))  # not agent 2's
     assert r.recording.recorder_malformed == 2 and r.recording.est[1] == {}
     for k in range(1, 40):
-        r.feed(keys.truth_key(RUN), wire.encode_truth(k, [float(k)]))
-        r.feed(keys.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, [float(k)]))
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, [k + 1.0], epoch=0, t=0.0))
     assert sorted(r.recording.est[1]) == list(range(35, 40))
 
 
@@ -204,7 +204,7 @@ def test_with_the_run_control_key_only_signed_rosters_are_recorded():
 
     signer, other = ControlSigner.generate(), ControlSigner.generate()
     r = Recorder(RUN, n=1, N=1, M=2, control_public=signer.public_bytes())
-    key = keys.ctl_key(RUN, 0)
+    key = topics.ctl_key(RUN, 0)
     r.feed(key, wire.encode_roster(2**40, 5, [2]))                          # unsigned
     r.feed(key, wire.encode_roster(2**40, 5, [2], signer=other, run=RUN))   # another key
     genuine = wire.encode_roster(1, 5, [2], signer=signer, run=RUN)
@@ -246,10 +246,10 @@ def test_watch_takes_the_control_key_from_the_runs_manifest(tmp_path):
 def test_link_impairments_taking_effect_are_recorded_as_events(fed):
     """Whatever set them (the run's faults, `socmon inject`), the impairments in force on
     an agent's links are recorded when its status shows them changed, and when lifted."""
-    fed.feed(keys.status_key(RUN, 1), _status(1, 4))                       # unchanged
-    fed.feed(keys.status_key(RUN, 1), _status(1, 5, links={"2": {"partition": True}}))
-    fed.feed(keys.status_key(RUN, 1), _status(1, 6, links={"2": {"partition": True}}))
-    fed.feed(keys.status_key(RUN, 1), _status(1, 9))
+    fed.feed(topics.status_key(RUN, 1), _status(1, 4))                       # unchanged
+    fed.feed(topics.status_key(RUN, 1), _status(1, 5, links={"2": {"partition": True}}))
+    fed.feed(topics.status_key(RUN, 1), _status(1, 6, links={"2": {"partition": True}}))
+    fed.feed(topics.status_key(RUN, 1), _status(1, 9))
     changes = [(e["process"], e["step"], e["links"]) for e in fed.recording.events
                if "links" in e]
     assert changes == [("agent-1", 5, {"2": {"partition": True}}), ("agent-1", 9, {})]
@@ -259,7 +259,7 @@ def test_a_status_with_an_epoch_far_above_any_seen_is_not_recorded():
     from agent.run.recorder import Recorder
     from agent.protocol.timing import DEFAULT as TIMING
     from agent.protocol import wire as w
-    from broker_free_net import keys as k
+    from agent.protocol import topics as k
 
     r = Recorder("demo", n=2, N=1, M=1)
     status = {"agent": 1, "step": 3, "active": True, "epoch": 2 ** 61, "measure": ["1"],

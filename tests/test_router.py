@@ -18,17 +18,16 @@ import pytest
 from agent.cli.main import main
 from agent.run.launcher import ROOT, Children
 from agent.run.local import RunFailed, _through_router, _wait_listening
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.config import (
     CLIENT_CONNECT_TIMEOUT_MS,
     InvalidNetConfig,
     NetConfig,
     build_zenoh_config,
 )
-from broker_free_net.peer import Peer
 from broker_free_net.ports import listen_port
 from broker_free_net.router import Router, router_config, serve_router
-from broker_free_net.security import make_run_keys, run_identities
+from agent.protocol.topics import make_run_keys, run_identities
 from tests.test_runtime_multiprocess import _socmon
 
 DEADLINE = 60.0
@@ -98,15 +97,15 @@ def test_two_clients_talk_and_see_liveliness_through_an_in_process_router():
     try:
         assert ready.wait(DEADLINE) and seen["endpoints"] == [ep]
         client = dict(run="rt", mode="client", connect=(ep,))
-        with Peer(NetConfig(**client), "agent", 1) as a, \
-                Peer(NetConfig(**client), "agent", 2) as b:
+        with topics.open_peer(NetConfig(**client), "agent", 1) as a, \
+                topics.open_peer(NetConfig(**client), "agent", 2) as b:
             watch = b.watch_liveliness()
             assert watch.wait_until(lambda alive: ("agent", "1") in alive, DEADLINE)
-            inbox = b.subscribe(keys.est_key("rt", 1))
+            inbox = b.subscribe(topics.est_key("rt", 1))
             deadline = time.monotonic() + DEADLINE
             item = None
             while item is None and time.monotonic() < deadline:
-                a.put(keys.est_key("rt", 1), b"hello")   # until b's subscription is known
+                a.put(topics.est_key("rt", 1), b"hello")   # until b's subscription is known
                 item = inbox.get(timeout=0.2)
             assert item is not None and item.payload == b"hello"
             a.close()
@@ -121,14 +120,14 @@ def test_two_routers_carry_samples_between_their_clients_and_a_client_skips_a_de
     a, b, dead = (f"tcp/127.0.0.1:{listen_port()}" for _ in range(3))
     with Router(NetConfig(listen=(a,))) as ra, \
             Router(NetConfig(listen=(b,), connect=(a,))) as rb:
-        with Peer(NetConfig(run="rt", mode="client", connect=(a,)), "agent", 1) as p1, \
-                Peer(NetConfig(run="rt", mode="client", connect=(dead, b)), "agent", 2) as p2:
+        with topics.open_peer(NetConfig(run="rt", mode="client", connect=(a,)), "agent", 1) as p1, \
+                topics.open_peer(NetConfig(run="rt", mode="client", connect=(dead, b)), "agent", 2) as p2:
             assert p2.watch_liveliness().wait_until(lambda s: ("agent", "1") in s, DEADLINE)
-            inbox = p2.subscribe(keys.est_key("rt", 1))
+            inbox = p2.subscribe(topics.est_key("rt", 1))
             deadline = time.monotonic() + DEADLINE
             item = None
             while item is None and time.monotonic() < deadline:
-                p1.put(keys.est_key("rt", 1), b"across")
+                p1.put(topics.est_key("rt", 1), b"across")
                 item = inbox.get(timeout=0.2)
             assert item is not None and item.payload == b"across"
             assert ra.sessions() == 2 and rb.sessions() == 2     # a client and the other router

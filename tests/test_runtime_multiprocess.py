@@ -18,7 +18,7 @@ import pytest
 
 from agent.protocol import wire
 from agent.run.launcher import ROOT
-from broker_free_net import keys
+from agent.protocol import topics
 from design.closed_loop import closed_loop_for
 from design.gains import save_gains
 from design.scenario import load_scenario, resolve_delays
@@ -265,8 +265,8 @@ def test_malformed_flood_leaves_the_agent_running_and_counted(deployment):
         lambda: wire.encode_sensors(5, np.full(n, np.inf)),               # inf readings
         lambda: wire.encode_ctl(1, 1, 10, ["7"], {2: 0.5}, 0.5, np.zeros((3, 1))),  # shape
     ]
-    targets = [keys.est_key(dep.run, 2), keys.ctl_key(dep.run, 1), keys.impair_key(dep.run),
-               keys.sensors_key(dep.run)]
+    targets = [topics.est_key(dep.run, 2), topics.ctl_key(dep.run, 1), topics.impair_key(dep.run),
+               topics.sensors_key(dep.run)]
     for t in targets:
         dep.peer.publisher(t, block=True)
     total = 1000
@@ -286,7 +286,7 @@ def test_role_assignment_switches_measured_node_at_the_stated_step(deployment):
     dep = deployment()
     dep.wait_for(lambda: dep.step_of(1) >= 5, "5 steps")
     at = dep.step_of(1) + 25
-    ctl = keys.ctl_key(dep.run, 1)
+    ctl = topics.ctl_key(dep.run, 1)
     dep.peer.publisher(ctl, block=True)
     payload = wire.encode_ctl(1, 1, at, ["8"], {2: 0.5}, 0.5, np.full((14, 1), 0.1))
     dep.peer.put(ctl, payload)
@@ -308,7 +308,7 @@ def test_standby_agent_takes_a_role(deployment):
     dep.wait_for(lambda: dep.step_of(4) >= 5, "5 steps")
     assert dep.status[4]["active"] is False
     at = dep.step_of(4) + 25
-    ctl = keys.ctl_key(dep.run, 4)
+    ctl = topics.ctl_key(dep.run, 4)
     dep.peer.publisher(ctl, block=True)
     dep.peer.put(ctl, wire.encode_ctl(4, 1, at, ["8"], {1: 0.5}, 0.5, np.full((14, 1), 0.1),
                                       take_over=1))

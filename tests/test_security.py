@@ -12,18 +12,16 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.x509.oid import NameOID
 
-from broker_free_net.config import InvalidNetConfig, NetConfig, build_zenoh_config
-from broker_free_net.security import (
-    InvalidKeys,
+from agent.protocol.topics import (
     access_control,
     identity_name,
-    load_fragment,
-    load_key_set,
     make_run_keys,
     parse_identity,
     put_keys,
     run_identities,
 )
+from broker_free_net.config import InvalidNetConfig, NetConfig, build_zenoh_config
+from broker_free_net.security import InvalidKeys, Permissions, build_access_control, load_fragment, load_key_set
 
 
 @pytest.fixture(scope="module")
@@ -97,6 +95,20 @@ def test_access_control_denies_by_default_and_grants_each_its_own():
         assert _allowed(acl, name, "delete", "ingress") == []
     with pytest.raises(InvalidKeys, match="twice"):
         access_control("r", ["world", "world"])
+
+
+def test_the_transport_builds_the_acl_from_the_callers_table():
+    acl = build_access_control("app/r/**", {"hub": Permissions(tokens=("app/r/alive/hub/*",)),
+                                            "n-1": Permissions(put=("app/r/x/1",))})
+    assert _allowed(acl, "n-1", "put", "ingress") == ["app/r/x/1"]
+    assert _allowed(acl, "hub", "put", "ingress") == []
+    assert _allowed(acl, "hub", "liveliness_token", "ingress") == ["app/r/alive/hub/*"]
+    assert _allowed(acl, "n-1", "declare_subscriber", "ingress") == ["app/r/**"]
+    assert [p["id"] for p in acl["policies"]] == ["run", "own-hub", "own-n-1"]
+    with pytest.raises(InvalidKeys, match="names"):
+        build_access_control("app/r/**", {})
+    with pytest.raises(InvalidKeys, match="name"):
+        build_access_control("app/r/**", {"a b": Permissions()})
 
 
 def test_certificates_are_signed_by_the_run_ca_and_name_the_process(keyset):

@@ -22,8 +22,8 @@ import zenoh
 from broker_free_net.ports import listen_port
 from tests import waiting
 from broker_free_net.config import NetConfig, build_zenoh_config
-from broker_free_net.peer import Peer
-from broker_free_net.security import make_run_keys, run_identities
+from agent.protocol.topics import open_peer
+from agent.protocol.topics import make_run_keys, run_identities
 
 pytestmark = pytest.mark.multiprocess
 
@@ -119,7 +119,7 @@ def test_insider_with_agent2_credentials_cannot_speak_for_others(child, keyset, 
     forbidden = [f"{p}/est/1", f"{p}/status/1", f"{p}/ctl/1", f"{p}/ctl/0", f"{p}/ctl/2",
                  f"{p}/sensors", f"{p}/truth", f"{p}/impair", f"{p}/monitor/1"]
     allowed = [f"{p}/status/2", f"{p}/est/2"]  # est/2 last: the marker of a round
-    with Peer(secure(keyset, run_id, "agent-2", ep), "agent", 2) as insider:
+    with open_peer(secure(keyset, run_id, "agent-2", ep), "agent", 2) as insider:
         mine = insider.subscribe(f"{p}/**", maxlen=1 << 16, include_local=False)
         # a liveliness token in another agent's name, on the same link before the puts
         forged_token = insider.session.liveliness().declare_token(f"{p}/alive/agent/3/{insider.zid()}")
@@ -152,8 +152,8 @@ def test_insider_with_agent2_credentials_cannot_speak_for_others(child, keyset, 
 def test_monitor_may_command_and_operator_may_impair(child, keyset, run_id):
     proc, ep = child
     p = f"socmon/{run_id}"
-    with Peer(secure(keyset, run_id, "monitor", ep), "monitor", 1) as monitor, \
-            Peer(secure(keyset, run_id, "operator", ep), "inject", "p1") as operator:
+    with open_peer(secure(keyset, run_id, "monitor", ep), "monitor", 1) as monitor, \
+            open_peer(secure(keyset, run_id, "operator", ep), "inject", "p1") as operator:
         for peer, key in ((monitor, f"{p}/ctl/1"), (operator, f"{p}/impair")):
             peer.publisher(key, block=True)
         assert wait_until(lambda: monitor.put(f"{p}/ctl/1", b"7") or operator.put(f"{p}/impair", b"8") or
@@ -208,7 +208,7 @@ def test_outsiders_deliver_nothing_and_fail_loudly(child, keyset, run_id, tmp_pa
                 for _ in range(20):
                     session.put(key, b"666")
     # a legitimate peer joins after the outsiders and is heard
-    with Peer(secure(keyset, run_id, "world", ep), "world", 0) as world:
+    with open_peer(secure(keyset, run_id, "world", ep), "world", 0) as world:
         world.publisher(f"{p}/truth", block=True)
         assert wait_until(lambda: world.put(f"{p}/truth", b"5") or received(proc.snapshot(), f"{p}/truth"))
     lines = proc.snapshot()

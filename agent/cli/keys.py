@@ -48,7 +48,8 @@ def run(args) -> int:
         import json
         from pathlib import Path
 
-        from broker_free_net.security import InvalidKeys, load_key_set, make_run_keys, run_identities
+        from agent.protocol.topics import make_run_keys, run_identities
+        from broker_free_net.security import InvalidKeys, load_key_set
 
         flag = {"dir": "DIR", "run": "--run", "hosts": "--host", "port_base": "--port-base",
                 "valid_days": "--valid-days", "keys": "DIR"}

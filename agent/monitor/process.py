@@ -31,9 +31,8 @@ import signal
 import sys
 import time
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MessageStats, try_decode
-from broker_free_net.peer import Peer
 
 from agent.protocol import wire
 from agent.protocol.control_auth import SignatureError
@@ -126,8 +125,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         from agent.protocol.control_auth import ControlVerifier
 
         verifier = ControlVerifier(signer.public_bytes(), run, not_before=0.0)
-    status_sender = keys.AgentKeyCache(run, "status", core.agents)
-    estimate_sender = keys.AgentKeyCache(run, "est", core.agents)
+    status_sender = topics.AgentKeyCache(run, "status", core.agents)
+    estimate_sender = topics.AgentKeyCache(run, "est", core.agents)
     trim_heap, trimmed = heap_trimmer(), [0.0, 0]   # time, messages dropped at the last trim
     out_file = open(events_out, "a") if events_out else None
     files = [out_file]                   # [the events file, None once a write failed]
@@ -145,7 +144,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                       f"{exc.strerror}; events are published only from now on", file=log,
                       flush=True)
         for put in publish:
-            put(keys.monitor_events_key(run), wire.encode_monitor_event(event))
+            put(topics.monitor_events_key(run), wire.encode_monitor_event(event))
 
     precomputing = [None]
 
@@ -163,17 +162,17 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             print(f"monitor {monitor_id}: {foreseen['line']}; joining the run", file=log,
                   flush=True)
             record("prepared", **{k: v for k, v in foreseen.items() if k != "line"})
-        with Peer(net, "monitor", monitor_id) as peer:
-            peer.publisher(keys.monitor_events_key(run))    # declared now, not at a verdict
+        with topics.open_peer(net, "monitor", monitor_id) as peer:
+            peer.publisher(topics.monitor_events_key(run))    # declared now, not at a verdict
             publish.append(peer.put)
-            status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+            status_in = peer.subscribe(topics.any_agent_pattern(run, "status"))
             # the monitor's own observation of who is heard (MonitorCore.on_estimate_seen,
             # weighed against a lone listener's word): the key and arrival time only, never
             # decoded; estimates go with congestion control DROP, so a paused monitor loses
             # its own copies and holds no agent back (measured: docs/security.md)
-            estimates_in = peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=256)
-            roster_in = peer.subscribe(keys.ctl_key(run, 0))
-            end_in = peer.subscribe(keys.end_key(run), maxlen=16)
+            estimates_in = peer.subscribe(topics.any_agent_pattern(run, "est"), maxlen=256)
+            roster_in = peer.subscribe(topics.ctl_key(run, 0))
+            end_in = peer.subscribe(topics.end_key(run), maxlen=16)
             watch = peer.watch_liveliness()
             seat = MonitorSeat(core, monitor_id, time.monotonic())
             next_roster = 0.0
@@ -248,13 +247,13 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     for m in core.tick(now):
                         if isinstance(m, Assignment):
                             sp = m.spec
-                            peer.put(keys.ctl_key(run, m.agent), wire.encode_ctl(
+                            peer.put(topics.ctl_key(run, m.agent), wire.encode_ctl(
                                 m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
                                 sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
                                 continues=sp.continues,
                                 run=run))
                         elif isinstance(m, RosterUpdate):
-                            peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                            peer.put(topics.ctl_key(run, 0), wire.encode_roster(
                                 m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                             next_roster = now + ROSTER_S
                     for line in core.events:
@@ -269,7 +268,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                             precompute_for(core.roster)
                     if core.roster_message is not None and now >= next_roster:
                         m = core.roster_message
-                        peer.put(keys.ctl_key(run, 0), wire.encode_roster(
+                        peer.put(topics.ctl_key(run, 0), wire.encode_roster(
                             m.epoch, m.activate_at, m.ids, signer=signer, run=run))
                         next_roster = now + ROSTER_S
                 if core.run_ended(now):

@@ -32,10 +32,10 @@ import time
 from collections import deque
 
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MalformedMessage, MessageStats, shorten, try_decode
 from broker_free_net.impair import InvalidImpairment, decode_impairment
-from broker_free_net.peer import DEFAULT_INBOX_BYTES, DEFAULT_INBOX_SIZE, Peer
+from broker_free_net.peer import DEFAULT_INBOX_BYTES, DEFAULT_INBOX_SIZE
 
 from agent.protocol import wire
 from agent.protocol.control_auth import SignatureError
@@ -104,27 +104,27 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
     def bad(reason):
         stats.count_dropped(reason)
 
-    with Peer(net, "agent", me) as peer:
-        ctl_in = peer.subscribe(keys.ctl_key(run, me))
-        roster_in = peer.subscribe(keys.ctl_key(run, 0))
-        imp_in = peer.subscribe(keys.impair_key(run))
-        end_in = peer.subscribe(keys.end_key(run), maxlen=16)
+    with topics.open_peer(net, "agent", me) as peer:
+        ctl_in = peer.subscribe(topics.ctl_key(run, me))
+        roster_in = peer.subscribe(topics.ctl_key(run, 0))
+        imp_in = peer.subscribe(topics.impair_key(run))
+        end_in = peer.subscribe(topics.end_key(run), maxlen=16)
         # the agent's own estimates are not delivered back to it
         # junk on the estimate or sensors keys is refused before it is copied out of zenoh
         # when it is larger than any valid message (RSS stays flat under a flood)
         est_max, sensors_max = wire.max_est_bytes(core.n), wire.max_sensors_bytes(core.n)
-        est_in = peer.subscribe(keys.any_agent_pattern(run, "est"), include_local=False,
+        est_in = peer.subscribe(topics.any_agent_pattern(run, "est"), include_local=False,
                                 max_payload=est_max, max_bytes=_inbox_bytes(est_max))
         # sensor readings: every node's in one message a step, from the start, active or
         # not: a role that adds a node never waits for a new subscription to reach the
         # world (on a loaded 2-core machine that took longer than the assignment's head
         # start, and the activation step's reading was missed)
         sensors_in = peer.subscribe(
-            keys.sensors_key(run), maxlen=1 << 10,
+            topics.sensors_key(run), maxlen=1 << 10,
             max_payload=sensors_max, max_bytes=_inbox_bytes(sensors_max, 1 << 10))
         watch = peer.watch_liveliness()
-        status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
-        est_key, status_key = keys.est_key(run, me), keys.status_key(run, me)
+        status_in = peer.subscribe(topics.any_agent_pattern(run, "status"))
+        est_key, status_key = topics.est_key(run, me), topics.status_key(run, me)
         # not zenoh's express mode: with congestion control DROP every express message
         # takes a whole batch of the transmit queue, and under load (a recovery on 2
         # loaded cores) sensor readings and estimates were dropped by the sender
@@ -193,7 +193,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 core.on_sensors(msg["step"], msg["x"], now=item.arrival)
                 world_heard[0] = max(world_heard[0], msg["step"])
 
-        est_sender = keys.AgentKeyCache(run, "est", senders)
+        est_sender = topics.AgentKeyCache(run, "est", senders)
 
         def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,

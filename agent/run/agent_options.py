@@ -48,7 +48,7 @@ def agent_options(args, *, net_config_arg, parse_int) -> AgentOptions:
     (:mod:`agent.cli._common`), passed in since a run does not import the command line.
     InputError naming the first bad flag, in the order of the module's docstring.
     """
-    from broker_free_net.security import identity_name
+    from agent.protocol.topics import identity_name
 
     from agent.node.core import agent_config
 

@@ -157,9 +157,8 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
     receiving agent does not listen to the link now). InputError (status 1) when agent DST
     is not alive or nothing confirms within ``timeout`` seconds; (status 2) without an
     endpoint to connect to."""
-    from broker_free_net import keys
+    from agent.protocol import topics
     from broker_free_net.codec import MessageStats, try_decode
-    from broker_free_net.peer import Peer
 
     from agent.protocol import wire
 
@@ -168,10 +167,10 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
                          "(or --multicast on a LAN)")
     dst = change.dst
     stats = MessageStats()
-    with Peer(net, "inject", f"p{os.getpid()}") as peer:
-        status_in = peer.subscribe(keys.any_agent_pattern(net.run, "status"))
+    with topics.open_peer(net, "inject", f"p{os.getpid()}") as peer:
+        status_in = peer.subscribe(topics.any_agent_pattern(net.run, "status"))
         watch = peer.watch_liveliness()
-        key = keys.impair_key(net.run)
+        key = topics.impair_key(net.run)
         peer.publisher(key, block=True)
         statuses = {}
         deadline = time.monotonic() + timeout

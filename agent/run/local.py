@@ -25,10 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.config import NetConfig
 from broker_free_net.impair import encode_impairment
-from broker_free_net.peer import Peer
 
 from broker_free_net.ports import listen_port
 
@@ -231,7 +230,7 @@ class LocalRun:
             ep[0] = c.listen
         net_extra = {}
         if c.secure:
-            from broker_free_net.security import make_run_keys, run_identities
+            from agent.protocol.topics import make_run_keys, run_identities
 
             make_run_keys(c.out / "keys", rec.run_id, run_identities(M))
             net_extra = {"keys": str((c.out / "keys").resolve()), "identity": "recorder"}
@@ -266,11 +265,11 @@ class LocalRun:
             if c.router:        # up before its clients, which try it for 10 s only
                 children.start("router", ["router", "--listen", router_ep])
                 _wait_listening(children, "router", c.start_timeout)
-            with Peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
-                      "recorder", 0) as peer:
+            with topics.open_peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
+                                  "recorder", 0) as peer:
                 recorder.subscribe(peer)
                 alive_watch = peer.watch_liveliness()
-                impair_key = keys.impair_key(rec.run_id)
+                impair_key = topics.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
                 children.start("world", argv["world"], self._wrap("world"))
                 for a in range(1, M + 1):

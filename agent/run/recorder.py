@@ -11,10 +11,10 @@ Examples
 --------
 >>> import numpy as np
 >>> from agent.protocol import wire
->>> from broker_free_net import keys
+>>> from agent.protocol import topics
 >>> r = Recorder("demo", n=2, N=1, M=1)
->>> r.feed(keys.truth_key("demo"), wire.encode_truth(0, [1.0, 2.0]))
->>> r.feed(keys.est_key("demo", 1), wire.encode_est(1, 0, [1.0, 0.0], epoch=0, t=0.0))
+>>> r.feed(topics.truth_key("demo"), wire.encode_truth(0, [1.0, 2.0]))
+>>> r.feed(topics.est_key("demo", 1), wire.encode_est(1, 0, [1.0, 0.0], epoch=0, t=0.0))
 >>> r.view()["mse"]                  # ((1-1)^2 + (0-2)^2) / 2
 2.0
 """
@@ -31,7 +31,7 @@ import numpy as np
 from design.metrics import mse_of_step
 from design.plausibility import ESTIMATE_MULTIPLE, READING_MULTIPLE
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.keys import InvalidKey
 from broker_free_net.codec import MessageStats, try_decode
 
@@ -104,8 +104,8 @@ class Recorder:
         self.stats = MessageStats()
         self._schemas = {"truth": wire.truth_schema(n), "est": wire.est_schema(n),
                          "roster": wire.roster_schema(), "ctl": wire.ctl_schema(n)}
-        self._roster_key = keys.ctl_key(run_id, 0)
-        self._truth_key = keys.truth_key(run_id)
+        self._roster_key = topics.ctl_key(run_id, 0)
+        self._truth_key = topics.truth_key(run_id)
         self._inboxes = ()
         self.keep_steps = keep_steps
         self.scale = scale
@@ -160,16 +160,16 @@ class Recorder:
     def subscribe(self, peer) -> None:
         """Declare the subscriptions on ``peer`` (a :class:`broker_free_net.peer.Peer`)."""
         run = self.recording.run_id
-        truth = peer.subscribe(keys.truth_key(run), maxlen=1 << 16)
-        est = peer.subscribe(keys.any_agent_pattern(run, "est"), maxlen=1 << 16)
-        status = peer.subscribe(keys.any_agent_pattern(run, "status"))
+        truth = peer.subscribe(topics.truth_key(run), maxlen=1 << 16)
+        est = peer.subscribe(topics.any_agent_pattern(run, "est"), maxlen=1 << 16)
+        status = peer.subscribe(topics.any_agent_pattern(run, "status"))
         # estimates and statuses do not wake the owner's loop: they are drained at the
         # next truth (one wake-up a step instead of one per message) or timeout
         est.wakes = status.wakes = False
         self._inboxes = (
             truth, est, status,
-            peer.subscribe(keys.any_agent_pattern(run, "ctl"), maxlen=1 << 12),
-            peer.subscribe(keys.monitor_events_key(run), maxlen=1 << 12),
+            peer.subscribe(topics.any_agent_pattern(run, "ctl"), maxlen=1 << 12),
+            peer.subscribe(topics.monitor_events_key(run), maxlen=1 << 12),
         )
 
     def drain(self) -> None:
@@ -276,7 +276,7 @@ class Recorder:
 
     def _sender_of(self, key, kind: str = "est"):
         try:
-            return keys.parse_agent_key(self.recording.run_id, kind, key)
+            return topics.parse_agent_key(self.recording.run_id, kind, key)
         except InvalidKey:
             return None
 
@@ -384,7 +384,6 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     import os
     import signal
 
-    from broker_free_net.peer import Peer
 
     rec = recorder.recording
 
@@ -396,7 +395,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     t_begin = time.monotonic()
     why = "interrupted"
     try:
-        with Peer(net, "watch", f"p{os.getpid()}") as peer, _drained_at_exit(recorder):
+        with topics.open_peer(net, "watch", f"p{os.getpid()}") as peer, _drained_at_exit(recorder):
             recorder.subscribe(peer)
             alive_watch = peer.watch_liveliness()
             world_seen = False

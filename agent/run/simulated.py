@@ -56,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MessageStats, try_decode
 from broker_free_net.impair import decode_impairment, encode_impairment
 
@@ -332,7 +332,7 @@ class SimRuntime:
     def _world_step(self) -> None:
         w = self.world
         k = w.step
-        self._record("world", keys.truth_key(self.run_id), wire.encode_truth(k, w.x))
+        self._record("world", topics.truth_key(self.run_id), wire.encode_truth(k, w.x))
         payload = wire.encode_sensors(k, w.x)
         for a in self.agents:
             self._send("world", f"agent-{a}", lambda a=a: self._on_sensors(a, payload))
@@ -387,7 +387,7 @@ class SimRuntime:
         crash_at = self._crash_at.get(a)
         for step, x, epoch in core.poll(self.now):
             payload = wire.encode_est(a, step, x, epoch, self.now)
-            self._record(name, keys.est_key(self.run_id, a), payload)
+            self._record(name, topics.est_key(self.run_id, a), payload)
             for b in self.agents:
                 if b != a:
                     self._send(name, f"agent-{b}",
@@ -419,7 +419,7 @@ class SimRuntime:
         payload = wire.encode_status(st)
         for m in self.monitors.values():
             self._send(name, m.name, lambda m=m: self._on_status(m, payload))
-        self._record(name, keys.status_key(self.run_id, a), payload)
+        self._record(name, topics.status_key(self.run_id, a), payload)
 
     def _status_loop(self, a: int) -> None:
         if f"agent-{a}" in self.dead:
@@ -552,7 +552,7 @@ class SimRuntime:
             payload = wire.encode_ctl(msg.agent, msg.epoch, msg.activate_at, sp.measure,
                                       sp.neighbours, sp.self_weight, sp.gain,
                                       take_over=sp.take_over, continues=sp.continues)
-            self._record(src.name, keys.ctl_key(self.run_id, msg.agent), payload)
+            self._record(src.name, topics.ctl_key(self.run_id, msg.agent), payload)
             self._send(src.name, f"agent-{msg.agent}",
                        lambda a=msg.agent: self._on_ctl(a, payload))
         elif isinstance(msg, RosterUpdate):
@@ -560,7 +560,7 @@ class SimRuntime:
 
     def _roster_out(self, src, msg) -> None:
         payload = wire.encode_roster(msg.epoch, msg.activate_at, msg.ids)
-        self._record(src.name, keys.ctl_key(self.run_id, 0), payload)
+        self._record(src.name, topics.ctl_key(self.run_id, 0), payload)
         for a in self.agents:
             self._send(src.name, f"agent-{a}", lambda a=a: self._on_roster(a, payload))
         for other in self.monitors.values():
@@ -570,7 +570,7 @@ class SimRuntime:
         src.roster_at = self.now + self.config.roster_s
 
     def _monitor_event(self, src, kind: str, fields: dict) -> None:
-        self._record(src.name, keys.monitor_events_key(self.run_id),
+        self._record(src.name, topics.monitor_events_key(self.run_id),
                      wire.encode_monitor_event({"kind": kind, "t": self.now, **fields}))
 
     def _monitor_tick(self, m) -> None:

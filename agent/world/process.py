@@ -22,9 +22,8 @@ import time
 
 import numpy as np
 
-from broker_free_net import keys
+from agent.protocol import topics
 from broker_free_net.codec import MessageStats, try_decode
-from broker_free_net.peer import Peer
 
 from agent.protocol import wire
 from agent.world.core import WorldCore, resolution_step
@@ -114,11 +113,11 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
     world = WorldCore(scenario.A, seed, scenario.process_noise)
     k_warn = _warn_resolution(scenario, world, steps, log)
     stats = MessageStats()
-    with Peer(net, "world", 0) as peer:
-        status_in = peer.subscribe(keys.any_agent_pattern(run, "status"))
+    with topics.open_peer(net, "world", 0) as peer:
+        status_in = peer.subscribe(topics.any_agent_pattern(run, "status"))
         watch = peer.watch_liveliness()
-        sensors_key, truth_key = keys.sensors_key(run), keys.truth_key(run)
-        end_key = keys.end_key(run)
+        sensors_key, truth_key = topics.sensors_key(run), topics.truth_key(run)
+        end_key = topics.end_key(run)
         for key in (sensors_key, truth_key, end_key):
             peer.publisher(key)
 
