@@ -58,6 +58,22 @@ def test_a_roster_superseded_at_its_own_step_never_ran():
     assert in_force == [(0, (1, 2, 3), 0), (150, (4, 2), 2)]
 
 
+def test_a_roster_superseded_at_its_own_step_too_late_was_in_force():
+    """Epoch 2 was to replace epoch 1 at its own step 177, but reached agents 3 and 4 at
+    step 178 (rejected): they ran epoch 1 from 177 until the re-issue, epoch 3 at 198. The
+    record used to drop epoch 1 as superseded (what was sent), and the simulator's replay
+    then differed from the run (1.67, a live run beside two busy loops)."""
+    rosters = [(0, (1, 2, 3), 0), (177, (4, 2, 3), 1), (177, (4, 3), 2), (198, (4, 3), 3)]
+    est = {1: _epochs({}, last=149), 2: _epochs({}, last=149),
+           3: _epochs({177: 1, 198: 3}),
+           4: {**{k: 1 for k in range(176, 198)}, **{k: 3 for k in range(198, 400)}}}
+    assigns = {(a, e): {} for e, ids in ((1, (4, 2, 3)), (2, (4, 3)), (3, (4, 3)))
+               for a in ids}
+    in_force, mixed = rosters_in_force(rosters, est, assigns)
+    assert in_force == [(0, (1, 2, 3), 0), (177, (4, 2, 3), 1), (198, (4, 3), 3)]
+    assert mixed == []
+
+
 def test_a_standby_that_takes_over_switches_the_step_after_its_first_estimate():
     assert switch_steps({k: 3 for k in range(99, 120)}, 3) == 100
     assert switch_steps({**{k: 1 for k in range(0, 100)}, **{k: 3 for k in range(100, 120)}},

@@ -348,8 +348,17 @@ def rosters_in_force(rosters, est_epoch, assigns):
     for at, ids, epoch in rosters[1:]:
         newest_at[at] = max(newest_at.get(at, epoch), epoch)
     for at, ids, epoch in sorted(rosters[1:], key=lambda r: r[2]):
-        if newest_at[at] != epoch or at > last:
-            continue                       # superseded before it ran, or after the run
+        if at > last:
+            continue                       # after the run
+        if newest_at[at] != epoch:
+            # superseded at its own step by a newer epoch: never in force when every
+            # agent that newer one was sent to ran it (an agent it was not sent to kept
+            # the same role under this epoch's number); in force when the newer one came
+            # too late for some, who ran this one instead
+            newer = newest_at[at]
+            told = [a for (a, e) in assigns if e == newer and newest.get(a, -1) >= at]
+            if all(est_epoch.get(a, {}).get(at, newer) >= newer for a in told):
+                continue
         assigned = sorted(a for (a, e) in assigns if e == epoch and a in ids) or list(ids)
         # an agent that published nothing from the roster's step on had stopped (a crash
         # the monitor had not convicted yet): the roster ran without it, as the simulator
