@@ -712,12 +712,14 @@ class MonitorCore:
                            f"{verdict.score:.3g}, from step {first}): "
                            f"{'; '.join(verdict.evidence)}; not convicted (an alert)")
 
-    def _switch_ahead(self, now: float) -> bool:
-        """The roles last sent are confirmed but not yet in force: new gains for them (the
-        refinement, the learned delays) wait for that step, so that they never postpone
-        a recovery by superseding it with a later ``activate_at``."""
+    def _switch_ahead(self, now: float, margin: int = 0) -> bool:
+        """The roles last sent are not yet in force (at least ``margin`` steps before
+        their ``activate_at``): new gains for them (the refinement, the learned delays)
+        wait for that step, so that they never postpone a recovery by superseding it with
+        a later ``activate_at``; a failure found meanwhile may join them
+        (:meth:`_joint_plan`)."""
         return self._roster_msg is not None \
-            and self.current_step(now) < self._roster_msg.activate_at
+            and self.current_step(now) < self._roster_msg.activate_at - margin
 
     def _late_but_running(self) -> bool:
         """Some agent that has not confirmed has stepped since its assignment went out: it
@@ -900,9 +902,7 @@ class MonitorCore:
         from design.roster import replan
 
         last = self._last_plan
-        if last is None or self._roster_msg is None \
-                or self.current_step(now) >= self._roster_msg.activate_at - 1 \
-                or last["epoch"] != self.epoch:
+        if last is None or not self._switch_ahead(now, margin=1) or last["epoch"] != self.epoch:
             return None
         both = sorted(set(last["failed"]) | set(failed))
         # its standbys as that plan had them (the one it took is in the roles not yet in
