@@ -397,6 +397,10 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     try:
         with topics.open_peer(net, "watch", f"p{os.getpid()}") as peer, _drained_at_exit(recorder):
             recorder.subscribe(peer)
+            # the world's end: agents leave once they hear it, and their tokens going then
+            # are the run's end, not deaths (the world's own token may go after theirs)
+            end_in = peer.subscribe(topics.end_key(rec.run_id), maxlen=16)
+            world_ended = False
             alive_watch = peer.watch_liveliness()
             world_seen = False
             world_gone = None
@@ -405,12 +409,14 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
             while True:
                 peer.wait(timeout=0.05)
                 recorder.drain()
+                world_ended = world_ended or bool(end_in.drain())
                 now = time.monotonic()
                 alive = alive_watch.alive()
                 for ev in alive_watch.drain():
                     if ev.role == "monitor" and world_gone is None:
                         recorder.on_monitor_liveliness(ev.id, ev.any_alive)
-                    elif ev.role == "agent" and not ev.any_alive and world_gone is None:
+                    elif ev.role == "agent" and not ev.any_alive and world_gone is None \
+                            and not world_ended:
                         recorder._event(process=f"agent-{ev.id}", liveliness=False,
                                         step=recorder.step)
                 if ("world", "0") in alive:
