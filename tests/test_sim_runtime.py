@@ -169,6 +169,18 @@ def test_the_monitor_killed_or_paused_hands_over_and_a_later_crash_recovers(live
     assert r.summary["recovered"] is True and r.violations() == []
 
 
+def test_a_crash_while_the_restarted_monitor_listens_is_answered_by_the_one_acting(live):
+    """The acting monitor (1) killed at step 200 and started again (its token back 0.5 s
+    later, then 1.5 s of listening); agent 1 killed at 240, in that listening: monitor 2,
+    acting since 200, goes on acting until monitor 1 is about to, and answers the crash
+    at once (it used to hand the seat over the moment monitor 1's token came back, and
+    nobody acted until monitor 1 had listened: a live chaos run's stop went unanswered)."""
+    r = _run(live, [Fault(200, "monitor"), Fault(240, "kill", 1)], steps=500)
+    (f,) = r.summary["failures"]
+    assert (f["agent"], f["cause"]) == (1, "crash") and f["detected_step"] <= 245, f
+    assert r.summary["recovered"] is True and r.violations() == []
+
+
 def test_with_every_monitor_gone_a_crash_is_reported_unrecovered(live):
     r = _run(live, [Fault(200, "monitorsgone"), Fault(400, "kill", 1)], steps=700)
     (f,) = r.summary["failures"]

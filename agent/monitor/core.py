@@ -540,6 +540,11 @@ class MonitorCore:
         return out
 
     # -- the clock -----------------------------------------------------------------
+    def watch(self, now: float) -> None:
+        """A passive monitor's tick: its detector's clock moves on (the evidence keeps
+        coming), so that a gap is a pause of this process, not the time it stood by."""
+        self.detector.observe(now)
+
     def tick(self, now: float) -> list:
         """Verdicts and reassignment at time ``now``; returns messages to publish now.
 
@@ -1139,17 +1144,23 @@ class MonitorCore:
         nothing of past reassignments: the roster it heard (``ids``, ``epoch``) or, if
         none, the agents whose status says they are active, and each one's measured
         nodes and neighbour weights from its status, are the configuration in force.
-        Agents of the scenario outside it count as failed; live agents without a role
-        are the standbys. Epochs continue above every epoch seen. Returns False while a
-        status is missing.
+        An agent whose token is down but whose last status says it is active in the
+        newest epoch the live active agents run is in it too (stopped, cut off, or
+        dead: the verdicts decide, as for any agent of the configuration; left out, it
+        would count as failed with no verdict and nothing would answer it). Agents of
+        the scenario outside it count as failed; live agents without a role are the
+        standbys. Epochs continue above every epoch seen. Returns False while a status
+        is missing.
         """
         from design.errors import SocmonError
         from design.roster import Roster
 
         s = self.scenario
         if ids is None:
-            ids = sorted(a for a, st in self.agents.items()
-                         if st.alive and st.status.get("active"))
+            live = [st.epoch for st in self.agents.values()
+                    if st.alive and st.status.get("active")]
+            ids = sorted(a for a, st in self.agents.items() if st.status.get("active")
+                         and (st.alive or (live and st.epoch == max(live))))
         rows = [int(a) for a in ids]
         if not rows or any(not self.agents[a].status.get("active") for a in rows):
             return False
@@ -1192,6 +1203,9 @@ class MonitorCore:
 #: a (re)started monitor listens this long (the roster is re-published every ROSTER_S)
 #: before it acts, so that it acts on the configuration in force, not on its scenario
 LISTEN_S = 1.5
+#: a monitor with a larger id hands the seat to a smaller one this long before the
+#: smaller one's listening ends (a short gap rather than two monitors acting at once)
+HANDOVER_S = 0.25
 #: the monitor's loop period, and how often the acting monitor re-publishes the roster in
 #: force (an agent coming back learns from it that it was replaced)
 TICK_S = 0.01
@@ -1203,7 +1217,12 @@ class MonitorSeat:
     first: the policy of the monitor process and of the simulated runtime.
 
     The monitor with the smallest id whose token is alive acts, once it has listened
-    ``listen_s``; the others stay passive and watch. A monitor that becomes active adopts
+    ``listen_s``; the others stay passive and watch. An acting monitor goes on acting
+    until a smaller id's token has been up for ``listen_s`` less :data:`HANDOVER_S` (that
+    one acts then): a restarted monitor listening, or still precomputing before it
+    declares its token, does not leave the run without a monitor. A passive monitor keeps
+    its detector's clock (:meth:`MonitorCore.watch`), so that taking the seat is not
+    mistaken for a pause of its own. A monitor that becomes active adopts
     the configuration in force from the newest roster it heard (:meth:`on_roster`) or from
     the agents' statuses (:meth:`MonitorCore.adopt`), and does so again whenever the agents
     run an epoch it never issued (another monitor acted while it was paused or cut off).
@@ -1217,7 +1236,9 @@ class MonitorSeat:
     def __init__(self, core: MonitorCore, monitor_id: int, now: float,
                  listen_s: float = LISTEN_S):
         self.core, self.id = core, int(monitor_id)
+        self.listen_s = listen_s
         self.listen_until = now + listen_s
+        self.seen_since: dict = {}     # another monitor's id -> since when its token is up
         self.heard_roster: dict | None = None
         self.active = False
         self.records: list = []
@@ -1238,8 +1259,18 @@ class MonitorSeat:
 
     def decide(self, now: float, monitors_alive) -> str:
         """``monitors_alive``: the ids of the monitors whose token is up."""
+        state = self._decide(now, monitors_alive)
+        if state != "act":
+            self.core.watch(now)
+        return state
+
+    def _decide(self, now: float, monitors_alive) -> str:
         core = self.core
-        others = sorted(int(i) for i in monitors_alive if int(i) != self.id)
+        alive = {int(i) for i in monitors_alive if int(i) != self.id}
+        self.seen_since = {i: self.seen_since.get(i, now) for i in alive}
+        # a smaller id acts once it has listened: until then this one goes on acting
+        others = sorted(i for i in alive
+                        if now - self.seen_since[i] >= self.listen_s - HANDOVER_S)
         should = (not others or self.id < others[0]) and now >= self.listen_until
         if should and not self.active:
             seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]

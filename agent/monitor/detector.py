@@ -21,10 +21,14 @@ Verdicts (one per cause, each with its evidence):
 - ``sensor``: its status says the readings of its nodes have not arrived for
   ``sensor_lag_steps`` steps while the others advance;
 - ``silent``: it looks alive and advances, but every agent that listens to it reports
-  that the freshest estimate it holds from it is more than ``silent_steps`` old, for
-  ``hang_timeout_s`` (its estimates no longer reach the network: a partition, a broken
-  publisher); a single listener's report stands only when the monitor's own observation
-  (the estimates it hears) or that listener's impaired link agrees.
+  that the freshest estimate it holds from it is older than the link's delay plus
+  :meth:`FailureDetector.silent_bound` steps (``silent_steps``, then the hang timeout in
+  steps: its estimates no longer reach the network: a partition, a broken publisher); a
+  single listener's report stands only when the monitor's own observation (the estimates
+  it hears) or that listener's impaired link agrees. The rule reads the listeners' ages
+  alone, with no clock of the monitor's own: a monitor that takes the seat in the middle
+  of a silence (restarted, or handed the seat back) convicts on the evidence as it stands,
+  instead of timing the silence again from when it started watching.
 
 (The ``delay`` verdict, learned delays that make the loop unstable, is the controller's:
 it needs the exact closed loop.)
@@ -188,7 +192,6 @@ class FailureDetector:
         self._suspended_until = -math.inf
         self._watching_since = -math.inf  # the last fresh start (a pause, the world back)
         self._clock = (-1, 0.0)           # (newest step reported, when)
-        self._silent_since: dict = {}     # agent -> when all its listeners first lost it
         self.world_seen = False
         self.world_gone_at: float | None = None   # the world's token went
         self._world_gone_step = -1                 # the newest step reported then
@@ -539,16 +542,28 @@ class FailureDetector:
             else:
                 ages = self._listener_ages(i)
                 if ages and min(age - self._link_delay(j, i) for j, age in ages.items()) \
-                        > cfg.silent_steps and self._hearsay_holds(i, ages, now):
-                    since = self._silent_since.setdefault(i, now)
-                    if now - since > cfg.hang_timeout_s:
-                        found.append(Verdict(
-                            i, "silent", "its listeners hold nothing fresher than "
-                            + ", ".join(f"{age} steps (agent {r})" for r, age in sorted(ages.items())),
-                            now, at_step))
-                else:
-                    self._silent_since.pop(i, None)
+                        > self.silent_bound() and self._hearsay_holds(i, ages, now):
+                    found.append(Verdict(
+                        i, "silent", "its listeners hold nothing fresher than "
+                        + ", ".join(f"{age} steps (agent {r})" for r, age in sorted(ages.items())),
+                        now, at_step))
         return found
+
+    def silent_bound(self) -> int:
+        """Steps past a link's delay that every listener's freshest estimate of an agent
+        must be older than to convict it ``silent``: ``silent_steps``, then the hang
+        timeout in steps (the silence has lasted that long in the listeners' own steps).
+
+        >>> from design.roster import Roster
+        >>> from design.scenario import load_scenario
+        >>> from agent.monitor.core import MonitorConfig
+        >>> s = load_scenario("paper-14")
+        >>> FailureDetector(MonitorConfig(silent_steps=25, hang_timeout_s=1.0, step_s=0.02),
+        ...                 Roster.initial(s, s.delays)).silent_bound()
+        75
+        """
+        cfg = self.config
+        return cfg.silent_steps + math.ceil(cfg.hang_timeout_s / cfg.step_s - 1e-9)
 
     def on_estimate_seen(self, agent, now: float) -> None:
         """The monitor's own observation: an estimate of ``agent`` arrived at ``now`` (the

@@ -18,7 +18,8 @@ convicted while it is gone, and the monitor exits once the agents' tokens are go
 (:meth:`MonitorCore.run_ended`).
 
 A monitor listens for :data:`agent.monitor.core.LISTEN_S` before it acts. Several monitors may run on one run:
-the one with the smallest id whose token is alive acts, the others stay passive and watch;
+the one with the smallest id whose token is alive acts (once it has listened: the one
+acting until then goes on), the others stay passive and watch;
 when the active one's token goes, the next one adopts the configuration in force from the
 roster it heard and the agents' statuses and goes on with epochs above every epoch it saw
 (:class:`agent.monitor.core.MonitorSeat`, the policy the simulated runtime runs too).
@@ -239,6 +240,10 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 seat.lines.clear()
                 seat.records.clear()
                 seat.precompute = False
+                if state != "act":
+                    for line in core.events:     # what a passive monitor's detector saw
+                        print(f"monitor {monitor_id}: {line}", file=log, flush=True)
+                    core.events.clear()
                 if state == "wait":
                     peer.wait(timeout=0.05)
                     continue

@@ -102,6 +102,8 @@ class SimConfig:
     polish_s: float = 0.4                # ... and its polish (a few MSE iterations) this
     monitors: int = 2                    # as up: the first acts, the others stand by
     listen_s: float = LISTEN_S           # a (re)started monitor listens before it acts
+    restart_s: float = 0.5               # a killed monitor's successor declares its token
+    #                                      this late (its start, its precompute: up)
     start_s: float = 0.5                 # the world's first step (agents heard each other)
     deadline_s: float | None = None      # agents' deadline; default one step
 
@@ -591,6 +593,7 @@ class SimRuntime:
             m.seat.precompute = False
             m.designs.precompute(m.core.roster, m.core.G)
         if state != "act":
+            m.core.events.clear()
             return
         for msg in m.core.tick(self.now):
             self._publish(m, msg)
@@ -631,7 +634,8 @@ class SimRuntime:
                 self._restarts += 1
                 self.rec.events.append({"process": f"monitor-{self._restarts + 1}",
                                         "started": True, "step": f.step, "t": self.now})
-                self._start_monitor(monitor_id, self.config.listen_s)
+                self.after(self.config.restart_s,
+                           lambda i=monitor_id: self._start_monitor(i, self.config.listen_s))
 
     def _monitor_resume(self, m) -> None:
         if m.name in self.dead or self.monitors.get(m.id) is not m:
