@@ -1,10 +1,12 @@
-"""Helpers shared by the subcommands: scenario/gains loading with clean errors, JSON."""
+"""Helpers shared by the subcommands: their flags, scenario/gains loading with clean errors,
+JSON."""
 
 from __future__ import annotations
 
 import json
 import sys
 
+from agent.protocol.timing import DEFAULT as TIMING
 from agent.run.jsonable import to_jsonable, versioned  # noqa: F401 - re-exported for the commands
 
 # the checks of what a user gives live with the runs; the commands take them from here
@@ -22,15 +24,24 @@ from agent.run.inputs import (  # noqa: F401 - re-exported for the commands
 from agent.run.inputs import InputError as CommandError
 
 
-def add_scenario_argument(parser) -> None:
-    parser.add_argument("scenario", help="scenario TOML file or built-in name (e.g. paper-14)")
+# Each flag that several commands take is defined once here (name, default, metavar, type),
+# with a parameter only for what legitimately differs (a default, what the value serves);
+# so are the two long groups of flags of `socmon up` alone, which keep up.py a thin command.
+def add_scenario_argument(parser, attach: bool = False) -> None:
+    """The ``SCENARIO`` argument; with ``attach`` optional (``--attach`` gives the run's)."""
+    if attach:
+        parser.add_argument("scenario", nargs="?",
+                            help="scenario TOML file or built-in name of the run (default with "
+                                 "--attach: the run's)")
+    else:
+        parser.add_argument("scenario", help="scenario TOML file or built-in name (e.g. paper-14)")
 
 
-def add_manifest_argument(parser) -> None:
+def add_manifest_argument(parser, use: str = "refuse to start when the scenario, gains, seed "
+                                             "or delays differ from the run's") -> None:
     """``--manifest FILE`` of the processes of a run (agent.protocol.manifest)."""
     parser.add_argument("--manifest", metavar="FILE",
-                        help="the run's manifest.json (socmon up writes one): refuse to start "
-                             "when the scenario, gains, seed or delays differ from the run's")
+                        help=f"the run's manifest.json (socmon up writes one): {use}")
 
 
 def add_gains_argument(parser) -> None:
@@ -45,6 +56,140 @@ def add_force_gains_argument(parser) -> None:
     parser.add_argument("--force-gains", action="store_true",
                         help="accept a gains file whose scenario digest is not this "
                              "scenario's (by default that is an error, exit 2)")
+
+
+def add_designed_gains_arguments(parser, note: str = "") -> None:
+    """``--gains`` of a live run (without it the default gain is designed), ``--force-gains``."""
+    parser.add_argument("--gains", help="gains file (.npz); default: design with the default "
+                                        f"method{note}")
+    add_force_gains_argument(parser)
+
+
+def add_seed_argument(parser, default: int | None = 0, help: str = "run seed (default 0)") -> None:
+    """``--seed``, an integer >= 0 (``help``: what it seeds in this command)."""
+    parser.add_argument("--seed", type=int_flag(lo=0), default=default, help=help)
+
+
+def add_delays_argument(parser, what: str = "link delays injected at start", *,
+                        attach: bool = False, metavar: str | None = None) -> None:
+    """``--delays``: scenario, none or uniform:T (:func:`design.scenario.resolve_delays`);
+    with ``attach`` it defaults to None, the run's with ``--attach``, else scenario."""
+    when = ": the run's with --attach, else scenario" if attach else " scenario"
+    parser.add_argument("--delays", default=None if attach else "scenario", metavar=metavar,
+                        help=f"{what}: scenario, none or uniform:T (default{when})")
+
+
+def add_step_ms_argument(parser, what: str = "period of one step in ms",
+                         default: str = "the scenario's step_ms") -> None:
+    """``--step-ms``: the period of one step of the run, in ms."""
+    parser.add_argument("--step-ms", type=float, default=None, help=f"{what} (default: {default})")
+
+
+def add_deadline_argument(parser, note: str = "") -> None:
+    """``--deadline-ms``: an agent's wait for late neighbour estimates (``note``: more on
+    the default)."""
+    parser.add_argument("--deadline-ms", type=float, default=None,
+                        help="how long an agent waits after a step's readings for late "
+                             f"neighbour estimates (default: the step period{note})")
+
+
+def add_drop_argument(parser) -> None:
+    """``--drop P`` of a live run: estimates lost on a link, drawn from the run seed."""
+    parser.add_argument("--drop", type=float, default=0.0,
+                        help="probability that an estimate is lost on a link, drawn from the run "
+                             "seed as the simulator draws it (default 0)")
+
+
+def add_start_timeout_argument(parser, waits_for: str = "every process to be up") -> None:
+    """``--start-timeout S`` (agent.protocol.timing)."""
+    parser.add_argument("--start-timeout", type=float, default=TIMING.start_timeout_s,
+                        help=f"seconds to wait for {waits_for} "
+                             f"(default {TIMING.start_timeout_s:g})")
+
+
+def add_hang_timeout_arguments(parser, with_max: bool = True) -> None:
+    """The monitor's ``--hang-timeout S`` and (``with_max``) ``--hang-timeout-max S``."""
+    parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
+                        metavar="S",
+                        help="the monitor's hang timeout: no progress of an agent for S seconds "
+                             "while the others advance is a hang (default "
+                             f"{TIMING.hang_timeout_s:g}; lower is faster and risks convicting "
+                             f"a slow agent; above twice the status period {TIMING.status_s:g} s)")
+    if with_max:
+        parser.add_argument("--hang-timeout-max", type=float, default=TIMING.hang_timeout_max_s,
+                            metavar="S",
+                            help="the hang timeout grows with the statuses' observed pace up to "
+                                 f"S seconds (default {TIMING.hang_timeout_max_s:g}; equal to "
+                                 "--hang-timeout keeps it fixed; docs/monitor.md)")
+
+
+def add_run_folder_arguments(parser, default: str) -> None:
+    """``--out`` (the run folder, ``default`` its name when not given) and ``--overwrite``."""
+    parser.add_argument("--out", help=f"run folder (default {default}); a folder holding an "
+                                      "earlier run is refused")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the earlier run in --out (its files only)")
+
+
+def add_fault_schedule_arguments(parser) -> None:
+    """The faults scheduled into a local run (``socmon up``'s alone; checked by
+    :func:`agent.run.setup.live_run`): ``--kill``, ``--stop``, ``--kill-monitor``, ``--fault``."""
+    parser.add_argument("--kill", action="append", default=[], metavar="STEP:AGENTS",
+                        help="scripted crash: agents (e.g. 1,2) publish step STEP-1 and SIGKILL "
+                             "themselves (repeatable)")
+    parser.add_argument("--stop", action="append", default=[], metavar="STEP:AGENT:SECONDS",
+                        help="SIGSTOP agent AGENT once the world reaches STEP, SIGCONT it "
+                             "SECONDS later (repeatable)")
+    parser.add_argument("--kill-monitor", type=int_flag(lo=1), default=None, metavar="STEP",
+                        help="SIGKILL the monitor once the world reaches STEP and start it again")
+    parser.add_argument("--fault", action="append", default=[],
+                        metavar="KIND:STEP[:AGENT[:SECONDS[:VALUE]]]",
+                        help="any scheduled fault (repeatable): kill, stop, hang (the agent's "
+                             "loop stops, its token stays), sensor (its readings stop for "
+                             "SECONDS), partition, delay (VALUE steps), drop (VALUE "
+                             "probability), monitor, linkdown (the agent's host's link down "
+                             "for SECONDS; with --netns), worldstop and monitorstop (the "
+                             "world or the monitor SIGSTOPped for SECONDS: "
+                             "worldstop:STEP::SECONDS), monitorsgone (every monitor "
+                             "SIGKILLed for good), lie (the agent publishes its estimates "
+                             "VALUE noise std-devs off from STEP: lie:STEP:AGENT:0:VALUE, "
+                             "docs/residuals.md); see docs/monitor.md")
+
+
+def add_local_transport_arguments(parser) -> None:
+    """How the processes of a local run (``socmon up``'s alone) reach each other: ``--run``,
+    ``--listen``, ``--secure``, ``--netns``, ``--netns-prefix``, ``--router``."""
+    parser.add_argument("--run", default=None, metavar="ID",
+                        help="run id (key prefix socmon/<ID>/; default a fresh one); printed "
+                             "and written in RUN_FOLDER/run.json")
+    parser.add_argument("--listen", default=None, metavar="ENDPOINT",
+                        help="endpoint of this command's own peer, the one every process of "
+                             "the run and every attached tool connects to (default "
+                             "tcp/127.0.0.1:<free port>, tls/ with --secure)")
+    parser.add_argument("--secure", action="store_true",
+                        help="a fresh key set for this run (RUN_FOLDER/keys): mutual TLS between "
+                             "every process and access control on every peer "
+                             "(docs/security.md)")
+    parser.add_argument("--netns", action="store_true",
+                        help="each process on its own host: a network namespace per process, "
+                             "wired by veth pairs to a bridge in a switch namespace, 10.200.0.x "
+                             "addresses; removed after the run (needs root; docs/runtime.md)")
+    parser.add_argument("--netns-prefix", default=None, metavar="PREFIX",
+                        help="namespace names PREFIX-<host> (default sm<pid>)")
+    parser.add_argument("--router", action="store_true",
+                        help="start a zenoh router (socmon router) and make every process its "
+                             "client: one link per process instead of the peer mesh's "
+                             "N(N-1)/2 (docs/transport.md)")
+
+
+def add_json_argument(parser, help: str = "print JSON instead of text") -> None:
+    """``--json``: the command's record on stdout as JSON (docs/json.md)."""
+    parser.add_argument("--json", action="store_true", help=help)
+
+
+def add_quiet_argument(parser) -> None:
+    """``--quiet``: no progress lines on stderr."""
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def net_config_arg(args, identity: str):

@@ -16,32 +16,24 @@ HELP = "run one agent: the shared estimator step every step, over zenoh"
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from agent.cli._common import add_force_gains_argument, add_manifest_argument, add_scenario_argument
+    from agent.cli import _common as c
 
-    add_scenario_argument(parser)
-    parser.add_argument("--id", type=int, required=True,
+    c.add_scenario_argument(parser)
+    parser.add_argument("--id", type=c.int_flag(lo=1), required=True,
                         help="agent id (1..N active, N+1.. standby agents of the scenario)")
-    parser.add_argument("--gains", help="gains file (.npz); default: design with the default "
-                                        "method (every agent designs the same gain)")
-    add_force_gains_argument(parser)
-    parser.add_argument("--seed", type=int, default=0, help="run seed (same as the world's)")
-    parser.add_argument("--delays", default="scenario",
-                        help="link delays injected at start (receiver side): scenario, none "
-                             "or uniform:T (default: scenario)")
-    parser.add_argument("--deadline-ms", type=float, default=None,
-                        help="wait this long after a step's readings for late neighbour "
-                             "estimates (default: the step period)")
-    parser.add_argument("--drop", type=float, default=0.0,
-                        help="probability that an estimate is lost on a link, drawn from the run "
-                             "seed as the simulator draws it (default 0)")
+    c.add_designed_gains_arguments(parser, " (every agent designs the same gain)")
+    c.add_seed_argument(parser, help="run seed (same as the world's)")
+    c.add_delays_argument(parser, "link delays injected at start (receiver side)")
+    c.add_deadline_argument(parser)
+    c.add_drop_argument(parser)
     parser.add_argument("--lie", default=None, metavar="STEP:SIZE",
                         help="scripted misbehaviour: from STEP on, publish estimates SIZE "
                              "measurement-noise std-devs off on every component, the agent's "
                              "own estimate staying honest (socmon up --fault lie uses it)")
-    parser.add_argument("--crash-at", type=int, default=None, metavar="STEP",
+    parser.add_argument("--crash-at", type=c.int_flag(lo=1), default=None, metavar="STEP",
                         help="scripted crash: publish step STEP-1, then SIGKILL itself "
                              "(reproducible failures; socmon up --kill uses it)")
-    add_manifest_argument(parser)
+    c.add_manifest_argument(parser)
     add_net_arguments(parser)
 
 

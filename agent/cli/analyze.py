@@ -12,6 +12,7 @@ from agent.cli._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
     add_force_gains_argument,
+    add_json_argument,
     add_scenario_argument,
     int_flag,
     load_scenario_arg,
@@ -25,12 +26,10 @@ HELP = "structural and numerical analysis of a scenario (SCCs, observability, fa
 
 def add_arguments(parser) -> None:
     add_scenario_argument(parser)
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
-    parser.add_argument(
-        "--max-subsets", type=int_flag(lo=1), default=None, metavar="K",
-        help="bound on the failure sets examined for the failure tolerance "
-             "(default 20000; past it the tolerance is a lower bound)",
-    )
+    add_json_argument(parser)
+    parser.add_argument("--max-subsets", type=int_flag(lo=1), default=None, metavar="K",
+                        help="bound on the failure sets examined for the failure tolerance "
+                             "(default 20000; past it the tolerance is a lower bound)")
     parser.add_argument("--gains", default=None, metavar="FILE",
                         help="also report, for these gains, the loop each single failure "
                              "leaves until the switch (exact radius and steady MSE with the "

@@ -15,6 +15,7 @@ from agent.cli._common import (
     EXIT_NEGATIVE,
     EXIT_OK,
     add_gains_argument,
+    add_json_argument,
     add_scenario_argument,
     int_flag,
     load_gains_arg,
@@ -35,9 +36,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--taus", default="0,3,7,15", metavar="T1,T2,...",
                         help="uniform inter-agent delays to certify (default 0,3,7,15)")
     parser.add_argument("--tau-cap", type=int_flag(lo=0), default=None, metavar="T",
-                        help="largest tau examined in the Theorem 1 tau_star search "
-                             "(default 100)")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+                        help="largest tau examined in the Theorem 1 tau_star search (default 100)")
+    add_json_argument(parser)
 
 
 def run(args) -> int:

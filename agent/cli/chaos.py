@@ -12,44 +12,34 @@ from __future__ import annotations
 import sys
 
 from agent.cli._common import parse_int, run_command
-from agent.protocol.timing import DEFAULT as TIMING
 
 HELP = "run live under a random fault schedule drawn from a seed and check the invariants"
 
 
 def add_arguments(parser) -> None:
-    from agent.cli._common import add_force_gains_argument, add_scenario_argument
+    from agent.cli import _common as c
 
-    add_scenario_argument(parser)
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of the fault schedule and of the run (default 0)")
-    parser.add_argument("--duration", type=int, default=1000, metavar="STEPS",
+    c.add_scenario_argument(parser)
+    c.add_seed_argument(parser, help="seed of the fault schedule and of the run (default 0)")
+    parser.add_argument("--duration", type=c.int_flag(lo=1), default=1000, metavar="STEPS",
                         help="steps to run (default 1000)")
     parser.add_argument("--faults", default="kill,stop,hang,sensor,monitor,partition,delay,drop",
                         help="fault kinds to draw from (default: all of kill, stop, hang, "
                              "sensor, monitor, partition, delay, drop)")
     parser.add_argument("--rate", type=float, default=3.0,
                         help="faults per 1000 steps (default 3; at least 160 steps apart)")
-    parser.add_argument("--gains", help="gains file (.npz); default: designed")
-    add_force_gains_argument(parser)
-    parser.add_argument("--delays", default="scenario",
-                        help="link delays: scenario, none or uniform:T (default scenario)")
-    parser.add_argument("--step-ms", type=float, default=None,
-                        help="period of one step (default: the scenario's step_ms)")
-    parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
-                        metavar="S",
-                        help=f"the monitor's hang timeout (default {TIMING.hang_timeout_s:g} s)")
-    parser.add_argument("--out", help="run folder (default runs/chaos-<scenario>-s<seed>-<time>); "
-                             "a folder holding an earlier run is refused")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace the earlier run in --out (its files only)")
+    c.add_designed_gains_arguments(parser)
+    c.add_delays_argument(parser)
+    c.add_step_ms_argument(parser)
+    c.add_hang_timeout_arguments(parser, with_max=False)
+    c.add_run_folder_arguments(parser, "runs/chaos-<scenario>-s<seed>-<time>")
     parser.add_argument("--simulated", metavar="A:B",
                         help="no processes: run seeds A..B-1 under simulated time "
                              "(agent.run.simulated: world, agents and monitors in this process) "
                              "and report them together; --faults may add slow, monitorstop "
                              "and monitorsgone, without linkdown or worldstop")
-    parser.add_argument("--json", action="store_true", help="print the report as JSON")
-    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    c.add_json_argument(parser, "print the report as JSON")
+    c.add_quiet_argument(parser)
 
 
 def run(args) -> int:

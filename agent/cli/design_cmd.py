@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import sys
 
-from agent.cli._common import (EXIT_NEGATIVE, EXIT_OK, add_scenario_argument, int_flag,
+from agent.cli._common import (EXIT_NEGATIVE, EXIT_OK, add_delays_argument, add_json_argument,
+                               add_scenario_argument, add_seed_argument, int_flag,
                                load_scenario_arg, print_json, run_command)
 from agent.cli._progress import ProgressLine
 from agent.run.design_reports import (design_for, design_notes, design_report, design_request,
@@ -24,13 +25,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--method", choices=("default", "ccl"), default="default",
                         help="default: first-order design on the exact delayed loop; "
                              "ccl: the paper's LMI algorithm (delay-free)")
-    parser.add_argument("--delays", default="scenario", metavar="scenario|none|uniform:T",
-                        help="delay matrix to design for and certify against (default: scenario)")
+    add_delays_argument(parser, "delay matrix to design for and certify against",
+                        metavar="scenario|none|uniform:T")
     parser.add_argument("--objective", choices=("rho", "mse"), default=None,
                         help="minimise the exact steady MSE or the exact spectral radius "
                              "(default: mse with --method default, the gain `up` designs; "
                              "rho with --method ccl or --target)")
-    parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="seed of the extra starts (default 0)")
+    add_seed_argument(parser, help="seed of the extra starts (default 0)")
     parser.add_argument("--solver", type=str.upper, choices=("CLARABEL", "SCS"), default=None,
                         help="conic solver for --method ccl (default CLARABEL)")
     parser.add_argument("--max-iter", type=int_flag(lo=0), default=None, metavar="N",
@@ -44,7 +45,7 @@ def add_arguments(parser) -> None:
                              "(default: 60 s for --objective rho, whose radius converges slowly "
                              "with long delays; none for --objective mse, whose result then "
                              "does not depend on the machine's speed)")
-    parser.add_argument("--window", type=int, default=None, metavar="N",
+    parser.add_argument("--window", type=int_flag(lo=1), default=None, metavar="N",
                         help="--method default: a stage stops when its objective fell by "
                              "less than --rel-tol over the last N iterations (default 20)")
     parser.add_argument("--rel-tol", type=float, default=None, metavar="X",
@@ -59,7 +60,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--keep-iterating", action="store_true",
                         help="--method ccl: go on after rho < 1 to lower rho")
     parser.add_argument("--out", required=True, metavar="FILE", help="gains file to write (.npz)")
-    parser.add_argument("--json", action="store_true", help="print a JSON record")
+    add_json_argument(parser)
     parser.add_argument("--force", action="store_true",
                         help="write the gains file even when the design is not stabilising")
 

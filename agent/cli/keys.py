@@ -15,6 +15,9 @@ Examples::
 
 from __future__ import annotations
 
+from agent.cli._common import (CommandError, add_json_argument, int_flag, load_scenario_arg,
+                               print_json, run_command)
+
 HELP = "make (init) or show the certificates and zenoh security configs of a run"
 
 
@@ -29,21 +32,19 @@ def add_arguments(parser) -> None:
     p.add_argument("--host", action="append", metavar="ADDR",
                    help="address of a machine of the run, written into the certificates "
                         "(repeatable; default 127.0.0.1); the first is the host of --port-base")
-    p.add_argument("--port-base", type=int, default=None, metavar="PORT",
+    p.add_argument("--port-base", type=int_flag(lo=1, hi=65535), default=None, metavar="PORT",
                    help="write endpoints into each config: process k listens on "
                         "tls/HOST:PORT+k and connects to the world's (default: endpoints "
                         "come from --listen/--connect)")
-    p.add_argument("--valid-days", type=int, default=30,
+    p.add_argument("--valid-days", type=int_flag(lo=1, hi=3650), default=30,
                    help="validity of the certificates in days (default 30)")
-    p.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    add_json_argument(p, "print the manifest as JSON")
     p = sub.add_parser("show", help="print the manifest of a key set")
     p.add_argument("dir", metavar="DIR")
-    p.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    add_json_argument(p, "print the manifest as JSON")
 
 
 def run(args) -> int:
-    from agent.cli._common import CommandError, run_command
-
     def body():
         import json
         from pathlib import Path
@@ -55,8 +56,6 @@ def run(args) -> int:
                 "valid_days": "--valid-days", "keys": "DIR"}
         try:
             if args.action == "init":
-                from agent.cli._common import load_scenario_arg
-
                 scenario = load_scenario_arg(args.scenario)
                 ks = make_run_keys(args.dir, args.run, run_identities(scenario.N + scenario.standby),
                                    hosts=tuple(args.host or ("127.0.0.1",)), port_base=args.port_base,
@@ -69,8 +68,6 @@ def run(args) -> int:
         manifest = json.loads((Path(ks.dir) / "keys.json").read_text())
         manifest["dir"] = str(ks.dir)
         if args.json:
-            from agent.cli._common import print_json
-
             print_json(manifest)
             return 0
         agents = [n for n in ks.names if n.startswith("agent-")]

@@ -18,42 +18,27 @@ HELP = "run the monitor: detect failed agents and reassign their roles to equiva
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from agent.cli._common import add_attach_argument, add_force_gains_argument, add_manifest_argument
+    from agent.cli import _common as c
 
-    parser.add_argument("scenario", nargs="?",
-                        help="scenario TOML file or built-in name (default with --attach: "
-                             "the run's)")
-    add_attach_argument(parser, takes=", and the scenario, gains, delays, seed, manifest and "
-                                      "control key of the run (use another --id than the "
-                                      "run's monitor, 1)")
+    c.add_scenario_argument(parser, attach=True)
+    c.add_attach_argument(parser, takes=", and the scenario, gains, delays, seed, manifest and "
+                                        "control key of the run (use another --id than the "
+                                        "run's monitor, 1)")
     parser.add_argument("--gains", metavar="FILE",
                         help="the gains file the agents run (.npz; required unless --attach)")
-    add_force_gains_argument(parser)
-    parser.add_argument("--delays", default=None,
-                        help="link delays of the run: scenario, none or uniform:T (default "
-                             "scenario, or the run's with --attach); new gains are certified "
-                             "for them")
-    parser.add_argument("--seed", type=int, default=None,
-                        help="the run's seed (only checked against --manifest)")
-    parser.add_argument("--id", type=int, default=1,
+    c.add_force_gains_argument(parser)
+    c.add_delays_argument(parser, "link delays of the run, for which new gains are certified",
+                          attach=True)
+    c.add_seed_argument(parser, default=None, help="the run's seed (only checked against "
+                                                   "--manifest)")
+    parser.add_argument("--id", type=c.int_flag(lo=1), default=1,
                         help="monitor id; with several monitors the smallest live id acts "
                              "(default 1)")
-    parser.add_argument("--hang-timeout", type=float, default=TIMING.hang_timeout_s,
-                        metavar="S",
-                        help="no progress of an agent for S seconds while the others advance "
-                             f"is a hang (default {TIMING.hang_timeout_s:g}; lower is faster "
-                             "and risks convicting a slow agent; above twice the status "
-                             f"period {TIMING.status_s:g} s)")
-    parser.add_argument("--hang-timeout-max", type=float, default=TIMING.hang_timeout_max_s,
-                        metavar="S",
-                        help="the hang timeout grows with the statuses' observed pace up to S "
-                             f"seconds (default {TIMING.hang_timeout_max_s:g}; equal to "
-                             "--hang-timeout keeps it fixed; docs/monitor.md)")
-    parser.add_argument("--lead-steps", type=int, default=10,
+    c.add_hang_timeout_arguments(parser)
+    parser.add_argument("--lead-steps", type=c.int_flag(lo=1), default=10,
                         help="activate a reassignment this many steps after the newest step "
                              "reported (default 10)")
-    parser.add_argument("--step-ms", type=float, default=None,
-                        help="the run's step period (default: the scenario's step_ms)")
+    c.add_step_ms_argument(parser, "the run's period of one step in ms")
     parser.add_argument("--events", metavar="FILE",
                         help="append every verdict and reassignment to FILE as JSON lines")
     parser.add_argument("--control-key", metavar="FILE",
@@ -67,7 +52,7 @@ def add_arguments(parser) -> None:
                              "failure, waiting at most S seconds (default "
                              f"{TIMING.monitor_prepare_s:g}; 0 joins at once, as a monitor "
                              "started again in a run in progress should)")
-    add_manifest_argument(parser)
+    c.add_manifest_argument(parser)
     add_net_arguments(parser)
 
 

@@ -13,15 +13,8 @@ from __future__ import annotations
 
 from design.reports import is_recovered
 
-from agent.cli._common import (
-    EXIT_NEGATIVE,
-    EXIT_OK,
-    add_scenario_argument,
-    load_scenario_arg,
-    parse_agent_list,
-    print_json,
-    run_command,
-)
+from agent.cli._common import (EXIT_NEGATIVE, EXIT_OK, add_json_argument, add_scenario_argument,
+                               load_scenario_arg, parse_agent_list, print_json, run_command)
 from agent.run.design_reports import format_plan, plan_report
 
 HELP = "recovery plan after agent failures: replacements, new W, added links, observability"
@@ -35,7 +28,7 @@ def add_arguments(parser) -> None:
                         help="do not add links even if the agent network falls apart")
     parser.add_argument("--write-scenario", metavar="FILE", default=None,
                         help="write the recovered configuration as a scenario TOML file")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+    add_json_argument(parser)
 
 
 def run(args) -> int:

@@ -13,6 +13,8 @@ zenoh container, the path for production.
 
 from __future__ import annotations
 
+from agent.cli._common import CommandError, add_json_argument, run_command
+
 HELP = "run a zenoh router: processes started with --mode client talk through it"
 
 
@@ -24,14 +26,11 @@ def add_arguments(parser) -> None:
                           f"; port 0: chosen by the OS) and prints its endpoints; --connect "
                           f"joins other routers. It routes every run and stops on SIGTERM or "
                           f"Ctrl-C. Secured runs (--keys) use the peer mesh, not a router.")
-    parser.add_argument("--json", action="store_true",
-                        help="print the endpoints as one JSON line")
+    add_json_argument(parser, "print the endpoints as one JSON line")
     add_net_arguments(parser, router_listen=DEFAULT_ROUTER_LISTEN[0])
 
 
 def run(args) -> int:
-    from agent.cli._common import CommandError, run_command
-
     def body():
         import json
 

@@ -7,9 +7,10 @@ recovery / no stabilising gain for it), 2 for bad input (named in the message).
 
 from __future__ import annotations
 
-from agent.cli._common import (add_gains_argument, add_scenario_argument, load_gains_arg,
-                               load_scenario_arg, parse_drop, parse_fail, parse_int,
-                               print_json, resolve_delays_arg, run_command)
+from agent.cli._common import (add_delays_argument, add_gains_argument, add_json_argument,
+                               add_scenario_argument, load_gains_arg, load_scenario_arg,
+                               parse_drop, parse_fail, parse_int, print_json, resolve_delays_arg,
+                               run_command)
 from agent.cli._progress import ProgressBar, ProgressLine
 
 HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops, failures"
@@ -23,8 +24,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--steps", default="300", metavar="K", help="time steps (default 300)")
     parser.add_argument("--seed", default="0", metavar="S",
                         help="seed of every random number (default 0)")
-    parser.add_argument("--delays", default="scenario", metavar="SPEC",
-                        help="link delays: scenario (default), none or uniform:T")
+    add_delays_argument(parser, "link delays", metavar="SPEC")
     parser.add_argument("--drop", default="0", metavar="P",
                         help="probability that one message is lost (default 0)")
     parser.add_argument("--fail", default=None, metavar="STEP:AGENTS",
@@ -38,7 +38,7 @@ def add_arguments(parser) -> None:
                              "found is kept (default: none, the design stops when converged)")
     parser.add_argument("--plot", default=None, metavar="OUT.png",
                         help="write the MSE figure (log scale, 10-90 percentile band)")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+    add_json_argument(parser)
 
 
 def run(args) -> int:

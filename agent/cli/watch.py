@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import sys
 
-from agent.cli._common import CommandError, add_attach_argument, attach_run, int_flag, run_command
+from agent.cli._common import CommandError, attach_run, run_command
 
 HELP = "attach to a running deployment: live step, MSE, drops, failures; record a run folder"
 
@@ -21,40 +21,35 @@ HELP = "attach to a running deployment: live step, MSE, drops, failures; record 
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    parser.add_argument("scenario", nargs="?",
-                        help="scenario TOML file or built-in name of the run (default with "
-                             "--attach: the run's)")
-    add_attach_argument(parser, takes=", and the scenario, gains, delays, seed and step "
-                                      "period of the run")
+    from agent.cli import _common as c
+
+    c.add_scenario_argument(parser, attach=True)
+    c.add_attach_argument(parser, takes=", and the scenario, gains, delays, seed and step "
+                                        "period of the run")
     parser.add_argument("--gains", metavar="FILE",
                         help="the run's gains file: the predicted steady MSE and the "
                              "recovery figures need it (default with --attach: the run's; "
                              "else none is shown)")
-    parser.add_argument("--delays", default=None,
-                        help="the run's link delays, for the prediction: scenario, none or "
-                             "uniform:T (default: the run's with --attach, else scenario)")
-    parser.add_argument("--manifest", metavar="FILE",
-                        help="the run's manifest.json: rosters and assignments count only when "
-                             "signed with its control key, and the scenario and gains must be "
-                             "the run's (default with --attach: the run's)")
-    parser.add_argument("--seed", type=int_flag(lo=0), default=None,
-                        help="the run's seed, written in the summary (default: the run's "
-                             "with --attach)")
-    parser.add_argument("--step-ms", type=float, default=None,
-                        help="the run's step period, written in the summary")
-    parser.add_argument("--steps", type=int_flag(lo=0), default=None,
+    c.add_delays_argument(parser, "the run's link delays, for the prediction", attach=True)
+    c.add_manifest_argument(parser, "rosters and assignments count only when signed with its "
+                                    "control key, and the scenario and gains must be the run's "
+                                    "(default with --attach: the run's)")
+    c.add_seed_argument(parser, default=None, help="the run's seed, written in the summary "
+                                                   "(default: the run's with --attach)")
+    c.add_step_ms_argument(parser, "the run's period of one step in ms, written in the summary",
+                           default="the run's with --attach")
+    parser.add_argument("--steps", type=c.int_flag(lo=0), default=None,
                         help="stop once step STEPS is recorded (default: until the world "
                              "leaves, or Ctrl-C/SIGTERM)")
     parser.add_argument("--out", metavar="DIR",
                         help="write the run folder `socmon up` writes (summary.json, mse.csv, "
                              "mse.png, estimates.npz, ...) when the watch ends")
-    parser.add_argument("--keep-steps", type=int_flag(lo=1), default=100_000, metavar="N",
+    parser.add_argument("--keep-steps", type=c.int_flag(lo=1), default=100_000, metavar="N",
                         help="keep the truth and estimates of the newest N steps only (the "
                              "run folder then covers them; default 100000, about 1.5 kB "
                              "per step for 14 states and 4 agents)")
-    parser.add_argument("--json", action="store_true",
-                        help="JSON lines on stdout: {\"kind\": \"view\", ...} while running, "
-                             "then {\"kind\": \"summary\", ...}")
+    c.add_json_argument(parser, "JSON lines on stdout: {\"kind\": \"view\", ...} while "
+                                "running, then {\"kind\": \"summary\", ...}")
     parser.add_argument("--interval", type=float, default=None, metavar="S",
                         help="seconds between updates (default 0.25 on a terminal, else 1)")
     parser.add_argument("--timeout", type=float, default=60.0, metavar="S",

@@ -2,33 +2,28 @@
 
 from __future__ import annotations
 
-from agent.protocol.timing import DEFAULT as TIMING
-
 HELP = "run the world: simulate the social system and publish sensor readings (the clock)"
 
 
 def add_arguments(parser) -> None:
     from broker_free_net.config import add_net_arguments
 
-    from agent.cli._common import add_manifest_argument, add_scenario_argument, int_flag
+    from agent.cli import _common as c
 
-    add_scenario_argument(parser)
-    parser.add_argument("--seed", type=int_flag(lo=0), default=0, help="run seed (default 0)")
-    parser.add_argument("--steps", type=int_flag(lo=0), default=None,
+    c.add_scenario_argument(parser)
+    c.add_seed_argument(parser)
+    parser.add_argument("--steps", type=c.int_flag(lo=0), default=None,
                         help="last step to publish (default: run until stopped)")
-    parser.add_argument("--step-ms", type=float, default=None,
-                        help="period of one step in ms (default: the scenario's step_ms)")
+    c.add_step_ms_argument(parser)
     parser.add_argument("--wait-agents", default=None, metavar="IDS",
                         help="agent ids to wait for before the clock starts, e.g. 1,2,3 "
                              "(default: every active and standby agent of the scenario)")
-    parser.add_argument("--wait-monitor", type=int_flag(lo=1), default=None, metavar="ID",
+    parser.add_argument("--wait-monitor", type=c.int_flag(lo=1), default=None, metavar="ID",
                         help="also wait for monitor ID before the clock starts (it joins "
                              "once its gains for every single failure are ready, so that a "
                              "failure soon after the start is answered at once)")
-    parser.add_argument("--start-timeout", type=float, default=TIMING.start_timeout_s,
-                        help="seconds to wait for the agents "
-                             f"(default {TIMING.start_timeout_s:g})")
-    add_manifest_argument(parser)
+    c.add_start_timeout_argument(parser, "the agents")
+    c.add_manifest_argument(parser)
     add_net_arguments(parser)
 
 
