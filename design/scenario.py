@@ -44,6 +44,7 @@ __all__ = [
     "resolve_delays",
     "uniform_delays",
     "RankDeficientWarning",
+    "DeprecatedEdgesHeader",
     "scenario_schema",
     "starter_scenario_toml",
 ]
@@ -88,7 +89,11 @@ _SOCIAL_KEYS = _table_keys("social")
 _AGENT_KEYS = _table_keys("agents")
 _NETWORK_KEYS = _table_keys("network")
 _RUNTIME_KEYS = _table_keys("runtime")
-_EDGE_HEADERS = (("source", "target"), ("i", "j"))
+#: The headers of an edges CSV: row ``i,j`` means i listens to j (``A[i, j] != 0``).
+_EDGE_HEADERS = (("listener", "influencer"), ("i", "j"))
+#: Headers still read, with a :class:`DeprecatedEdgesHeader` warning: the rows mean what
+#: they meant (the first column listens to the second), but the names say the reverse.
+_DEPRECATED_EDGE_HEADERS = (("source", "target"),)
 _ROW_SUM_TOL = 1e-9
 #: Largest link delay, in steps, that a scenario or a delay flag may name. The exact closed
 #: loop has order (taubar+1) n N: beyond a thousand steps it is out of reach anyway.
@@ -115,6 +120,13 @@ MAX_TOML_DEPTH = 32
 
 class RankDeficientWarning(UserWarning):
     """A is numerically rank deficient (the paper's Assumption 1 fails)."""
+
+
+class DeprecatedEdgesHeader(FutureWarning):
+    """An edges CSV with the header ``source,target``: read as before (the first column
+    listens to the second), though an edge source -> target in graph terms says that
+    source influences target, the reverse. Rename the header ``listener,influencer`` (or
+    ``i,j``); the rows stay as they are."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -719,10 +731,17 @@ def _edges_matrix(social, base_dir, labels, problems):
         problems.append(f"social.edges: {path} has no header and no rows")
         return None, labels
     header = tuple(c.strip().lower() for c in rows[0][:2])
-    if header not in _EDGE_HEADERS:
+    if header in _DEPRECATED_EDGE_HEADERS:
+        warnings.warn(
+            f"social.edges: {path}: the header {','.join(header)} is deprecated: its rows "
+            "are read as before (row 'i,j': i listens to j, j influences i), which is the "
+            "reverse of what source,target says of an edge; rename the header "
+            "listener,influencer (or i,j), the rows stay as they are",
+            DeprecatedEdgesHeader, stacklevel=2)
+    elif header not in _EDGE_HEADERS:
         problems.append(
             f"social.edges: {path}: bad header {rows[0]!r}; the first two columns must be "
-            "named source,target (or i,j): row 'i,j' means i listens to j"
+            "named listener,influencer (or i,j): row 'i,j' means i listens to j"
         )
         return None, labels
     pairs = []

@@ -60,9 +60,9 @@ def test_huge_standby_and_huge_entries_are_rejected():
 
 def test_edges_file_not_utf8_and_huge_ids(tmp_path):
     bad = tmp_path / "bad.csv"
-    bad.write_bytes(b"source,target\n1,2\n\xff\xfe,1\n")
+    bad.write_bytes(b"listener,influencer\n1,2\n\xff\xfe,1\n")
     big = tmp_path / "big.csv"
-    big.write_text("source,target\n1,2\n2,999999999999\n")
+    big.write_text("listener,influencer\n1,2\n2,999999999999\n")
     for path, match in ((bad, "not UTF-8"), (big, "largest supported")):
         data = {"social": {"edges": str(path)}, "agents": {"measure": [["1"]]}}
         with pytest.raises(ScenarioError, match=match):

@@ -214,6 +214,7 @@ def test_a_liar_with_one_receiver_is_named_but_not_corroborated():
     v = isolate(reports)
     assert (v.agent, v.kind) == (0, INCONSISTENT)
     assert any("single receiver" in e for e in v.evidence)
+    assert not v.corroborated and v.flagged_by == ((2, 12.0),)
 
 
 def test_an_agent_that_also_flags_its_senders_is_not_a_liar():
@@ -243,6 +244,115 @@ def test_a_near_tie_is_broken_by_the_innovation_level():
     v = isolate(reports)
     assert (v.agent, v.kind) == (1, SENSOR_BIAS)
     assert v.alternatives
+
+
+# -- corroboration: the isolations a monitor may convict on --------------------------------
+
+def complete3(levels):
+    """Three agents, each listening to both others; ``levels[(j, i)]`` on link j -> i,
+    innovations ``levels[i]`` (default 0.1)."""
+    return [AgentReport(i, levels.get(i, 0.1),
+                        {j: levels.get((j, i), 0.1) for j in range(3) if j != i})
+            for i in range(3)]
+
+
+def ring4(levels):
+    """Four agents, agent i listening to i+1 and i+2 (mod 4): agent 0's receivers are 2
+    and 3 (agent 1 listens to 2 and 3)."""
+    return [AgentReport(i, levels.get(i, 0.1),
+                        {j: levels.get((j, i), 0.1) for j in ((i + 1) % 4, (i + 2) % 4)})
+            for i in range(4)]
+
+
+def test_a_lie_flagged_clearly_by_two_receivers_is_corroborated():
+    """Agent 0 lies: both receivers flag it; the lie entered their priors, so their link
+    from each other alarms too, weaker. Nothing else explains that picture."""
+    v = isolate(complete3({(0, 1): 3.8e5, (0, 2): 1.3e5, (2, 1): 5.1e3, (1, 2): 8.6e3}))
+    assert (v.agent, v.kind, v.corroborated) == (0, INCONSISTENT, True)
+    assert v.flagged_by == ((1, 3.8e5), (2, 1.3e5)) and v.score == 1.3e5
+    assert any(e.startswith("corroborated") for e in v.evidence)
+
+
+@pytest.mark.parametrize("levels, why", [
+    # a receiver's own innovation nearly as strong: a near-tie (a sensor bias of 1 wins)
+    ({(0, 1): 3.8e5, (0, 2): 1.3e5, 1: 1.0e5}, "near-tie"),
+    # both receivers flag it barely above threshold: not clear
+    ({(0, 1): 1.3, (0, 2): 1.2}, "not clear"),
+])
+def test_a_lie_is_not_corroborated_by_a_near_tie_or_faint_alarms(levels, why):
+    v = isolate(complete3(levels))
+    assert not v.corroborated
+    assert any(why in e for e in v.evidence), v.evidence
+
+
+def test_an_alarm_outside_the_receivers_is_not_corroborated():
+    """Ring of 4: agent 0's receivers are 2 and 3; an alarm at agent 1 (which does not
+    listen to 0) is not the lie's doing."""
+    lie = {(0, 2): 900.0, (0, 3): 700.0}
+    v = isolate(ring4(lie))
+    assert (v.agent, v.kind, v.corroborated) == (0, INCONSISTENT, True)
+    v = isolate(ring4(lie | {(3, 1): 2.0}))
+    assert (v.agent, v.kind, v.corroborated) == (0, INCONSISTENT, False)
+    assert any("do not receive from agent 0, alarm too" in e for e in v.evidence)
+
+
+def test_a_spreading_fault_that_crossed_two_thresholds_by_a_hair_is_not_convicted():
+    """The picture at the first alarm of extra sensor noise on agent 2 of the ring of 4
+    (simulated): every link near its threshold, agent 3's two links over it by a hair.
+    The rule names agent 3, an honest agent; the faint alarms do not corroborate it."""
+    reports = [AgentReport(0, 0.021, {1: 0.631, 2: 0.837}),
+               AgentReport(1, 0.046, {2: 0.96, 3: 1.037}),
+               AgentReport(2, 0.516, {3: 1.018, 0: 0.998}),
+               AgentReport(3, 0.012, {0: 0.509, 1: 0.403})]
+    v = isolate(reports)
+    assert (v.agent, v.kind) == (3, INCONSISTENT) and not v.corroborated
+
+
+def test_a_lie_of_a_sender_the_agent_does_not_hear_is_not_excluded():
+    """Agent 0 sends to 1 and 2, and so does agent 3, which agent 0 does not listen to:
+    a lie of 3 also moves 1's and 2's priors, and 0's own tests cannot see it."""
+    reports = [AgentReport(0, 0.1, {1: 0.1}), AgentReport(1, 0.1, {0: 500.0, 3: 0.5}),
+               AgentReport(2, 0.1, {0: 400.0, 3: 0.4}), AgentReport(3, 0.1, {2: 0.1})]
+    v = isolate(reports)
+    assert (v.agent, v.kind, v.corroborated) == (0, INCONSISTENT, False)
+    assert any("a lie of agents [3]" in e for e in v.evidence)
+
+
+def test_a_sensor_bias_is_never_corroborated():
+    v = isolate(complete3({0: 80.0, (0, 1): 3.0, (0, 2): 2.0}))
+    assert (v.agent, v.kind, v.corroborated) == (0, SENSOR_BIAS, False)
+    v = isolate(complete3({(0, 1): 30.0, (0, 2): 20.0, (1, 0): 25.0, (2, 0): 18.0}))
+    assert (v.agent, v.kind, v.corroborated) == (0, SENSOR_BIAS, False)      # absorbed
+
+
+@pytest.fixture(scope="module")
+def live_complete():
+    """paper-14-live with every agent listening to both others, and short-designed gains."""
+    s = load_scenario("paper-14-live")
+    W = np.full((3, 3), 0.25)
+    np.fill_diagonal(W, 0.5)
+    s = s.replace(W=W)
+    G = design_gains(s, exact_mse=False, starts=1, max_iter=30, gaps=False).G
+    return s, G
+
+
+def test_lies_are_corroborated_and_sensor_biases_convict_nobody(live_complete):
+    """Simulated on paper-14-live with two receivers per agent: a lie of one noise
+    std-dev on every component, by any agent, is corroborated at its first alarm and
+    names the liar in every trial; a sensor bias of 5 std-devs is never corroborated."""
+    s, G = live_complete
+    test = residual_test(s, G)
+    f = test.first_step + 20
+    for a in range(3):
+        for fault, convicted in ((Fault("lie", a, f, 1.0), 40), (Fault("bias", a, f, 5.0), 0)):
+            res = simulate(s, G, steps=f + 100, trials=40, seed=3, residuals=test,
+                           faults=[fault])
+            first = first_alarms(res.residual_stats, test.thresholds, start=f)
+            when = np.where(first >= 0, first, 10 ** 9).min(axis=1)
+            verdicts = [isolate(reports_at(test, test.levels(res.residual_stats[t, when[t]])))
+                        for t in range(40) if when[t] < 10 ** 9]
+            named = [(v.agent, v.kind) for v in verdicts if v.corroborated]
+            assert named == [(a, INCONSISTENT)] * convicted, (fault, named[:3])
 
 
 # -- faults in the simulator --------------------------------------------------------------

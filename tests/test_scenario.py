@@ -122,8 +122,34 @@ def test_edges_file_bad_header(tmp_path):
         load_scenario(path)
 
 
+def test_edges_header_names_the_listener_first_and_the_old_header_still_reads(tmp_path):
+    """Row ``i,j``: i listens to j (``A[i, j] != 0``). The header ``listener,influencer``
+    says so; ``source,target`` said the reverse of what its rows mean: still read the same
+    way (nobody's file changes meaning), with a warning naming the fix."""
+    from design.scenario import DeprecatedEdgesHeader
+
+    def load(header):
+        (tmp_path / "e.csv").write_text(f"{header}\n1,2\n2,1\n2,3\n")
+        return load_scenario(write(tmp_path, """
+            [social]
+            edges = "e.csv"
+            [agents]
+            measure = [["1"]]
+        """))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        new = load("listener,influencer")
+    assert new.A[1, 2] != 0 and new.A[2, 1] == 0          # 2 listens to 3
+    with pytest.warns(DeprecatedEdgesHeader,
+                      match=r"header source,target is deprecated: .* rename the header "
+                            r"listener,influencer \(or i,j\)"):
+        old = load("source,target")
+    assert np.array_equal(old.A != 0, new.A != 0)
+
+
 def test_edges_file_unknown_ids(tmp_path):
-    (tmp_path / "e.csv").write_text("source,target\na,b\nb,c\nc,a\n")
+    (tmp_path / "e.csv").write_text("listener,influencer\na,b\nb,c\nc,a\n")
     path = write(tmp_path, """
         [social]
         edges = "e.csv"

@@ -362,7 +362,7 @@ def test_a_scenario_written_from_the_doc_runs(tmp_path, capsys):
     """Six individuals from a CSV with names, two agents with explicit weights and drawn
     delays, written from docs/scenario.md alone."""
     (tmp_path / "village.csv").write_text(
-        "source,target\n# row i,j: i listens to j\namy,ben\nben,amy\nben,eli\ncal,dan\n"
+        "listener,influencer\n# row i,j: i listens to j\namy,ben\nben,amy\nben,eli\ncal,dan\n"
         "dan,cal\ndan,fox\neli,fox\nfox,eli\n")
     path = tmp_path / "village.toml"
     path.write_text('name = "village"\n[social]\nedges = "village.csv"\nseed = 4\n'

@@ -13,6 +13,11 @@ Examples::
     socmon inject clear 2 1 ...
     socmon inject clear-all ...
     socmon inject drop 2 1 0.2 --attach RUN_FOLDER     # a `socmon up` run, from its run.json
+    socmon inject clear-all --run demo --connect ... --operator-key RUN_FOLDER/operator.key
+
+``--operator-key`` was ``--control-key`` before: the old name still works and says on
+stderr that it is deprecated (the monitor's ``--control-key`` is another key, the run's
+control key).
 """
 
 from __future__ import annotations
@@ -53,9 +58,13 @@ def add_arguments(parser) -> None:
 def _common(p):
     add_attach_argument(p, takes=", and its operator key (RUN_FOLDER/operator.key) to sign "
                                  "the change")
-    p.add_argument("--control-key", metavar="FILE",
+    p.add_argument("--operator-key", metavar="FILE",
                    help="the run's operator key (socmon up writes RUN_FOLDER/operator.key): "
                         "sign the change, as agents started with the run's manifest require")
+    p.add_argument("--control-key", dest="deprecated_control_key", metavar="FILE",
+                   help="deprecated name of --operator-key (still works, with a warning): "
+                        "this is the operator key, not the control key monitor "
+                        "--control-key takes")
     p.add_argument("--timeout", type=float, default=10.0,
                    help="seconds to wait for the agents to confirm (default 10)")
     p.add_argument("--no-confirm", action="store_true",
@@ -70,13 +79,16 @@ def _link(p):
 
 def run(args) -> int:
     def body():
-        from agent.run.inject import change_from_args, encode_change, inject
+        from agent.run.inject import change_from_args, encode_change, inject, operator_key_arg
 
         change = change_from_args(args)
+        key, flag = operator_key_arg(args.operator_key, args.deprecated_control_key,
+                                     warn=lambda text: print(f"inject: warning: {text}",
+                                                             file=sys.stderr))
         info = attach_run(args)
-        if args.control_key is None and info is not None and info.operator_key is not None:
-            args.control_key = str(info.operator_key)
-        signer = load_signer(args.control_key) if args.control_key else None
+        if key is None and info is not None and info.operator_key is not None:
+            key, flag = str(info.operator_key), "--attach"
+        signer = load_signer(key, flag) if key else None
         payload = encode_change(change, signer, args.run)
         inject(net_config_arg(args, identity="operator"), change, payload, args.timeout,
                confirm=not args.no_confirm,

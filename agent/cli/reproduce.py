@@ -21,7 +21,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR",
                         help="output folder (created): report.md, PNG figures, results.json")
     parser.add_argument("--sampson", default=None, metavar="PATH",
-                        help="Sampson edge list (source,target CSV) to reproduce Section 5.2")
+                        help="Sampson edge list to reproduce Section 5.2 (the data set's CSV: row "
+                             "s,t: s named t, so t influences s)")
     parser.add_argument("--steps", default="300", metavar="K",
                         help="time steps per simulation (default 300)")
     parser.add_argument("--seed", default="0", metavar="S", help="seed (default 0)")

@@ -339,6 +339,12 @@ def _residual_name(name) -> tuple | None:
     return ("link", int(m.group(1)), int(m.group(2))) if m else None
 
 
+#: Causes after which a convicted agent never rejoins the standbys: probation checks that
+#: an agent is up, advancing and reading its sensor, and a liar is all of that
+#: (:meth:`MonitorCore._probation`).
+NEVER_REJOIN = ("inconsistent estimates",)
+
+
 class MonitorCore:
     """The monitor's protocol, stepped by the caller with explicit times (seconds).
 
@@ -402,6 +408,7 @@ class MonitorCore:
         self._residual_first: dict = {}   # (agent, test) -> (step, level) of its first alarm
         self._residual_last_alarm = -1    # the newest status step with an alarm
         self._residual_hold = False       # an episode was isolated: wait until it is over
+        self._residual_verdicts: list = []   # corroborated isolations, until convicted
 
     # -- the configuration in force, and the detector's view of it ---------------------
     @property
@@ -461,8 +468,14 @@ class MonitorCore:
                 and self.world_gone_at is None:
             # no role to hand over, but one failure fewer can be answered
             left = len(self.standby_pool(now, exclude=(int(agent),)))
-            self.events.append(f"standby agent {agent} gone (its token went): {left} "
-                               f"standby left to replace a failed agent")
+            self.events.append(f"agent {agent} gone (its token went): " + (
+                "convicted earlier (" + next((v.cause for v in reversed(self.verdicts)
+                                              if v.agent == int(agent)), "?")
+                + "), out of the configuration since, on probation"
+                if int(agent) in self.on_probation else "a standby" + (
+                    " (convicted earlier, rejoined after probation)"
+                    if int(agent) in self.convicted_at else ""))
+                + f"; {left} standby left to replace a failed agent")
         return out
 
     def on_status(self, msg: dict, now: float, sender: int | None = None) -> None:
@@ -574,6 +587,7 @@ class MonitorCore:
             # a deleted token is evidence of its own: even while the monitor's own pause
             # suspends the verdicts that read clocks, a crash is answered
             found = detector.crash_verdicts(now) if suspended else detector.verdicts(now)
+            found += self._residual_convictions(found)
             # when its verdict was first found, while the evidence holds: an agent convicted
             # again later (it came back, rejoined, failed again) starts a new time
             self._first_seen = {a: t for a, t in self._first_seen.items()
@@ -638,9 +652,10 @@ class MonitorCore:
         self._residual_peaks, self._residual_first, self._residual_alarm_step = {}, {}, None
 
     def _residual_alerts(self, now: float) -> None:
-        """The agents' residual tests (tests of the initial configuration) isolated to
-        one agent (:func:`design.residuals.isolate`): a ``sensor bias`` or ``inconsistent
-        estimates`` alert, an event and a record once per agent and kind.
+        """The agents' residual tests (tests of the initial configuration, epoch 0 only)
+        isolated to one agent (:func:`design.residuals.isolate`): a corroborated
+        ``inconsistent estimates`` is a verdict (convicted by :meth:`tick` like any other);
+        anything else is an alert, an event and a record once per agent and kind.
 
         An alarm is isolated once every agent of the configuration has reported a step at
         least as late as the earliest first alarm (statuses arrive at different times, and
@@ -649,13 +664,17 @@ class MonitorCore:
         alarmed then, at their level then (what alarmed later is a consequence around the
         loop, as the simulator's benchmark isolates at the first alarm step). Nothing is isolated while an agent was disturbed
         lately (it used a held, late or lost estimate, or missed readings, within its
-        settle window: that reaches every agent through the loop). An alert convicts
-        nobody: on a network whose agents have a single receiver each, a lie and an
-        absorbed sensor fault cannot be told from a fault of the receiver
-        (docs/residuals.md), and a wrong conviction removes a healthy agent."""
+        settle window: that reaches every agent through the loop).
+
+        Only a corroborated isolation convicts (:attr:`design.residuals.Verdict.
+        corroborated`: at least two receivers flag the agent, each singling it out,
+        nothing alarms elsewhere, no near-tie): a lie seen by a single receiver cannot be
+        told from a fault of that receiver or link, and a ``sensor bias`` read from an
+        agent's own innovation may be a fault elsewhere that reached its prior
+        (docs/residuals.md); a wrong conviction removes a healthy agent."""
         if self.epoch != 0 or self.history:
             return
-        from design.residuals import AgentReport, isolate
+        from design.residuals import INCONSISTENT, AgentReport, isolate
 
         newest = self.last_step_reported
         settle, disturbed = 0, {}
@@ -708,6 +727,23 @@ class MonitorCore:
             return
         self._alerted.add((verdict.agent, verdict.kind))
         agent = verdict.agent
+        if verdict.kind == INCONSISTENT and verdict.corroborated \
+                and agent in self.roster.ids and agent not in self.failed:
+            own = next(r for r in reports if r.agent == agent)
+            evidence = (
+                f"residual tests of the initial configuration, first alarm at step {first}: "
+                + " and ".join(f"agent {i} (link {agent}->{i} at {lv:.3g} x threshold)"
+                               for i, lv in verdict.flagged_by)
+                + f" flag its published estimates; its own tests were quiet then "
+                f"(innovation {own.innovation:.3g} x threshold"
+                + (f", links from agents {sorted(own.discrepancy)} below threshold"
+                   if own.discrepancy else "")
+                + "); nothing alarms at an agent that does not receive from it")
+            self._residual_verdicts.append(
+                Verdict(agent, INCONSISTENT, evidence, now, self.current_step(now)))
+            self.events.append(f"residual conviction: agent {agent} {INCONSISTENT} (from "
+                               f"step {first}); it will not rejoin after probation")
+            return
         record = {"agent": agent, "fault": verdict.kind, "score": round(verdict.score, 3),
                   "evidence": list(verdict.evidence), "step": first,
                   "alternatives": [[a, kind, round(s, 3)]
@@ -716,6 +752,15 @@ class MonitorCore:
         self.events.append(f"residual alert: agent {agent} {verdict.kind} (level "
                            f"{verdict.score:.3g}, from step {first}): "
                            f"{'; '.join(verdict.evidence)}; not convicted (an alert)")
+
+    def _residual_convictions(self, found: list) -> list:
+        """The corroborated residual verdicts not yet answered (:meth:`tick` adds them to
+        the detector's, so they go through the same settle window and reassignment):
+        each until its agent is convicted, or has left the configuration."""
+        self._residual_verdicts = [v for v in self._residual_verdicts
+                                   if v.agent in self.roster.ids and v.agent not in self.failed]
+        named = {v.agent for v in found}
+        return [v for v in self._residual_verdicts if v.agent not in named]
 
     def _switch_ahead(self, now: float, margin: int = 0) -> bool:
         """The roles last sent are not yet in force (at least ``margin`` steps before
@@ -1003,7 +1048,7 @@ class MonitorCore:
             **_gain_record(info),
         })
         self.events.append(
-            f"epoch {self.epoch}: {', '.join(f'{r.by} measures {self.scenario.labels[r.node_to]}' for r in plan.replacements) or 'no replacement needed'}"
+            f"epoch {self.epoch}: {self._role_changes(nxt, plan)}"
             f"; ids {list(nxt.ids)} from step {activate_at}"
             + (" (precomputed gains" if precomputed else
                f" (gains designed in {now - p['at']:.2f} s") + f", {_gain_words(info)})")
@@ -1011,6 +1056,22 @@ class MonitorCore:
         if info.get("kind") == "fast":
             self.gains.refine(nxt)             # replaced under a new epoch when it is ready
         return out
+
+    def _role_changes(self, nxt, plan) -> str:
+        """What a reassignment changes, in words: every node each replacing agent measures
+        now (the new one marked) and the links added (\"2 measures 9 and 8 (8 new); link
+        added: 3 listens to 2\")."""
+        labels = self.scenario.labels
+        parts = []
+        for r in plan.replacements:
+            nodes = [labels[v] for v in nxt.scenario.measure[nxt.row_of(r.by)]]
+            parts.append(f"{r.by} measures {' and '.join(nodes)}"
+                         + (f" ({labels[r.node_to]} new)" if len(nodes) > 1 else ""))
+        words = ", ".join(parts) or "no replacement needed"
+        links = [f"{b} listens to {a}" for a, b in plan.added_links]
+        if links:
+            words += f"; link{'s' if len(links) > 1 else ''} added: {', '.join(links)}"
+        return words
 
     def _assign_all(self, new, G, info, now: float, record: dict, why: str,
                     lead: int | None = None) -> list:
@@ -1065,9 +1126,14 @@ class MonitorCore:
         """Agents on probation that stayed healthy for ``rejoin_s`` rejoin the standby pool
         (an event and an entry of :attr:`rejoins`); a break
         (:meth:`FailureDetector.standby_break`) starts the probation over: at once when the
-        agent is down or cut off, after half the hang timeout when it is only slow."""
+        agent is down or cut off, after half the hang timeout when it is only slow. An
+        agent whose last conviction is of a cause in :data:`NEVER_REJOIN` (it lied about its
+        estimates) stays on probation for good: looking healthy proves nothing of it."""
         for a in sorted(self.on_probation):
             st = self.agents[a]
+            last = [v.cause for v in self.verdicts if v.agent == a]
+            if last and last[-1] in NEVER_REJOIN:
+                continue
             if a in self.roster.ids:
                 if a not in self.failed:            # taken again meanwhile
                     self.on_probation.discard(a)
@@ -1144,10 +1210,12 @@ class MonitorCore:
         nothing of past reassignments: the roster it heard (``ids``, ``epoch``) or, if
         none, the agents whose status says they are active, and each one's measured
         nodes and neighbour weights from its status, are the configuration in force.
-        An agent whose token is down but whose last status says it is active in the
-        newest epoch the live active agents run is in it too (stopped, cut off, or
-        dead: the verdicts decide, as for any agent of the configuration; left out, it
-        would count as failed with no verdict and nothing would answer it). Agents of
+        Without a roster, those are the agents whose last status says they are active in
+        the newest epoch the live active agents run: one whose token is down is in it
+        too (stopped, cut off, or dead: the verdicts decide, as for any agent of the
+        configuration; left out, it would count as failed with no verdict and nothing
+        would answer it), one still active in an older epoch is not (fenced out without
+        having heard it). Agents of
         the scenario outside it count as failed; live agents without a role are the
         standbys. Epochs continue above every epoch seen. Returns False while a status
         is missing.
@@ -1160,7 +1228,7 @@ class MonitorCore:
             live = [st.epoch for st in self.agents.values()
                     if st.alive and st.status.get("active")]
             ids = sorted(a for a, st in self.agents.items() if st.status.get("active")
-                         and (st.alive or (live and st.epoch == max(live))))
+                         and live and st.epoch == max(live))
         rows = [int(a) for a in ids]
         if not rows or any(not self.agents[a].status.get("active") for a in rows):
             return False
@@ -1218,9 +1286,12 @@ class MonitorSeat:
 
     The monitor with the smallest id whose token is alive acts, once it has listened
     ``listen_s``; the others stay passive and watch. An acting monitor goes on acting
-    until a smaller id's token has been up for ``listen_s`` less :data:`HANDOVER_S` (that
-    one acts then): a restarted monitor listening, or still precomputing before it
-    declares its token, does not leave the run without a monitor. A passive monitor keeps
+    until a smaller id's token of a session it never saw (a restarted monitor) has been
+    up for ``listen_s`` less :data:`HANDOVER_S` (that one acts then): a restarted monitor
+    listening, or still precomputing before it declares its token, does not leave the
+    run without a monitor. A smaller id back with a session seen before (a monitor that
+    was paused, or cut off) acts at once, so the seat goes to it at once: two monitors
+    never act together. A passive monitor keeps
     its detector's clock (:meth:`MonitorCore.watch`), so that taking the seat is not
     mistaken for a pause of its own. A monitor that becomes active adopts
     the configuration in force from the newest roster it heard (:meth:`on_roster`) or from
@@ -1239,6 +1310,7 @@ class MonitorSeat:
         self.listen_s = listen_s
         self.listen_until = now + listen_s
         self.seen_since: dict = {}     # another monitor's id -> since when its token is up
+        self.sessions_seen: set = set()   # (id, session) of the other monitors' tokens
         self.heard_roster: dict | None = None
         self.active = False
         self.records: list = []
@@ -1251,14 +1323,29 @@ class MonitorSeat:
                                              or msg["epoch"] > self.heard_roster["epoch"]):
             self.heard_roster = msg
 
+    def _seen_epoch(self) -> int:
+        """The newest epoch the agents' statuses say they run or heard as the roster."""
+        agents = self.core.agents.values()
+        return max([st.status.get("roster_epoch", 0) or 0 for st in agents]
+                   + [st.epoch for st in agents] + [0])
+
     def _adopt_heard(self) -> bool:
+        """Adopt the roster heard if it is as new as anything the agents report and their
+        statuses fit it; else the configuration the statuses give (a roster missed while
+        this monitor listened, or one the agents have since moved past: waiting on it
+        left a restarted monitor holding the seat without acting, 430 steps in a live
+        chaos run)."""
         core, heard = self.core, self.heard_roster
-        if heard is not None and heard["epoch"] >= core.epoch:
-            return core.adopt(heard["ids"], heard["epoch"])
-        return core.adopt(None, core.epoch)
+        newest = max(core.epoch, self._seen_epoch())
+        if heard is not None and heard["epoch"] >= newest \
+                and core.adopt(heard["ids"], heard["epoch"]):
+            return True
+        return core.adopt(None, newest)
 
     def decide(self, now: float, monitors_alive) -> str:
-        """``monitors_alive``: the ids of the monitors whose token is up."""
+        """``monitors_alive``: the monitors whose token is up, as ids or as ``(id,
+        session)`` pairs (the session tells a restarted monitor from one that was
+        paused; an id alone counts as a new session when it comes)."""
         state = self._decide(now, monitors_alive)
         if state != "act":
             self.core.watch(now)
@@ -1266,29 +1353,30 @@ class MonitorSeat:
 
     def _decide(self, now: float, monitors_alive) -> str:
         core = self.core
-        alive = {int(i) for i in monitors_alive if int(i) != self.id}
-        self.seen_since = {i: self.seen_since.get(i, now) for i in alive}
+        alive: dict = {}
+        for item in monitors_alive:
+            i, session = item if isinstance(item, tuple) else (item, None)
+            if int(i) != self.id:
+                alive.setdefault(int(i), set()).add(session)
+        since = {}
+        for i, sessions in alive.items():
+            back = any(s is not None and (i, s) in self.sessions_seen for s in sessions)
+            since[i] = self.seen_since.get(i, -math.inf if back else now)
+            self.sessions_seen |= {(i, s) for s in sessions if s is not None}
+        self.seen_since = since
         # a smaller id acts once it has listened: until then this one goes on acting
         others = sorted(i for i in alive
                         if now - self.seen_since[i] >= self.listen_s - HANDOVER_S)
         should = (not others or self.id < others[0]) and now >= self.listen_until
         if should and not self.active:
-            seen = max([st.status.get("roster_epoch", 0) or 0 for st in core.agents.values()]
-                       + [st.epoch for st in core.agents.values()])
             if core.history and not core.behind:
                 pass                     # it acted before and nobody acted since
-            elif core.history:
-                # another monitor acted while this one was away (paused, cut off): the
-                # configuration in force is the agents'
+            elif core.history or self.heard_roster is not None or self._seen_epoch() > 0:
+                # another monitor acted while this one was away (paused, cut off), or roles
+                # were reassigned before it started: the configuration in force is the
+                # roster heard or the agents' statuses; wait until they form one
                 if not self._adopt_heard():
                     return "wait"
-            elif self.heard_roster is not None:
-                if not core.adopt(self.heard_roster["ids"], self.heard_roster["epoch"]):
-                    return "wait"
-            elif seen > 0 and not core.adopt(None, seen):
-                # roles were reassigned before this monitor started: the agents' statuses
-                # say which; wait until every active one has reported
-                return "wait"
             self.lines.append("active")
             self.records.append(("active", {"monitor": self.id, "epoch": core.epoch}))
             self.active = self.precompute = True

@@ -229,8 +229,9 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                                         f"without the run's control signature ({exc})")
                             continue
                     seat.on_roster(msg)
-                state = seat.decide(now, [int(i) for role, i in watch.alive()
-                                          if role == "monitor" and i.isdigit()])
+                state = seat.decide(now, [(int(i), z) for role, i in watch.alive()
+                                          if role == "monitor" and i.isdigit()
+                                          for z in watch.sessions(role, i)])
                 for line in seat.lines:
                     print(f"monitor {monitor_id}: {line}", file=log, flush=True)
                 for kind, fields in seat.records:

@@ -43,11 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.run.local import Fault
-from agent.monitor.core import MonitorConfig
-from agent.protocol.timing import DEFAULT as TIMING
-
-#: Scheduling slack (s) beyond a fault's verdict time before the checker requires a verdict.
-VERDICT_SLACK_S = 0.3
+# the scheduling slack before a verdict is required lives with the rule it serves
+from agent.run.summary import VERDICT_SLACK_S, conviction_bound_s  # noqa: F401
 
 __all__ = ["CHAOS_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
 
@@ -173,12 +170,10 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     for f in c.faults:
         # a stop is convicted after the hang timeout (from its last status, a status period
         # before the stop); a partition after its listeners' ages pass the silent bound
-        # (the link's delay plus silent_steps) and then the hang timeout
-        if f.kind in ("kill", "crash", "hang") or (
-                f.kind == "stop" and f.seconds > c.hang_timeout + TIMING.status_s
-                + VERDICT_SLACK_S) or (
-                f.kind in ("partition", "sensor") and f.seconds > 2 * c.hang_timeout
-                + (MonitorConfig.silent_steps + int(table.max())) * step_s):
+        # (the link's delay plus silent_steps) and then the hang timeout: one rule with the
+        # summary's no_verdict_due (agent.run.summary.conviction_bound_s)
+        bound = conviction_bound_s(f.kind, c.hang_timeout, step_s, int(table.max()))
+        if f.kind in ("kill", "crash", "hang") or (bound is not None and f.seconds > bound):
             taken_out.append(f)
     for f in taken_out:
         in_force = _roster_at(rec.rosters, f.step)
@@ -349,6 +344,7 @@ def live_chaos(args, say) -> tuple:
         "failures": summary.get("failures", []),
         "rosters": summary.get("rosters", []),
         "violations": [v.to_dict() for v in violations],
+        "no_verdict_due": summary.get("no_verdict_due", []),
         "error": rec.failure,
         "replay": f"socmon chaos {args.scenario} --seed {args.seed} --duration "
                   f"{args.duration} --faults {','.join(kinds)} --rate {args.rate:g}",

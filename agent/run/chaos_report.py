@@ -43,8 +43,11 @@ def simulated_report_text(report: dict, seeds: range, rate: float,
     record = {k: v for k, v in report.items() if k not in ("scenario_name", "kinds")}
     if as_json:
         return json.dumps(to_jsonable(versioned(record)), indent=2)
+    untested = ([f"NO FAULT DRAWN in any schedule (--rate {rate:g}, --duration): the runs "
+                 "tested nothing"] if not record.get("faults") else [])
     return "\n".join([f"{name} under simulated time, seeds {seeds.start}..{seeds.stop - 1}, "
-                      f"faults {','.join(kinds)}, rate {rate:g}"] + report_lines(record))
+                      f"faults {','.join(kinds)}, rate {rate:g}"] + untested
+                     + report_lines(record))
 
 
 def live_report_text(report: dict, reassignments: int, as_json: bool = False) -> str:
@@ -53,18 +56,25 @@ def live_report_text(report: dict, reassignments: int, as_json: bool = False) ->
     report as JSON, or the counts, each violation, the run folder and, after a
     violation or a failure, the command that replays the run.
 
+    A schedule that drew no fault tested nothing, and the headline says so (the exit
+    status stays 0: nothing was violated; stderr has :data:`NO_FAULT_WARNING`); a fault
+    too short to be convicted is listed with the reason no verdict was due:
+
     >>> print(live_report_text({"scenario": "paper-14-live", "seed": 0, "faults": [],
     ...     "failures": [], "violations": [], "error": None, "out": "runs/c",
     ...     "replay": "socmon chaos paper-14-live --seed 0"}, 0))
-    paper-14-live, seed 0: 0 faults, 0 verdicts, 0 reassignments, 0 violations
+    paper-14-live, seed 0: NO FAULT DRAWN (--rate, --duration): the run tested nothing; 0 verdicts, 0 reassignments, 0 violations
     run folder: runs/c
     """
     if as_json:
         return json.dumps(to_jsonable(report), indent=2)
     violations = report["violations"]
-    lines = [f"{report['scenario']}, seed {report['seed']}: {len(report['faults'])} faults, "
+    drawn = (f"{len(report['faults'])} faults" if report["faults"] else
+             "NO FAULT DRAWN (--rate, --duration): the run tested nothing")
+    lines = [f"{report['scenario']}, seed {report['seed']}: {drawn}; "
              f"{len(report['failures'])} verdicts, {reassignments} reassignments, "
              f"{len(violations)} violations"]
+    lines += [f"  {d['why']}" for d in report.get("no_verdict_due", [])]
     lines += [f"  VIOLATION {v['invariant']} at step {v['step']}: {v['evidence']}"
               for v in violations]
     lines.append(f"run folder: {report['out']}")

@@ -31,9 +31,10 @@ from agent.run.inputs import (
     load_gains_arg,
 )
 
-__all__ = ["analysis_report", "format_analysis", "certificate_report", "format_certificates",
-           "format_gaps", "plan_report", "format_plan", "DesignRequest", "design_request",
-           "design_for", "design_report", "design_notes", "format_design"]
+__all__ = ["gains_words", "tolerance_why", "redundancy_why", "analysis_report",
+           "format_analysis", "certificate_report", "format_certificates", "format_gaps",
+           "plan_report", "format_plan", "DesignRequest", "design_request", "design_for",
+           "design_report", "design_notes", "format_design"]
 
 
 def _yes(flag) -> str:
@@ -65,6 +66,38 @@ def format_gaps(gaps) -> list:
     return lines
 
 
+def gains_words(meta: dict) -> str:
+    """What a gains file's ``meta`` says of it (:func:`design.gains.gains_meta`): how it was
+    designed and the exact figures recorded when it was, for the delays it was designed
+    for; empty for a file that records none of them (written by hand).
+
+    >>> gains_words({"method": "default", "objective": "mse", "delays": [[0, 3], [3, 0]],
+    ...              "rho_exact": 0.93, "mse_steady_exact": 0.27})
+    'method default, objective mse; as designed (taubar 3): exact radius 0.93, exact steady MSE 0.27'
+    >>> gains_words({"method": "bench"})
+    'method bench'
+    """
+    said = []
+    if meta.get("method"):
+        said.append(f"method {meta['method']}")
+    if meta.get("objective"):
+        said.append(f"objective {meta['objective']}")
+    figures = []
+    if meta.get("rho_exact") is not None:
+        figures.append(f"exact radius {_f(meta['rho_exact'], 6)}")
+    if "mse_steady_exact" in meta:
+        figures.append("exact steady MSE " + (_f(meta["mse_steady_exact"], 6)
+                                              if meta["mse_steady_exact"] is not None
+                                              else "not recorded"))
+    text = ", ".join(said)
+    if figures:
+        delays = meta.get("delays")
+        taubar = (f" (taubar {max((max(r) for r in delays), default=0)})"
+                  if isinstance(delays, list) and delays and isinstance(delays[0], list) else "")
+        text += ("; " if text else "") + f"as designed{taubar}: " + ", ".join(figures)
+    return text
+
+
 # -- socmon analyze -------------------------------------------------------------------
 
 def analysis_report(scenario, max_subsets=None, gains_file=None, force_gains=False) -> dict:
@@ -74,9 +107,107 @@ def analysis_report(scenario, max_subsets=None, gains_file=None, force_gains=Fal
     gains = None if gains_file is None else load_gains_arg(gains_file, scenario,
                                                             force=force_gains)
     data = analysis_record(result, None if gains is None else gains.G)
+    # why the smallest failing set found fails, in the words of `plan`
+    for key, allow in (("failure_tolerance", False), ("failure_tolerance_with_new_links", True)):
+        witness = data.get(key + "_witness")
+        data[key + "_why"] = (None if not witness else
+                              tolerance_why(scenario, [a - 1 for a in witness], allow))
+    red = result.redundancy_tolerance
+    witness = None if red is None or red.witness is None else list(red.witness)
+    data["failure_tolerance_without_replacement_witness"] = (
+        None if witness is None else [a + 1 for a in witness])
+    data["failure_tolerance_without_replacement_why"] = (
+        None if not witness else redundancy_why(scenario, witness))
     if gains is not None:
         data["gains_file"] = str(gains_file)
+        data["gains_meta"] = gains.meta
     return data
+
+
+def tolerance_why(scenario, failed, allow_new_links: bool) -> str:
+    """Why the failure of the agents ``failed`` (0-based) is not recoverable by the
+    recovery policy (:func:`design.recovery.plan_recovery`, standbys replace), in the
+    words ``socmon plan`` uses.
+
+    >>> from design.scenario import load_scenario
+    >>> tolerance_why(load_scenario("paper-14"), [0, 1], allow_new_links=False)
+    'without agents 1 and 2 the agents left are not strongly connected (components {3}, {4}) and no link may be added'
+    """
+    plan = plan_recovery(scenario, failed, add_links=allow_new_links, numerical=False)
+    lab = scenario.labels
+    who = _agents_words([a + 1 for a in plan.failed])
+    out = []
+    for a in plan.failed:
+        if plan.unrecoverable.get(a):
+            out.append(f"agent {a + 1}'s {_nodes_words(lab, plan.unrecoverable[a])} no "
+                       "equivalent (a parent SCC of one node)")
+        if plan.unassigned.get(a):
+            out.append(f"agent {a + 1}'s {_nodes_words(lab, plan.unassigned[a])} equivalents "
+                       "but no agent is left to measure them")
+    if not plan.agent_ids:
+        out.append(f"no agent is left without {who}")
+    elif plan.unmeasured_parents_after and not out:
+        out.append("parent SCC(s) left without sensor: " + "; ".join(
+            "{" + ", ".join(lab[v] for v in c) + "}" for c in plan.unmeasured_parents_after))
+    if not allow_new_links and plan.agent_ids and not plan.network_strongly_connected_removed:
+        child = [a for a in plan.failed if plan.no_equivalent.get(a)
+                 and not plan.candidates_by_node.get(a)]
+        out.append((f"{_agents_words([a + 1 for a in child])} "
+                    + ("measures" if len(child) == 1 else "measure") + " only nodes of child "
+                    "SCCs (no equivalent, not needed: no standby takes the place), and "
+                    if child else "")
+                   + f"without {who} the agents left are not strongly connected (components "
+                     + ", ".join("{" + ", ".join(map(str, sorted(c))) + "}"
+                                 for c in sorted(plan.components_removed, key=min))
+                     + ") and no link may be added")
+    return "; ".join(out) or "not recoverable"
+
+
+def redundancy_why(scenario, failed) -> str:
+    """Why the survivors of the failure of ``failed`` (0-based), with no replacement (the
+    paper's Remark 5), cannot go on: a parent SCC none of them measures, or their network
+    not strongly connected.
+
+    >>> from design.scenario import load_scenario
+    >>> redundancy_why(load_scenario("paper-14"), [0])
+    'without agent 1 no agent left measures the parent SCC {6, 7, 8} (nobody replaces it here), and the agents left are not strongly connected'
+    """
+    from design.connectivity import agent_flow_graph, is_strongly_connected
+    from design.graph import influence_structure
+
+    structure = influence_structure(scenario.A)
+    alive = [i for i in range(scenario.N) if i not in set(failed)]
+    covered = {int(structure.labels[v]) for i in alive for v in scenario.measure[i]}
+    lab = scenario.labels
+    who = _agents_words([a + 1 for a in failed])
+    lost = [c for c in structure.parents if int(c) not in covered]
+    out = []
+    if not alive:
+        return f"no agent is left without {who}"
+    if lost:
+        out.append(f"without {who} no agent left measures the parent SCC"
+                   + ("s " if len(lost) > 1 else " ") + "; ".join(
+                       "{" + ", ".join(lab[v] for v in structure.components[c]) + "}"
+                       for c in lost) + " (nobody replaces it here)")
+    if len(alive) > 1 and not is_strongly_connected(
+            agent_flow_graph(np.asarray(scenario.W)[np.ix_(alive, alive)])):
+        out.append("the agents left are not strongly connected" if out else
+                   f"without {who} the agents left are not strongly connected")
+    return ", and ".join(out) or "not recoverable"
+
+
+def _nodes_words(labels, nodes) -> str:
+    """``node 7 has`` / ``nodes 7, 9 have`` (0-based ``nodes``, named by label)."""
+    names = [labels[v] for v in nodes]
+    return (f"node {names[0]} has" if len(names) == 1 else f"nodes {', '.join(names)} have")
+
+
+def _agents_words(ids) -> str:
+    """``agent 1`` / ``agents 1 and 2`` / ``agents 1, 2 and 3``."""
+    ids = [str(a) for a in ids]
+    if len(ids) == 1:
+        return f"agent {ids[0]}"
+    return f"agents {', '.join(ids[:-1])} and {ids[-1]}"
 
 
 def _modes(modes) -> str:
@@ -115,6 +246,14 @@ def format_analysis(d: dict) -> str:
         f"{_yes(d['distributed_observable'])}, detectable {_yes(d['distributed_detectable'])} "
         f"(unobservable modes: {_modes(d['distributed_unobservable_modes'])})",
     ]
+    if not d["distributed_observable"]:
+        top = max((m["abs"] for m in d["distributed_unobservable_modes"]), default=0.0)
+        lines.append(
+            f"  not observable but detectable: the unobservable modes (|lambda| <= {top:.4g}) "
+            "decay by themselves, so stabilising gains exist and the estimation works"
+            if d["distributed_detectable"] else
+            "  NOT DETECTABLE: an unobservable mode does not decay (|lambda| = "
+            f"{top:.4g} >= 1): no gain keeps the estimation error bounded (exit 1)")
     if d["disagreement_reasons"]:
         lines.append("structural and numerical verdicts disagree:")
         lines += [f"  {r}" for r in d["disagreement_reasons"]]
@@ -134,16 +273,17 @@ def format_analysis(d: dict) -> str:
         if not exact:
             txt += " (lower bound: search limit reached)"
         if witness:
-            txt += f"; e.g. agents {witness} failing together is not recoverable"
+            txt += (f"; e.g. {_agents_words(witness)} failing "
+                    + ("together " if len(witness) > 1 else "") + "is not recoverable")
+            if d.get(key + "_why"):
+                txt += f": {d[key + '_why']}"
         return txt
 
     lines += [
         f"failure tolerance (standby agents replace, no new links): {tol('failure_tolerance')}",
         f"failure tolerance with new links allowed: {tol('failure_tolerance_with_new_links')}",
-        "failure tolerance without replacement (paper's Remark 5): "
-        + ("none (not recoverable even without failures)"
-           if d["failure_tolerance_without_replacement"] is None
-           else str(d["failure_tolerance_without_replacement"])),
+        f"failure tolerance without replacement (paper's Remark 5): "
+        f"{tol('failure_tolerance_without_replacement')}",
     ]
     lines += _gap_lines(d)
     for w in d["warnings"]:
@@ -167,7 +307,9 @@ def _gap_lines(d) -> list:
     lines.append("  lowest own-loop radius any gain gives (an agent alone on its readings): "
                  + ", ".join(f"{a}: {b:.4g}" for a, b in d["own_loop_bound"].items()))
     if d.get("gaps"):
-        lines.append(f"  with the gains of {d['gains_file']} (scenario delays):")
+        said = gains_words(d.get("gains_meta") or {})
+        lines.append(f"  with the gains of {d['gains_file']}" + (f" ({said})" if said else "")
+                     + ", with the scenario's delays:")
         lines += ["  " + line for line in format_gaps(d["gaps"])]
     return lines
 
@@ -190,8 +332,9 @@ def certificate_report(certified: dict, scenario, gains, gains_file) -> dict:
 
 def format_certificates(d: dict) -> str:
     """The text of a :func:`certificate_report`."""
+    said = gains_words(d.get("gains_meta") or {})
     lines = [
-        f"scenario {d['scenario']}, gains {d['gains_file']}",
+        f"scenario {d['scenario']}, gains {d['gains_file']}" + (f" ({said})" if said else ""),
         f"exact radius, delay-free:          {_f(d['rho_delay_free'])}"
         f" ({'stable' if d['stable_delay_free'] else 'UNSTABLE'})",
         f"exact radius, scenario delays (taubar = {d['scenario_taubar']}): "

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 from agent.run.inputs import InputError
 
-__all__ = ["ABSENT_S", "REPUBLISH_S", "Change", "change_from_args", "encode_change",
-           "is_confirmed", "unused_link", "inject"]
+__all__ = ["ABSENT_S", "REPUBLISH_S", "Change", "change_from_args", "operator_key_arg",
+           "encode_change", "is_confirmed", "unused_link", "inject"]
 
 #: an agent absent this long while others are alive is reported at once, not at the timeout
 ABSENT_S = 2.0
@@ -88,6 +88,32 @@ def change_from_args(args) -> Change:
     return Change(args.what, op, src, dst, params)
 
 
+def operator_key_arg(operator_key, deprecated_control_key, warn=lambda text: None) -> tuple:
+    """``(path, flag)`` of the operator key given to ``socmon inject`` (``(None, None)``:
+    none given). ``--operator-key`` is its name; ``--control-key``, its name before, still
+    works and ``warn(text)`` says it is deprecated (the monitor's ``--control-key`` is the
+    run's control key, another key). Both given and different: InputError.
+
+    >>> operator_key_arg("op.key", None)
+    ('op.key', '--operator-key')
+    >>> said = []
+    >>> operator_key_arg(None, "op.key", warn=said.append)
+    ('op.key', '--control-key')
+    >>> said[0].split(" (")[0]
+    '--control-key is deprecated for inject: use --operator-key'
+    """
+    if deprecated_control_key is None:
+        return (operator_key, "--operator-key") if operator_key is not None else (None, None)
+    if operator_key is not None and operator_key != deprecated_control_key:
+        raise InputError(f"--control-key: the deprecated name of --operator-key, given with "
+                         f"another file ({deprecated_control_key!r} and {operator_key!r}): "
+                         "give --operator-key alone")
+    warn("--control-key is deprecated for inject: use --operator-key (the same file, the "
+         "run's operator key RUN_FOLDER/operator.key; monitor --control-key takes the "
+         "control key, another one)")
+    return deprecated_control_key, "--control-key"
+
+
 def encode_change(change: Change, signer=None, run: str | None = None) -> bytes:
     """The payload of ``change``, signed by ``signer`` (a
     :class:`agent.protocol.control_auth.ControlSigner`) for run ``run`` when given;
@@ -98,7 +124,7 @@ def encode_change(change: Change, signer=None, run: str | None = None) -> bytes:
     sign = None
     if signer is not None:
         if not run:
-            raise InputError("--control-key: give the run id too (--run)")
+            raise InputError("--operator-key: give the run id too (--run)")
         sign = lambda m: signer.sign(m, run)      # noqa: E731
     try:
         return encode_impairment(change.op, change.src, change.dst, sign=sign, **change.params)

@@ -281,7 +281,9 @@ class LocalRun:
                                                                         sep),
                                        self._wrap("monitor"))
                 self._write_run_json(rec, ep)
-                self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}): "
+                self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}"
+                         + (f"; SECURED: mutual TLS and access control on every process, keys "
+                            f"in {c.out / 'keys'}" if c.secure else "") + "): "
                          f"world + {N} agents + {c.scenario.standby} standby"
                          + (f" + {c.monitors} monitors (1 active, {c.monitors - 1} standing "
                             "by)" if c.monitor and c.monitors > 1

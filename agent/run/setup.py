@@ -20,7 +20,7 @@ from agent.run.inputs import (
     InputError,
     check_run_flags,
     default_design,
-    gains_for,
+    load_gains_arg,
     load_scenario_arg,
     timing_arg,
 )
@@ -33,6 +33,8 @@ def run_config(args, say, prog="up", design_progress=None):
     saved in it."""
     import time
     from pathlib import Path
+
+    import numpy as np
 
     from design.closed_loop import closed_loop_for
     from design.errors import ScenarioError
@@ -91,8 +93,18 @@ def run_config(args, say, prog="up", design_progress=None):
         raise InputError(f"--out: {exc}") from None
     meta = {}
     if args.gains:
-        G = gains_for(scenario, args.gains, delays, getattr(args, "force_gains", False))
-        method = "file"
+        source = load_gains_arg(args.gains, scenario, force=getattr(args, "force_gains", False))
+        G, method = list(source.G), "file"
+        # what the file says of itself (docs/json.md, gains `meta`): its design, and its
+        # exact steady MSE when it was designed for the delays of this run
+        meta = {"source": str(Path(args.gains).resolve()),
+                **{k: source.meta[k] for k in ("objective",) if k in source.meta},
+                **({"source_method": source.meta["method"]} if "method" in source.meta
+                   else {})}
+        designed_for = source.meta.get("delays")
+        if designed_for is not None and "mse_steady_exact" in source.meta and \
+                np.array_equal(np.asarray(designed_for), np.asarray(delays)):
+            meta["mse_steady_exact"] = source.meta["mse_steady_exact"]
     else:
         say(f"designing gains with the default method (objective {DEFAULT_OBJECTIVE}) ...")
         res = default_design(scenario, delays, progress=design_progress)

@@ -208,6 +208,7 @@ class _SimMonitor:
                                 runtime.delays, gains=self.gains)
         self.seat = MonitorSeat(self.core, self.id, runtime.now, listen_s=listen_s)
         self.roster_at = 0.0
+        self.session = f"{self.id}-{runtime.now:.6f}"    # its token's session: one a start
 
 
 class SimRuntime:
@@ -584,7 +585,8 @@ class SimRuntime:
             return                                   # stopped: its ticks resume after
         for roster, G, info in m.designs.poll():
             m.gains.put(roster, G, info)
-        state = m.seat.decide(self.now, self.monitors_alive)
+        state = m.seat.decide(self.now, [(i, self.monitors[i].session)
+                                         for i in self.monitors_alive])
         for kind, fields in m.seat.records:
             self._monitor_event(m, kind, fields)
         m.seat.records.clear()
@@ -741,7 +743,8 @@ def report_lines(report: dict) -> list:
         lines.append(f"  roles in force {median:.0f} steps after the verdict (median), "
                      f"{low} to {high}")
     broken = report["violations"]
-    lines.append(f"violations: {len(broken)} in {len({v['seed'] for v in broken})} runs")
+    lines.append(f"violations: {len(broken)}, in {len({v['seed'] for v in broken})} of "
+                 f"{report['runs']} runs")
     lines += [f"  seed {v['seed']}: {v['invariant']} at step {v['step']}: {v['evidence']}"
               for v in broken[:30]]
     return lines

@@ -17,7 +17,8 @@ import numpy as np
 from design.metrics import mean_recorded, mse_of_step, steady_mse, steady_window
 
 __all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
-           "write_run_folder", "save_estimates", "CHECK_TOL"]
+           "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
+           "conviction_bound_s", "no_verdict_due"]
 
 #: --check-simulator passes when the estimates agree to this (relative, see docs/runtime.md)
 CHECK_TOL = 1e-9
@@ -28,6 +29,75 @@ RECOVERED_FACTOR = 3.0
 #: the larger exact prediction (the configuration started with, the one in force at the
 #: end); with no finite prediction, only a non-finite MSE counts.
 DIVERGED_FACTOR = 1e3
+#: Scheduling slack (s) beyond a stop's verdict time before a verdict is required of the
+#: monitor (chaos's ``recovery`` invariant; the summary's ``no_verdict_due``).
+VERDICT_SLACK_S = 0.3
+
+
+def conviction_bound_s(kind: str, hang_timeout_s: float, step_s: float,
+                       max_delay: int) -> float | None:
+    """How long a fault of ``kind`` must last before the monitor must have convicted its
+    agent (seconds; None: a kind whose length decides no verdict). The rules are the
+    detector's (docs/monitor.md, *Detection*): a ``stop`` is convicted once the agent's
+    last status, up to a status period before the stop, is a hang timeout old (plus
+    :data:`VERDICT_SLACK_S` for scheduling); a ``partition`` or ``sensor`` cut once the
+    listeners' ages (or the reading's lag) pass ``silent_steps`` plus the largest link
+    delay, and then the hang timeout, with a hang timeout of margin.
+
+    >>> conviction_bound_s("stop", 1.0, 0.02, 3)
+    1.5
+    >>> round(conviction_bound_s("partition", 1.0, 0.02, 3), 6)
+    2.56
+    >>> conviction_bound_s("drop", 1.0, 0.02, 3) is None
+    True
+    """
+    from agent.monitor.core import MonitorConfig
+    from agent.protocol.timing import DEFAULT as TIMING
+
+    if kind == "stop":
+        return hang_timeout_s + TIMING.status_s + VERDICT_SLACK_S
+    if kind in ("partition", "sensor"):
+        return 2 * hang_timeout_s + (MonitorConfig.silent_steps + int(max_delay)) * step_s
+    return None
+
+
+def no_verdict_due(faults, failures, hang_timeout_s: float, step_s: float,
+                   max_delay: int) -> list:
+    """The faults of a run that drew no verdict because none was due: a ``stop``,
+    ``partition`` or ``sensor`` cut not longer than its :func:`conviction_bound_s`, with no
+    verdict about its agent from its step until that agent's next fault. Each is
+    ``{"fault": Fault.to_dict(), "why": words}``.
+
+    >>> from agent.run.local import Fault
+    >>> [d["why"] for d in no_verdict_due([Fault(150, "stop", 3, 0.5)], [], 1.0, 0.02, 0)]
+    ['stop of agent 3 for 0.5 s at step 150: no verdict, and none was due: not longer than the hang timeout (1 s) plus a status period (0.2 s) and a margin (0.3 s)']
+    """
+    out = []
+    for f in faults:
+        bound = conviction_bound_s(f.kind, hang_timeout_s, step_s, max_delay)
+        if bound is None or f.seconds > bound:
+            continue
+        until = min((g.step for g in faults if g.agent == f.agent and g.step > f.step),
+                    default=math.inf)
+        if any(v.get("agent") == f.agent and v.get("detected_step") is not None
+               and f.step <= v["detected_step"] < until for v in failures):
+            continue
+        if f.kind == "stop":
+            from agent.protocol.timing import DEFAULT as TIMING
+
+            rule = (f"the hang timeout ({hang_timeout_s:g} s) plus a status period "
+                    f"({TIMING.status_s:g} s) and a margin ({VERDICT_SLACK_S:g} s)")
+        else:
+            from agent.monitor.core import MonitorConfig
+
+            rule = (f"twice the hang timeout ({hang_timeout_s:g} s) plus "
+                    f"{MonitorConfig.silent_steps} steps and the largest link delay "
+                    f"({int(max_delay)} steps), {bound:.3g} s in all")
+        what = {"stop": "stop", "partition": "partition", "sensor": "sensor cut"}[f.kind]
+        out.append({"fault": f.to_dict(),
+                    "why": f"{what} of agent {f.agent} for {f.seconds:g} s at step {f.step}: "
+                           f"no verdict, and none was due: not longer than {rule}"})
+    return out
 
 
 def diverged_at(steps, mse, predictions) -> int | None:
@@ -139,6 +209,12 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     }
     summary.update(_failures(c.out / "events.jsonl" if c.out is not None else None, rec,
                              c.scenario, c.delays, steps, mse, c.G))
+    if c.monitor and c.faults and c.step_ms:
+        from design.roster import link_delay_table
+
+        summary["no_verdict_due"] = no_verdict_due(
+            c.faults, summary.get("failures", []), c.hang_timeout, c.step_ms / 1000.0,
+            int(link_delay_table(c.scenario, c.delays).max()))
     warnings = []
     # the prediction for what was in force over the steady window (the last quarter)
     window_from = steps[-tail] if len(steps) >= tail else (steps[0] if steps else 0)
@@ -235,9 +311,18 @@ def failure_lines(summary) -> list:
                          + (" (a standby)" if f.get("role") == "standby" else ""))
             continue
         rep = f.get("replacement") or {}
+        measures = rep.get("measures") or [rep.get("node")]
+        links = f.get("added_links") or []
         lines.append(f"  failure: agent {f['agent']} {f['cause']} at step {f['detected_step']}"
-                     + (f"; agent {rep.get('agent')} measures {rep.get('node')} from step "
-                        f"{f.get('activate_at')}" if rep else ""))
+                     + (f"; agent {rep.get('agent')} measures "
+                        + (" and ".join(map(str, measures)) if len(measures) <= 2
+                           else ", ".join(map(str, measures[:-1])) + f" and {measures[-1]}")
+                        + (f" (node {rep.get('node')} new)" if len(measures) > 1 else "")
+                        + f" from step {f.get('activate_at')}" if rep else "")
+                     + ("; link" + ("s" if len(links) > 1 else "") + " added: "
+                        + ", ".join(f"{e['to']} listens to {e['from']}" for e in links)
+                        if links else ""))
+    lines += [f"  {d['why']}" for d in summary.get("no_verdict_due", [])]
     refused = summary.get("implausible") or {}
     if any(refused.values()):
         lines.append(f"  refused as implausible (far beyond the model's scale): "
@@ -541,6 +626,13 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             rep = [x for x in r["replacements"] if x["failed"] == v["agent"]]
             entry["replacement"] = ({"agent": rep[0]["by"], "node": rep[0]["to"]} if rep
                                     else None)
+            if rep:
+                # every node it measures now: a survivor keeps its own besides the new one
+                role = rec.assigns.get((rep[0]["by"], r["epoch"])) or {}
+                if role.get("measure"):
+                    entry["replacement"]["measures"] = [str(x) for x in role["measure"]]
+            entry["added_links"] = [{"from": int(a), "to": int(b)}
+                                    for a, b in r.get("added_links", [])]
         failures.append(entry)
     absent = _no_monitor_windows(events)
     failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},

@@ -41,4 +41,8 @@ def finished_run_text(done, as_json: bool = False) -> str:
 
     if as_json:
         return json.dumps(to_jsonable(done.summary), indent=2)
-    return "\n".join(headline_lines(done.summary, done.config.scenario))
+    lines = headline_lines(done.summary, done.config.scenario)
+    if getattr(done.config, "secure", False):
+        lines.insert(1, "  secured (--secure): mutual TLS and access control on every process, "
+                        f"keys in {done.config.out / 'keys'}")
+    return "\n".join(lines)
