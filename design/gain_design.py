@@ -521,11 +521,13 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
 
     lowest = [np.inf]
 
-    def f_mse(x):
-        # a trial point whose error sum passes 10x the lowest MSE seen cannot be accepted
-        # by the line search: the impulse sum stops there (unstable points end early)
+    def f_mse(x, bound=np.inf):
+        # a trial point whose error sum passes 10x the lowest MSE seen, or the line
+        # search's sufficient-decrease threshold ``bound``, cannot be accepted: the
+        # impulse sum stops there, without the gradient's backward pass (unstable points
+        # end early; a step too long for the line search costs a part of the sum)
         J, g = model.mse_and_gradient(x, q, r, rho_max=rho_max, method=opts["mse"],
-                                      bound=10.0 * lowest[0])
+                                      bound=min(10.0 * lowest[0], bound))
         if g is None:
             return np.inf, np.zeros_like(x)
         lowest[0] = min(lowest[0], J)
@@ -572,7 +574,7 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
                 res2 = bfgs_minimise(f_mse, x, label=f"start {k} mse",
                                      callback=report.stage(f"{where}, MSE", "mse",
                                                            common["max_iter"]),
-                                     **mse_common)
+                                     bounded=True, **mse_common)
                 history += res2.history
                 iterations += res2.iterations
                 rho2 = model.spectral_radius(res2.x) if res2.iterations else rho

@@ -419,7 +419,6 @@ class LoopModel:
         terms = [float(np.vdot(h0, h0))]     # trace(h S h^T): the columns are scaled
         total = terms[0]
         window = terms[0]
-        bound_sum = bound * m
         t = 0
         while True:
             t += 1
@@ -436,7 +435,7 @@ class LoopModel:
             terms.append(e)
             if t > T + 1 and window <= tol * total:
                 break
-            if total > bound_sum or not np.isfinite(total) or t >= max_steps:
+            if total / m > bound or not np.isfinite(total) or t >= max_steps:
                 return np.inf, None, t
         J = total / m
         # adjoint: lam_t = (2/m) h_t S + sum_r R_r^T mu_(t+1+r),  mu_t = L^T lam_t
@@ -555,7 +554,7 @@ class OptimResult:
 
 def bfgs_minimise(fg, x0, max_iter=200, stop=None, deadline=None, f_tol=1e-9,
                   patience=20, patience_tol=1e-4, step0=None, label="",
-                  callback=None) -> OptimResult:
+                  callback=None, bounded=False) -> OptimResult:
     """Minimise ``fg(x) -> (f, g)`` by BFGS with a weak Wolfe line search.
 
     ``f`` may be ``inf`` (rejected trial point). ``stop(f)`` ends the run early when it
@@ -564,9 +563,15 @@ def bfgs_minimise(fg, x0, max_iter=200, stop=None, deadline=None, f_tol=1e-9,
     total (a nonsmooth minimum is approached slowly). ``callback(iteration, f)`` is
     called with the start value (iteration 0) and after every accepted iteration; it
     must not change anything. Deterministic.
+
+    ``bounded``: call ``fg(x, bound)`` instead, ``bound`` the largest value the line
+    search can accept at ``x`` (its sufficient-decrease threshold; ``inf`` for the start):
+    ``fg`` may answer ``inf`` (and any gradient) as soon as it knows its value is above
+    it, e.g. a sum of positive terms that passed it, and skip the rest, the gradient
+    included. The iterates are the same: such a point is rejected either way.
     """
     x = np.asarray(x0, dtype=float).copy()
-    f, g = fg(x)
+    f, g = fg(x, np.inf) if bounded else fg(x)
     evals = 1
     history = [{"stage": label, "iteration": 0, "value": float(f)}]
     if callback is not None:
@@ -594,7 +599,7 @@ def bfgs_minimise(fg, x0, max_iter=200, stop=None, deadline=None, f_tol=1e-9,
             Hinv = (0.1 * max(1.0, np.linalg.norm(x)) / gn) * np.eye(dim)
             d = -Hinv @ g
             gd = float(g @ d)
-        t, xt, ft, gt, ne = _weak_wolfe(fg, x, f, g, d, gd)
+        t, xt, ft, gt, ne = _weak_wolfe(fg, x, f, g, d, gd, bounded=bounded)
         evals += ne
         if xt is None:
             # no decrease along d: restart from steepest descent once, then give up
@@ -649,17 +654,18 @@ def _bfgs_update(Hinv, s, y, rho):
             Hinv[...] = out.T       # a BLAS wrapper that copied: keep the result anyway
 
 
-def _weak_wolfe(fg, x, f, g, d, gd, c1=1e-4, c2=0.9, max_evals=30):
+def _weak_wolfe(fg, x, f, g, d, gd, c1=1e-4, c2=0.9, max_evals=30, bounded=False):
     """Lewis-Overton bracketing line search; returns (t, x_t, f_t, g_t, evals).
 
     If the weak Wolfe conditions are not met within ``max_evals`` the best trial point
     with sufficient decrease is returned, or ``x_t = None`` when there is none.
+    ``bounded``: ``fg(x_t, f + c1 t gd)``, see :func:`bfgs_minimise`.
     """
     lo, hi, t = 0.0, np.inf, 1.0
     best = None
     for ne in range(1, max_evals + 1):
         xt = x + t * d
-        ft, gt = fg(xt)
+        ft, gt = fg(xt, f + c1 * t * gd) if bounded else fg(xt)
         if not np.isfinite(ft) or ft > f + c1 * t * gd:
             hi = t
         else:
