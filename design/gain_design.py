@@ -70,6 +70,8 @@ _DEFAULT_OPTIONS = {
     "init": None,           # an initial gain (list of G_i) tried first, or "delay-free"
     "patience": 20,         # convergence window (iterations) ...
     "patience_tol": 1e-3,   # ... stop when the objective fell by less than this (relative)
+    "mse_patience": None,   # the same for the MSE stage alone (None: patience, patience_tol)
+    "mse_patience_tol": None,
     "blas_threads": 1,
     "target": None,         # objective rho: stop as soon as rho < target
     "mse": "impulse",       # MSE evaluation: "impulse" (structured) or "lyapunov" (dense)
@@ -298,7 +300,9 @@ def design_gains(scenario, delays=None, method: str = "default", objective: str 
         :func:`design.reconfigure.initial_gains`; or ``"delay-free"``: first design for
         the delay-free loop and start from it), ``patience``/``patience_tol`` (20, 1e-3:
         a stage stops when its objective fell by less than ``patience_tol`` relative over
-        the last ``patience`` iterations), ``target`` (objective rho: stop as soon as the
+        the last ``patience`` iterations; ``mse_patience``/``mse_patience_tol``, None:
+        the same, set them for the MSE stage alone, e.g. a shorter window from a start
+        near the minimum), ``target`` (objective rho: stop as soon as the
         radius is below it; default None = minimise), ``mse`` ("impulse": the MSE and its
         gradient from the loop's impulse response, no dense solve; "lyapunov": two dense
         Lyapunov solves per evaluation, as before).
@@ -407,14 +411,17 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
     certify = report.stage("certifying (exact radius and steady MSE)", "rho", 0)
     if certify is not None:
         certify(0, float("nan"))        # one dense eigenvalue problem and Lyapunov solve
-    loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G)
     # the exact radius of this very gain, computed once (by ClosedLoop) where the design
-    # already did: a dense eigenvalue problem of order (taubar + 1) nN is not repeated
-    rho = loop.spectral_radius() if rho_exact is None else float(rho_exact)
+    # already did: a dense eigenvalue problem of order (taubar + 1) nN, or two ARPACK
+    # runs, are not repeated (nor by the MSE's certificate, which needs it)
+    loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G, rho=rho_exact)
+    rho = loop.spectral_radius()
     stable = bool(rho < 1)
     mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
            if stable and exact_mse else None)
-    rho0 = ClosedLoop(scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
+    # the delay-free loop: the same one when there are no delays
+    rho0 = rho if not np.any(D) else ClosedLoop(
+        scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
     known = None
     if gap_info and not gap_info["iterations"]:      # the gains the gap radii were of
         known = {int(f): r for f, r in gap_info["rho_gap_before"].items()}
@@ -481,6 +488,11 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
     smooth = float(opts["smooth"])
     common = dict(max_iter=int(opts["max_iter"]), deadline=deadline,
                   patience=int(opts["patience"]), patience_tol=float(opts["patience_tol"]))
+    mse_common = dict(common)
+    if opts["mse_patience"] is not None:
+        mse_common["patience"] = int(opts["mse_patience"])
+    if opts["mse_patience_tol"] is not None:
+        mse_common["patience_tol"] = float(opts["mse_patience_tol"])
     init = opts["init"]
     if isinstance(init, str):
         if init != "delay-free":
@@ -509,11 +521,13 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
 
     lowest = [np.inf]
 
-    def f_mse(x):
-        # a trial point whose error sum passes 10x the lowest MSE seen cannot be accepted
-        # by the line search: the impulse sum stops there (unstable points end early)
+    def f_mse(x, bound=np.inf):
+        # a trial point whose error sum passes 10x the lowest MSE seen, or the line
+        # search's sufficient-decrease threshold ``bound``, cannot be accepted: the
+        # impulse sum stops there, without the gradient's backward pass (unstable points
+        # end early; a step too long for the line search costs a part of the sum)
         J, g = model.mse_and_gradient(x, q, r, rho_max=rho_max, method=opts["mse"],
-                                      bound=10.0 * lowest[0])
+                                      bound=min(10.0 * lowest[0], bound))
         if g is None:
             return np.inf, np.zeros_like(x)
         lowest[0] = min(lowest[0], J)
@@ -559,7 +573,8 @@ def _design_default(scenario, D, objective, seed, opts, t0, report):
                 lowest[0] = np.inf
                 res2 = bfgs_minimise(f_mse, x, label=f"start {k} mse",
                                      callback=report.stage(f"{where}, MSE", "mse",
-                                                           common["max_iter"]), **common)
+                                                           common["max_iter"]),
+                                     bounded=True, **mse_common)
                 history += res2.history
                 iterations += res2.iterations
                 rho2 = model.spectral_radius(res2.x) if res2.iterations else rho

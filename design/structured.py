@@ -65,9 +65,30 @@ def noise_blocks(W, delays, A_powers) -> list:
 
 
 def block_gain(G):
-    """The block-diagonal gain ``Gb`` (nN x p) of the per-agent ``G_i`` (n x p_i), CSR."""
-    return sp.block_diag([sp.csr_matrix(np.asarray(g, dtype=float)) for g in G],
-                         format="csr")
+    """The block-diagonal gain ``Gb`` (nN x p) of the per-agent ``G_i`` (n x p_i), CSR.
+
+    Built from the blocks' entries at once (every entry stored, zeros included: the
+    pattern depends on the shapes only): ``sp.block_diag`` took 20-40 ms for the 31
+    blocks of a communities-32 configuration, once per evaluation of a design.
+
+    >>> block_gain([np.array([[1.0], [2.0]]), np.array([[3.0, 4.0], [5.0, 6.0]])]).toarray()
+    array([[1., 0., 0.],
+           [2., 0., 0.],
+           [0., 3., 4.],
+           [0., 5., 6.]])
+    """
+    G = [np.asarray(g, dtype=float).reshape(np.shape(g)[0], -1) for g in G]
+    rows = [g.shape[0] for g in G]
+    cols = [g.shape[1] for g in G]
+    m, p = sum(rows), sum(cols)
+    data = np.concatenate([g.ravel() for g in G]) if G else np.zeros(0)
+    # row r of block i holds the columns c_i .. c_i + p_i - 1
+    width = np.repeat(cols, rows)
+    indptr = np.concatenate([[0], np.cumsum(width)]).astype(np.int64)
+    first = np.repeat(np.cumsum([0] + cols[:-1]), rows)
+    indices = (np.repeat(first, width)
+               + np.arange(indptr[-1]) - np.repeat(indptr[:-1], width)).astype(np.int32)
+    return sp.csr_matrix((data, indices, indptr), shape=(m, p))
 
 
 class LoopOperator:

@@ -9,6 +9,12 @@ random scenarios are not run for it (they are larger still).
 Usage (from the project root)::
 
     python scripts/bench_design.py [--cap SECONDS] [--json FILE] [--only NAMES]
+    python scripts/bench_design.py --targets [--only NAMES] [--baseline-root DIR]
+    python scripts/bench_design.py --scale [--only NAMES] [--cap SECONDS]
+
+(``--only``: comma-separated case names of the chosen set; with ``--scale`` it may also
+name ``communities-32 precompute refined cold``, the monitor's refined pass from the reset
+gain, for comparison.)
 
 Cases: paper-14 delay-free and uniform:7; Sampson-like (18 nodes, rho(A) = 1.1, 4 agents
 measuring 1, 5, 12, 18 on a directed cycle, Q = R = 0.1, delay-free); random scenarios
@@ -216,9 +222,10 @@ def _uniform7(s):
     return uniform_delays(s.W, 7)
 
 
-def run_targets(cap, baseline_root=None) -> list:
+def run_targets(cap, baseline_root=None, only=None) -> list:
+    """The --targets rows (``only``: the names to run, default all of TARGETS)."""
     rows = []
-    for name in TARGETS:
+    for name in TARGETS if not only else only:
         legacy = "baseline" in name and baseline_root is not None
         root = Path(baseline_root) if legacy else ROOT
         cmd = [sys.executable, str(Path(__file__).resolve()), "--target-child", name]
@@ -316,6 +323,9 @@ def run_case(case, method, cap, target=None, memory_gb=MEMORY_GB):
 SCALE_CASES = ("communities-32 stabilising", "communities-32 refined",
                "communities-32 precompute fast", "communities-32 precompute refined",
                "communities-64 stabilising", "communities-64 refined")
+#: run only when named by --only: the refined precompute from the reset gain (the
+#: monitor's pass before it started from the gains in force), for comparison
+SCALE_EXTRA = ("communities-32 precompute refined cold",)
 #: the issue's targets, seconds
 SCALE_TARGETS = {"communities-32 stabilising": 30, "communities-32 refined": 120,
                  "communities-64 stabilising": 120, "communities-64 refined": 480,
@@ -333,7 +343,8 @@ def _scale_scenario(name: str):
 
 def scale_child(case: str) -> None:
     """One --scale case in this process: prints a JSON row."""
-    from agent.monitor.gain_worker import plan_failures, precompute_single_failures
+    from agent.monitor.gain_worker import (keep_freed_memory, plan_failures,
+                                           precompute_single_failures)
     from agent.monitor.core import GainSource
     from design.gain_design import design_gains
     from design.reconfigure import fast_recovery_gains
@@ -343,7 +354,7 @@ def scale_child(case: str) -> None:
                                                                         case.split(" ", 1)[1])
     s = _scale_scenario(name)
     row = {"case": case, "nN": s.n * s.N}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if what == "stabilising":
         res = fast_recovery_gains(s, "scenario")
         row.update(rho=res.rho, stable=res.stable, status=res.status)
@@ -351,30 +362,52 @@ def scale_child(case: str) -> None:
         res = design_gains(s, objective="mse")
         row.update(rho=res.rho, stable=res.stable, mse=res.mse_steady, status=res.status)
     else:
+        # the monitor's precompute (agent.monitor.gain_worker): the fast pass, then the
+        # refined pass from the gains in force on the initial configuration: the MSE
+        # design `socmon up` starts the run with ("... cold": from the reset gain, as
+        # before the warm start, for comparison)
+        if not what.endswith("cold"):
+            keep_freed_memory()         # as the monitor's design processes do
         roster = Roster.initial(s)
         gains = GainSource()
-        refined = what.endswith("refined")
-        if refined:      # the fast pass first, untimed: the refined pass follows it
+        refined = "refined" in what
+        G = None
+        if refined:      # the fast pass and the gains in force first, untimed
             precompute_single_failures(roster, gains, passes=(False,))
-            t0 = time.perf_counter()
-        precompute_single_failures(roster, gains, passes=(refined,))
-        infos = [gains.info(nxt) for _, nxt in plan_failures(roster)]
+            if not what.endswith("cold"):
+                G = design_gains(s, objective="mse").G
+            t0, c0 = time.perf_counter(), time.process_time()
+        precompute_single_failures(roster, gains, passes=(refined,), G=G)
+        planned = plan_failures(roster)
+        infos = [gains.info(nxt) for _, nxt in planned]
         rhos = [i.get("rho") for i in infos if i.get("rho") is not None]
         kinds = sorted({i.get("kind") for i in infos if i})
+        # per failure: the failed ids, the design's seconds, exact radius and steady MSE
+        row["per_failure"] = [{"failed": a, "seconds": i.get("seconds"), "rho": i.get("rho"),
+                               "mse": i.get("mse"), "kind": i.get("kind")}
+                              for (a, _), i in zip(planned, infos)]
+        mses = [i["mse"] for i in infos if i.get("mse") is not None]
         row.update(failures=len(infos), rho=max(rhos) if rhos else None,
+                   mse=max(mses) if refined and mses else None,
                    stable=bool(rhos) and max(rhos) < 1,
                    status=f"{sum(r < 1 for r in rhos)} of {len(infos)} single failures "
                           f"with a certified gain ({', '.join(kinds)})")
     row["seconds"] = time.perf_counter() - t0
+    # this process's CPU time: on a shared machine the wall time also counts the others
+    row["cpu_seconds"] = time.process_time() - c0
+    row["load"] = os.getloadavg()[0]
     row["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps(row))
 
 
-def run_scale(cap: float) -> list:
+def run_scale(cap: float, only=None) -> list:
+    """The --scale cases (``only``: the names to run, default all of SCALE_CASES)."""
     rows = []
-    for case in SCALE_CASES:
+    for case in SCALE_CASES if not only else only:
         cmd = [sys.executable, str(Path(__file__).resolve()), "--scale-child", case]
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        # one core: BLAS pools on one thread from the start (the design limits them too)
+        env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1",
+                   OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
         t0 = time.perf_counter()
         try:
             out = subprocess.run(cmd, capture_output=True, text=True, timeout=cap, env=env,
@@ -385,7 +418,8 @@ def run_scale(cap: float) -> list:
         except subprocess.TimeoutExpired:
             row = {"case": case, "failed": f"stopped after {cap:.0f} s",
                    "seconds": time.perf_counter() - t0}
-        target = SCALE_TARGETS.get(case, SCALE_TARGETS.get(case.rsplit(" ", 1)[0]))
+        target = SCALE_TARGETS.get(case, SCALE_TARGETS.get(
+            " ".join(case.split()[:2]) if "precompute" in case else case.rsplit(" ", 1)[0]))
         row["target_s"] = target
         rows.append(row)
         if "failed" in row:
@@ -394,7 +428,8 @@ def run_scale(cap: float) -> list:
         mse = f"{row['mse']:.5g}" if row.get("mse") is not None else "-"
         rho = f"{row['rho']:.4f}" if row.get("rho") is not None else "-"
         print(f"| {case} | {row['nN']} | {row['seconds']:.1f} | {rho} | {mse} | {target} | "
-              f"{row['peak_mb']:.0f} MB; {row['status']} |", flush=True)
+              f"{row['peak_mb']:.0f} MB; {row['status']}; CPU {row['cpu_seconds']:.1f} s, "
+              f"load {row['load']:.1f} at the end |", flush=True)
     return rows
 
 
@@ -426,12 +461,17 @@ def main(argv=None) -> int:
         scale_child(args.scale_child)
         return 0
     if args.scale:
+        only = None if not args.only else [c.strip() for c in args.only.split(",")]
+        unknown = [c for c in only or () if c not in SCALE_CASES + SCALE_EXTRA]
+        if unknown:
+            ap.error(f"--only: unknown --scale case(s) {unknown}; known: "
+                     f"{', '.join(SCALE_CASES + SCALE_EXTRA)}")
         print(f"# bench_design --scale: {os.cpu_count()} cores, load "
               f"{os.getloadavg()[0]:.2f}, BLAS one thread", flush=True)
         print("| case | nN | seconds | rho (exact, worst) | steady MSE (exact) | target s | "
               "note |")
         print("| --- | ---: | ---: | ---: | ---: | ---: | --- |")
-        rows = run_scale(args.cap)
+        rows = run_scale(args.cap, only)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
         return 0
@@ -443,7 +483,11 @@ def main(argv=None) -> int:
               f"{os.getloadavg()[0]:.2f}", flush=True)
         print("| case | seconds | rho (exact) | steady MSE (exact) | status |")
         print("| --- | ---: | ---: | ---: | --- |")
-        rows = run_targets(args.cap, args.baseline_root)
+        only = None if not args.only else [c.strip() for c in args.only.split(",")]
+        unknown = [c for c in only or () if c not in TARGETS]
+        if unknown:
+            ap.error(f"--only: unknown --targets case(s) {unknown}; known: {', '.join(TARGETS)}")
+        rows = run_targets(args.cap, args.baseline_root, only)
         print()
         print("\n".join(target_verdicts(rows)))
         if args.json:

@@ -117,3 +117,74 @@ def test_the_checkpointed_impulse_gradient_is_the_stored_ones(monkeypatch, segme
     assert t1 == t0 > 3 * segment and loop.taubar >= 2
     assert J1 == pytest.approx(J0, rel=1e-13)
     np.testing.assert_allclose(g1, g0, rtol=1e-10, atol=1e-13 * np.abs(g0).max())
+
+
+def test_the_impulse_gradient_with_unequal_measured_sets_is_the_dense_one():
+    """Agents measuring 1, 2 and 3 nodes (the gain's blocks padded to the widest), with
+    heterogeneous delays: the impulse MSE and its gradient against two dense Lyapunov
+    solves."""
+    s = scenario_from_dict({
+        "name": "uneven",
+        "social": {"A": (0.9 * np.eye(4) + 0.1 * np.roll(np.eye(4), 1, axis=1)).tolist()},
+        "agents": {"measure": [["1"], ["2", "3"], ["1", "3", "4"]]},
+        "network": {"weights": [[0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5]]}})
+    D = np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])
+    model = gr.LoopModel(s.A, s.W, D, s.measure)
+    rng = np.random.default_rng(4)
+    G = [0.4 * np.eye(s.n)[:, list(m)] + 0.05 * rng.standard_normal((s.n, len(m)))
+         for m in s.measure]
+    x = model.pack(G)
+    assert ClosedLoop(s.A, s.W, D, s.measure, G).spectral_radius() < 0.99
+    J, g, _ = model.mse_impulse(x, 0.3, 0.2)
+    J_ref, g_ref = model.mse_and_gradient(x, 0.3, 0.2, method="lyapunov")
+    assert J == pytest.approx(J_ref, rel=1e-9)
+    np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-9 * np.abs(g_ref).max())
+
+
+def test_a_loop_whose_links_are_not_strongly_connected_has_its_components_largest_radius():
+    """A ring without one agent is a chain: its radius, taken component by component, is
+    the dense companion's. (The self-weights differ so that the components' spectra do:
+    with equal ones the chain's eigenvalues are defective and the dense solver's are off
+    by about eps^(1/4), where the components' are exact.)"""
+    s = _communities(6)
+    loop = _delayed_loop(s, gain=0.3)
+    rows = list(range(1, s.N))
+    chain = loop.part(rows)
+    chain.W[0, -1] = chain.W[-1, 0] = 0.0          # cut the ring: no path back
+    chain.W[np.diag_indices(len(rows))] = [0.35, 0.6, 0.45, 0.5, 0.4]
+    chain = ClosedLoop(chain.A, chain.W, chain.delays, chain.measure, chain.G)
+    assert len(chain.components()) > 1
+    dense = float(np.max(np.abs(np.linalg.eigvals(chain.companion(sparse=False)))))
+    assert chain.spectral_radius() == pytest.approx(dense, rel=1e-10)
+
+
+def test_the_in_place_bfgs_update_is_the_formula():
+    rng = np.random.default_rng(5)
+    M = rng.standard_normal((7, 7))
+    Hinv = M @ M.T + np.eye(7)
+    s, y = rng.standard_normal(7), rng.standard_normal(7)
+    rho = 1.0 / float(s @ y)
+    Hy = Hinv @ y
+    expected = (Hinv - rho * (np.outer(s, Hy) + np.outer(Hy, s))
+                + (rho * rho * float(y @ Hy) + rho) * np.outer(s, s))
+    gr._bfgs_update(Hinv, s, y, rho)
+    np.testing.assert_allclose(Hinv, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_a_bounded_line_search_takes_the_same_iterates():
+    """An objective told the line search's threshold may answer inf above it: the
+    minimiser's path is the same (such points are rejected either way)."""
+    C = np.diag([1.0, 10.0, 100.0])
+
+    def fg(x):
+        return float(x @ C @ x) + float(np.sum(x ** 4)), 2 * C @ x + 4 * x ** 3
+
+    def fg_bounded(x, bound):
+        f, g = fg(x)
+        return (np.inf, np.zeros_like(x)) if f > bound else (f, g)
+
+    x0 = np.array([1.0, -0.7, 0.3])
+    plain = gr.bfgs_minimise(fg, x0, max_iter=30)
+    bounded = gr.bfgs_minimise(fg_bounded, x0, max_iter=30, bounded=True)
+    assert bounded.iterations == plain.iterations > 3
+    np.testing.assert_array_equal(bounded.x, plain.x)

@@ -40,8 +40,8 @@ import os
 import queue
 import sys
 
-__all__ = ["GainWorker", "BACKGROUND_NICE", "precompute_single_failures",
-           "unforeseen_single_failures"]
+__all__ = ["GainWorker", "BACKGROUND_NICE", "keep_freed_memory",
+           "precompute_single_failures", "refined_gains_from", "unforeseen_single_failures"]
 
 #: Niceness of the background (refining) process.
 BACKGROUND_NICE = 10
@@ -107,8 +107,9 @@ class GainWorker:
         running is abandoned."""
         self._start()
         self._generation += 1
-        self._fast.put(("precompute", roster, None if G is None else [list(g) for g in G]))
-        self._background.put((self._generation, roster))
+        G = None if G is None else [list(g) for g in G]
+        self._fast.put(("precompute", roster, G))
+        self._background.put((self._generation, roster, G))
 
     def poll(self, timeout: float = 0.0) -> list:
         """Every result ready now (waiting up to ``timeout`` s for the first one):
@@ -148,6 +149,29 @@ class GainWorker:
             q.cancel_join_thread()
 
 
+def keep_freed_memory() -> None:
+    """Make this (design) process reuse the memory it frees rather than hand it back to
+    the system: large blocks come from the heap, whose top is trimmed only past 256 MB.
+
+    Why: the impulse sum of an MSE evaluation allocates one nN x (n + p) block a step
+    (scipy's sparse products return new arrays) and frees it soon after; with glibc's
+    default thresholds those blocks went back to the system and came back as fresh pages:
+    about 65,000 page faults (250 MB zeroed by the kernel) per evaluation at
+    communities-32, where with these settings there are none after the first. The peak
+    is the same; the process keeps what it freed for its next design. A no-op where the C
+    library has no ``mallopt`` (not glibc)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError):
+        return
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3       # glibc's <malloc.h>
+    mallopt(M_MMAP_THRESHOLD, 16 * 2**20)
+    mallopt(M_TRIM_THRESHOLD, 256 * 2**20)
+
+
 def _quiet_signals():
     """A design process ends with its queue's sentinel or its parent, not with the
     terminal's Ctrl-C (the monitor handles that and closes the worker)."""
@@ -184,6 +208,7 @@ def _serve_urgent(requests, results, idle, warm_up: bool = False) -> None:
     from agent.monitor.core import design_gains_for
 
     _quiet_signals()
+    keep_freed_memory()
     if warm_up:
         _warm_up(design_gains_for)
     while True:
@@ -219,6 +244,7 @@ def _serve_precompute(requests, results, idle) -> None:
     from design.roster import carried_gains
 
     _quiet_signals()
+    keep_freed_memory()
     refine, fast = deque(), deque()    # configurations still to design
     first = {}                         # key -> the fast gain its polish starts from
     arrived = deque()                  # requests read while a refinement was in progress
@@ -335,13 +361,17 @@ def unforeseen_single_failures(gains, planned) -> list:
 
 
 def precompute_single_failures(roster, gains, stop=lambda: False, log=None,
-                               passes=(False, True)) -> int:
+                               passes=(False, True), G=None) -> int:
     """Plan (:func:`plan_failures`) and design gains for the failures of ``roster``.
 
     Two passes: a fast stabilising gain for every set first (tenths of a second each, so
     that a failure soon after start-up is already foreseen on a loaded machine), then the
     MSE-refined gain for every set, which replaces it (``passes``: which of the two,
-    ``False`` for the fast one)."""
+    ``False`` for the fast one). ``G``: the gains in force on ``roster``; each refined
+    design then starts from them (:func:`refined_gains_from`), else from the reset gain
+    (``gains.design``)."""
+    from design.roster import carried_gains
+
     planned = plan_failures(roster)
     done = 0
     for refined in passes:
@@ -350,15 +380,59 @@ def precompute_single_failures(roster, gains, stop=lambda: False, log=None,
                 return done
             if not refined and gains.has(nxt):
                 continue
-            G, info = gains.design(nxt, refined=refined)
-            gains.put(nxt, G, info)
-            if G is not None:
+            if refined and G is not None:
+                G_nxt, info = refined_gains_from(nxt, carried_gains(roster, G, nxt))
+            else:
+                G_nxt, info = gains.design(nxt, refined=refined)
+            gains.put(nxt, G_nxt, info)
+            if G_nxt is not None:
                 done += refined
-            if log is not None and (refined or G is None):
+            if log is not None and (refined or G_nxt is None):
                 print(f"monitor: precomputed the failure of agents {a}: "
-                      f"{'refined gains ready' if G is not None else 'no stabilising gain'}",
+                      f"{'refined gains ready' if G_nxt is not None else 'no stabilising gain'}",
                       file=log, flush=True)
     return done
+
+
+#: The warm refinement's stop rule (:func:`refined_gains_from`): the MSE stage stops when
+#: its objective fell by less than WARM_PATIENCE_TOL (relative) over the last
+#: WARM_PATIENCE iterations: the same mean rate as the design's default (1e-3 over 20),
+#: judged over a shorter window.
+WARM_PATIENCE = 5
+WARM_PATIENCE_TOL = 2.5e-4
+
+
+def refined_gains_from(roster, init, progress=None):
+    """``(G, info)`` of the refined gain of ``roster`` (least steady MSE) as
+    :func:`agent.monitor.core.design_gains_for` gives it (kind ``"refined"``), designed
+    from ``init``: the gains in force carried over (:func:`design.roster.carried_gains`).
+    Without a stable result, the design from the reset gain (and its fallbacks).
+
+    Why: a single failure's configuration differs from the one in force by a row or two,
+    and the gains in force (usually the MSE-designed gains of the configuration in
+    force: its initial or refined ones) carried over start the MSE stage within a fraction
+    of a percent of its minimum (communities-32: 0.3 % above it, against 1.9 % from the
+    reset gain). From there the default stop rule (less than 1e-3 relative over 20
+    iterations) cannot fire before 20 iterations: every warm design ended on "no
+    decrease" after 8 to 17; the same mean rate judged over 5 iterations
+    (:data:`WARM_PATIENCE`) stops after 6 to 8, with an
+    exact steady MSE within 4e-6 (relative) of the design from the reset gain for each of
+    communities-32's 32 single failures (README, "Gains for large networks")."""
+    from agent.monitor.core import design_gains_for
+    from design.errors import SocmonError
+    from design.reconfigure import refined_recovery_gains
+
+    try:
+        res = refined_recovery_gains(roster.scenario, roster.delays, init=init,
+                                     progress=progress, mse_patience=WARM_PATIENCE,
+                                     mse_patience_tol=WARM_PATIENCE_TOL)
+    except SocmonError:
+        res = None
+    if res is None or not res.stable:
+        return design_gains_for(roster, "refined", progress)
+    return list(res.G), {"kind": "refined", "rho": float(res.rho),
+                         "mse": None if res.mse_steady is None else float(res.mse_steady),
+                         "seconds": float(res.seconds)}
 
 
 class _Sink:
@@ -388,6 +462,7 @@ class _Sink:
 
 def _serve_background(requests, results) -> None:
     _quiet_signals()
+    keep_freed_memory()
     try:
         os.nice(BACKGROUND_NICE)
     except OSError:
@@ -401,7 +476,7 @@ def _serve_background(requests, results) -> None:
         if item[0] == "assess":
             _assess(item, results)
             continue
-        generation, roster = item
+        generation, roster, G = item
 
         def superseded() -> bool:
             nonlocal pending
@@ -417,4 +492,4 @@ def _serve_background(requests, results) -> None:
                 return True
 
         precompute_single_failures(roster, _Sink(results), stop=superseded, log=sys.stderr,
-                                   passes=(True,))
+                                   passes=(True,), G=G)
