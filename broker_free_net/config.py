@@ -360,7 +360,8 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
     ``transport/link/tx/lease``. Unless the config file sets them:
     ``scouting/gossip/enabled`` = true; ``transport/link/tx/keep_alive`` = 4 (keep-alives
     per lease); ``transport/link/rx/max_message_size`` = :data:`MAX_MESSAGE_BYTES`;
-    ``transport/shared_memory/enabled`` = false; ``connect/retry`` = :data:`CONNECT_RETRY`; in
+    ``transport/shared_memory/enabled`` = false; ``connect/retry`` = :data:`CONNECT_RETRY`;
+    ``timestamping/enabled`` = true (publishers' caches need it); in
     client mode with one connect endpoint ``connect/timeout_ms`` =
     :data:`CLIENT_CONNECT_TIMEOUT_MS`.
     With ``net.keys``, the process's secure fragment (TLS, mTLS, access control, connect
@@ -391,6 +392,9 @@ def build_zenoh_config(net: NetConfig) -> zenoh.Config:
         # default backs off to 4 s: an agent cut off by a 3 s pause of the world came back
         # only after the monitor had convicted it)
         "connect/retry": CONNECT_RETRY,
+        # a publisher's cache of its last samples (Peer.publisher(cache=...), for
+        # receivers that subscribe late) needs the samples timestamped
+        "timestamping/enabled": True,
     }
     if net.mode == "client" and len(net.connect) == 1:
         fixed["connect/timeout_ms"] = CLIENT_CONNECT_TIMEOUT_MS
@@ -414,8 +418,8 @@ _NET_HELP = (
     "scouting/multicast/enabled, transport/link/tx/lease, and, unless the --zenoh-config "
     f"file sets them, scouting/gossip/enabled (true), transport/link/tx/keep_alive "
     f"({KEEP_ALIVES_PER_LEASE}), transport/link/rx/max_message_size ({MAX_MESSAGE_BYTES}) "
-    "transport/shared_memory/enabled (false) and connect/retry (250 ms, backing off to "
-    "500 ms). "
+    "transport/shared_memory/enabled (false), connect/retry (250 ms, backing off to "
+    "500 ms) and timestamping/enabled (true). "
     "A value in the --zenoh-config file is kept unless its flag is given; every other key "
     "of the file passes through. --keys adds TLS with mutual authentication and access "
     "control (see docs/security.md)."

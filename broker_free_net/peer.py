@@ -24,13 +24,14 @@ from collections import deque
 from typing import Callable, NamedTuple
 
 import zenoh
+import zenoh.ext
 
 from . import keys
 from .codec import MAX_PAYLOAD_BYTES
 from .config import NetConfig, build_zenoh_config
 from .linger import LingerGuard
 
-__all__ = ["Inbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received"]
+__all__ = ["Inbox", "KeySetInbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received"]
 
 DEFAULT_INBOX_SIZE = 4096
 #: Payload bytes an inbox holds at most (the oldest items are dropped beyond it).
@@ -80,6 +81,26 @@ def _check_bound(name, value, lo):
 def _size_of(item) -> int:
     payload = getattr(item, "payload", None)
     return len(payload) if isinstance(payload, (bytes, bytearray)) else 0
+
+
+def _feeder(inbox):
+    """The subscriber callback that copies a sample into ``inbox`` (never raises into
+    zenoh; DELETE samples and oversized payloads are counted, not queued)."""
+
+    def on_sample(sample):
+        try:
+            if sample.kind != zenoh.SampleKind.PUT:
+                inbox._ignore()
+                return
+            if len(sample.payload) > inbox.max_payload:
+                inbox._refuse_oversized()
+                return
+            inbox._push(Received(sample.payload.to_bytes(), str(sample.key_expr),
+                                 time.monotonic()))
+        except Exception:  # never raise into zenoh
+            inbox._ignore()
+
+    return on_sample
 
 
 class Inbox:
@@ -193,6 +214,65 @@ class Inbox:
                 sub.undeclare()
             except zenoh.ZError:
                 pass  # session already closed
+
+
+class KeySetInbox(Inbox):
+    """An :class:`Inbox` fed by a set of key expressions that can change while it is in use
+    (:meth:`follow`): one subscriber per key expression, all into this one queue.
+
+    A key followed with ``history`` > 0 is subscribed with zenoh's advanced subscriber: on
+    declaration it also receives the last ``history`` samples of each publisher of the key
+    that keeps a cache (:meth:`Peer.publisher` with ``cache``), in order, before the live
+    ones. A receiver that starts listening to a key late still gets what was just
+    published on it (a samples' overlap with the live stream is possible: the owner keys
+    what it keeps by the message's own stamp).
+    """
+
+    def __init__(self, declare, maxlen: int = DEFAULT_INBOX_SIZE,
+                 wakeup: threading.Event | None = None, max_bytes: int = DEFAULT_INBOX_BYTES,
+                 max_payload: int = MAX_PAYLOAD_BYTES):
+        super().__init__(maxlen, wakeup, max_bytes=max_bytes, max_payload=max_payload)
+        self._declare = declare                 # (keyexpr, history) -> subscriber
+        self._subscribers: dict = {}            # keyexpr -> (history, subscriber)
+
+    @property
+    def keys(self) -> dict:
+        """``{key expression: history}`` currently subscribed."""
+        return {k: h for k, (h, _) in self._subscribers.items()}
+
+    def follow(self, wanted) -> tuple:
+        """Subscribe to exactly ``wanted`` (an iterable of key expressions, or a mapping of
+        key expression -> history); returns ``(added, removed)`` key expressions.
+
+        New keys are declared first, then the keys no longer wanted are undeclared, so a
+        key that stays is never interrupted. Items already queued stay queued."""
+        wanted = dict(wanted) if isinstance(wanted, dict) else {k: 0 for k in wanted}
+        for k, h in wanted.items():
+            _check_bound("history", h, 0)
+        added = [k for k, h in wanted.items()
+                 if k not in self._subscribers or self._subscribers[k][0] != h]
+        removed = [k for k in self._subscribers if k not in wanted]
+        for k in added:
+            old = self._subscribers.pop(k, None)
+            self._subscribers[k] = (wanted[k], self._declare(k, wanted[k]))
+            if old is not None:
+                _undeclare(old[1])
+        for k in removed:
+            _undeclare(self._subscribers.pop(k)[1])
+        return tuple(added), tuple(removed)
+
+    def close(self) -> None:
+        """Undeclare every subscriber feeding this inbox (idempotent)."""
+        subs, self._subscribers = self._subscribers, {}
+        for _, sub in subs.values():
+            _undeclare(sub)
+
+
+def _undeclare(sub) -> None:
+    try:
+        sub.undeclare()
+    except zenoh.ZError:
+        pass  # session already closed
 
 
 #: Sessions a :class:`LivelinessWatch` tracks for one ``(role, id)``: a process declaring
@@ -405,7 +485,7 @@ class Peer:
     # -- publish -----------------------------------------------------------------
 
     def publisher(self, key: str, *, block: bool | None = None, express: bool = False,
-                  priority: str | None = None) -> zenoh.Publisher:
+                  priority: str | None = None, cache: int = 0) -> zenoh.Publisher:
         """Return the publisher of `key`, declaring it on first use.
 
         Parameters
@@ -426,6 +506,11 @@ class Peer:
             A :class:`zenoh.Priority` name (``"REAL_TIME"``, ``"INTERACTIVE_HIGH"``,
             ``"DATA_HIGH"``, ...); default zenoh's ``DATA``. Used when the publisher is
             declared.
+        cache : int
+            Keep the last ``cache`` samples for subscribers that ask for history
+            (zenoh's advanced publisher; :meth:`subscribe_keys` with ``history``): a
+            receiver that subscribes late still gets them. Used when the publisher is
+            declared; 0 (default): a plain publisher.
 
         Raises
         ------
@@ -445,7 +530,14 @@ class Peer:
                 if priority not in _PRIORITIES:
                     raise ValueError(f"priority: {priority!r} is not one of {_PRIORITIES}")
                 options["priority"] = getattr(zenoh.Priority, priority)
-            entry = (self._session.declare_publisher(key, **options), mode)
+            _check_bound("cache", cache, 0)
+            if cache:
+                pub = zenoh.ext.declare_advanced_publisher(
+                    self._session, key, cache=zenoh.ext.CacheConfig(max_samples=cache),
+                    **options)
+            else:
+                pub = self._session.declare_publisher(key, **options)
+            entry = (pub, mode)
             self._publishers[key] = entry
         elif block is not None and block != entry[1]:
             raise ValueError(f"block: publisher of {key!r} already declared with block={entry[1]}")
@@ -483,22 +575,39 @@ class Peer:
         """
         self._check_usable()
         inbox = Inbox(maxlen, self._activity, max_bytes=max_bytes, max_payload=max_payload)
-
-        def on_sample(sample, inbox=inbox):
-            try:
-                if sample.kind != zenoh.SampleKind.PUT:
-                    inbox._ignore()
-                    return
-                if len(sample.payload) > inbox.max_payload:
-                    inbox._refuse_oversized()
-                    return
-                inbox._push(Received(sample.payload.to_bytes(), str(sample.key_expr), time.monotonic()))
-            except Exception:  # never raise into zenoh
-                inbox._ignore()
-
         origin = zenoh.Locality.ANY if include_local else zenoh.Locality.REMOTE
-        inbox._subscriber = self._session.declare_subscriber(keyexpr, _direct(on_sample),
+        inbox._subscriber = self._session.declare_subscriber(keyexpr, _direct(_feeder(inbox)),
                                                              allowed_origin=origin)
+        self._inboxes.append(inbox)
+        return inbox
+
+    def subscribe_keys(self, wanted, maxlen: int = DEFAULT_INBOX_SIZE, *,
+                       include_local: bool = True, max_bytes: int = DEFAULT_INBOX_BYTES,
+                       max_payload: int = MAX_PAYLOAD_BYTES) -> KeySetInbox:
+        """Subscribe to a set of key expressions that may change later; return a
+        :class:`KeySetInbox` (its :meth:`~KeySetInbox.follow` changes the set).
+
+        ``wanted``: key expressions, or a mapping key expression -> history (the samples
+        of each caching publisher received on declaration, see :class:`KeySetInbox`).
+        The other parameters are those of :meth:`subscribe`, for every key.
+        """
+        self._check_usable()
+        origin = zenoh.Locality.ANY if include_local else zenoh.Locality.REMOTE
+        inbox = None
+
+        def declare(keyexpr, history):
+            self._check_usable()
+            handler = _direct(_feeder(inbox))
+            if not history:
+                return self._session.declare_subscriber(keyexpr, handler,
+                                                        allowed_origin=origin)
+            return zenoh.ext.declare_advanced_subscriber(
+                self._session, keyexpr, handler, allowed_origin=origin,
+                history=zenoh.ext.HistoryConfig(max_samples=history))
+
+        inbox = KeySetInbox(declare, maxlen, self._activity, max_bytes=max_bytes,
+                            max_payload=max_payload)
+        inbox.follow(wanted)
         self._inboxes.append(inbox)
         return inbox
 

@@ -91,10 +91,15 @@ class Permissions:
         Key expressions it may put (publish).
     tokens : tuple of str
         Key expressions of the liveliness tokens it may declare.
+    serve : tuple of str
+        Key expressions it may declare queryables on and reply from: its publishers'
+        caches of their last samples (an advanced publisher answers late subscribers'
+        history queries under ``<key>/@adv/**``).
     """
 
     put: tuple[str, ...] = ()
     tokens: tuple[str, ...] = ()
+    serve: tuple[str, ...] = ()
 
 
 def check_run(run) -> str:
@@ -122,10 +127,13 @@ def build_access_control(scope: str, permissions) -> dict:
     Default deny in both directions. Ingress: a subject (certificate CN) may put only its
     ``permissions[name].put`` and declare only its ``permissions[name].tokens``; every
     subject may declare subscribers and liveliness subscribers and query liveliness on
-    `scope` (without that the publishers would not learn whom to send to). Egress:
-    everything in `scope` may go to the subjects, so that this process's own puts, tokens
-    and subscriptions leave it. Nothing is allowed to or from a link without a certificate
-    of the run; queries, replies and deletes are denied.
+    `scope` (without that the publishers would not learn whom to send to), and send queries
+    to the publishers' caches (``<scope>/@adv/**``: a late subscriber asking for their last
+    samples); a subject may declare queryables and reply only on its
+    ``permissions[name].serve`` (its own caches: nobody answers for another's key). Egress:
+    everything in `scope` may go to the subjects, so that this process's own puts, tokens,
+    subscriptions, queries and replies leave it. Nothing is allowed to or from a link
+    without a certificate of the run; deletes are denied.
 
     Parameters
     ----------
@@ -138,22 +146,31 @@ def build_access_control(scope: str, permissions) -> dict:
     --------
     >>> acl = build_access_control("app/r/**", {"a": Permissions(put=("app/r/x",))})
     >>> [r["id"] for r in acl["rules"]], acl["default_permission"]
-    (['egress-run', 'ingress-subscribe', 'token-a', 'put-a'], 'deny')
+    (['egress-run', 'egress-caches', 'ingress-subscribe', 'ingress-query', 'token-a', 'put-a'], 'deny')
     """
     if not isinstance(scope, str) or not scope:
         raise InvalidKeys("scope", f"expected a key expression, got {scope!r}")
     names = _check_names(permissions)
+    # publishers' caches live under "<key>/@adv/...": "@" chunks are matched only verbatim
+    # (never by "**"), so the caches' queries and replies are allowed there explicitly
+    caches = f"{scope.rstrip('/')}/@adv/**"
     rules = [
         {"id": "egress-run", "permission": "allow", "flows": ["egress"],
          "messages": ["put", "declare_subscriber", "liveliness_token", "liveliness_query",
                       "declare_liveliness_subscriber"],
          "key_exprs": [scope]},
+        {"id": "egress-caches", "permission": "allow", "flows": ["egress"],
+         "messages": ["query", "declare_queryable", "reply"], "key_exprs": [scope, caches]},
         {"id": "ingress-subscribe", "permission": "allow", "flows": ["ingress"],
          "messages": ["declare_subscriber", "liveliness_query", "declare_liveliness_subscriber"],
          "key_exprs": [scope]},
+        {"id": "ingress-query", "permission": "allow", "flows": ["ingress"],
+         "messages": ["query"], "key_exprs": [caches]},
     ]
     subjects = [{"id": n, "cert_common_names": [n]} for n in names]
-    policies = [{"id": "run", "rules": ["egress-run", "ingress-subscribe"], "subjects": list(names)}]
+    policies = [{"id": "run", "rules": ["egress-run", "egress-caches", "ingress-subscribe",
+                                        "ingress-query"],
+                 "subjects": list(names)}]
     for n in names:
         rights = permissions[n]
         if not isinstance(rights, Permissions):
@@ -165,6 +182,11 @@ def build_access_control(scope: str, permissions) -> dict:
             rules.append({"id": f"put-{n}", "permission": "allow", "flows": ["ingress"],
                           "messages": ["put"], "key_exprs": list(rights.put)})
             own.append(f"put-{n}")
+        if rights.serve:
+            rules.append({"id": f"serve-{n}", "permission": "allow", "flows": ["ingress"],
+                          "messages": ["declare_queryable", "reply"],
+                          "key_exprs": list(rights.serve)})
+            own.append(f"serve-{n}")
         policies.append({"id": f"own-{n}", "rules": own, "subjects": [n]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}

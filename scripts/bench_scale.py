@@ -18,9 +18,14 @@ clock starts, is left out), and the links
 the transport holds: (P-1)P/2 for P processes in the mesh (N agents, world, recorder), P
 through the router.
 
+``--baseline DIR``: each run is also made with the code of the tree DIR (a checkout of an
+earlier commit), right after this tree's, at the same period: before and after in one
+run, under the same load. ``--monitor``: the runs have the monitor (and its precompute).
+
 Usage::
 
     python scripts/bench_scale.py [--sizes 4,16,32] [--steps 1000] [--step-ms 10,20,40]
+                                  [--transports peer,router] [--baseline DIR] [--monitor]
 """
 
 from __future__ import annotations
@@ -68,16 +73,17 @@ def _cpu_s(pid: int):
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_up(scenario, gains, steps, step_ms, out, router) -> dict:
-    """``socmon up``'s summary, with ``cpu_at_clock_start``: the CPU each agent and the
-    router had spent when the world's clock started (start-up: imports, session, gains),
-    read from /proc, so that the CPU of the steps alone can be told apart."""
+def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=False) -> dict:
+    """``socmon up``'s summary (the code of the tree ``root``), with
+    ``cpu_at_clock_start``: the CPU each agent and the router had spent when the world's
+    clock started (start-up: imports, session, gains), read from /proc, so that the CPU of
+    the steps alone can be told apart."""
     argv = ["up", scenario, "--steps", str(steps), "--step-ms", str(step_ms), "--gains",
-            str(gains), "--out", str(out), "--no-monitor", "--delays", "none", "--json",
-            "--quiet", "--start-timeout", "300"]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+            str(gains), "--out", str(out), "--delays", "none", "--json",
+            "--quiet", "--start-timeout", "300", *([] if monitor else ["--no-monitor"])]
+    env = dict(os.environ, PYTHONPATH=str(root))
     proc = subprocess.Popen([sys.executable, "-m", "agent.cli", *argv,
-                             *(["--router"] if router else [])], cwd=ROOT, env=env,
+                             *(["--router"] if router else [])], cwd=root, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     at_start = {}
@@ -132,7 +138,16 @@ def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
         "router_cpu_percent": (100.0 * stepping["router"] / span
                                if "router" in stepping else None),
         "wall_s": summary["wall_s"],
+        # estimates each agent received a step (its subscriptions: in-neighbours only, or
+        # every agent before them), mean over agents
+        "received_per_step": _received_per_step(summary, steps),
     }
+
+
+def _received_per_step(summary: dict, steps: int):
+    got = [sum(e.get("received", {}).values())
+           for e in summary.get("estimates_from", {}).values()]
+    return statistics.mean(got) / max(1, steps) if got else None
 
 
 def fmt(value, spec):
@@ -167,7 +182,10 @@ def print_table(results: list, periods: list) -> None:
              + (f" (to step {by_period[p]['steps']})"
                 if by_period[p]["steps"] < steps else "")) if p in by_period else "-"
             for p in periods)
-        print(f"| {r['N']} | {'router' if r['transport'] == 'router' else 'peer mesh'} | "
+        label = "router" if r["transport"] == "router" else "peer mesh"
+        if r.get("tree", "this") != "this":
+            label += f" ({r['tree']})"
+        print(f"| {r['N']} | {label} | "
               f"{r['links']} | {sustained} | {shares} | "
               f"{fmt(best['hop_median_ms'], '.2f')} / {fmt(best['hop_p99_ms'], '.1f')} | "
               f"{fmt(best['cpu_ms_per_step'], '.2f')} "
@@ -185,6 +203,10 @@ def main(argv=None) -> int:
     parser.add_argument("--step-ms", default="10,20,40")
     parser.add_argument("--transports", default="peer,router")
     parser.add_argument("--json", metavar="FILE", help="also write every run's figures here")
+    parser.add_argument("--baseline", metavar="DIR", type=Path,
+                        help="also run each case with the code of this tree (before/after)")
+    parser.add_argument("--monitor", action="store_true",
+                        help="run the monitor too (default: no monitor)")
     parser.add_argument("--table", metavar="FILE",
                         help="only print the table of a --json FILE written before")
     args = parser.parse_args(argv)
@@ -195,6 +217,11 @@ def main(argv=None) -> int:
     sizes = [int(x) for x in args.sizes.split(",")]
     periods = sorted(float(x) for x in args.step_ms.split(","))
     transports = args.transports.split(",")
+    trees = [("this", ROOT)]
+    if args.baseline is not None:
+        if not (args.baseline / "agent" / "cli").is_dir():
+            parser.error(f"--baseline: {args.baseline} is not a socmon tree (no agent/cli)")
+        trees.append(("baseline", args.baseline.resolve()))
     tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
     print(f"machine: {os.cpu_count()} cores, load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())} (shared with other work)",
@@ -211,23 +238,24 @@ def main(argv=None) -> int:
         rho = json.loads(proc.stdout)["rho_exact"]
         print(f"N = {N}: {scenario}, gain rho {rho:.3f} designed in "
               f"{time.monotonic() - t:.1f} s", flush=True)
-        for transport in transports:
+        for transport, (tree, root) in [(t, tr) for t in transports for tr in trees]:
             router = transport == "router"
             P = N + 2
             links = P if router else P * (P - 1) // 2
             tried = []
             for step_ms in periods:
-                out = tmp / f"run-{N}-{transport}-{step_ms:g}"
+                out = tmp / f"run-{N}-{transport}-{tree}-{step_ms:g}"
                 load = os.getloadavg()[0]
                 try:
-                    row = describe(run_up(scenario, gains, args.steps, step_ms, out, router),
+                    row = describe(run_up(scenario, gains, args.steps, step_ms, out, router,
+                                          root, args.monitor),
                                    N, args.steps, step_ms)
                 except RuntimeError as exc:
                     print(f"  {transport:6} {step_ms:4g} ms: failed: {exc}", flush=True)
                     continue
                 row["load_average"] = load
                 tried.append(row)
-                print(f"  {transport:6} {step_ms:4g} ms: sustained "
+                print(f"  {transport:6} {tree:8} {step_ms:4g} ms: sustained "
                       f"{'yes' if row['sustained'] else 'no '}  missed {row['drops']} "
                       f"({row['late_share']:.2%}, {row['late']} came late)"
                       f"  hop {fmt(row['hop_median_ms'], '.2f')} / "
@@ -235,12 +263,14 @@ def main(argv=None) -> int:
                       f"{fmt(row['cpu_ms_per_step'], '.2f')} ms/step "
                       f"({fmt(row['cpu_percent_per_agent'], '.0f')} %)  router "
                       f"{fmt(row['router_cpu_percent'], '.0f')} %  wall {row['wall_s']:.0f} s"
+                      f"  received {fmt(row['received_per_step'], '.1f')}/step"
                       f"  load {load:.1f}",
                       flush=True)
                 if row["sustained"]:
                     break
             best = next((r for r in tried if r["sustained"]), None)
-            results.append({"N": N, "transport": transport, "links": links, "runs": tried,
+            results.append({"N": N, "transport": transport, "tree": tree, "links": links,
+                            "runs": tried,
                             "sustained_steps_per_s": 1000.0 / best["step_ms"] if best else None})
     print()
     print_table(results, periods)

@@ -296,3 +296,65 @@ def test_inbox_wakes_only_for_the_items_asked_for():
     inbox._push(Received(b"4", "k/b", 0.0))
     assert event.is_set()
     assert [r.payload for r in inbox.drain()] == [b"1", b"2", b"3", b"4"]
+
+
+def test_a_key_set_inbox_follows_its_keys_and_gets_a_late_publishers_cache():
+    """An agent's estimate subscriptions (agent.node.subscriptions): a key subscribed late
+    with history gets the publisher's cached samples in order, then the live ones; a key
+    dropped from the set is no longer delivered; the pattern of a standby hears all."""
+    run = f"keyset{listen_port()}"
+    port = listen_port()
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)), "agent", 1) as a, \
+            topics.open_peer(NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",)), "agent", 2) as b:
+        assert b.wait_for_peers(lambda alive: {("agent", "1"), ("agent", "2")} <= alive, 20)
+        k1, k2 = topics.est_key(run, 1), topics.est_key(run, 2)
+        a.publisher(k1, cache=4)
+        # first without history, until a live sample shows that b knows a's publisher
+        inbox = b.subscribe_keys([k1], include_local=False)
+        assert inbox.keys == {k1: 0}
+        deadline = time.monotonic() + 20
+        while not inbox.drain() and time.monotonic() < deadline:
+            a.put(k1, b"ping")
+            b.wait(timeout=0.2)
+        for i in range(6):
+            a.put(k1, bytes([i]))
+        assert wait_for_item(inbox, lambda r: r.payload == b"\x05")
+        inbox.drain()
+        # the same key with history: declared again, the cache's samples come
+        assert inbox.follow({k1: 4}) == ((k1,), ())
+        assert inbox.keys == {k1: 4}
+        got = []
+        deadline = time.monotonic() + 20
+        while b"\x05" not in got and time.monotonic() < deadline:
+            item = inbox.get(timeout=0.2)
+            if item is not None:
+                got.append(item.payload)
+        # the cache's last 4, oldest first
+        assert got == [b"\x02", b"\x03", b"\x04", b"\x05"], got
+        # live samples after it
+        deadline = time.monotonic() + 20
+        live = []
+        while b"\x06" not in live and time.monotonic() < deadline:
+            a.put(k1, b"\x06")
+            b.wait(timeout=0.2)
+            live += [r.payload for r in inbox.drain()]
+        assert b"\x06" in live
+        # a standby's pattern instead: a's other key is heard, k1 still, b's own is not
+        added, removed = inbox.follow(topics.estimate_subscriptions(run, None, 4))
+        assert added == (topics.any_agent_pattern(run, "est"),) and removed == (k1,)
+        b.put(k2, b"own")
+        heard = set()
+        deadline = time.monotonic() + 20
+        while b"x" not in heard and time.monotonic() < deadline:
+            a.put(k1, b"x")
+            b.wait(timeout=0.2)
+            heard |= {r.payload for r in inbox.drain()}
+        assert b"x" in heard and b"own" not in heard
+        # back to no key at all: nothing more is delivered
+        inbox.follow({})
+        assert inbox.keys == {}
+        inbox.drain()
+        a.put(k1, b"late")
+        assert not wait_for_item(inbox, lambda r: True, timeout=0.5)
+        with pytest.raises(ValueError, match="history"):
+            inbox.follow({k1: -1})

@@ -54,6 +54,33 @@ def test_kills_at_two_different_steps_replay_in_the_simulator(tmp_path):
     assert s["final_roles"]["1"]["dead"] and s["final_roles"]["2"]["dead"]
     assert not s["final_roles"]["1"]["active"] and s["final_roles"]["4"]["active"]
     assert s["max_rel_diff_vs_simulator"] <= 1e-9
+    _heard_only_their_sources(s, tmp_path / "run")
+
+
+def _heard_only_their_sources(s, run):
+    """Neighbour-only subscriptions (agent.node.subscriptions): an agent that was never a
+    standby received estimates only from the in-neighbours of its roles and the failed
+    agents their new links continued; each live agent ends subscribed to exactly its
+    last role's in-neighbours."""
+    from design.scenario import load_scenario
+
+    sc = load_scenario("paper-14-live")
+    sources = {i + 1: {j + 1 for j in sc.neighbours[i]} for i in range(sc.N)}
+    last = {i + 1: set(sources[i + 1]) for i in range(sc.N)}
+    for a in json.loads((run / "assignments.json").read_text()):
+        if a.get("kind") != "assign":
+            continue
+        ids = {int(j) for j in a["neighbours"]}
+        sources.setdefault(a["agent"], set()).update(ids, a.get("continues", {}).values())
+        last[a["agent"]] = ids
+    got = s["estimates_from"]
+    for a in range(1, sc.N + 1):
+        received = {int(j) for j in got[str(a)]["received"]}
+        assert received <= sources[a], (a, got[str(a)], sources[a])
+    for a, role in s["final_roles"].items():
+        if role["active"] and not role["dead"]:
+            assert set(got[a]["ids"]) <= last[int(a)] | set(sources[int(a)]), (a, got[a])
+            assert last[int(a)] <= set(got[a]["ids"]), (a, got[a], last[int(a)])
 
 
 def test_the_standby_killed_then_an_agent_replays_in_the_simulator(tmp_path):

@@ -91,8 +91,16 @@ def test_access_control_denies_by_default_and_grants_each_its_own():
         assert _allowed(acl, name, "declare_subscriber", "ingress") == ["socmon/r/**"]
         assert _allowed(acl, name, "declare_subscriber", "egress") == ["socmon/r/**"]
         assert _allowed(acl, name, "put", "egress") == ["socmon/r/**"]
-        assert _allowed(acl, name, "query", "ingress") == []
+        # queries in the run (a late subscriber asks the publishers' caches)...
+        assert _allowed(acl, name, "query", "ingress") == ["socmon/r/**/@adv/**"]
         assert _allowed(acl, name, "delete", "ingress") == []
+    # ... answered by an agent's own estimate cache only
+    assert _allowed(acl, "agent-2", "declare_queryable", "ingress") == [
+        "socmon/r/est/2", "socmon/r/est/2/@adv/**"]
+    assert _allowed(acl, "agent-2", "reply", "ingress") == ["socmon/r/est/2",
+                                                           "socmon/r/est/2/@adv/**"]
+    for name in ("world", "monitor", "operator", "recorder"):
+        assert _allowed(acl, name, "reply", "ingress") == []
     with pytest.raises(InvalidKeys, match="twice"):
         access_control("r", ["world", "world"])
 

@@ -2,10 +2,14 @@
 
 Subscriptions (in this order; the status subscription is declared last, so that a peer
 which receives this agent's status also knows all its other subscriptions: the start
-handshake relies on it): its control key, the roster key, the impairment key, every
-agent's estimates, the world's sensor readings (one message a step with every node; it
-uses the readings of the nodes it measures, or of the first node as a clock while it has
-no role: a new role never waits for a subscription), then every agent's status.
+handshake relies on it): its control key, the roster key, the impairment key, its
+in-neighbours' estimates (every agent's while it is a standby; they follow its role,
+:func:`agent.node.subscriptions.estimate_sources`: a pending role's are subscribed when
+its assignment is accepted), the world's sensor readings (one message a step with every
+node; it uses the readings of the nodes it measures, or of the first node as a clock
+while it has no role: a new role never waits for a subscription), then every agent's
+status. Its estimate publisher keeps its last ``core.history`` estimates for a receiver
+that subscribes late.
 Publications: its estimate every step, its status every ``status_s`` (and at once after a
 control message). It never reads the truth key.
 
@@ -40,6 +44,7 @@ from broker_free_net.peer import DEFAULT_INBOX_BYTES, DEFAULT_INBOX_SIZE
 from agent.protocol import wire
 from agent.protocol.control_auth import SignatureError
 from agent.node.core import MAX_POLL_STEPS, AgentConfig, AgentCore, AssignmentError
+from agent.node.subscriptions import estimate_sources
 from agent.shell.memory import TRIM_S, heap_trimmer
 from agent.shell.ratelimit import LogLimiter
 from agent.protocol.timing import DEFAULT as TIMING
@@ -113,8 +118,17 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         # junk on the estimate or sensors keys is refused before it is copied out of zenoh
         # when it is larger than any valid message (RSS stays flat under a flood)
         est_max, sensors_max = wire.max_est_bytes(core.n), wire.max_sensors_bytes(core.n)
-        est_in = peer.subscribe(topics.any_agent_pattern(run, "est"), include_local=False,
-                                max_payload=est_max, max_bytes=_inbox_bytes(est_max))
+        # estimates: of its in-neighbours only (every agent's while it is a standby),
+        # following its role (agent.node.subscriptions); a new link gets the estimates
+        # its publisher sent before it from that publisher's cache
+        est_from = estimate_sources(core)
+        est_in = peer.subscribe_keys(
+            topics.estimate_subscriptions(run, est_from, core.history), include_local=False,
+            max_payload=est_max, max_bytes=_inbox_bytes(est_max))
+        est_declare_ms = deque(maxlen=64)     # how long the last changes of them took
+        est_changes = [0]
+        est_received = {}                     # sender -> estimates received from it
+        est_replayed = {}      # sender -> newest stamp its cache may replay (no hop time)
         # sensor readings: every node's in one message a step, from the start, active or
         # not: a role that adds a node never waits for a new subscription to reach the
         # world (on a loaded 2-core machine that took longer than the assignment's head
@@ -128,7 +142,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         # not zenoh's express mode: with congestion control DROP every express message
         # takes a whole batch of the transmit queue, and under load (a recovery on 2
         # loaded cores) sensor readings and estimates were dropped by the sender
-        peer.publisher(est_key)
+        peer.publisher(est_key, cache=core.history)
         peer.publisher(status_key)
         world_seen = world_alive = False
         world_gone_at = None
@@ -157,6 +171,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 st["malformed"] += too_large
                 st["malformed_reasons"]["too_large"] = (st["malformed_reasons"].get("too_large", 0)
                                                         + too_large)
+            st["estimates_from"] = {
+                "ids": "*" if est_from is None else sorted(est_from),
+                "changes": est_changes[0],
+                "received": {str(a): c for a, c in sorted(est_received.items())},
+                "declare_ms_max": max(est_declare_ms, default=0.0)}
             if hops:
                 ordered = sorted(hops)
                 st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
@@ -195,6 +214,25 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
 
         est_sender = topics.AgentKeyCache(run, "est", senders)
 
+        def follow_role():
+            """Subscribe to the estimates the role in force and the pending one need."""
+            nonlocal est_from
+            wanted = estimate_sources(core)
+            if wanted == est_from:
+                return
+            t0 = time.perf_counter()
+            added, _ = est_in.follow(topics.estimate_subscriptions(run, wanted, core.history))
+            for j in wanted or ():
+                if topics.est_key(run, j) in added:
+                    est_replayed[j] = core.step + 1
+            est_declare_ms.append(1e3 * (time.perf_counter() - t0))
+            est_changes[0] += 1
+            est_from = wanted
+            say(f"agent {me}: estimates from "
+                + ("every agent" if wanted is None else f"agents {sorted(wanted)}")
+                + f" (epoch {core.epoch}{', one pending' if core.pending else ''}; "
+                f"{est_declare_ms[-1]:.1f} ms)")
+
         def handle_est(item):
             msg = try_decode(item.payload, est_schema, stats, senders=senders,
                              now_step=max(core.step, 0), window=wire.STAMP_WINDOW)
@@ -207,7 +245,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             if sender != msg["agent"]:
                 bad("key")
                 return
-            if msg["agent"] != me:
+            est_received[sender] = est_received.get(sender, 0) + 1
+            if msg["agent"] != me and msg["step"] > est_replayed.get(sender, -1):
                 # publish -> in this agent's inbox (the transport's share, as the raw
                 # round trip measures it; not the time the estimate waited to be used)
                 hops.append(time.time() - msg["t"] - (time.monotonic() - item.arrival))
@@ -267,6 +306,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                         urgent_status = True
                 except InvalidImpairment:
                     bad("range")
+            follow_role()                   # an assignment or a roster came
             for item in end_in.drain() if len(end_in) else ():
                 msg = try_decode(item.payload, wire.END_SCHEMA, stats)
                 if msg is not None and world_end is None:
@@ -301,6 +341,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                     scripted_crash(step)
             if crash_at is not None and core.step >= crash_at - 1:
                 scripted_crash(core.step)   # one that published nothing then (a standby)
+            if core.step != before:
+                follow_role()               # a role came into force (or was dropped)
             busy = core.step - before >= MAX_POLL_STEPS  # poll stopped at its limit
             if not said_clock and core.step >= 0:
                 said_clock = True

@@ -63,6 +63,7 @@ __all__ = [
     "ctl_key",
     "end_key",
     "est_key",
+    "estimate_subscriptions",
     "identity_name",
     "impair_key",
     "make_run_keys",
@@ -77,6 +78,7 @@ __all__ = [
     "run_pattern",
     "run_prefix",
     "sensors_key",
+    "serve_keys",
     "status_key",
     "token_keys",
     "truth_key",
@@ -125,6 +127,22 @@ def any_agent_pattern(run: str, kind: str) -> str:
     if kind not in AGENT_KINDS:
         raise InvalidKey("kind", f"{kind!r} not in {AGENT_KINDS}")
     return f"{run_prefix(run)}/{kind}/*"
+
+
+def estimate_subscriptions(run: str, sources, history: int) -> dict:
+    """``{key expression: history}`` of an agent's estimate subscriptions
+    (:meth:`broker_free_net.peer.Peer.subscribe_keys`): ``est/<j>`` for each agent j of
+    ``sources`` with the last ``history`` estimates of its publisher's cache, or the
+    pattern ``est/*`` (no history) when ``sources`` is None (every agent: a standby).
+
+    >>> estimate_subscriptions("demo", {3, 1}, 64)
+    {'socmon/demo/est/1': 64, 'socmon/demo/est/3': 64}
+    >>> estimate_subscriptions("demo", None, 64)
+    {'socmon/demo/est/*': 0}
+    """
+    if sources is None:
+        return {any_agent_pattern(run, "est"): 0}
+    return {est_key(run, j): int(history) for j in sorted(sources)}
 
 
 def sensors_key(run: str) -> str:
@@ -330,6 +348,22 @@ def put_keys(run: str, name: str) -> list[str]:
     }[role]
 
 
+def serve_keys(run: str, name: str) -> list[str]:
+    """Key expressions process `name` may answer queries on: an agent's estimate
+    publisher's cache of its last estimates (zenoh's advanced publisher, under
+    ``<key>/@adv/**``: ``@`` chunks are matched only verbatim), for a receiver that starts
+    listening to it late (:func:`estimate_subscriptions`).
+
+    >>> serve_keys("r", "agent-2"), serve_keys("r", "world")
+    (['socmon/r/est/2', 'socmon/r/est/2/@adv/**'], [])
+    """
+    security.check_run(run)
+    role, i = parse_identity(name)
+    # the cache's queryable is declared under @adv; its replies carry the samples' key
+    return [f"{PREFIX}/{run}/est/{i}", f"{PREFIX}/{run}/est/{i}/@adv/**"] \
+        if role == "agent" else []
+
+
 def token_keys(run: str, name: str) -> list[str]:
     """Liveliness tokens process `name` may declare.
 
@@ -357,7 +391,8 @@ def permissions(run: str, names) -> dict[str, Permissions]:
         parse_identity(n)
     if len(set(names)) != len(names):
         raise InvalidKeys("names", "a name is listed twice")
-    return {n: Permissions(put=tuple(put_keys(run, n)), tokens=tuple(token_keys(run, n))) for n in names}
+    return {n: Permissions(put=tuple(put_keys(run, n)), tokens=tuple(token_keys(run, n)),
+                           serve=tuple(serve_keys(run, n))) for n in names}
 
 
 def access_control(run: str, names) -> dict:

@@ -261,6 +261,9 @@ STATUS_SCHEMA = Schema({
     "links": Loose(required=True),
     "overflows": Int(0),
     "hop_ms": Loose(required=False),
+    # whose estimates the agent subscribes to ("*": every agent), the changes and the
+    # longest declaration of them (agent.node.subscriptions)
+    "estimates_from": Loose(required=False),
     "implausible": Loose(required=False),
     "residuals": Loose(required=False),
 }, sender="agent")

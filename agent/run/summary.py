@@ -197,6 +197,9 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "learned_delays": {str(a): {str(j): d for j, d in s.get("delays", {}).items()}
                            for a, s in last.items() if s},
         "hop_ms": {str(a): s.get("hop_ms") for a, s in last.items() if s.get("hop_ms")},
+        # whose estimates each agent subscribed to last, and how many it got from each
+        "estimates_from": {str(a): s["estimates_from"] for a, s in last.items()
+                           if s.get("estimates_from")},
         "cpu_s": {ch.name: ch.cpu_s for ch in children},
         "wall_s": rec.wall,
         "exit_status": {ch.name: ch.returncode for ch in children},
