@@ -57,14 +57,14 @@ def test_kills_at_two_different_steps_replay_in_the_simulator(tmp_path):
     _heard_only_their_sources(s, tmp_path / "run")
 
 
-def _heard_only_their_sources(s, run):
+def _heard_only_their_sources(s, run, scenario="paper-14-live"):
     """Neighbour-only subscriptions (agent.node.subscriptions): an agent that was never a
     standby received estimates only from the in-neighbours of its roles and the failed
     agents their new links continued; each live agent ends subscribed to exactly its
     last role's in-neighbours."""
     from design.scenario import load_scenario
 
-    sc = load_scenario("paper-14-live")
+    sc = load_scenario(scenario)
     sources = {i + 1: {j + 1 for j in sc.neighbours[i]} for i in range(sc.N)}
     last = {i + 1: set(sources[i + 1]) for i in range(sc.N)}
     for a in json.loads((run / "assignments.json").read_text()):
@@ -99,3 +99,42 @@ def test_the_standby_killed_then_an_agent_replays_in_the_simulator(tmp_path):
     assert s["rosters"][-1]["ids"] in ([2, 3], [3, 2])
     assert s["final_roles"]["4"]["dead"] and not s["final_roles"]["4"]["active"]
     assert s["max_rel_diff_vs_simulator"] <= 1e-9
+
+
+def test_a_secure_run_hands_a_new_link_its_history_at_15_step_delays(tmp_path):
+    """--secure, 15-step delays, two kills: after the second (no standby left) agent 4
+    listens to agent 3, a new in-neighbour, from an assignment 10-20 steps ahead, while the
+    link's first estimate is stamped 16 steps before the switch: it comes from agent 3's
+    cache through the access control (an agent may reply only on its own key), and the
+    run equals the simulator's replay."""
+    code, out, err = _socmon("up", "paper-14-live", "--steps", "600", "--delays",
+                             "uniform:15", "--kill", "150:1", "--kill", "300:2", "--secure",
+                             "--check-simulator", "--out", str(tmp_path / "run"), "--json",
+                             timeout=600)
+    assert code == 0, err
+    s = json.loads(out)
+    assert sorted((f["agent"], f["cause"]) for f in s["failures"]) == [(1, "crash"),
+                                                                      (2, "crash")], \
+        (s["failures"], monitor_story(tmp_path / "run"))
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9
+    assert 3 in s["estimates_from"]["4"]["ids"]
+    _heard_only_their_sources(s, tmp_path / "run")
+
+
+def test_sixteen_agents_at_a_relaxed_period_recover_from_a_crash(tmp_path):
+    """communities-16 as 16 agent processes (plus the world, the recorder, the standbys and
+    the monitor) at 100 ms steps: an agent killed at step 60 is convicted and replaced,
+    the run recovers, and each agent that was never a standby heard only its sources.
+    The world waits for the monitor to foresee every single failure (16 designs: about a
+    minute on a loaded machine), hence the start timeout."""
+    code, out, err = _socmon("up", "communities-16", "--steps", "260", "--step-ms", "100",
+                             "--kill", "60:3", "--start-timeout", "600",
+                             "--out", str(tmp_path / "run"), "--json", timeout=1200)
+    assert code == 0, err
+    s = json.loads(out)
+    assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(3, "crash")], \
+        (s["failures"], monitor_story(tmp_path / "run"))
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert 3 not in s["rosters"][-1]["ids"]
+    _heard_only_their_sources(s, tmp_path / "run", "communities-16")

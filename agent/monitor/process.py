@@ -17,6 +17,11 @@ When the world's token goes, the run is ending: the agents leave with it, so not
 convicted while it is gone, and the monitor exits once the agents' tokens are gone too
 (:meth:`MonitorCore.run_ended`).
 
+Before it judges anything a monitor waits to see the liveliness token of every agent of
+the configuration (:func:`reach_every_agent`, at most ``Timing.monitor_reach_s``): on a
+loaded host its links to a large run come up one by one, and an agent not reached yet
+looks like one that never started.
+
 A monitor listens for :data:`agent.monitor.core.LISTEN_S` before it acts. Several monitors may run on one run:
 the one with the smallest id whose token is alive acts (once it has listened: the one
 acting until then goes on), the others stay passive and watch;
@@ -97,6 +102,37 @@ class _Stop:
 
 
 
+def reach_every_agent(watch, ids, monitor_id, stop, log,
+                      limit: float = TIMING.monitor_reach_s) -> list:
+    """Wait until ``watch`` sees the liveliness token of every agent of ``ids``, at most
+    ``limit`` seconds or until ``stop``; returns the agents not seen (and says so): the
+    detector's clock starts after this, so an agent whose link is not up yet is not taken
+    for one that never started (:data:`agent.protocol.timing.Timing.monitor_reach_s`)."""
+    want = {("agent", str(i)) for i in ids}
+    start = time.monotonic()
+    seen, grew_at = 0, start
+    while not stop.flag:
+        if watch.wait_until(lambda alive: want <= alive, 0.25):
+            return []
+        now = time.monotonic()
+        count = len(want & watch.alive())
+        if count > seen:
+            seen, grew_at = count, now
+        # every agent's link not up after the limit, or none new for REACH_SETTLE_S while
+        # some are (the others are most likely dead: a restarted monitor)
+        if now - start >= limit or (seen and now - grew_at >= REACH_SETTLE_S):
+            break
+    missing = sorted(int(i) for role, i in want - watch.alive())
+    if missing:
+        print(f"monitor {monitor_id}: agents {missing} not seen after "
+              f"{time.monotonic() - start:.1f} s; judging from now on", file=log, flush=True)
+    return missing
+
+
+#: :func:`reach_every_agent` stops waiting once no new agent was seen for this long.
+REACH_SETTLE_S = 3.0
+
+
 def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorConfig = None,
                 log=sys.stderr, stop=None, events_out=None, precompute: bool = True,
                 signer=None, prepare_s: float = TIMING.monitor_prepare_s) -> int:
@@ -175,6 +211,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             roster_in = peer.subscribe(topics.ctl_key(run, 0))
             end_in = peer.subscribe(topics.end_key(run), maxlen=16)
             watch = peer.watch_liveliness()
+            reach_every_agent(watch, core.roster.ids, monitor_id, stop, log)
             seat = MonitorSeat(core, monitor_id, time.monotonic())
             next_roster = 0.0
             print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)

@@ -97,6 +97,13 @@ class Timing:
     #: --wait-monitor``) starts its clock then, so that a failure soon after the start is
     #: answered at once instead of waiting seconds for a design on a loaded machine.
     monitor_prepare_s: float = 20.0
+    #: A monitor that joins waits up to this long to see the liveliness token of every
+    #: agent of the configuration before it judges any: its links to a large run's
+    #: processes come up one by one (seconds on a loaded host), and an agent not reached
+    #: yet looks like one that never started (16 agents at load 10: 9 healthy agents were
+    #: convicted ``crash`` at the start). A restarted monitor with a dead agent in the
+    #: configuration starts judging after this long.
+    monitor_reach_s: float = 10.0
     #: After its last step the world waits this long for the agents' last estimates.
     end_timeout_s: float = 5.0
 
