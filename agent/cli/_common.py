@@ -182,6 +182,19 @@ def add_local_transport_arguments(parser) -> None:
                              "N(N-1)/2 (docs/transport.md)")
 
 
+def add_web_arguments(parser, what: str = "the run") -> None:
+    """``--web [HOST:]PORT`` and ``--web-remote``: a live page of the run
+    (:mod:`agent.run.web`)."""
+    parser.add_argument("--web", metavar="[HOST:]PORT",
+                        help=f"serve a live web page of {what} (network, agents' states, "
+                             "verdicts and reassignments, MSE against its exact level) on "
+                             "http://HOST:PORT/; HOST defaults to 127.0.0.1 (loopback only), "
+                             "PORT 0 picks a free one; nothing is fetched from elsewhere")
+    parser.add_argument("--web-remote", action="store_true",
+                        help="allow --web on an address other than loopback (anyone who "
+                             "reaches it sees the run; no authentication)")
+
+
 def add_json_argument(parser, help: str = "print JSON instead of text") -> None:
     """``--json``: the command's record on stdout as JSON (docs/json.md)."""
     parser.add_argument("--json", action="store_true", help=help)

@@ -55,6 +55,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--timeout", type=float, default=60.0, metavar="S",
                         help="give up (exit 1) when nothing of the run is heard within S "
                              "seconds (default 60)")
+    c.add_web_arguments(parser, "the watched run")
     add_net_arguments(parser)
 
 
@@ -63,18 +64,27 @@ def run(args) -> int:
 
 
 def _watch(args) -> int:
+    import contextlib
+
     from agent.run.watch import (NoWorld, live_view_for, summary_json, summary_lines, watch,
                                  watch_config)
+    from agent.run.web import open_page, page_words
 
     config = watch_config(args, attach_run(args))
-    if not args.json:
-        print(f"watch: run {config.net.run} via {', '.join(config.net.connect) or 'multicast'}; "
-              "Ctrl-C ends the watch" + (f" and writes {args.out}" if args.out else ""),
-              file=sys.stderr, flush=True)
-    try:
-        result = watch(config, live_view_for(sys.stdout, args.json, args.interval))
-    except NoWorld as exc:
-        raise CommandError(str(exc), status=1) from None
+    with contextlib.ExitStack() as stack:
+        page = open_page(args.web, args.web_remote)
+        if page is not None:
+            stack.enter_context(page)
+            print(f"watch: {page_words(page)}", file=sys.stderr, flush=True)
+        if not args.json:
+            print(f"watch: run {config.net.run} via "
+                  f"{', '.join(config.net.connect) or 'multicast'}; Ctrl-C ends the watch"
+                  + (f" and writes {args.out}" if args.out else ""), file=sys.stderr,
+                  flush=True)
+        try:
+            result = watch(config, live_view_for(sys.stdout, args.json, args.interval), page)
+        except NoWorld as exc:
+            raise CommandError(str(exc), status=1) from None
     if args.json:
         print(summary_json(result), flush=True)
     else:

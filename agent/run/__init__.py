@@ -5,7 +5,8 @@ of a run, :mod:`~agent.run.folder` the run folder and its atomic writes,
 :mod:`~agent.run.summary` what the record says, :mod:`~agent.run.chaos` random fault
 schedules and the invariants a run must keep, :mod:`~agent.run.watch` attaching to a
 run, :mod:`~agent.run.inject` changing a running deployment's links,
-:mod:`~agent.run.terminal` what a live run prints.
+:mod:`~agent.run.terminal` what a live run prints, :mod:`~agent.run.web` its live page
+(``--web``).
 
 From flags to a process: :mod:`~agent.run.agent_options` (``socmon agent``),
 :mod:`~agent.run.monitor_options` (``socmon monitor``), :mod:`~agent.run.chaos_report`

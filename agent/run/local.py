@@ -16,6 +16,8 @@ PID, keys) once they are up, so that other tools can attach (``--attach RUN_DIR`
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import os
 import random
 import signal
@@ -37,7 +39,7 @@ from agent.run.recorder import Recorder, Recording
 from agent.protocol.timing import DEFAULT as TIMING
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS",
-           "PROCESS_FAULTS"]
+           "PROCESS_FAULTS", "live_view"]
 
 #: crash: the agent SIGKILLs itself after publishing step STEP-1 (reproducible);
 #: kill: SIGKILL from outside at STEP; stop: SIGSTOP for ``seconds`` then SIGCONT;
@@ -142,6 +144,24 @@ class RunConfig:
 
 class RunFailed(Exception):
     pass
+
+
+#: What a run started here shows of itself as it goes (:func:`live_view`).
+_LIVE = contextvars.ContextVar("socmon_live_view", default=None)
+
+
+@contextlib.contextmanager
+def live_view(factory):
+    """Within it, a :class:`LocalRun` shows itself through ``factory(config, run_id,
+    say)``, called once its recorder is up: an :class:`agent.run.web.LiveState` (``up``'s
+    MSE in its progress line, a line per verdict and reassignment, and the page of
+    ``--web``; :func:`agent.run.web.live_state_factory`). Without, the progress line is
+    the step, drops and late."""
+    token = _LIVE.set(factory)
+    try:
+        yield
+    finally:
+        _LIVE.reset(token)
 
 
 class LocalRun:
@@ -261,6 +281,7 @@ class LocalRun:
         # SIG_IGN)
         old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         t_begin = time.monotonic()
+        live = None
         try:
             if c.router:        # up before its clients, which try it for 10 s only
                 children.start("router", ["router", "--listen", router_ep])
@@ -292,6 +313,8 @@ class LocalRun:
                          f"ready (clock starts then), {K} steps of {c.step_ms:g} ms")
 
                 drain = recorder.drain
+                # up's progress words and verdict lines, and its --web page (live_view)
+                live = _LIVE.get()(c, rec.run_id, self.say) if _LIVE.get() else None
 
                 def event(**fields):
                     rec.events.append({**fields, "t": time.time()})
@@ -439,6 +462,12 @@ class LocalRun:
                                          "recovered")
                             elif change == "back":
                                 self.say(f"a monitor is alive again at step {recorder.step}")
+                    if live is not None:
+                        live.tick(recorder, None if live.board is None else
+                                  {int(i) for r, i in alive_watch.alive()
+                                   if r == "agent" and i.isdigit()})
+                        for line in live.news():     # verdicts, reassignments, as heard
+                            self.say(f"step {recorder.step}: {line}")
                     now = time.monotonic()
                     k_now = recorder.step
                     while pending and k_now >= pending[0].step:
@@ -475,7 +504,11 @@ class LocalRun:
                                      f"{k_now}: the processes' logs lose lines and the run "
                                      "folder may not be written at the end; the run goes on")
                         st = rec.status.values()
-                        self.say(f"step {k_now}/{K}  drops {sum(s['drops'] for s in st)}  "
+                        if live is not None:
+                            live.refresh(recorder)
+                        self.say(f"step {k_now}/{K}  "
+                                 + (f"{live.progress_words()}  " if live is not None else "")
+                                 + f"drops {sum(s['drops'] for s in st)}  "
                                  f"late {sum(s['late'] for s in st)}")
                 for _, f in list(undo):           # faults still in force end with the run
                     if f.kind != "monitor":
@@ -498,6 +531,9 @@ class LocalRun:
         except RunFailed as exc:
             rec.failure = str(exc)
         finally:
+            if live is not None:
+                live.finish(recorder, "interrupted" if rec.interrupted else
+                            "failed" if rec.failure else "run ended")
             children.signal_all(signal.SIGCONT)      # a stopped child cannot act on SIGTERM
             children.stop_all()
             signal.signal(signal.SIGTERM, old_term)

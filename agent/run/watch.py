@@ -58,9 +58,10 @@ class WatchResult:
     ended: str                        # steps, world ended, interrupted
 
 
-def watch(config: WatchConfig, view) -> WatchResult:
+def watch(config: WatchConfig, view, page=None) -> WatchResult:
     """Record the run of ``config.net`` until it ends; ``view``: a LiveView (or anything
-    with ``show(view)`` and ``close()``). Raises :class:`NoWorld` if nothing was heard."""
+    with ``show(view)`` and ``close()``); ``page``: a :class:`agent.run.web.LivePage` fed
+    with the same views (``--web``). Raises :class:`NoWorld` if nothing was heard."""
     from agent.run.folder import write_atomic
     from agent.run.local import RunConfig
     from agent.run.summary import predicted_mse, save_estimates, summarize, write_run_folder
@@ -71,11 +72,29 @@ def watch(config: WatchConfig, view) -> WatchResult:
     recorder = Recorder(c.net.run, s.n, s.N, M, keep_steps=c.keep_steps,
                         control_public=c.control_public,
                         scale=StateScale(s.A, s.process_noise, s.measurement_noise))
+    on_view, interval = view.show, getattr(view, "interval", 0.25)
+    live = None
+    if page is not None:
+        from agent.run.web import TICK_S
+
+        live = page.state_for(s, c.delays, c.G, run_id=c.net.run, gains_path=c.gains_path,
+                              step_ms=c.step_ms)
+
+        def on_view(v):              # the terminal's view, and the page's from the same one
+            view.show(v)
+            live.tick(recorder, set(recorder.alive), force=True, view=v)
+
+        interval = min(interval, TICK_S)
+    ended = "interrupted"
     try:
         ended = watch_run(c.net, recorder, steps=c.steps, timeout=c.timeout,
-                          on_view=view.show, interval=getattr(view, "interval", 0.25))
+                          on_view=on_view, interval=interval)
     finally:
         view.close()
+        if live is not None:
+            live.finish(recorder, {"steps": "recorded up to --steps", "world ended":
+                                   "the world ended", "no world": "no world heard"}
+                        .get(ended, ended))
     rec = recorder.recording
     if ended == "no world":
         raise NoWorld(f"nothing of run {c.net.run!r} heard within {c.timeout:g} s "
