@@ -17,10 +17,11 @@ When the world's token goes, the run is ending: the agents leave with it, so not
 convicted while it is gone, and the monitor exits once the agents' tokens are gone too
 (:meth:`MonitorCore.run_ended`).
 
-Before it judges anything a monitor waits to see the liveliness token of every agent of
-the configuration (:func:`reach_every_agent`, at most ``Timing.monitor_reach_s``): on a
-loaded host its links to a large run come up one by one, and an agent not reached yet
-looks like one that never started.
+Before it judges anything the monitor that starts a run (``prepare_s`` > 0; one started
+again mid-run is not) waits to see the liveliness token of every agent of the
+configuration (:func:`reach_every_agent`, at most ``Timing.monitor_reach_s``): on a loaded
+host its links to a large run come up one by one, and an agent not reached yet looks like
+one that never started.
 
 A monitor listens for :data:`agent.monitor.core.LISTEN_S` before it acts. Several monitors may run on one run:
 the one with the smallest id whose token is alive acts (once it has listened: the one
@@ -211,7 +212,11 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
             roster_in = peer.subscribe(topics.ctl_key(run, 0))
             end_in = peer.subscribe(topics.end_key(run), maxlen=16)
             watch = peer.watch_liveliness()
-            reach_every_agent(watch, core.roster.ids, monitor_id, stop, log)
+            if prepare_s > 0:
+                # a monitor that starts the run (one started again mid-run is told
+                # --prepare-s 0: its configuration is stale and an agent may be dead, and
+                # it must not wait before it listens and adopts)
+                reach_every_agent(watch, core.roster.ids, monitor_id, stop, log)
             seat = MonitorSeat(core, monitor_id, time.monotonic())
             next_roster = 0.0
             print(f"monitor {monitor_id}: watching run {run}", file=log, flush=True)
