@@ -2,14 +2,14 @@
 
 Subscriptions (in this order; the status subscription is declared last, so that a peer
 which receives this agent's status also knows all its other subscriptions: the start
-handshake relies on it): its control key, the roster key, the impairment key, its
-in-neighbours' estimates (every agent's while it is a standby; they follow its role,
-:func:`agent.node.subscriptions.estimate_sources`: a pending role's are subscribed when
-its assignment is accepted), the world's sensor readings (one message a step with every
+handshake relies on it): its control key, the roster key, the impairment key, every
+agent's estimates (with :data:`NEIGHBOUR_ONLY`, its in-neighbours' only, following its
+role: :func:`agent.node.subscriptions.estimate_sources`; a pending role's are subscribed
+when its assignment is accepted, every agent's while a standby), the world's sensor readings (one message a step with every
 node; it uses the readings of the nodes it measures, or of the first node as a clock
 while it has no role: a new role never waits for a subscription), then every agent's
-status. Its estimate publisher keeps its last ``core.history`` estimates for a receiver
-that subscribes late.
+status. With :data:`NEIGHBOUR_ONLY` its estimate publisher keeps its last
+``core.history`` estimates for a receiver that subscribes late.
 Publications: its estimate every step, its status every ``status_s`` (and at once after a
 control message). It never reads the truth key.
 
@@ -53,6 +53,12 @@ from agent.protocol.timing import Timing
 #: Readings this many steps past the newest one heard when the world's token went are the
 #: world back, its token's return seen or not
 WORLD_BACK_STEPS = 10
+#: Subscribe to the in-neighbours' estimates only (agent.node.subscriptions) instead of
+#: every agent's. Off for now: with it on, 2 of about 30 live runs with --check-simulator
+#: differed from the simulator after a standby took a role (0.51 and 0.67; CI's
+#: test_two_failures_at_once_are_replaced_as_in_the_paper and the secure run), cause not
+#: found yet; off, an agent hears every agent as before (its status says "*").
+NEIGHBOUR_ONLY = False
 
 __all__ = ["run_agent"]
 
@@ -121,7 +127,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         # estimates: of its in-neighbours only (every agent's while it is a standby),
         # following its role (agent.node.subscriptions); a new link gets the estimates
         # its publisher sent before it from that publisher's cache
-        est_from = estimate_sources(core)
+        est_from = estimate_sources(core) if NEIGHBOUR_ONLY else None
         est_in = peer.subscribe_keys(
             topics.estimate_subscriptions(run, est_from, core.history), include_local=False,
             max_payload=est_max, max_bytes=_inbox_bytes(est_max))
@@ -142,7 +148,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         # not zenoh's express mode: with congestion control DROP every express message
         # takes a whole batch of the transmit queue, and under load (a recovery on 2
         # loaded cores) sensor readings and estimates were dropped by the sender
-        peer.publisher(est_key, cache=core.history)
+        peer.publisher(est_key, cache=core.history if NEIGHBOUR_ONLY else 0)
         peer.publisher(status_key)
         world_seen = world_alive = False
         world_gone_at = None
@@ -217,7 +223,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         def follow_role():
             """Subscribe to the estimates the role in force and the pending one need."""
             nonlocal est_from
-            wanted = estimate_sources(core)
+            wanted = estimate_sources(core) if NEIGHBOUR_ONLY else None
             if wanted == est_from:
                 return
             t0 = time.perf_counter()
