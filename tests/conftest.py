@@ -51,3 +51,16 @@ def live_gains(tmp_path_factory):
     path = tmp_path_factory.mktemp("gains") / "live.npz"
     save_gains(path, G, {"method": "fixed", "rho": rho["scenario"]})
     return path
+
+
+@pytest.fixture
+def children(tmp_path):
+    """Child processes started in their own process groups (logs under ``tmp_path``),
+    always stopped at teardown."""
+    from agent.run.launcher import Children
+
+    ch = Children(tmp_path / "logs")
+    try:
+        yield ch
+    finally:
+        ch.stop_all(grace=5.0)

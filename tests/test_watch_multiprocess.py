@@ -14,7 +14,6 @@ import time
 import numpy as np
 import pytest
 
-from agent.run.launcher import Children
 from broker_free_net.ports import listen_port
 from design.closed_loop import closed_loop_for
 from design.gains import load_gains
@@ -24,15 +23,6 @@ from design.simulate import simulate
 pytestmark = [pytest.mark.multiprocess]
 
 DEADLINE = 90.0   # a loaded 2-core machine
-
-
-@pytest.fixture
-def children(tmp_path):
-    ch = Children(tmp_path / "logs")
-    try:
-        yield ch
-    finally:
-        ch.stop_all(grace=5.0)
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,6 @@ import urllib.request
 
 import pytest
 
-from agent.run.launcher import Children
 from broker_free_net.ports import listen_port
 
 pytestmark = [pytest.mark.multiprocess]
@@ -158,15 +157,6 @@ class Browser:
             except ProcessLookupError:
                 pass
         self.proc.wait(timeout=30)
-
-
-@pytest.fixture
-def children(tmp_path):
-    ch = Children(tmp_path / "logs")
-    try:
-        yield ch
-    finally:
-        ch.stop_all(grace=5.0)
 
 
 @pytest.fixture
