@@ -1485,3 +1485,28 @@ def test_after_a_pause_that_took_most_tokens_a_token_back_last_is_no_crash(core)
         t = round(t + 0.05, 6)
         core.tick(t)
     assert [(v.agent, v.cause) for v in core.verdicts] == [(3, "crash")]
+
+
+def test_the_wait_for_the_clock_is_not_a_hang_but_staying_behind_after_it_is(core):
+    # every agent up and waiting (step -1) for 5 s: the world starts its clock at t = 5
+    _advance(core, 0.0, 5.0, lambda t: -1)
+
+    def steps(t, late=None):
+        return lambda a: -1 if a == late else int(50 * (t - 5))
+
+    def advance(t0, t1, late=None):
+        t = t0
+        while t <= t1 + 1e-9:
+            for a in (1, 2, 3, 4):
+                core.on_status(_status(a, steps(t, late)(a), active=a <= 3), t)
+            core.tick(t)
+            t = round(t + 0.1, 6)
+
+    # agent 3 still reports -1 for half a second after the others started (its loop was
+    # slow to hear the clock): the 5 s it waited before the clock started are no evidence
+    advance(5.1, 5.6, late=3)
+    assert core.verdicts == []
+    # ... but staying at -1 for the hang timeout (1 s) once the clock runs is a hang
+    advance(5.7, 6.3, late=3)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(3, "hang")]
+    assert core.verdicts[0].evidence.startswith("step -1 for 1.10 s")

@@ -17,7 +17,8 @@ Verdicts (one per cause, each with its evidence):
   The timeout is ``hang_timeout_s`` on a machine that keeps the statuses' pace, and grows
   with the pace observed (:class:`StatusPace`, phi accrual over every agent's status
   intervals) up to ``hang_timeout_max_s``: a loaded machine whose loops stall now and then
-  delays detection instead of convicting healthy agents;
+  delays detection instead of convicting healthy agents. An agent waiting for the run's
+  clock (step -1) is behind only from the first status past it: the wait before counts not;
 - ``sensor``: its status says the readings of its nodes have not arrived for
   ``sensor_lag_steps`` steps while the others advance;
 - ``silent``: it looks alive and advances, but every agent that listens to it reports
@@ -333,6 +334,15 @@ class FailureDetector:
             return gone >= self.config.world_silent_s
         return not any(a.alive for a in self.agents.values()) or gone >= self.config.world_gone_s
 
+    def _clock_started(self, now: float, first: int) -> None:
+        """The first status past step -1: the run's clock started. Every other agent
+        still waiting for it (step -1, however long it waited before) has been behind only
+        since now: its hang clock starts here, not when it came up."""
+        for i, a in self.agents.items():
+            if i != first and a.step < 0 and a.progress_at is not None:
+                a.progress_at = now
+                a.others_at_progress = -1
+
     def fresh_evidence(self, now: float) -> None:
         """Forget the progress clocks: verdicts wait ``hang_timeout_s`` of new evidence."""
         self._suspended_until = now + self.config.hang_timeout_s
@@ -390,6 +400,8 @@ class FailureDetector:
                 self._on_world(True, now, how=" (agents "
                                f"{sorted(self._stepped_since_world)} step past "
                                f"{self._world_gone_step}; its token was not seen back)")
+        if step >= 0 > self._clock[0]:
+            self._clock_started(now, msg["agent"])
         if step != a.step or a.step_at is None:
             a.step_at = now
         if step != a.step or a.progress_at is None:
