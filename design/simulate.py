@@ -32,9 +32,10 @@ Timeline (k = 0, 1, ..., steps)
 - Recovery at step a = ``recover.activate_at`` (default f): the configuration of
   :class:`Recovery` (its W, delays, sensors and gains) is used from step a on. Surviving
   agents keep their estimates and what they hold. A replacement agent takes over, as its
-  own estimate stamped a - 1 (published with that stamp), the last estimate
-  ``xhat_{f-1}`` of the failed agent it replaces propagated to step a - 1
-  (``A^(a-f) xhat_{f-1}``, as a live standby does with ``take_over``); a new agent that
+  own estimate stamped a - 1 (published with that stamp), the freshest estimate of the
+  failed agent it replaces that it has received, propagated to step a - 1: ``xhat_{f-1}``
+  (``A^(a-f) xhat_{f-1}``) once that has crossed the standby's link (the run's largest
+  delay T), else ``xhat_{a-1-T}``, as a live standby does with ``take_over``; a new agent that
   replaces nobody starts from ``noise.initial_estimate(seed, id)``. Agents hold nothing
   from a new agent until its messages arrive.
 
@@ -219,6 +220,12 @@ class Recovery:
         Step from which the new configuration is used (>= the failure step); None: the
         failure step (an instant recovery). A live run's monitor activates a few steps
         after it detected the failure.
+    waiting : frozenset
+        New ids that hold a row but have not started it (a live standby that heard its
+        assignment after its step, until a re-issue): they compute and publish nothing
+        (their receivers read, under ``replaces``'s continuity rule, only the failed
+        agent's stream), and take over in the first later configuration that no longer
+        names them here.
     """
 
     scenario: object
@@ -227,6 +234,7 @@ class Recovery:
     replaces: dict = field(default_factory=dict)
     delays: object = None
     activate_at: int | None = None
+    waiting: frozenset = frozenset()
 
     @classmethod
     def from_plan(cls, plan, G, delays=None) -> "Recovery":
@@ -240,7 +248,8 @@ class Recovery:
 
     def at(self, step: int) -> "Recovery":
         """The same recovery, activated at ``step``."""
-        return Recovery(self.scenario, self.G, self.ids, self.replaces, self.delays, step)
+        return Recovery(self.scenario, self.G, self.ids, self.replaces, self.delays, step,
+                        self.waiting)
 
 
 @dataclass(frozen=True, eq=False)
@@ -533,12 +542,17 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
             raise SimulationError("recover: activate_at must increase along the sequence")
         activations.append(at)
     max_delay = max(int(c.delays.max()) if c.delays.size else 0 for c in configs)
+    # a standby hears the failed agent it replaces on the run's largest delay
+    take_delay = int(configs[0].delays.max()) if configs[0].delays.size else 0
     if max_age is None:
         max_age = hold_limit(max_delay)
     max_age = _check_int(max_age, "max_age", max_delay + 1)
     gap = 0 if not activations else activations[-1] - fail_step
     error_coords = coordinates == "error"
-    cold = any(a not in ids0 and a not in rec.replaces for rec in chain for a in rec.ids)
+    # a replacement starts cold (from noise.initial_estimate, which needs x) when it
+    # replaces nobody, or when nothing of the failed agent had reached it yet
+    cold = any(a not in ids0 and (a not in rec.replaces or at - 1 - take_delay < 0)
+               for rec, at in zip(chain, activations) for a in rec.ids)
     track_x = not error_coords or cold
 
     # -- state at step 0 ----------------------------------------------------------
@@ -577,7 +591,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 i = activations.index(k)
                 config = _apply_recovery(config, configs[i + 1], chain[i], est, published, x,
                                          S, P, seed, n, trials, error_coords, k,
-                                         fail_at, ids0, held, continued, drop)
+                                         fail_at, ids0, held, continued, drop,
+                                         take_delay=take_delay)
             nu = noise.process_noise(seed, k - 1, n, q, trials)
             if track_x:
                 x = x @ P.transposed(1) + nu
@@ -746,18 +761,25 @@ def _recovery_config(recover, scenario, failed, ids0, last=True, fail_at=None,
                 f"recover.replaces: agent {a} takes over row {row!r}, which did not fail")
     D = new.delays if recover.delays is None else recover.delays
     D = _check_delays(D, new, "recover.delays")
+    waiting = frozenset(recover.waiting)
+    if not waiting <= set(ids) - set(ids0):
+        raise SimulationError(f"recover.waiting: {sorted(waiting)} are not all new agent ids "
+                              "of the configuration")
     out = _config(new, G, D, ids)
-    out.dead = frozenset(a for a in ids if a in failed_ids)
+    out.dead = frozenset(a for a in ids if a in failed_ids) | waiting
     return out
 
 
 def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, trials,
-                    error_coords, k, fail_at, ids0, held, continued, drop=0.0):
+                    error_coords, k, fail_at, ids0, held, continued, drop=0.0,
+                    take_delay=0):
     """Switch to the recovery configuration at step k (``fail_at``: row -> its failure step).
 
-    A replacement takes over the failed agent's last estimate (stamp f - 1) propagated
-    to step k - 1: ``A^gap xhat_{f-1}`` (``gap = k - f``); in error coordinates that is
-    ``A^gap z_{f-1} - S_gap(k-1)``, with ``S`` still the window of step k - 1. Every
+    A replacement takes over the freshest estimate of the failed agent it has received,
+    stamp ``s = min(f - 1, k - 1 - take_delay)`` (its link from the failed agent has the
+    run's largest delay), propagated to step k - 1: ``A^gap xhat_s`` (``gap = k - 1 -
+    s``); in error coordinates that is ``A^gap z_s - S_gap(k-1)``, with ``S`` still the
+    window of step k - 1 (cold, as a live standby, when nothing had reached it). Every
     receiver that listened to the failed agent and now listens to its replacement
     continues the failed agent's stream on that link (``continued``: (receiver,
     replacement) -> (failed id, its old link delay, the replacement's first stamp)): see
@@ -787,8 +809,19 @@ def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, tria
         if a in new.dead or (a in est and a not in config.dead):
             continue
         if a in replaces:
-            gap = k - fail_at[replaces[a]]
-            value = est[ids0[replaces[a]]]
+            # the freshest estimate of the failed agent the replacement has received by
+            # step k - 1: a standby hears every agent on the largest link delay
+            # (design.roster.link_delay_table), so that is stamp k - 1 - take_delay when
+            # the failed agent's last one (f - 1) is still on its way
+            f = ids0[replaces[a]]
+            stamp = min(fail_at[replaces[a]] - 1, k - 1 - take_delay)
+            if stamp < 0 or stamp not in published.get(f, {}):
+                v = noise.initial_estimate(seed, a, n, trials)
+                est[a] = value = v - x if error_coords else v
+                published[a] = {k - 1: value}
+                continue
+            gap = k - 1 - stamp
+            value = published[f][stamp]
             if gap:
                 value = value @ P.transposed(gap)
                 if error_coords:

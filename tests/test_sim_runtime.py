@@ -259,3 +259,40 @@ def test_an_agent_that_hears_its_roles_too_late_is_replayed_as_it_ran(live):
     assert any(x["ids"] == [4, 3] and x["activate_at"] <= second["detected_step"] + 20
                for x in summary["rosters"]), (second, summary["rosters"])
     assert summary["recovered"] is True
+
+
+@pytest.fixture(scope="module")
+def long_delays(live):
+    s, _ = live
+    return s, [0.3 * np.eye(s.n)[:, list(m)] for m in s.measure], resolve_delays(s, "uniform:15")
+
+
+def test_a_switch_before_the_last_estimate_reached_the_standby_equals_the_simulator(
+        long_delays):
+    """15-step delays, roles in force 10 steps after the crash: the standby has not yet
+    received the failed agent's last estimate (stamp 149 arrives at 164), so it takes over
+    the freshest one it holds (stamp 144 at step 160), as the simulator's replacement."""
+    s, G, D = long_delays
+    r = SimRuntime(s, G, D, seed=1, faults=[Fault(150, "crash", 2)]).run(220)
+    assert r.summary["rosters"][1]["activate_at"] < 150 + 15
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+
+
+@pytest.mark.parametrize("late", [4, 1])
+def test_an_agent_or_standby_that_hears_its_roles_too_late_at_long_delays_is_replayed(
+        long_delays, late):
+    """15-step delays, agent 2 crashes, and one agent of the reassignment hears it after
+    its step: the survivor (1) runs its older role until the re-issue; the standby (4)
+    that takes agent 2's row starts nothing until then, while its receivers read agent
+    2's stream on its link (the continuity rule). The simulator replays both as run."""
+    s, G, D = long_delays
+
+    class Late(_LateAssignment):
+        agent = late
+
+    r = Late(s, G, D, seed=1, faults=[Fault(150, "crash", 2)]).run(260)
+    assert any(f"agent {late} never" in w for w in r.summary["warnings"]), r.summary["warnings"]
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    assert r.summary["recovered"] is True

@@ -333,6 +333,8 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
         summary["simulator_compared"] = how
         if not diff <= CHECK_TOL:
             status = status or 1
+            problems.append(f"--check-simulator: the run differs from the simulator's replay "
+                            f"by {diff:.3g} (relative; at most {CHECK_TOL:g} allowed): {how}")
     try:
         write_run_folder(config.out, summary, steps_done, mse, predicted, assigns=rec.assigns)
         active = [a for a in range(1, config.M + 1) if rec.est[a]]

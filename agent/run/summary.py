@@ -480,9 +480,10 @@ def configurations_run(rosters, est_epoch, assigns, kills, neighbours0):
     to. ``kills``: agent -> the step of its scripted crash; ``neighbours0``: agent -> the
     ids it listens to in the initial configuration.
 
-    Returns a sentence instead when an agent of a configuration neither ran a role nor
-    had failed by then (a standby that heard its assignment too late): it computed
-    nothing the simulator's rows could hold.
+    Each row ends with the ids that hold a role in it but had not started one (a standby
+    that heard its assignment too late: it computes and publishes nothing until the
+    re-issue it hears in time, and its receivers read only the failed agent's stream on
+    its link, :class:`design.simulate.Recovery`'s ``waiting``).
 
     >>> rosters = [(0, (1, 2, 3), 0), (175, (1, 3), 1), (190, (1, 3), 2)]
     >>> est = {1: {174: 0, 175: 1, 189: 1, 190: 2}, 2: {160: 0},
@@ -491,8 +492,15 @@ def configurations_run(rosters, est_epoch, assigns, kills, neighbours0):
     ...            (1, 2): {"neighbours": {3: 0.5}}, (3, 2): {"neighbours": {1: 0.5}}}
     >>> ring = {1: {2}, 2: {3}, 3: {2}}
     >>> for row in configurations_run(rosters, est, assigns, {2: 161}, ring): print(row)
-    (175, (1, 3, 2), {1: 1, 3: 0, 2: 0})
-    (190, (1, 3), {1: 2, 3: 2})
+    (175, (1, 3, 2), {1: 1, 3: 0, 2: 0}, ())
+    (190, (1, 3), {1: 2, 3: 2}, ())
+    >>> rosters = [(0, (1, 2, 3), 0), (175, (1, 4, 3), 1), (190, (1, 4, 3), 2)]
+    >>> est = {1: {174: 0, 175: 1, 189: 1, 190: 2}, 2: {160: 0},
+    ...        3: {174: 0, 175: 1, 189: 1, 190: 2},
+    ...        4: {189: 2, 190: 2}}        # standby 4 heard epoch 1 too late
+    >>> for row in configurations_run(rosters, est, assigns, {2: 161}, ring): print(row)
+    (175, (1, 4, 3), {1: 1, 4: 1, 3: 1}, (4,))
+    (190, (1, 4, 3), {1: 2, 4: 2, 3: 2}, ())
     """
     ids_of = {epoch: tuple(ids) for _, ids, epoch in rosters}
 
@@ -526,12 +534,8 @@ def configurations_run(rosters, est_epoch, assigns, kills, neighbours0):
                 ids.append(b)
                 epochs[b] = running.get(b, epochs[ids[i]])
             i += 1
-        late = [a for a in ids if a not in running and kills.get(a, math.inf) > s]
-        if late:
-            return (f"agent {late[0]} holds a role in epoch {newest} but had not started it "
-                    f"at step {s}, when others ran it: it computed nothing the simulator "
-                    "could replay")
-        out.append((s, tuple(ids), epochs))
+        waiting = tuple(a for a in ids if a not in running and kills.get(a, math.inf) > s)
+        out.append((s, tuple(ids), epochs, waiting))
     return out
 
 
@@ -807,10 +811,8 @@ def compare_simulator(config, rec, steps_done):
                            for i in range(c.scenario.N)}
             phases = configurations_run(rec.rosters, rec.est_epoch, rec.assigns, kills,
                                         neighbours0)
-            if isinstance(phases, str):
-                return float("inf"), phases
         else:
-            phases = [(at, ids, {a: epoch for a in ids}) for at, ids, epoch in rosters[1:]]
+            phases = [(at, ids, {a: epoch for a in ids}, ()) for at, ids, epoch in rosters[1:]]
         at_end, ids_end, epoch_end = rosters[-1]
         dead_at_end = sorted(a for a in ids_end if kills.get(a, math.inf) <= at_end)
         if len(rosters) > 1 and dead_at_end:
@@ -819,7 +821,7 @@ def compare_simulator(config, rec, steps_done):
                 f"run's end (epoch {epoch_end}) and not yet replaced: the simulator's last "
                 "configuration holds no failed agent")
         took = sorted(a for a in kills if a > c.scenario.N
-                      and any(a in ids for _, ids, _ in phases))
+                      and any(a in ids for _, ids, _, _ in phases))
         if took:
             return float("inf"), (
                 f"agent {took[0]} was killed after it took a role: the simulator fails "
@@ -827,18 +829,19 @@ def compare_simulator(config, rec, steps_done):
         table = link_delay_table(c.scenario, c.delays)
         specs_of: dict = {}           # epoch -> {id: RoleSpec} as of that epoch
         chain, before = [], set(rosters[0][1])
-        for at, ids, epochs in phases:
+        for at, ids, epochs, waiting in phases:
             for e in set(epochs.values()) - set(specs_of):
                 specs_of[e] = specs_in_force(rec.rosters, rec.assigns, c.scenario, G,
                                              epoch=e)[1]
             specs = {a: specs_of[epochs[a]][a] for a in ids}
             new, G_new, D_new = roster_from_specs(c.scenario, table, ids, specs,
                                                   transient=len(set(epochs.values())) > 1)
+            # a standby takes over when it starts its role (not while it waits for it)
             replaces = {a: specs[a].take_over - 1 for a in ids
                         if a not in before and specs[a].take_over is not None}
             chain.append(Recovery(new, G_new, tuple(ids), replaces=replaces, delays=D_new,
-                                  activate_at=at))
-            before = set(ids)
+                                  activate_at=at, waiting=frozenset(waiting)))
+            before = set(ids) - set(waiting)
         recover = chain or None
         if recover is not None and fail is None:
             return float("inf"), ("a reassignment after the kill of a standby only cannot "
@@ -851,15 +854,19 @@ def compare_simulator(config, rec, steps_done):
     if len(steps_done) != K + 1:
         return float("inf"), "incomplete run"
     sim_est = np.asarray(res.estimates)[0]
-    worst, compared = 0.0, 0
+    worst, compared, first = 0.0, 0, None
     for k in steps_done:
         scale = max(1.0, float(np.abs(rec.truth[k]).max()))
         for col, a in enumerate(res.estimate_ids):
             if k in rec.est.get(a, {}) and np.isfinite(sim_est[k, col]).all():
-                d = float(np.abs(rec.est[a][k] - sim_est[k, col]).max())
-                worst = max(worst, d / scale)
+                d = float(np.abs(rec.est[a][k] - sim_est[k, col]).max()) / scale
+                worst = max(worst, d)
                 compared += 1
-    return worst, f"estimates ({compared} compared)"
+                if first is None and not d <= CHECK_TOL:
+                    first = (k, a)
+    where = "" if first is None else (f"; the first above {CHECK_TOL:g}: agent {first[1]} "
+                                      f"at step {first[0]}")
+    return worst, f"estimates ({compared} compared{where})"
 
 
 def _write(path, data, written=None) -> None:
