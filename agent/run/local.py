@@ -146,6 +146,13 @@ class RunFailed(Exception):
     pass
 
 
+#: The link lease of the launcher's own session (the recorder): its peers tolerate this
+#: long a silence of it. The recorder decodes every estimate of the run and is the busiest
+#: Python loop of a loaded host; with the processes' 1 s lease its links lapsed beside
+#: two busy loops and it lost 73 steps of the record (and saw every monitor token go)
+#: while the run itself went on. Nobody's failure detection reads its token.
+RECORDER_LEASE_MS = 5000
+
 #: What a run started here shows of itself as it goes (:func:`live_view`).
 _LIVE = contextvars.ContextVar("socmon_live_view", default=None)
 
@@ -286,7 +293,8 @@ class LocalRun:
             if c.router:        # up before its clients, which try it for 10 s only
                 children.start("router", ["router", "--listen", router_ep])
                 _wait_listening(children, "router", c.start_timeout)
-            with topics.open_peer(NetConfig(run=rec.run_id, **{"listen": (ep[0],), **net_extra}),
+            with topics.open_peer(NetConfig(run=rec.run_id, lease_ms=RECORDER_LEASE_MS,
+                                            **{"listen": (ep[0],), **net_extra}),
                                   "recorder", 0) as peer:
                 recorder.subscribe(peer)
                 alive_watch = peer.watch_liveliness()
