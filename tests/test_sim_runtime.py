@@ -296,3 +296,75 @@ def test_an_agent_or_standby_that_hears_its_roles_too_late_at_long_delays_is_rep
     diff, how = compare_simulator(r.config, r.recording, r.steps)
     assert diff <= 1e-12, how
     assert r.summary["recovered"] is True
+
+
+def test_a_payload_shared_by_its_receivers_is_decoded_once_and_counted_for_each():
+    """The simulated network decodes a payload sent to several receivers once, through the
+    codec and its validation, and hands every receiver the same message; a malformed one
+    is dropped for every receiver, with its reason."""
+    from unittest import mock
+
+    from agent.protocol import wire
+    from agent.run import simulated
+    from broker_free_net.codec import MessageStats
+
+    stats = MessageStats()
+    payload = wire.encode_est(2, 7, np.arange(3.0), epoch=1, t=0.5)
+    shared = simulated._Shared(payload, wire.est_schema(3))
+    with mock.patch.object(simulated, "decode", wraps=simulated.decode) as decode:
+        got = [shared.decode(stats) for _ in range(3)]
+    assert decode.call_count == 1 and stats.accepted == 3
+    assert got[0] is got[1] is got[2] and (got[0]["agent"], got[0]["step"]) == (2, 7)
+    assert not got[0]["x"].flags.writeable and list(got[0]["x"]) == [0.0, 1.0, 2.0]
+    bad = simulated._Shared(payload, wire.est_schema(4))          # the wrong length
+    assert [bad.decode(stats) for _ in range(2)] == [None, None]
+    assert sum(stats.dropped.values()) == 2 and list(stats.dropped) == ["shape"]
+
+
+def test_every_message_of_a_simulated_run_goes_through_the_codec(live):
+    r = SimRuntime(live[0], live[1], live[0].delays, seed=3)
+    r.run(60)
+    assert r.stats.accepted > 4 * 60 and r.stats.total_dropped == 0
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_neighbour_keeps_the_newest_history_stamps_whatever_their_order(seed):
+    """AgentCore's store of a neighbour's estimates (pruned as a scan of every stamp
+    did): the stamps within ``history`` of the newest, in order, late, repeated."""
+    from agent.node.core import _Neighbour
+
+    rng = np.random.default_rng(seed)
+    history = int(rng.integers(1, 12))
+    stamps = np.arange(200) + (rng.integers(-6, 7, 200) * (rng.random(200) < 0.1))
+    nb, ref = _Neighbour(8), {}
+    for s in stamps.tolist():
+        nb.keep(s, float(s), history)
+        ref[s] = float(s)
+        if len(ref) > history:
+            newest = max(ref)
+            for old in [old for old in ref if old <= newest - history]:
+                del ref[old]
+        assert nb.est == ref and nb.newest == max(ref)
+
+
+def test_a_seat_decides_the_same_when_the_monitors_alive_repeat():
+    """MonitorSeat keeps what it made of the monitors alive while they are the same: the
+    decisions over a run of ticks equal those of a seat asked afresh every tick."""
+    from agent.monitor.core import MonitorConfig, MonitorCore, MonitorSeat
+
+    s = load_scenario("paper-14-live")
+    G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    ticks = [(0.01 * k, [(1, "a"), (2, "b")] if k < 150 or k > 180 else [(2, "b")])
+             for k in range(400)] + [(4.0 + 0.01 * k, [(1, "c"), (2, "b")]) for k in range(300)]
+
+    def states(fresh: bool):
+        core = MonitorCore(MonitorConfig(), s, G, s.delays)
+        seat = MonitorSeat(core, 2, 0.0, listen_s=0.5)
+        out = []
+        for now, alive in ticks:
+            if fresh:
+                seat._alive_in = None
+            out.append((seat.decide(now, alive), dict(seat.seen_since)))
+        return out
+
+    assert states(fresh=False) == states(fresh=True)

@@ -394,6 +394,7 @@ class MonitorCore:
         self._first_verdict_at = None     # the settle window of simultaneous failures
         self._first_seen: dict = {}       # agent -> when its verdict was first found
         self._delays_checked = None       # learned delays last certified
+        self._off_design = None           # see _delays_off_design
         self.rho_learned = None
         #: the agents report an epoch this monitor did not issue: :meth:`adopt` before acting
         self.behind = False
@@ -529,6 +530,22 @@ class MonitorCore:
         its epoch. Times are this core's (``mono``: the caller's monotonic clock)."""
         seen = self._recorded
         out = []
+        lists = (("verdicts", self.verdicts), ("history", self.history),
+                 ("gains", self.gain_notes), ("reissue", self.reissues),
+                 ("rejoin", self.rejoins), ("evidence_refused", self.anomalies),
+                 ("residual_alert", self.residual_alerts))
+        if any(seen[name] != len(items) for name, items in lists):  # asked at every tick
+            out = self._records_since(seen)
+        if self.history and not self.confirmed():
+            seen["waiting"] = self.epoch
+        elif seen["waiting"] is not None and self.confirmed():
+            out.append(("confirmed", {"epoch": self.epoch, "waited_for": seen["waiting"]}))
+            seen["waiting"] = None
+        return out
+
+    def _records_since(self, seen: dict) -> list:
+        """The records of :meth:`new_records` past the counts ``seen`` (updated)."""
+        out = []
         for v in self.verdicts[seen["verdicts"]:]:
             out.append(("verdict", {"agent": v.agent, "cause": v.cause, "evidence": v.evidence,
                                     "step": v.step, "mono": v.at}))
@@ -545,11 +562,6 @@ class MonitorCore:
                             ("rejoin", self.rejoins), ("evidence_refused", self.anomalies),
                             ("residual_alert", self.residual_alerts)):
             seen[name] = len(items)
-        if self.history and not self.confirmed():
-            seen["waiting"] = self.epoch
-        elif seen["waiting"] is not None and self.confirmed():
-            out.append(("confirmed", {"epoch": self.epoch, "waited_for": seen["waiting"]}))
-            seen["waiting"] = None
         return out
 
     # -- the clock -----------------------------------------------------------------
@@ -830,12 +842,7 @@ class MonitorCore:
                 return []
             return self._assign_all(p["roster"], G, info, now, p["record"],
                                     "gains for the learned delays")
-        learned = self.learned_delays()
-        # links whose learned delay differs from the one the gains were designed for
-        # (stability is not monotone in the delays: shorter ones are checked too)
-        above = {k: v for k, v in learned.items()
-                 if k[1] in self.roster.ids and self.scenario_link(k) and v != self.roster.delays[
-                     self.roster.row_of(k[0]), self.roster.row_of(k[1])]}
+        above = self._delays_off_design()
         key = tuple(sorted(above.items()))
         if not above or key == self._delays_checked or self.G is None:
             return []
@@ -857,6 +864,25 @@ class MonitorCore:
             "causes": {"0": "delay"}, "delays": {f"{b}->{a}": t for (a, b), t
                                                 in sorted(above.items())}}}
         return self.check_delays(now)
+
+    def _delays_off_design(self) -> dict:
+        """``{(receiver, sender): tau}``: the links of the configuration in force whose
+        learned delay differs from the one the gains were designed for (stability is not
+        monotone in the delays: shorter ones are checked too). Read from the statuses of
+        its agents at every tick: kept while the roster and those statuses are the same
+        objects (a status is replaced, never changed, when the next one comes)."""
+        roster = self.roster
+        statuses = tuple(self.agents[a].status for a in roster.ids)
+        held = self._off_design
+        if held is not None and held[0] is roster and len(held[1]) == len(statuses) \
+                and all(x is y for x, y in zip(held[1], statuses)):
+            return held[2]
+        learned = self.learned_delays()
+        above = {k: v for k, v in learned.items()
+                 if k[1] in roster.ids and self.scenario_link(k) and v != roster.delays[
+                     roster.row_of(k[0]), roster.row_of(k[1])]}
+        self._off_design = (roster, statuses, above)
+        return above
 
     def _lead_cap(self) -> int:
         """The longest head start: twice the hang timeout, in steps."""
@@ -1316,6 +1342,8 @@ class MonitorSeat:
         self.records: list = []
         self.lines: list = []
         self.precompute = False
+        self._alive_in = None          # the last monitors_alive, and its other ids (_decide)
+        self._alive_ids: tuple = ()
 
     def on_roster(self, msg: dict) -> None:
         """A roster heard on ``ctl/0`` (its signature already checked by the caller)."""
@@ -1353,19 +1381,24 @@ class MonitorSeat:
 
     def _decide(self, now: float, monitors_alive) -> str:
         core = self.core
-        alive: dict = {}
-        for item in monitors_alive:
-            i, session = item if isinstance(item, tuple) else (item, None)
-            if int(i) != self.id:
-                alive.setdefault(int(i), set()).add(session)
-        since = {}
-        for i, sessions in alive.items():
-            back = any(s is not None and (i, s) in self.sessions_seen for s in sessions)
-            since[i] = self.seen_since.get(i, -math.inf if back else now)
-            self.sessions_seen |= {(i, s) for s in sessions if s is not None}
-        self.seen_since = since
+        monitors_alive = tuple(monitors_alive)
+        # the same monitors as at the last tick change nothing of what follows (each is
+        # in seen_since already, its sessions seen): done again only when they change
+        if monitors_alive != self._alive_in:
+            alive: dict = {}
+            for item in monitors_alive:
+                i, session = item if isinstance(item, tuple) else (item, None)
+                if int(i) != self.id:
+                    alive.setdefault(int(i), set()).add(session)
+            since = {}
+            for i, sessions in alive.items():
+                back = any(s is not None and (i, s) in self.sessions_seen for s in sessions)
+                since[i] = self.seen_since.get(i, -math.inf if back else now)
+                self.sessions_seen |= {(i, s) for s in sessions if s is not None}
+            self.seen_since = since
+            self._alive_in, self._alive_ids = monitors_alive, tuple(alive)
         # a smaller id acts once it has listened: until then this one goes on acting
-        others = sorted(i for i in alive
+        others = sorted(i for i in self._alive_ids
                         if now - self.seen_since[i] >= self.listen_s - HANDOVER_S)
         should = (not others or self.id < others[0]) and now >= self.listen_until
         if should and not self.active:

@@ -64,6 +64,8 @@ import math
 import statistics
 from dataclasses import dataclass, field
 
+import numpy as np
+
 __all__ = ["FailureDetector", "StatusPace", "Verdict", "AgentEvidence", "CRASH_SETTLE_S"]
 
 
@@ -200,6 +202,7 @@ class FailureDetector:
         self._world_gone_step = -1                 # the newest step reported then
         self._stepped_since_world: set = set()     # agents reporting a step past it
         self.world_end: int | None = None          # its last step, once its end is heard
+        self._view = None                          # see _roster_view
 
     def observe(self, now: float) -> None:
         """The controller's clock ticks at ``now``: a gap since the last observation longer
@@ -615,15 +618,28 @@ class FailureDetector:
                     "and no impaired link: not convicted on one listener's word")
         return False
 
+    def _roster_view(self) -> tuple:
+        """``(roster, {id: row}, W > 0, delays)`` of the configuration in force, as Python
+        lists (the verdicts read them for every agent at every tick; a roster is frozen, so
+        they are kept until it is replaced)."""
+        view = self._view
+        if view is None or view[0] is not self.roster:
+            r = self.roster
+            view = self._view = (r, {a: i for i, a in enumerate(r.ids)},
+                                 (np.asarray(r.scenario.W) > 0).tolist(),
+                                 np.asarray(r.delays).tolist())
+        return view
+
     def _listener_ages(self, agent: int) -> dict:
         """``{listener: age of the freshest estimate of agent it holds}`` (-1: none yet
         counts as not silent; listeners without a status are left out). The listeners are
         those of the configuration in force (its W), not whoever claims to listen."""
         out = {}
-        W, col = self.roster.scenario.W, self.roster.row_of(agent)
+        _, rows, listens, _ = self._roster_view()
+        col = self.roster.row_of(agent)
         for j in self.roster.ids:
             st = self.agents[j].status
-            if j == agent or not st or not W[self.roster.row_of(j), col] > 0:
+            if j == agent or not st or not listens[rows[j]][col]:
                 continue
             age = st.get("ages", {}).get(agent)
             if age is None or age < 0:
@@ -636,8 +652,8 @@ class FailureDetector:
         one the receiver learned when larger (an estimate that old is on time), by at
         most ``silent_steps`` (a larger one is the ``delay`` verdict's matter, and a
         listener claiming a huge one must not silence the bound)."""
-        D = self.roster.delays
-        tau = int(D[self.roster.row_of(receiver), self.roster.row_of(sender)])
+        _, rows, _, D = self._roster_view()
+        tau = int(D[rows[receiver]][rows[sender]])
         learned = self.agents[receiver].status.get("delays")
         if isinstance(learned, dict):
             got = learned.get(sender, learned.get(str(sender)))

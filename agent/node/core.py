@@ -124,6 +124,9 @@ MAX_POLL_STEPS = 256
 MAX_PENDING_ROSTERS = 16
 
 
+_UNSET = object()
+
+
 class AssignmentError(ValueError):
     """A role assignment is invalid or cannot be applied; the message says why."""
 
@@ -267,10 +270,13 @@ class _Neighbour:
     """What an agent holds from one other agent."""
 
     __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held", "since",
-                 "cont")
+                 "cont", "newest", "in_order")
 
     def __init__(self, window: int):
         self.est: dict = {}              # stamp -> x
+        self.newest = None               # the newest stamp held (pruning never drops it)
+        self.in_order = True             # stamps were added in increasing order: the
+                                         # dict's order is theirs
         self.lateness = deque(maxlen=window)
         self.heard = False               # at least one estimate delivered
         self.missed: set = set()         # stamps needed but missing at a deadline
@@ -283,6 +289,30 @@ class _Neighbour:
     @property
     def tau(self):
         return min(self.lateness) if self.lateness else None
+
+    def keep(self, stamp: int, x, history: int) -> None:
+        """Hold ``x`` stamped ``stamp``; drop the stamps ``history`` or more older than the
+        newest. While stamps come in order the oldest are the dict's first ones, so the
+        pruning stops at the first one kept instead of scanning all (once per delivery)."""
+        est = self.est
+        newest = self.newest
+        if newest is None or stamp > newest:
+            self.newest = newest = stamp
+        elif stamp not in est:
+            self.in_order = False
+        est[stamp] = x
+        if len(est) > history:
+            floor = newest - history
+            if self.in_order:
+                stale = []
+                for s in est:
+                    if s > floor:
+                        break
+                    stale.append(s)
+            else:
+                stale = [s for s in est if s <= floor]
+            for s in stale:
+                del est[s]
 
     def freshest(self, at_most: int, usable=None):
         stamps = [s for s in self.est if s <= at_most and (usable is None or usable(s))]
@@ -309,6 +339,7 @@ class AgentCore:
         self.history = max(int(config.history), int(config.max_age) + 1)
         self._dropped: dict = {}          # (sender, stamp) -> lost by a keyed drop
         self._est_role = None             # (role, columns read, AgentRole) last used
+        self._wanted = (_UNSET, _UNSET, ())  # (role, pending, wanted_labels()) last asked
         self._measurement_noise = noise.StepDraws(
             lambda k, p: noise.measurement_noise(config.seed, self.id, k, p,
                                                  config.measurement_noise)[0])
@@ -363,12 +394,19 @@ class AgentCore:
         return nb
 
     def wanted_labels(self) -> tuple:
-        """Sensor labels this agent must receive (current and pending roles, or a clock)."""
+        """Sensor labels this agent must receive (current and pending roles, or a clock).
+        Kept while the role and the pending role are the same objects (roles are frozen):
+        asked several times a message."""
+        held = self._wanted
+        if held[0] is self.role and held[1] is self.pending:
+            return held[2]
         wanted = []
         for role in (self.role, self.pending):
             if role is not None:
                 wanted += [m for m in role.measure if m not in wanted]
-        return tuple(wanted) if wanted else (self.labels[0],)
+        out = tuple(wanted) if wanted else (self.labels[0],)
+        self._wanted = (self.role, self.pending, out)
+        return out
 
     def learned_delays(self) -> dict:
         """``{neighbour: tau}`` for the current neighbours heard from."""
@@ -453,8 +491,10 @@ class AgentCore:
             self.impaired += 1
             return 0
         index = self._label_index
-        return sum(self.on_sensor(label, step, float(x[index[label]]), now=now)
-                   for label in self.wanted_labels())
+        taken = 0
+        for label in self.wanted_labels():
+            taken += self.on_sensor(label, step, float(x[index[label]]), now=now)
+        return taken
 
     def _note_pace(self, step: int, now: float) -> None:
         """The world's pace from in-order readings: the newest step, when it came, and the
@@ -509,11 +549,7 @@ class AgentCore:
             self.late += 1
         nb.heard = True
         nb.lateness.append(max(0, self.step - stamp))
-        nb.est[stamp] = x
-        if len(nb.est) > self.history:
-            newest = max(nb.est)
-            for s in [s for s in nb.est if s <= newest - self.history]:
-                del nb.est[s]
+        nb.keep(stamp, x, self.history)
 
     def on_impairment(self, msg: dict) -> bool:
         """Apply a decoded impairment change if it concerns a link into this agent.
@@ -608,12 +644,20 @@ class AgentCore:
     def _readings(self, k: int):
         """(values by label, is_complete) for step k, or None to keep waiting."""
         wanted = self.wanted_labels()
-        have = self.sensor.get(k, {})
-        if all(m in have for m in wanted):
+        have = self.sensor.get(k)
+        if have is None:
+            have = {}
+        for m in wanted:
+            if m not in have:
+                break
+        else:
             return have, True
         # a reading of a later step on a wanted label: the missing ones for k are lost
-        if any(s > k and any(m in v for m in wanted) for s, v in self.sensor.items()):
-            return have, False
+        for s, v in self.sensor.items():
+            if s > k:
+                for m in wanted:
+                    if m in v:
+                        return have, False
         return None
 
     def poll(self, now: float) -> list:
@@ -622,7 +666,8 @@ class AgentCore:
         under the epoch of the role that computed it (a batch may cross a role change)."""
         out = []
         for _ in range(MAX_POLL_STEPS):
-            self._release(now)
+            if self.impair.held:
+                self._release(now)
             k = self.step + 1
             got = self._readings(k) if self.step >= 0 else self._first_readings()
             if got is None:
@@ -720,8 +765,8 @@ class AgentCore:
         plan, waiting = {}, False
         for j in self.role.neighbours:
             nb = self._nb(j)
-            tau = nb.tau if nb.tau is not None else 0
-            need = max(k - 1 - tau, 0)
+            tau = nb.tau
+            need = max(k - 1 - (0 if tau is None else tau), 0)
             if need in nb.est and need >= nb.since and self._usable(j, need):
                 plan[j] = (need, need, j)
             elif (nb.alive and not nb.step_held and need not in nb.est

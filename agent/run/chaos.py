@@ -130,13 +130,46 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: f
     return out
 
 
+def configuration_key(scenario, *parts) -> tuple:
+    """Every field of ``scenario`` and ``parts`` (arrays, lists of arrays, other values) as
+    a hashable key: what a cache of a pure function of them is keyed by."""
+    def key(x):
+        if isinstance(x, np.ndarray):
+            return x.dtype.str, x.shape, x.tobytes()
+        if isinstance(x, (list, tuple)):
+            return tuple(key(y) for y in x)
+        return x
+
+    s = scenario
+    return (s.name, key(s.A), s.labels, s.process_noise, s.measure, s.measurement_noise,
+            s.standby, key(s.W), key(np.asarray(s.delays)), s.step_ms, s.source,
+            *(key(p) for p in parts))
+
+
+#: the exact MSE of a configuration by :func:`configuration_key`: the runs of a batch of
+#: schedules meet the same configurations (the initial one in every run)
+_EXACT_MSE: dict = {}
+
+
+def _exact_mse(scenario, G, D) -> float:
+    from design.closed_loop import exact_performance
+    from design.errors import SocmonError
+
+    key = configuration_key(scenario, list(G), np.asarray(D))
+    if key not in _EXACT_MSE:
+        try:
+            _EXACT_MSE[key] = exact_performance(scenario, G, D).mse_or_inf
+        except (SocmonError, ValueError):
+            _EXACT_MSE[key] = math.inf
+    return _EXACT_MSE[key]
+
+
 def _roster_at(rosters, k):
     return [r for r in rosters if r[0] <= k][-1]
 
 
 def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()) -> list:
     """Every violation of the module's invariants in one recorded run."""
-    from design.closed_loop import exact_performance
     from design.errors import SocmonError
     from design.graph import influence_structure
     from design.roster import Roster, link_delay_table, replan, roster_from_specs
@@ -247,13 +280,7 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
                    + [v["detected_step"] for v in summary.get("failures", [])
                       if v.get("detected_step") is not None])
     mse_at = dict(zip(steps, mse))
-    predicted = {}
-    for x in configs:
-        try:
-            predicted[x["epoch"]] = exact_performance(x["scenario"], x["G"],
-                                                      x["D"]).mse_or_inf
-        except (SocmonError, ValueError):
-            predicted[x["epoch"]] = math.inf
+    predicted = {x["epoch"]: _exact_mse(x["scenario"], x["G"], x["D"]) for x in configs}
     k = 0
     while k + bounds.window <= last:
         span = range(k, k + bounds.window)

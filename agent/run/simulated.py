@@ -4,7 +4,8 @@ wired by an event queue, with link latency, crashes, hangs and pauses, and no ze
 What runs is what the processes run: :class:`agent.node.core.AgentCore`,
 :class:`agent.world.core.WorldCore` and :class:`agent.monitor.core.MonitorCore`, fed with
 messages that go through the same codec (:mod:`agent.protocol.wire`, encoded by the sender and
-decoded by the receiver) at the times the simulated network delivers them. The monitor's
+decoded, validation included, at the first receiver; the receivers of one payload share the
+message, :class:`_Shared`) at the times the simulated network delivers them. The monitor's
 record is :meth:`MonitorCore.new_records`, as the monitor process writes it, and the run is
 summarised by :func:`agent.run.summary.summarize`, the code that writes a live run's
 ``summary.json``: ``recovered``, the rosters in force and the MSE after recovery are read
@@ -57,7 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agent.protocol import topics
-from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.codec import MalformedMessage, MessageStats, decode, try_decode
 from broker_free_net.impair import decode_impairment, encode_impairment
 
 from agent.protocol import wire
@@ -129,12 +130,68 @@ class SimResult:
                                 self.mse, bounds or Bounds())
 
 
+#: :func:`agent.run.summary.predicted_mse` by scenario, gains and delays (every run of a
+#: batch asks the same)
+_PREDICTED: dict = {}
+
+
+def _configuration_key(roster, *arrays) -> tuple:
+    """Everything a :class:`design.roster.Roster` (or a scenario) holds, the scenario's
+    fields included, and ``arrays`` (lists of arrays too), as a hashable key."""
+    from agent.run.chaos import configuration_key
+
+    if not hasattr(roster, "ids"):
+        return configuration_key(roster, *arrays)
+    return configuration_key(roster.scenario, roster.ids, roster.standby_ids, roster.table,
+                             roster.delays, *arrays)
+
+
+class _Shared:
+    """A payload sent to several receivers (the world's readings, an estimate, a status, a
+    roster): decoded by the codec, validation included, at the first receiver, and the same
+    message handed to the others, each counted in ``stats``. Every receiver of a live run
+    decodes the same bytes to the same message; decoding each copy again took a fifth of a
+    simulated run. The cores only read the messages (``AgentCore.on_estimate`` copies the
+    estimate; the arrays are read-only), so one message can be shared."""
+
+    __slots__ = ("payload", "schema", "msg", "reason")
+
+    def __init__(self, payload: bytes, schema):
+        self.payload, self.schema, self.msg, self.reason = payload, schema, None, None
+
+    def decode(self, stats: MessageStats):
+        if self.schema is not None:
+            try:
+                self.msg = decode(self.payload, self.schema)
+            except MalformedMessage as exc:
+                self.reason = exc.reason
+            self.schema = None
+        if self.msg is None:
+            stats.count_dropped(self.reason)
+        else:
+            stats.count_accepted()
+        return self.msg
+
+
 class _GainDesigns:
     """The monitor's gain worker under simulated time: a request is designed at once (in
     real time, cached by model and configuration across runs) and answered ``design_s``
     later."""
 
     cache: dict = {}
+    plans: dict = {}
+
+    @classmethod
+    def plan(cls, roster) -> list:
+        """:func:`agent.monitor.gain_worker.plan_failures` of ``roster``, cached across runs
+        by configuration like the designs (it is pure, and its rosters are frozen): planning
+        was a twentieth of a run, again at every precompute."""
+        from agent.monitor.gain_worker import plan_failures
+
+        key = _configuration_key(roster)
+        if key not in cls.plans:
+            cls.plans[key] = plan_failures(roster)
+        return list(cls.plans[key])
 
     def _design(self, roster, kind, warm=None):
         from agent.monitor.core import design_gains_for
@@ -171,12 +228,11 @@ class _GainDesigns:
         as the monitor's worker does) and their fast gains answered one after the other,
         ``precompute_s`` apart, then their polished gains, ``polish_s`` apart; a newer
         precompute abandons the rest of an older one."""
-        from agent.monitor.gain_worker import plan_failures
         from design.roster import carried_gains
 
         self.generation += 1
         generation = self.generation
-        planned = [nxt for _, nxt in plan_failures(roster)]
+        planned = [nxt for _, nxt in self.plan(roster)]
         cfg = self.rt.config
         at = 0.0
         for kind, dt in (("fast", cfg.precompute_s), ("polished", cfg.polish_s)):
@@ -236,11 +292,15 @@ class SimRuntime:
         self._queue: list = []
         self._seq = itertools.count()
         self._rng = np.random.default_rng([self.seed, 7])
+        self._jitter: list = []                # the link jitters, drawn 1024 at a time
+        self._jitter_at = 0
         self._link_free: dict = {}
         deadline = c.step_s if c.deadline_s is None else c.deadline_s
         self.agents = {a: AgentCore(agent_config(scenario, a, self.G, self.seed, self.delays,
                                                  deadline))
                        for a in range(1, self.M + 1)}
+        self._names = {a: f"agent-{a}" for a in self.agents}     # their process names
+        self._agent_of = {name: a for a, name in self._names.items()}
         self.world = WorldCore(scenario.A, self.seed, scenario.process_noise)
         self.dead: set = set()                 # processes that died ("agent-3", ...)
         self.hung: set = set()
@@ -262,6 +322,10 @@ class SimRuntime:
         from agent.run.recorder import Recorder
 
         self.run_id = f"sim{self.seed}"
+        # the keys published on every step, formed (and checked) once
+        self._keys = {"truth": topics.truth_key(self.run_id),
+                      **{("est", a): topics.est_key(self.run_id, a) for a in self.agents},
+                      **{("status", a): topics.status_key(self.run_id, a) for a in self.agents}}
         self.recorder = Recorder(self.run_id, scenario.n, scenario.N, self.M,
                                  clock=lambda: self.now)
         self.rec = self.recorder.recording
@@ -273,28 +337,37 @@ class SimRuntime:
         self._send(src, "recorder", lambda: self.recorder.feed(key, payload))
 
     # -- the event queue -------------------------------------------------------------
+    # an event is (time, sequence number, function, its arguments)
     def after(self, dt: float, fn) -> None:
-        heapq.heappush(self._queue, (self.now + dt, next(self._seq), fn))
+        heapq.heappush(self._queue, (self.now + dt, next(self._seq), fn, ()))
 
     def _send(self, src: str, dst: str, handle) -> None:
         """Deliver ``handle()`` at ``dst`` after the link's latency, in order per link."""
+        i = self._jitter_at
+        if i == len(self._jitter):
+            # one draw of 1024 gives the numbers of 1024 draws of one, in the same order
+            self._jitter, i = self._rng.random(1024).tolist(), 0
+        self._jitter_at = i + 1
         c = self.config
-        at = self.now + c.latency_s + c.jitter_s * float(self._rng.random())
-        at = max(at, self._link_free.get((src, dst), 0.0))
-        self._link_free[(src, dst)] = at
-        heapq.heappush(self._queue, (at, next(self._seq), lambda: self._arrive(dst, handle)))
+        at = self.now + c.latency_s + c.jitter_s * self._jitter[i]
+        link = (src, dst)
+        free = self._link_free.get(link, 0.0)
+        if free > at:
+            at = free
+        self._link_free[link] = at
+        heapq.heappush(self._queue, (at, next(self._seq), self._arrive, (dst, handle)))
 
     def _arrive(self, dst: str, handle) -> None:
         if dst in self.dead:
             return
-        cost = self.slow.get(dst)
+        cost = self.slow.get(dst) if self.slow else None
         if cost is not None:             # short of CPU: messages are served one at a time
             until, per = cost
             if self.now < until:
                 start = max(self.now, self._busy_until.get(dst, 0.0))
                 self._busy_until[dst] = start + per
-                heapq.heappush(self._queue, (start + per, next(self._seq),
-                                             lambda: self._serve(dst, handle)))
+                heapq.heappush(self._queue, (start + per, next(self._seq), self._serve,
+                                             (dst, handle)))
                 return
         self._serve(dst, handle)
 
@@ -307,8 +380,9 @@ class SimRuntime:
                 del self._backlog[dst][0]
             return
         handle()
-        if dst.startswith("agent-"):
-            self._agent_poll(int(dst.split("-")[1]))
+        a = self._agent_of.get(dst)
+        if a is not None:
+            self._agent_poll(a)
 
     def _alive(self, name: str) -> bool:
         return name not in self.dead and name not in self.hung and \
@@ -319,11 +393,11 @@ class SimRuntime:
         """The clock starts once monitor 1 foresees every single failure (bounded by
         ``Timing.monitor_prepare_s``), as ``up``'s world waits for the live monitor's
         token (:func:`agent.monitor.process.foresee_single_failures`)."""
-        from agent.monitor.gain_worker import plan_failures, unforeseen_single_failures
+        from agent.monitor.gain_worker import unforeseen_single_failures
 
         m = self.monitors.get(1)
         if m is not None and self._planned is None:
-            self._planned = plan_failures(m.core.roster)
+            self._planned = _GainDesigns.plan(m.core.roster)
         if (m is not None and self.now < self.config.start_s + TIMING.monitor_prepare_s
                 and unforeseen_single_failures(m.gains, self._planned)):
             self.after(self.config.tick_s, self._start_world)
@@ -335,10 +409,10 @@ class SimRuntime:
     def _world_step(self) -> None:
         w = self.world
         k = w.step
-        self._record("world", topics.truth_key(self.run_id), wire.encode_truth(k, w.x))
-        payload = wire.encode_sensors(k, w.x)
+        self._record("world", self._keys["truth"], wire.encode_truth(k, w.x))
+        shared = _Shared(wire.encode_sensors(k, w.x), self._schemas["sensors"])
         for a in self.agents:
-            self._send("world", f"agent-{a}", lambda a=a: self._on_sensors(a, payload))
+            self._send("world", self._names[a], lambda a=a: self._on_sensors(a, shared))
         for f in [f for f in self.faults if f.step == k and f.kind != "crash"]:
             self._fault(f)
         if k < self._steps:
@@ -346,8 +420,8 @@ class SimRuntime:
             self.after(self.config.step_s, self._world_step)
 
     # -- the agents ------------------------------------------------------------------
-    def _on_sensors(self, a: int, payload: bytes) -> None:
-        msg = try_decode(payload, self._schemas["sensors"], self.stats)
+    def _on_sensors(self, a: int, shared: _Shared) -> None:
+        msg = shared.decode(self.stats)
         if msg is not None:
             self.agents[a].on_sensors(msg["step"], msg["x"], now=self.now)
 
@@ -362,8 +436,8 @@ class SimRuntime:
         if self.agents[a].on_impairment(decode_impairment(payload)):
             self._agent_status(a)
 
-    def _on_est(self, a: int, payload: bytes) -> None:
-        msg = try_decode(payload, self._schemas["est"], self.stats)
+    def _on_est(self, a: int, shared: _Shared) -> None:
+        msg = shared.decode(self.stats)
         if msg is not None:
             self.agents[a].on_estimate(msg["agent"], msg["step"], msg["x"], self.now)
 
@@ -377,24 +451,25 @@ class SimRuntime:
             pass
         self._agent_status(a)
 
-    def _on_roster(self, a: int, payload: bytes) -> None:
-        msg = try_decode(payload, self._schemas["roster"], self.stats)
+    def _on_roster(self, a: int, shared: _Shared) -> None:
+        msg = shared.decode(self.stats)
         if msg is not None and self.agents[a].on_roster(msg):
             self._agent_status(a)
 
     def _agent_poll(self, a: int) -> None:
-        name = f"agent-{a}"
+        name = self._names[a]
         if not self._alive(name):
             return
         core = self.agents[a]
         crash_at = self._crash_at.get(a)
         for step, x, epoch in core.poll(self.now):
             payload = wire.encode_est(a, step, x, epoch, self.now)
-            self._record(name, topics.est_key(self.run_id, a), payload)
+            self._record(name, self._keys["est", a], payload)
+            shared = _Shared(payload, self._schemas["est"])
             for b in self.agents:
                 if b != a:
-                    self._send(name, f"agent-{b}",
-                               lambda b=b, payload=payload: self._on_est(b, payload))
+                    self._send(name, self._names[b],
+                               lambda b=b, shared=shared: self._on_est(b, shared))
             for m in self.monitors.values():    # the monitor's own observation: the key
                 self._send(name, m.name, lambda m=m, a=a: m.core.on_estimate_seen(a, self.now))
             if crash_at is not None and step >= crash_at - 1 and core.active:
@@ -406,7 +481,7 @@ class SimRuntime:
         wake = core.next_wakeup(self.now)
         if wake is not None and wake > self.now and self._wake_at.get(a, math.inf) > wake:
             self._wake_at[a] = wake
-            heapq.heappush(self._queue, (wake, next(self._seq), lambda: self._woken(a, wake)))
+            heapq.heappush(self._queue, (wake, next(self._seq), self._woken, (a, wake)))
 
     def _woken(self, a: int, at: float) -> None:
         if self._wake_at.get(a) == at:
@@ -414,15 +489,16 @@ class SimRuntime:
         self._agent_poll(a)
 
     def _agent_status(self, a: int) -> None:
-        name = f"agent-{a}"
+        name = self._names[a]
         if not self._alive(name):
             return
         st = self.agents[a].status()
         st.update(malformed=0, malformed_reasons={}, overflows=0)
         payload = wire.encode_status(st)
+        shared = _Shared(payload, wire.STATUS_SCHEMA)
         for m in self.monitors.values():
-            self._send(name, m.name, lambda m=m: self._on_status(m, payload))
-        self._record(name, topics.status_key(self.run_id, a), payload)
+            self._send(name, m.name, lambda m=m: self._on_status(m, shared))
+        self._record(name, self._keys["status", a], payload)
 
     def _status_loop(self, a: int) -> None:
         if f"agent-{a}" in self.dead:
@@ -539,13 +615,13 @@ class SimRuntime:
         (self.monitors_alive.add if alive else self.monitors_alive.discard)(monitor_id)
         self.recorder.on_monitor_liveliness(str(monitor_id), alive)
 
-    def _on_status(self, m, payload: bytes) -> None:
-        msg = try_decode(payload, wire.STATUS_SCHEMA, self.stats)
+    def _on_status(self, m, shared: _Shared) -> None:
+        msg = shared.decode(self.stats)
         if msg is not None:
             m.core.on_status(msg, self.now, sender=msg["agent"])
 
-    def _on_monitor_roster(self, m, payload: bytes) -> None:
-        msg = try_decode(payload, self._schemas["roster"], self.stats)
+    def _on_monitor_roster(self, m, shared: _Shared) -> None:
+        msg = shared.decode(self.stats)
         if msg is not None:
             m.seat.on_roster(msg)
 
@@ -564,12 +640,13 @@ class SimRuntime:
     def _roster_out(self, src, msg) -> None:
         payload = wire.encode_roster(msg.epoch, msg.activate_at, msg.ids)
         self._record(src.name, topics.ctl_key(self.run_id, 0), payload)
+        shared = _Shared(payload, self._schemas["roster"])
         for a in self.agents:
-            self._send(src.name, f"agent-{a}", lambda a=a: self._on_roster(a, payload))
+            self._send(src.name, f"agent-{a}", lambda a=a: self._on_roster(a, shared))
         for other in self.monitors.values():
             if other is not src:
                 self._send(src.name, other.name,
-                           lambda o=other: self._on_monitor_roster(o, payload))
+                           lambda o=other: self._on_monitor_roster(o, shared))
         src.roster_at = self.now + self.config.roster_s
 
     def _monitor_event(self, src, kind: str, fields: dict) -> None:
@@ -664,12 +741,15 @@ class SimRuntime:
             self.after(0.01 * a / self.M, lambda a=a: self._status_loop(a))
         self.after(c.start_s, self._start_world)
         while self._queue:
-            t, _, fn = heapq.heappop(self._queue)
+            t, _, fn, args = heapq.heappop(self._queue)
             if t > self._end_at:
                 break
             self.now = t
-            fn()
-        rho, predicted = predicted_mse(self.s, self.G, self.delays)
+            fn(*args)
+        key = _configuration_key(self.s, self.G, self.delays)
+        if key not in _PREDICTED:
+            _PREDICTED[key] = predicted_mse(self.s, self.G, self.delays)
+        rho, predicted = _PREDICTED[key]
         config = RunConfig(scenario=self.s, scenario_arg=self.s.name, G=self.G,
                            gains_path=None, delays=self.delays, delays_spec="sim",
                            steps=self._steps, seed=self.seed, step_ms=1e3 * c.step_s,
