@@ -521,17 +521,22 @@ class LocalRun:
                 for _, f in list(undo):           # faults still in force end with the run
                     if f.kind != "monitor":
                         end(f, recorder.step)
-                # final statuses: ask the agents to stop, then read what they said last
-                # (the router last: the final statuses pass through it)
+                # final statuses: ask the processes to stop, then read what they said
+                # last (the router last: the final statuses pass through it). The
+                # monitors first: an agent's token going while a monitor still watches
+                # is a crash to it (seen beside two busy loops: two healthy agents
+                # convicted at the last step, before the world's token was seen going)
                 last = [ch.name for ch in children.running() if ch.name != "router"]
-                for sig in (signal.SIGCONT, signal.SIGTERM):
-                    for name in last:
-                        _signal(children, name, sig)
-                deadline = time.monotonic() + 5.0
-                while ({ch.name for ch in children.running()} - {"router"}
-                       and time.monotonic() < deadline):
-                    peer.wait(timeout=0.1)
-                    drain()
+                watchers = [name for name in last if name.startswith("monitor")]
+                for group in (watchers, [name for name in last if name not in watchers]):
+                    for sig in (signal.SIGCONT, signal.SIGTERM):
+                        for name in group:
+                            _signal(children, name, sig)
+                    deadline = time.monotonic() + 5.0
+                    while ({ch.name for ch in children.running()} & set(group)
+                           and time.monotonic() < deadline):
+                        peer.wait(timeout=0.1)
+                        drain()
                 drain()
         except KeyboardInterrupt:
             rec.interrupted = True
