@@ -432,3 +432,21 @@ def test_a_replacements_link_continues_the_failed_agents_stream(paper14, gains14
         assert stamp is None
     held = core.states["held"] - before["held"]
     assert held == (1 if continues else 0)           # step 14 continues 1's stream
+
+
+def test_a_replay_of_old_estimates_does_not_change_the_learned_delay(paper14, gains14):
+    """A publisher's cache answers a subscription declared again (a standby taking a
+    role): the agent gets again, at once, estimates it already holds. Their ages say
+    nothing of the link: the delay learned from the fresh ones stays, and so does the
+    step computed next."""
+    D = np.array([[0, 2, 0], [0, 0, 1], [3, 0, 0]])
+    mesh = _run(Mesh(paper14, gains14, seed=3, delays=D, deadline_s=1.0), 30, wait=1.1)
+    core = mesh.agents[1]
+    assert core.learned_delays() == {2: 2}
+    held = {s: x for s, x in core.nbrs[2].est.items()}
+    # the cache's replay comes after newer estimates of the live stream: stamps 9..23
+    # while 28 is held (their ages, 7 to 21 steps, filled the 8-sample window: tau 7)
+    for stamp in sorted(held)[-20:-5]:
+        core.on_estimate(2, stamp, held[stamp], mesh.now)
+    core.poll(mesh.now)
+    assert core.learned_delays() == {2: 2}

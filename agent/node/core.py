@@ -548,7 +548,13 @@ class AgentCore:
             nb.missed.discard(stamp)
             self.late += 1
         nb.heard = True
-        nb.lateness.append(max(0, self.step - stamp))
+        # the link's delay is learned from fresh estimates only: a stamp older than the
+        # newest held is a replay (a publisher's cache answering a subscription declared
+        # again when the role changed: up to `history` old estimates at once) or a late
+        # straggler, whose age says nothing of the link and would push the fresh samples
+        # out of the window
+        if nb.newest is None or stamp > nb.newest:
+            nb.lateness.append(max(0, self.step - stamp))
         nb.keep(stamp, x, self.history)
 
     def on_impairment(self, msg: dict) -> bool:
