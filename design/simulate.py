@@ -808,20 +808,17 @@ def _apply_recovery(config, new, recover, est, published, x, S, P, seed, n, tria
     for a in new.ids:
         if a in new.dead or (a in est and a not in config.dead):
             continue
+        # the freshest estimate of the failed agent the replacement has received by step
+        # k - 1: a standby hears every agent on the largest link delay
+        # (design.roster.link_delay_table), so that is stamp k - 1 - take_delay when the
+        # failed agent's last one (f - 1) is still on its way
+        heard = None
         if a in replaces:
-            # the freshest estimate of the failed agent the replacement has received by
-            # step k - 1: a standby hears every agent on the largest link delay
-            # (design.roster.link_delay_table), so that is stamp k - 1 - take_delay when
-            # the failed agent's last one (f - 1) is still on its way
-            f = ids0[replaces[a]]
             stamp = min(fail_at[replaces[a]] - 1, k - 1 - take_delay)
-            if stamp < 0 or stamp not in published.get(f, {}):
-                v = noise.initial_estimate(seed, a, n, trials)
-                est[a] = value = v - x if error_coords else v
-                published[a] = {k - 1: value}
-                continue
+            heard = published.get(ids0[replaces[a]], {}).get(stamp) if stamp >= 0 else None
+        if heard is not None:
             gap = k - 1 - stamp
-            value = published[f][stamp]
+            value = heard
             if gap:
                 value = value @ P.transposed(gap)
                 if error_coords:
