@@ -565,8 +565,9 @@ def test_gains_not_precomputed_are_designed_outside_the_loop_and_roles_follow_th
 def test_a_crash_is_answered_while_the_monitors_own_pause_suspends_verdicts(core):
     """The pause guard suspends the verdicts that read clocks (a status looks old because
     the monitor slept), never a deleted token: agent 2's crash during the monitor's own
-    pause is convicted within CRASH_SETTLE_S, not hang_timeout_s later."""
-    from agent.monitor.detector import CRASH_SETTLE_S
+    pause is convicted once its listener is past the step the token went at (the token
+    went unheard: the monitor slept), not hang_timeout_s later."""
+    from agent.monitor.detector import CRASH_CONFIRM_STEPS, CRASH_SETTLE_S
 
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     core.on_status(_status(1, 200), 4.0)                 # the monitor slept 3 s
@@ -581,7 +582,8 @@ def test_a_crash_is_answered_while_the_monitors_own_pause_suspends_verdicts(core
             core.on_status(_status(a, int(50 * t), active=a <= 3), t)
         out = core.tick(t)
     assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "crash")]
-    assert t - 4.0 < CRASH_SETTLE_S + 0.1 < core.config.hang_timeout_s
+    confirm_s = (2 * CRASH_CONFIRM_STEPS + 2) * core.config.step_s
+    assert t - 4.0 < max(CRASH_SETTLE_S, confirm_s) + 0.1 < core.config.hang_timeout_s
     assert any(isinstance(m, RosterUpdate) for m in out)
 
 
@@ -1510,3 +1512,62 @@ def test_the_wait_for_the_clock_is_not_a_hang_but_staying_behind_after_it_is(cor
     advance(5.7, 6.3, late=3)
     assert [(v.agent, v.cause) for v in core.verdicts] == [(3, "hang")]
     assert core.verdicts[0].evidence.startswith("step -1 for 1.10 s")
+
+
+def _feed_lapse(core, paper14, t, age_of_2, statuses_of_2=True):
+    """Statuses at t (50 steps/s) with agent 1 (agent 2's only listener in paper-14)
+    holding agent 2's estimate ``age_of_2`` steps old; agent 2's own status reaches the
+    monitor only with ``statuses_of_2``."""
+    step = int(50 * t)
+    for a in (1, 2, 3):
+        if a == 2 and not statuses_of_2:
+            continue
+        nbrs = {b + 1: float(paper14.W[a - 1, b]) for b in paper14.neighbours[a - 1]}
+        ages = {b: (age_of_2 if b == 2 else 1) for b in nbrs}
+        core.on_status({**_status(a, step), "neighbours": nbrs, "ages": ages}, t)
+    core.on_status(_status(4, step, active=False), t)
+    return core.tick(t)
+
+
+def test_a_link_to_the_monitor_that_lapses_convicts_nobody_its_listener_hears(core,
+                                                                             paper14):
+    """Agent 2's link to the monitor lapses at t = 1 s (nothing of it arrives), its token
+    goes a lease later (t = 2 s), while agent 1, its listener, goes on holding its fresh
+    estimates: neither a crash (the token went by its lease, not with its process) nor a
+    hang (its estimates carry steps past its last status). The link comes back at 3.5 s.
+    (Before: 'crash' at 2 s, a healthy agent replaced.)"""
+    t = 0.0
+    while t < 4.5:
+        if t == 2.0:
+            core.on_liveliness("agent", 2, False, t)
+        if t == 3.5:
+            core.on_liveliness("agent", 2, True, t)
+        _feed_lapse(core, paper14, t, age_of_2=1, statuses_of_2=not 1.0 <= t < 3.5)
+        t = round(t + 0.05, 6)
+    assert core.verdicts == []
+    assert core.detector.rejected.get("lapse") == 2, core.detector.rejected
+    assert [x["agent"] for x in core.detector.anomalies if x["reason"] == "lapse"] == [2]
+
+
+def test_a_token_gone_by_its_lease_with_no_listener_hearing_it_is_a_crash(core, paper14):
+    """The monitor paused 3 s; agent 2's token is gone when it resumes (the monitor heard
+    nothing of it for the pause: no telling an exit from a lapse by the token alone).
+    Agent 1, its listener, reports from then on nothing newer than the step before the
+    pause: convicted 'crash' once agent 1 is CRASH_CONFIRM_STEPS past the step the token
+    went at, well before the hang timeout."""
+    from agent.monitor.detector import CRASH_CONFIRM_STEPS
+
+    t = 0.0
+    while t < 1.0:
+        _feed_lapse(core, paper14, t, age_of_2=1)
+        t = round(t + 0.05, 6)
+    last_of_2 = int(50 * 0.95) - 1
+    t = 4.0                                      # the monitor slept 3 s
+    core.on_liveliness("agent", 2, False, t)
+    gone_step = core.detector.agents[2].gone_step
+    while not core.verdicts and t < 6.0:
+        _feed_lapse(core, paper14, t, age_of_2=int(50 * t) - last_of_2, statuses_of_2=False)
+        t = round(t + 0.05, 6)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(2, "crash")]
+    assert gone_step + CRASH_CONFIRM_STEPS <= core.verdicts[0].step <= gone_step + 15
+    assert "lapse" not in core.detector.rejected

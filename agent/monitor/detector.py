@@ -10,7 +10,13 @@ verdicts with a reassignment, keeps the configuration in force up to date on it
 
 Verdicts (one per cause, each with its evidence):
 
-- ``crash``: the liveliness token of an agent in the configuration was deleted;
+- ``crash``: the liveliness token of an agent in the configuration was deleted, with its
+  process: it was heard just before (an exit closes the links at once), or else (the token
+  went by its lease: the agent, or only its link to this monitor, fell silent) none of its
+  listeners holds an estimate of it newer than the step the token went at once one would
+  have reached them (:meth:`FailureDetector._token_went_with_its_process`). A listener
+  holding a newer one shows the agent alive behind a lapsed link: that is no crash, and no
+  hang either while its estimates carry steps past its last status;
 - ``hang``: its token is alive but its loop does not advance: its reported step has not
   moved for the hang timeout while the other agents' steps moved on by more than
   ``hang_lag_steps`` (a whole run that is slow, e.g. a loaded machine, convicts nobody).
@@ -66,12 +72,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FailureDetector", "StatusPace", "Verdict", "AgentEvidence", "CRASH_SETTLE_S"]
+__all__ = ["FailureDetector", "StatusPace", "Verdict", "AgentEvidence", "CRASH_SETTLE_S",
+           "CRASH_HEARD_S", "CRASH_CONFIRM_STEPS"]
 
 
 #: While the monitor's own pause suspends its verdicts, a deleted token is believed once
 #: it has been gone this long (seconds) without the other tokens going with it.
 CRASH_SETTLE_S = 0.1
+
+
+#: A token that went while its agent was heard (a status or an estimate) this recently
+#: (seconds) went with its process: a process that exits closes its links at once, while
+#: a link that lapses goes a lease (1 s, ``broker_free_net.config.DEFAULT_LEASE_MS``)
+#: after the last thing heard over it.
+CRASH_HEARD_S = 0.5
+
+#: A token that went by its lease is believed once no listener of its agent holds an
+#: estimate of it this many steps newer than the run's step when it went, when one would
+#: have reached them (this many steps more for lateness); one listener holding a newer
+#: one shows the agent alive (the link to the monitor lapsed, not the agent).
+CRASH_CONFIRM_STEPS = 5
 
 
 #: Other sessions remembered as holding a token for one agent id (more are refused alike).
@@ -155,6 +175,9 @@ class AgentEvidence:
     step_at: float | None = None         # when its step last moved, never reset
     status_at: float | None = None       # when its last status arrived
     gone_at: float | None = None         # when its token was last deleted
+    gone_step: int = -1                  # the run's step then (extrapolated)
+    lapse_seen: bool = False             # a listener heard it since its token went
+    unheard_step: int = -2               # its statuses stopped here, its listeners heard on
     others_at_progress: int = -1         # the others' newest step then
     healthy_since: float | None = None   # convicted, on probation: healthy since then
     slow_since: float | None = None      # on probation: a passing slowness since then
@@ -255,7 +278,7 @@ class FailureDetector:
             if alive is None:
                 return None
         if a.alive and not alive:
-            a.gone_at = now
+            a.gone_at, a.gone_step, a.lapse_seen = now, self.current_step(now), False
         a.alive = bool(alive)
         if alive and a.progress_at is None:
             a.progress_at = now
@@ -519,7 +542,84 @@ class FailureDetector:
                 for i in gone if i not in self.failed
                 and self.agents[i].progress_at is not None
                 and self.agents[i].gone_at is not None
-                and now - self.agents[i].gone_at >= CRASH_SETTLE_S]
+                and now - self.agents[i].gone_at >= CRASH_SETTLE_S
+                and self._token_went_with_its_process(i, now)]
+
+    def _token_went_with_its_process(self, agent: int, now: float) -> bool:
+        """Whether ``agent``'s deleted token shows its process gone, and not only its link
+        to this monitor (a link lapses when either end is starved of CPU, paused or cut
+        off past the lease; a lapsed link was convicted ``crash`` while the agent went on
+        computing its role, heard by its listeners).
+
+        - Heard (a status, an estimate) within :data:`CRASH_HEARD_S` before the token
+          went: it went with its process (an exit closes the links at once): yes, at once.
+        - Otherwise the token went by its lease: the listeners of the configuration in
+          force decide. One holding an estimate of it stamped more than
+          :data:`CRASH_CONFIRM_STEPS` past the step the token went at: no (it is alive,
+          the lapse is refused as evidence: :meth:`reject` ``lapse``). Every live
+          listener holding nothing newer when one would have reached it (that step, the
+          link's delay and :data:`CRASH_CONFIRM_STEPS` more for lateness later): yes. No
+          live listener: yes. Undecided (a listener's status not yet that far) for the
+          hang timeout: yes."""
+        a = self.agents[agent]
+        if a.gone_at is None:           # never seen alive by this monitor
+            return True
+        heard = max((t for t in (a.status_at, a.estimate_at) if t is not None), default=None)
+        if heard is not None and a.gone_at - heard <= CRASH_HEARD_S:
+            return True
+        horizon = a.gone_step + CRASH_CONFIRM_STEPS
+        heard_by = self._heard_past(agent, horizon)
+        if heard_by is not None:
+            if not a.lapse_seen:
+                a.lapse_seen = True
+                self.reject("lapse", agent, f"agent {agent}'s liveliness token went, but "
+                            f"agent {heard_by[0]} holds its estimate of step {heard_by[1]} "
+                            f"(the token went at step {a.gone_step}): its link to this "
+                            "monitor lapsed; not convicted on the token")
+            return False
+        _, rows, listens, _ = self._roster_view()
+        col = self.roster.row_of(agent)
+        # an estimate on time is one step and the link's delay old: a listener at step s
+        # would hold one of s - 1 - delay; CRASH_CONFIRM_STEPS more for a late one
+        undecided = any(
+            self.agents[j].status.get("step", -1)
+            < horizon + self._link_delay(j, agent) + 1 + CRASH_CONFIRM_STEPS
+            for j in self.roster.ids
+            if j != agent and j not in self.failed and self.agents[j].alive
+            and listens[rows[j]][col])
+        return not undecided or now - a.gone_at > self.hang_timeout(now)
+
+    def _advances_unheard(self, agent: int, a: AgentEvidence) -> bool:
+        """Whether ``agent``, whose statuses stopped reaching this monitor, still computes:
+        a listener holds an estimate of it ``hang_lag_steps`` past the step it last
+        reported (its link to this monitor lapsed, its loop did not; refused as evidence
+        of a hang once: :meth:`reject` ``lapse``)."""
+        heard_by = self._heard_past(agent, a.step + self.config.hang_lag_steps)
+        if heard_by is None:
+            return False
+        if a.unheard_step == a.step:
+            return True
+        a.unheard_step = a.step
+        self.reject("lapse", agent, f"agent {agent}'s statuses stopped at step {a.step}, but "
+                    f"agent {heard_by[0]} holds its estimate of step {heard_by[1]}: its "
+                    "link to this monitor lapsed; not convicted of a hang")
+        return True
+
+    def _heard_past(self, agent: int, step: int):
+        """``(listener, stamp)``: a live listener of ``agent`` in the configuration in
+        force whose last status says it holds an estimate of ``agent`` stamped after
+        ``step`` (so ``agent`` computed past it), or None."""
+        _, rows, listens, _ = self._roster_view()
+        col = self.roster.row_of(agent)
+        for j in self.roster.ids:
+            b = self.agents[j]
+            if j == agent or j in self.failed or not b.alive or not listens[rows[j]][col]:
+                continue
+            mine, age = b.status.get("step", -1), b.status.get("ages", {}).get(agent)
+            if isinstance(age, int) and not isinstance(age, bool) and 0 <= age \
+                    and mine - age > step:
+                return j, mine - age
+        return None
 
     def verdicts(self, now: float) -> list:
         """Every verdict the evidence supports at ``now`` against the agents of the
@@ -537,7 +637,8 @@ class FailureDetector:
             if i in self.failed:
                 continue
             a = self.agents[i]
-            if not a.alive and a.progress_at is not None:
+            if not a.alive and a.progress_at is not None \
+                    and self._token_went_with_its_process(i, now):
                 found.append(Verdict(i, "crash", "liveliness token deleted", now, at_step))
             elif a.contested_at is not None and a.token is None and now - max(
                     a.contested_at, a.estimate_at or a.contested_at) > silent_s:
@@ -549,7 +650,8 @@ class FailureDetector:
                 found.append(Verdict(i, "crash", "no liveliness token and no status since "
                                      "the monitor started", now, at_step))
             elif (a.progress_at is not None and now - a.progress_at > hang_s
-                  and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps):
+                  and newest - max(a.step, a.others_at_progress) > cfg.hang_lag_steps
+                  and not self._advances_unheard(i, a)):
                 # stuck: a quiet sensor if its loop still reports (statuses arrive) and its
                 # last reading is behind; otherwise its loop is hung
                 talking = a.status_at is not None and now - a.status_at < hang_s / 2
