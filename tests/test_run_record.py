@@ -170,3 +170,28 @@ def test_failures_at_different_steps_are_named_each_once():
         simulate(s, G, steps=20, trials=1, seed=0, fail=[(5, [0]), (8, [0])])
     res = simulate(s, G, steps=20, trials=1, seed=0, fail=[(5, [0]), (8, [1])])
     assert res.fail_step == 5 and res.failed == (1, 2)
+
+
+@pytest.mark.parametrize("rejoined", [False, True])
+def test_an_agent_convicted_again_before_it_rejoined_is_one_failure(tmp_path, rejoined):
+    """Two verdicts against agent 2 (a second monitor's, or one written again by a monitor
+    that took the seat) with no rejoin between them are one failure, the verdicts counted;
+    with a rejoin between, two (it came back, rejoined, failed again)."""
+    import json
+
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    records = [{"kind": "verdict", "agent": 2, "cause": "crash", "evidence": "token",
+                "step": 160, "t": 10.0, "mono": 1.0},
+               {"kind": "verdict", "agent": 2, "cause": "crash", "evidence": "token",
+                "step": 170, "t": 10.2, "mono": 1.2}]
+    if rejoined:
+        records.insert(1, {"kind": "rejoin", "agent": 2, "step": 165, "t": 10.1,
+                           "healthy_s": 1.0, "standby": [2]})
+    path = tmp_path / "events.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in records))
+    out = _failures(path, _recording([(0, (1, 2, 3), 0)], {}, {}), s, s.delays,
+                    list(range(300)), [0.3] * 300, None)
+    mine = [(f["agent"], f["detected_step"], f.get("verdicts")) for f in out["failures"]]
+    assert mine == ([(2, 160, None), (2, 170, None)] if rejoined else [(2, 160, 2)])

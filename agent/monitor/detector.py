@@ -592,9 +592,9 @@ class FailureDetector:
     def _advances_unheard(self, agent: int, a: AgentEvidence) -> bool:
         """Whether ``agent``, whose statuses stopped reaching this monitor, still computes:
         a listener holds an estimate of it ``hang_lag_steps`` past the step it last
-        reported (its link to this monitor lapsed, its loop did not; refused as evidence
-        of a hang once: :meth:`reject` ``lapse``)."""
-        heard_by = self._heard_past(agent, a.step + self.config.hang_lag_steps)
+        reported, and on time (its link to this monitor lapsed, its loop did not; refused
+        as evidence of a hang once: :meth:`reject` ``lapse``)."""
+        heard_by = self._heard_past(agent, a.step + self.config.hang_lag_steps, on_time=True)
         if heard_by is None:
             return False
         if a.unheard_step == a.step:
@@ -605,10 +605,12 @@ class FailureDetector:
                     "link to this monitor lapsed; not convicted of a hang")
         return True
 
-    def _heard_past(self, agent: int, step: int):
+    def _heard_past(self, agent: int, step: int, on_time: bool = False):
         """``(listener, stamp)``: a live listener of ``agent`` in the configuration in
         force whose last status says it holds an estimate of ``agent`` stamped after
-        ``step`` (so ``agent`` computed past it), or None."""
+        ``step`` (so ``agent`` computed past it), and with ``on_time`` one at most
+        :data:`CRASH_CONFIRM_STEPS` later than the link's delay (it hears it now), or
+        None."""
         _, rows, listens, _ = self._roster_view()
         col = self.roster.row_of(agent)
         for j in self.roster.ids:
@@ -617,7 +619,8 @@ class FailureDetector:
                 continue
             mine, age = b.status.get("step", -1), b.status.get("ages", {}).get(agent)
             if isinstance(age, int) and not isinstance(age, bool) and 0 <= age \
-                    and mine - age > step:
+                    and mine - age > step and (not on_time or age <= self._link_delay(
+                        j, agent) + 1 + CRASH_CONFIRM_STEPS):
                 return j, mine - age
         return None
 
