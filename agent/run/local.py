@@ -193,7 +193,7 @@ class LocalRun:
                          + (["--wait-monitor", "1"] if c.monitor else [])}
         for a in range(1, c.M + 1):
             argv = ["agent", c.scenario_arg, "--id", str(a), *common, "--listen", ep[a + 1],
-                    *_connect_to(ep[1:a + 1]), "--delays", c.delays_spec,
+                    "--connect", ep[1], "--delays", c.delays_spec,
                     "--deadline-ms", str(c.deadline_ms)]
             if a <= c.scenario.N:
                 argv += ["--gains", str(c.gains_path)]
@@ -205,7 +205,6 @@ class LocalRun:
                 argv += ["--lie", f"{lie[a].step}:{lie[a].value!r}"]
             out[f"agent-{a}"] = argv
         out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
-                          *_connect_to(ep[1:c.M + 2]),
                           "--gains", str(c.gains_path), "--delays", c.delays_spec,
                           "--hang-timeout", str(c.hang_timeout),
                           "--hang-timeout-max", str(c.hang_timeout_max), "--step-ms", str(c.step_ms),
@@ -307,8 +306,8 @@ class LocalRun:
                 if c.monitor:
                     children.start("monitor", argv["monitor"], self._wrap("monitor"))
                     for i, sep in enumerate(standby_ep, start=2):
-                        children.start(f"monitor.{i}", _standby_monitor(
-                            argv["monitor"], i, sep, [ep[M + 2], *standby_ep[:i - 2]]),
+                        children.start(f"monitor.{i}", _standby_monitor(argv["monitor"], i,
+                                                                        sep),
                                        self._wrap("monitor"))
                 self._write_run_json(rec, ep)
                 self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}"
@@ -622,24 +621,13 @@ def _wait_listening(children, name, timeout):
                     f"{children.tail(name)}")
 
 
-def _connect_to(endpoints) -> list:
-    """``--connect`` flags for ``endpoints``. Every child of a run connects to the
-    children started before it (the world, the agents of smaller ids, the monitors
-    before it), not to a seed alone with the rest found by gossip: zenoh retries the
-    links it was told to make when they close, and a link found by gossip that lapsed
-    (a monitor or an agent paused past the lease) was seen never to come back (a paused
-    monitor's reassignments never reached agent 2 for the rest of the run)."""
-    return [flag for e in endpoints for flag in ("--connect", e)]
-
-
-def _standby_monitor(argv, monitor_id: int, listen: str, monitors=()) -> list:
+def _standby_monitor(argv, monitor_id: int, listen: str) -> list:
     """The argv of standby monitor ``monitor_id``: the monitor's, with its own id and
-    listen endpoint, connecting also to the ``monitors`` started before it (a router run
-    rewrites it like every other child's)."""
+    listen endpoint (a router run rewrites it like every other child's)."""
     out = list(argv)
     if "--listen" in out:
         out[out.index("--listen") + 1] = listen
-    return out[:2] + ["--id", str(monitor_id)] + out[2:] + _connect_to(monitors)
+    return out[:2] + ["--id", str(monitor_id)] + out[2:]      # after "monitor SCENARIO"
 
 
 def _signal(children, name, sig):
