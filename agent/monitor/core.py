@@ -1229,6 +1229,11 @@ class MonitorCore:
         return not self._unconfirmed
 
     # -- state from the network ------------------------------------------------------
+    def _say_adopt_wait(self, line: str) -> None:
+        if line != self._adopt_wait:          # said once per distinct reason
+            self.events.append(line)
+            self._adopt_wait = line
+
     def adopt(self, ids=None, epoch: int = 0) -> bool:
         """Rebuild the configuration in force from the agents' statuses.
 
@@ -1256,7 +1261,13 @@ class MonitorCore:
             ids = sorted(a for a, st in self.agents.items() if st.status.get("active")
                          and live and st.epoch == max(live))
         rows = [int(a) for a in ids]
-        if not rows or any(not self.agents[a].status.get("active") for a in rows):
+        idle = [a for a in rows if not self.agents[a].status.get("active")]
+        if not rows or idle:
+            tokens = sorted(a for a, st in self.agents.items() if st.alive)
+            heard = sorted(a for a, st in self.agents.items() if st.status)
+            self._say_adopt_wait(
+                f"adoption waits: {'agents ' + str(idle) + ' of ' + str(rows) + ' report no role' if rows else 'no live agent reports a role'} "
+                f"(tokens seen: {tokens}; statuses heard from: {heard})")
             return False
         W = np.zeros((len(rows), len(rows)))
         measure = []
@@ -1278,11 +1289,8 @@ class MonitorCore:
         except SocmonError as exc:
             # statuses from before and after a change, or a token not yet seen again:
             # wait for a consistent picture rather than act on this one
-            line = (f"adoption waits: the statuses of {rows} do not form a configuration "
-                    f"yet ({str(exc)[:120]})")
-            if line != self._adopt_wait:          # said once per distinct reason
-                self.events.append(line)
-                self._adopt_wait = line
+            self._say_adopt_wait(f"adoption waits: the statuses of {rows} do not form a "
+                                 f"configuration yet ({str(exc)[:120]})")
             return False
         self.roster = Roster(scen, tuple(rows), standby, table, D)
         self.failed.update(a for a in range(1, s.N + 1) if a not in rows)
