@@ -27,6 +27,20 @@ def paper14():
 
 
 @pytest.fixture(scope="session")
+def paper14_design(paper14):
+    """``design_gains(paper14, starts=1, max_iter=40)``: the default design of paper-14 at
+    its own delays (none), computed once for the modules that need a stabilising gain of
+    paper-14 (about 2 s a design). Its arrays are read-only: a test that wrote into them
+    would fail instead of changing the gain another test reads."""
+    from design.gain_design import design_gains
+
+    res = design_gains(paper14, starts=1, max_iter=40)
+    for a in (*res.G, res.delays):
+        a.setflags(write=False)
+    return res
+
+
+@pytest.fixture(scope="session")
 def sampson_edges():
     if not SAMPSON_EDGES.is_file():
         pytest.skip(f"shared data not found at {SAMPSON_EDGES}")

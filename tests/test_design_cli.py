@@ -104,8 +104,12 @@ def test_mse_objective_from_the_cli(capsys, tmp_path):
     assert rec["objective"] == "mse" and rec["mse_steady_exact"] < 1.0
 
 
-def test_progress_line_only_on_a_terminal():
+def test_progress_line_only_on_a_terminal(monkeypatch):
     import io
+
+    # the line is cut to the terminal's width: the lines below need 200 columns, whatever
+    # the terminal (or a pytest-xdist worker) the test runs in
+    monkeypatch.setenv("COLUMNS", "200")
 
     from agent.cli._progress import ProgressLine
     from design.gain_design import DesignProgress

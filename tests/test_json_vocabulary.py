@@ -43,10 +43,8 @@ def _delays_values(obj):
 
 
 @pytest.fixture(scope="module")
-def gains14(paper14, tmp_path_factory):
-    from design.gain_design import design_gains
-
-    res = design_gains(paper14, starts=1, max_iter=40)
+def gains14(paper14, paper14_design, tmp_path_factory):
+    res = paper14_design
     path = tmp_path_factory.mktemp("g") / "g.npz"
     save_gains(path, res.G, gains_meta(paper14, "default", res.delays, res.rho,
                                         mse_steady_exact=res.mse_steady))

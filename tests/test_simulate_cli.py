@@ -9,12 +9,10 @@ from agent.cli.main import main
 from agent.run.simulate import format_text
 from design.gains import gains_meta, save_gains
 
-from design.gain_design import design_gains
-
 
 @pytest.fixture(scope="module")
-def gains_file(paper14, tmp_path_factory):
-    result = design_gains(paper14, starts=1, max_iter=40)
+def gains_file(paper14, paper14_design, tmp_path_factory):
+    result = paper14_design
     path = tmp_path_factory.mktemp("g") / "g14.npz"
     save_gains(path, result.G, gains_meta(paper14, "default", paper14.delays, result.rho))
     return str(path)

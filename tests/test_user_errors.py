@@ -18,11 +18,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def paper14_gains(paper14, tmp_path_factory):
+def paper14_gains(paper14, paper14_design, tmp_path_factory):
     """A stabilising gain of paper-14 with paper-14's digest in its meta."""
-    from design.gain_design import design_gains
-
-    result = design_gains(paper14, starts=1, max_iter=40)
+    result = paper14_design
     path = tmp_path_factory.mktemp("g") / "g14.npz"
     save_gains(path, result.G, gains_meta(paper14, "default", paper14.delays, result.rho))
     return str(path)
