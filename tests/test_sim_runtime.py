@@ -267,6 +267,7 @@ def long_delays(live):
     return s, [0.3 * np.eye(s.n)[:, list(m)] for m in s.measure], resolve_delays(s, "uniform:15")
 
 
+@pytest.mark.slow      # the monitor's gain designs at 15-step delays: about 20 s of CPU
 def test_a_switch_before_the_last_estimate_reached_the_standby_equals_the_simulator(
         long_delays):
     """15-step delays, roles in force 10 steps after the crash: the standby has not yet
@@ -279,6 +280,7 @@ def test_a_switch_before_the_last_estimate_reached_the_standby_equals_the_simula
     assert diff <= 1e-12, how
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("late", [4, 1])
 def test_an_agent_or_standby_that_hears_its_roles_too_late_at_long_delays_is_replayed(
         long_delays, late):
