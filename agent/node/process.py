@@ -310,6 +310,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 try:
                     if core.on_impairment(msg):
                         urgent_status = True
+                        what = ", ".join(f"{k} {v}" for k, v in sorted(msg.items())
+                                         if k not in ("kind", "op", "src", "dst", "sig", "seq"))
+                        say(f"agent {me}: impairment {msg['op']}"
+                            + (f" on link {msg.get('src')} -> {me}" if "src" in msg else "")
+                            + (f": {what}" if what else "") + f" at step {core.step}")
                 except InvalidImpairment:
                     bad("range")
             follow_role()                   # an assignment or a roster came
