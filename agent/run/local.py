@@ -182,7 +182,8 @@ class LocalRun:
     def _argv(self, rec, ep):
         c = self.config
         common = ["--run", rec.run_id, "--connect", ep[0], "--seed", str(c.seed),
-                  "--manifest", str((c.out / "manifest.json").resolve())]
+                  "--manifest", str((c.out / "manifest.json").resolve()),
+                  "--zenoh-config", str((c.out / MESH_CONFIG).resolve())]
         if c.secure:
             common += ["--keys", str((c.out / "keys").resolve())]
         crash_at = {f.agent: f.step for f in c.faults if f.kind == "crash"}
@@ -193,7 +194,7 @@ class LocalRun:
                          + (["--wait-monitor", "1"] if c.monitor else [])}
         for a in range(1, c.M + 1):
             argv = ["agent", c.scenario_arg, "--id", str(a), *common, "--listen", ep[a + 1],
-                    "--connect", ep[1], "--delays", c.delays_spec,
+                    *_connect_to(ep[1:a + 1]), "--delays", c.delays_spec,
                     "--deadline-ms", str(c.deadline_ms)]
             if a <= c.scenario.N:
                 argv += ["--gains", str(c.gains_path)]
@@ -205,6 +206,7 @@ class LocalRun:
                 argv += ["--lie", f"{lie[a].step}:{lie[a].value!r}"]
             out[f"agent-{a}"] = argv
         out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
+                          *_connect_to(ep[1:c.M + 2]),
                           "--gains", str(c.gains_path), "--delays", c.delays_spec,
                           "--hang-timeout", str(c.hang_timeout),
                           "--hang-timeout-max", str(c.hang_timeout_max), "--step-ms", str(c.step_ms),
@@ -270,6 +272,7 @@ class LocalRun:
                        c.delays_spec, c.delays, rec.run_id, signer.public_bytes(),
                        operator.public_bytes())
         children = rec.children = Children(c.out / "logs")
+        mesh_config = _write_mesh_config(c.out)
         argv = self._argv(rec, ep)
         router_ep = ep[M + 3] if c.router else None
         if c.router:
@@ -294,6 +297,7 @@ class LocalRun:
                 children.start("router", ["router", "--listen", router_ep])
                 _wait_listening(children, "router", c.start_timeout)
             with topics.open_peer(NetConfig(run=rec.run_id, lease_ms=RECORDER_LEASE_MS,
+                                            zenoh_config=str(mesh_config),
                                             **{"listen": (ep[0],), **net_extra}),
                                   "recorder", 0) as peer:
                 recorder.subscribe(peer)
@@ -306,8 +310,8 @@ class LocalRun:
                 if c.monitor:
                     children.start("monitor", argv["monitor"], self._wrap("monitor"))
                     for i, sep in enumerate(standby_ep, start=2):
-                        children.start(f"monitor.{i}", _standby_monitor(argv["monitor"], i,
-                                                                        sep),
+                        children.start(f"monitor.{i}", _standby_monitor(
+                            argv["monitor"], i, sep, [ep[M + 2], *standby_ep[:i - 2]]),
                                        self._wrap("monitor"))
                 self._write_run_json(rec, ep)
                 self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}"
@@ -621,13 +625,39 @@ def _wait_listening(children, name, timeout):
                     f"{children.tail(name)}")
 
 
-def _standby_monitor(argv, monitor_id: int, listen: str) -> list:
+def _connect_to(endpoints) -> list:
+    """``--connect`` flags for ``endpoints``: each child of a run connects to every child
+    started before it (the world, the agents of smaller ids, the monitors before it), and
+    finds no link by gossip (:data:`MESH_CONFIG`). zenoh opens and retries the links it
+    is told to make, one per pair, and opens one again when it closes; a link found by
+    gossip that lapsed (one end paused or starved past the lease) was seen never to come
+    back while both ends kept their other links: gossip told neither end of the other
+    again (a standby lost to the monitor for the rest of a run after a 1.2 s pause of the
+    monitor; a paused monitor's reassignments never reaching agent 2)."""
+    return [flag for e in endpoints for flag in ("--connect", e)]
+
+
+#: The zenoh configuration file ``up`` writes in the run folder for its children and its
+#: recorder: gossip tells who is on the mesh, but nobody connects on its word (every link
+#: is a configured one, :func:`_connect_to`; a watcher or an operator joining later still
+#: connects by gossip, its own configuration).
+MESH_CONFIG = "zenoh-mesh.json5"
+
+
+def _write_mesh_config(folder: Path) -> Path:
+    path = folder / MESH_CONFIG
+    path.write_text('{ scouting: { gossip: { autoconnect: { peer: [], router: [] } } } }\n')
+    return path
+
+
+def _standby_monitor(argv, monitor_id: int, listen: str, monitors=()) -> list:
     """The argv of standby monitor ``monitor_id``: the monitor's, with its own id and
-    listen endpoint (a router run rewrites it like every other child's)."""
+    listen endpoint, connecting also to the ``monitors`` started before it (a router run
+    rewrites it like every other child's)."""
     out = list(argv)
     if "--listen" in out:
         out[out.index("--listen") + 1] = listen
-    return out[:2] + ["--id", str(monitor_id)] + out[2:]      # after "monitor SCENARIO"
+    return out[:2] + ["--id", str(monitor_id)] + out[2:] + _connect_to(monitors)
 
 
 def _signal(children, name, sig):
