@@ -552,7 +552,10 @@ class FailureDetector:
         computing its role, heard by its listeners).
 
         - Heard (a status, an estimate) within :data:`CRASH_HEARD_S` before the token
-          went: it went with its process (an exit closes the links at once): yes, at once.
+          went, while fewer than half of the configuration's tokens are gone: it went with
+          its process (an exit closes the links at once): yes, at once. (Half or more gone
+          is this monitor's own links lapsing: a stall of its own, its statuses queued and
+          read after it, convicted three healthy agents in a run beside two busy loops.)
         - Otherwise the token went by its lease: the listeners of the configuration in
           force decide. One holding an estimate of it stamped more than
           :data:`CRASH_CONFIRM_STEPS` past the step the token went at: no (it is alive,
@@ -565,7 +568,11 @@ class FailureDetector:
         if a.gone_at is None:           # never seen alive by this monitor
             return True
         heard = max((t for t in (a.status_at, a.estimate_at) if t is not None), default=None)
-        if heard is not None and a.gone_at - heard <= CRASH_HEARD_S:
+        gone = sum(not self.agents[j].alive for j in self.roster.ids)
+        if heard is not None and a.gone_at - heard <= CRASH_HEARD_S \
+                and 2 * gone < len(self.roster.ids):
+            # (half the configuration's tokens or more gone: this monitor's own links
+            # lapsed, its loop stalled with statuses queued: those are no recent word)
             return True
         horizon = a.gone_step + CRASH_CONFIRM_STEPS
         heard_by = self._heard_past(agent, horizon)
@@ -585,7 +592,7 @@ class FailureDetector:
             self.agents[j].status.get("step", -1)
             < horizon + self._link_delay(j, agent) + 1 + CRASH_CONFIRM_STEPS
             for j in self.roster.ids
-            if j != agent and j not in self.failed and self.agents[j].alive
+            if j != agent and j not in self.failed and self._speaks(self.agents[j])
             and listens[rows[j]][col])
         return not undecided or now - a.gone_at > self.hang_timeout(now)
 
@@ -605,6 +612,13 @@ class FailureDetector:
                     "link to this monitor lapsed; not convicted of a hang")
         return True
 
+    def _speaks(self, b: AgentEvidence) -> bool:
+        """Whether a listener's word counts: its token is up, or its statuses still
+        come (within the hang timeout: its token went with this monitor's own links)."""
+        now = self._last_tick
+        return b.alive or (b.status_at is not None and now is not None
+                           and now - b.status_at < self.hang_timeout(now))
+
     def _heard_past(self, agent: int, step: int, on_time: bool = False):
         """``(listener, stamp)``: a live listener of ``agent`` in the configuration in
         force whose last status says it holds an estimate of ``agent`` stamped after
@@ -615,7 +629,8 @@ class FailureDetector:
         col = self.roster.row_of(agent)
         for j in self.roster.ids:
             b = self.agents[j]
-            if j == agent or j in self.failed or not b.alive or not listens[rows[j]][col]:
+            if j == agent or j in self.failed or not self._speaks(b) \
+                    or not listens[rows[j]][col]:
                 continue
             mine, age = b.status.get("step", -1), b.status.get("ages", {}).get(agent)
             if isinstance(age, int) and not isinstance(age, bool) and 0 <= age \
