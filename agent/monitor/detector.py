@@ -84,8 +84,10 @@ CRASH_SETTLE_S = 0.1
 #: A token that went while its agent was heard (a status or an estimate) this recently
 #: (seconds) went with its process: a process that exits closes its links at once, while
 #: a link that lapses goes a lease (1 s, ``broker_free_net.config.DEFAULT_LEASE_MS``)
-#: after the last thing heard over it.
-CRASH_HEARD_S = 0.5
+#: after the last thing heard over it. (At 0.5 s, ``up --kill``'s agent, silent for the
+#: 0.3 s it flushes before its SIGKILL and up to a status period before that, was judged
+#: by its listeners under load: convicted 40 steps late at 15-step delays.)
+CRASH_HEARD_S = 0.8
 
 #: A token that went by its lease is believed once no listener of its agent holds an
 #: estimate of it this many steps newer than the run's step when it went, when one would
