@@ -311,7 +311,8 @@ class LocalRun:
                     children.start("monitor", argv["monitor"], self._wrap("monitor"))
                     for i, sep in enumerate(standby_ep, start=2):
                         children.start(f"monitor.{i}", _standby_monitor(
-                            argv["monitor"], i, sep, [ep[M + 2], *standby_ep[:i - 2]]),
+                            argv["monitor"], i, sep,
+                            () if c.router else [ep[M + 2], *standby_ep[:i - 2]]),
                                        self._wrap("monitor"))
                 self._write_run_json(rec, ep)
                 self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}"
