@@ -1265,9 +1265,10 @@ class MonitorCore:
         if not rows or idle:
             tokens = sorted(a for a, st in self.agents.items() if st.alive)
             heard = sorted(a for a, st in self.agents.items() if st.status)
-            self._say_adopt_wait(
-                f"adoption waits: {'agents ' + str(idle) + ' of ' + str(rows) + ' report no role' if rows else 'no live agent reports a role'} "
-                f"(tokens seen: {tokens}; statuses heard from: {heard})")
+            why = (f"agents {idle} of {rows} report no role" if rows
+                   else "no live agent reports a role")
+            self._say_adopt_wait(f"adoption waits: {why} (tokens seen: {tokens}; statuses "
+                                 f"heard from: {heard})")
             return False
         W = np.zeros((len(rows), len(rows)))
         measure = []

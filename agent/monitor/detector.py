@@ -586,16 +586,11 @@ class FailureDetector:
                             f"(the token went at step {a.gone_step}): its link to this "
                             "monitor lapsed; not convicted on the token")
             return False
-        _, rows, listens, _ = self._roster_view()
-        col = self.roster.row_of(agent)
-        # an estimate on time is one step and the link's delay old: a listener at step s
-        # would hold one of s - 1 - delay; CRASH_CONFIRM_STEPS more for a late one
-        undecided = any(
-            self.agents[j].status.get("step", -1)
-            < horizon + self._link_delay(j, agent) + 1 + CRASH_CONFIRM_STEPS
-            for j in self.roster.ids
-            if j != agent and j not in self.failed and self._speaks(self.agents[j])
-            and listens[rows[j]][col])
+        # a listener not yet at the step where an estimate past the horizon, on time,
+        # would have reached it cannot tell
+        undecided = any(self.agents[j].status.get("step", -1)
+                        < horizon + self._on_time_age(j, agent)
+                        for j in self._speaking_listeners(agent))
         return not undecided or now - a.gone_at > self.hang_timeout(now)
 
     def _advances_unheard(self, agent: int, a: AgentEvidence) -> bool:
@@ -627,19 +622,29 @@ class FailureDetector:
         ``step`` (so ``agent`` computed past it), and with ``on_time`` one at most
         :data:`CRASH_CONFIRM_STEPS` later than the link's delay (it hears it now), or
         None."""
-        _, rows, listens, _ = self._roster_view()
-        col = self.roster.row_of(agent)
-        for j in self.roster.ids:
-            b = self.agents[j]
-            if j == agent or j in self.failed or not self._speaks(b) \
-                    or not listens[rows[j]][col]:
-                continue
-            mine, age = b.status.get("step", -1), b.status.get("ages", {}).get(agent)
+        for j in self._speaking_listeners(agent):
+            st = self.agents[j].status
+            mine, age = st.get("step", -1), st.get("ages", {}).get(agent)
             if isinstance(age, int) and not isinstance(age, bool) and 0 <= age \
-                    and mine - age > step and (not on_time or age <= self._link_delay(
-                        j, agent) + 1 + CRASH_CONFIRM_STEPS):
+                    and mine - age > step \
+                    and (not on_time or age <= self._on_time_age(j, agent)):
                 return j, mine - age
         return None
+
+    def _speaking_listeners(self, agent: int):
+        """The listeners of ``agent`` in the configuration in force (its W) not convicted
+        whose word counts (:meth:`_speaks`)."""
+        _, rows, listens, _ = self._roster_view()
+        col = self.roster.row_of(agent)
+        return [j for j in self.roster.ids
+                if j != agent and j not in self.failed and listens[rows[j]][col]
+                and self._speaks(self.agents[j])]
+
+    def _on_time_age(self, listener: int, agent: int) -> int:
+        """The largest age of ``agent``'s freshest estimate that ``listener`` holds when
+        it hears it: one step and the link's delay, :data:`CRASH_CONFIRM_STEPS` more for
+        lateness."""
+        return self._link_delay(listener, agent) + 1 + CRASH_CONFIRM_STEPS
 
     def verdicts(self, now: float) -> list:
         """Every verdict the evidence supports at ``now`` against the agents of the

@@ -601,19 +601,19 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
 
     rejoined_at = [(r.get("agent"), r.get("t", math.inf)) for r in records
                    if r.get("kind") == "rejoin"]
-    open_failure = {}       # agent -> its failure entry, until it rejoins
+    open_failure = {}       # agent -> (its failure entry, its verdict's time), until it rejoins
     for v in [r for r in records if r.get("kind") == "verdict"]:
-        earlier = open_failure.get(v["agent"])
+        earlier, since = open_failure.get(v["agent"], (None, None))
         if earlier is not None and not any(
-                a == v["agent"] and earlier["_t"] <= t <= v.get("t", math.inf)
+                a == v["agent"] and since <= t <= v.get("t", math.inf)
                 for a, t in rejoined_at):
             # convicted again before it rejoined (a second monitor's verdict, or one
             # written again by a monitor that took the seat): the same failure
             earlier["verdicts"] = earlier.get("verdicts", 1) + 1
             continue
         entry = {"agent": v["agent"], "cause": v["cause"], "evidence": v["evidence"],
-                 "detected_step": v["step"], "_t": v.get("t", -math.inf)}
-        open_failure[v["agent"]] = entry
+                 "detected_step": v["step"]}
+        open_failure[v["agent"]] = (entry, v.get("t", -math.inf))
         # an agent convicted twice (it came back, rejoined, failed again): each verdict is
         # paired with the fault just before it and the reassignment just after it
         at = v.get("detected_t", v.get("t"))
@@ -653,8 +653,6 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             entry["added_links"] = [{"from": int(a), "to": int(b)}
                                     for a, b in r.get("added_links", [])]
         failures.append(entry)
-    for entry in failures:
-        entry.pop("_t", None)
     absent = _no_monitor_windows(events)
     failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},
                             absent, rosters, steps_done[-1] if len(steps_done) else None)
