@@ -1554,6 +1554,29 @@ def test_a_link_to_the_monitor_that_lapses_convicts_nobody_its_listener_hears(co
     assert [x["agent"] for x in core.detector.anomalies if x["reason"] == "lapse"] == [2]
 
 
+@pytest.mark.parametrize("lease_s, convicted", [(1.0, True), (0.4, False)])
+def test_a_recent_word_is_measured_against_the_monitors_lease(paper14, lease_s, convicted):
+    """Agent 2's statuses stop reaching the monitor at t = 1 s and its token goes at
+    1.5 s while agent 1 still holds its fresh estimates. Under a 1 s lease the token
+    went 0.5 s after a word, too soon for a lapse: an exit, 'crash' at once. Under a
+    0.4 s lease (``--lease-ms 400``) a lapse is that quick: the listener decides, and
+    it hears agent 2 (refused as ``lapse``, nobody convicted)."""
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02,
+                                     lease_s=lease_s), paper14, G, paper14.delays)
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0)
+    t = 0.0
+    while t < 2.5:
+        if t == 1.5:
+            core.on_liveliness("agent", 2, False, t)
+        _feed_lapse(core, paper14, t, age_of_2=1, statuses_of_2=t < 1.0)
+        t = round(t + 0.05, 6)
+    assert [(v.agent, v.cause) for v in core.verdicts] == ([(2, "crash")] if convicted
+                                                             else [])
+    assert ("lapse" in core.detector.rejected) is not convicted
+
+
 def test_a_token_gone_by_its_lease_with_no_listener_hearing_it_is_a_crash(core, paper14):
     """The monitor paused 3 s; agent 2's token is gone when it resumes (the monitor heard
     nothing of it for the pause: no telling an exit from a lapse by the token alone).

@@ -80,3 +80,21 @@ def test_monitor_refuses_a_hang_timeout_below_twice_the_status_period(capsys, li
                  "--hang-timeout", "0.3"]) == 2
     err = capsys.readouterr().err
     assert "--hang-timeout: 0.3 s must exceed 2 x status_s = 0.4 s" in err
+
+
+def test_the_monitor_reads_its_lease_from_its_transport_flags(live_gains):
+    """``--lease-ms`` reaches the detector (a recent word is 0.8 of it), not only zenoh."""
+    import argparse
+
+    from agent.cli import _common
+    from agent.cli.monitor import add_arguments
+    from agent.run.monitor_options import monitor_options
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    base = ["paper-14-live", "--run", "t", "--gains", str(live_gains)]
+    for extra, lease_s in (([], 1.0), (["--lease-ms", "400"], 0.4)):
+        options = monitor_options(parser.parse_args(base + extra), None,
+                                  net_config_arg=_common.net_config_arg,
+                                  load_signer=_common.load_signer)
+        assert options.config.lease_s == lease_s

@@ -107,6 +107,11 @@ class MonitorConfig:
     world_silent_s : float
         A world whose token went without its end (paused, cut off; or this monitor was)
         is waited for this long before the run counts as over.
+    lease_s : float
+        The link lease of this monitor's transport (``--lease-ms``, 1 s by default: the
+        processes of one run share it): a token that went within
+        :data:`agent.monitor.detector.CRASH_HEARD_LEASE` of a lease after its agent was
+        last heard went with its process, not by its link's lease.
     """
 
     hang_timeout_s: float = TIMING.hang_timeout_s
@@ -127,6 +132,7 @@ class MonitorConfig:
     step_ahead_s: float = TIMING.step_ahead_s
     world_gone_s: float = TIMING.monitor_world_gone_s
     world_silent_s: float = TIMING.monitor_world_silent_s
+    lease_s: float = 1.0
 
     @classmethod
     def from_timing(cls, timing: Timing, **fields) -> "MonitorConfig":

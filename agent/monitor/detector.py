@@ -73,7 +73,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["FailureDetector", "StatusPace", "Verdict", "AgentEvidence", "CRASH_SETTLE_S",
-           "CRASH_HEARD_S", "CRASH_CONFIRM_STEPS"]
+           "CRASH_HEARD_LEASE", "CRASH_CONFIRM_STEPS"]
 
 
 #: While the monitor's own pause suspends its verdicts, a deleted token is believed once
@@ -81,13 +81,14 @@ __all__ = ["FailureDetector", "StatusPace", "Verdict", "AgentEvidence", "CRASH_S
 CRASH_SETTLE_S = 0.1
 
 
-#: A token that went while its agent was heard (a status or an estimate) this recently
-#: (seconds) went with its process: a process that exits closes its links at once, while
-#: a link that lapses goes a lease (1 s, ``broker_free_net.config.DEFAULT_LEASE_MS``)
-#: after the last thing heard over it. (At 0.5 s, ``up --kill``'s agent, silent for the
-#: 0.3 s it flushes before its SIGKILL and up to a status period before that, was judged
-#: by its listeners under load: convicted 40 steps late at 15-step delays.)
-CRASH_HEARD_S = 0.8
+#: A token that went while its agent was heard (a status or an estimate) within this
+#: fraction of the link lease (``MonitorConfig.lease_s``) went with its process: a
+#: process that exits closes its links at once, while a link that lapses goes a lease
+#: after the last thing heard over it. (At 0.5 s of a 1 s lease, ``up --kill``'s agent,
+#: silent for the 0.3 s it flushes before its SIGKILL and up to a status period before
+#: that, was judged by its listeners under load: convicted 40 steps late at 15-step
+#: delays.)
+CRASH_HEARD_LEASE = 0.8
 
 #: A token that went by its lease is believed once no listener of its agent holds an
 #: estimate of it this many steps newer than the run's step when it went, when one would
@@ -553,9 +554,9 @@ class FailureDetector:
         off past the lease; a lapsed link was convicted ``crash`` while the agent went on
         computing its role, heard by its listeners).
 
-        - Heard (a status, an estimate) within :data:`CRASH_HEARD_S` before the token
-          went, while fewer than half of the configuration's tokens are gone: it went with
-          its process (an exit closes the links at once): yes, at once. (Half or more gone
+        - Heard (a status, an estimate) within :data:`CRASH_HEARD_LEASE` of the lease
+          (``config.lease_s``) before the token went, while fewer than half of the
+          configuration's tokens are gone: it went with its process (an exit closes the links at once): yes, at once. (Half or more gone
           is this monitor's own links lapsing: a stall of its own, its statuses queued and
           read after it, convicted three healthy agents in a run beside two busy loops.)
         - Otherwise the token went by its lease: the listeners of the configuration in
@@ -571,7 +572,8 @@ class FailureDetector:
             return True
         heard = max((t for t in (a.status_at, a.estimate_at) if t is not None), default=None)
         gone = sum(not self.agents[j].alive for j in self.roster.ids)
-        if heard is not None and a.gone_at - heard <= CRASH_HEARD_S \
+        recent = CRASH_HEARD_LEASE * self.config.lease_s
+        if heard is not None and a.gone_at - heard <= recent \
                 and 2 * gone < len(self.roster.ids):
             # (half the configuration's tokens or more gone: this monitor's own links
             # lapsed, its loop stalled with statuses queued: those are no recent word)

@@ -143,7 +143,8 @@ def monitor_options(args, info=None, *, net_config_arg, load_signer) -> MonitorO
                         hang_timeout_s=args.hang_timeout,
                         hang_timeout_max_s=args.hang_timeout_max)
     config = MonitorConfig.from_timing(timing, lead_steps=args.lead_steps,
-                                       step_s=step_ms / 1000.0)
+                                       step_s=step_ms / 1000.0,
+                                       lease_s=net.lease_ms / 1000.0)
     signer = load_signer(flags.control_key) if flags.control_key else None
     return MonitorOptions(scenario=scenario, G=tuple(G), delays=delays, net=net,
                           monitor_id=args.id, config=config, events=args.events,

@@ -309,7 +309,8 @@ class SimRuntime:
         self._wake_at: dict = {}
         self.slow: dict = {}                   # name -> (until, seconds a message costs)
         self._busy_until: dict = {}
-        self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s)
+        self.monitor_config = monitor or MonitorConfig.from_timing(TIMING, step_s=c.step_s,
+                                                                         lease_s=c.lease_s)
         self.monitors: dict = {}               # id -> _SimMonitor (the newest of that id)
         self._planned = None                   # monitor 1's single failures, at the start
         self.monitors_alive: set = set()       # ids whose token is up
