@@ -1426,6 +1426,59 @@ def test_a_convicted_liar_is_not_taken_back_after_probation(complete_core):
     assert 1 not in roster.ids
 
 
+def test_a_monitor_that_adopts_keeps_the_convicted_liar_out_of_the_standbys(complete_core):
+    """Monitor 1 convicts agent 1 of lying and dies; monitor 2 takes the seat and adopts
+    the configuration from the roster it heard (signed fields on the wire: ``probation``,
+    ``barred``). Agent 1, fenced into a healthy-looking standby, stays on probation for
+    good there too: the next failure finds no standby. (Before: the adopting monitor
+    knew nothing of the conviction and took the liar back as a standby at once.)"""
+    from agent.monitor.core import MonitorSeat
+    from agent.protocol import wire
+
+    core = complete_core
+    step = lambda t: int(50 * t)                                    # noqa: E731
+    _advance(core, 0.0, 1.0, step)
+    for a in (1, 2, 3):
+        core.on_status(_residual_status(a, 62, LIE_OF_1[a], 61), 1.1)
+    core.tick(1.1)
+    m = core.roster_message
+    assert (m.ids, m.probation, m.barred) == ((4, 2, 3), (1,), (1,))
+    heard = wire.decode(wire.encode_roster(m.epoch, m.activate_at, m.ids,
+                                           probation=m.probation, barred=m.barred),
+                        wire.roster_schema())
+    s = complete_core.scenario
+    G = [0.5 * np.eye(14)[:, list(x)] for x in s.measure]
+    c2 = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02), s, G,
+                     s.delays)
+    seat = MonitorSeat(c2, 2, 1.2, listen_s=0.5)
+    seat.on_roster(heard)
+
+    def statuses(t):
+        for a, spec in core.specs.items():
+            c2.on_status({**_status(a, step(t), epoch=m.epoch), "measure": list(spec.measure),
+                          "neighbours": dict(spec.neighbours)}, t)
+        c2.on_status(_standby_status(1, step(t)), t)
+
+    for a in (1, 2, 3, 4):
+        c2.on_liveliness("agent", a, True, 1.2)
+    t = 1.2
+    while t < 1.8:
+        statuses(t)
+        seat.decide(t, [2])
+        t = round(t + 0.1, 6)
+    assert seat.active and c2.roster.ids == (4, 2, 3)
+    assert 1 in c2.on_probation and 1 in c2.barred and 1 not in c2.roster.standby_ids
+    assert any("on probation (convicted before): [1], never to rejoin: [1]" in e
+               for e in c2.events)
+    while t < 1.8 + 3 * c2.config.rejoin_s:
+        statuses(t)
+        seat.decide(t, [2])
+        c2.tick(t)
+        t = round(t + 0.1, 6)
+    assert c2.rejoins == [] and 1 not in c2.standby_pool(t)
+    assert c2.roster_message.probation == (1,)       # and it tells the next monitor
+
+
 def test_a_restarted_monitor_adopts_what_the_agents_run_over_an_older_roster_heard(paper14):
     """Monitor 1, restarted, heard only the roster of epoch 1 ([1, 2, 3]) while it
     listened; the agents have since switched to epoch 2 (agent 4 replaced agent 2, which

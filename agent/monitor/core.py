@@ -160,11 +160,17 @@ class Assignment:
 
 @dataclass(frozen=True)
 class RosterUpdate:
-    """The ids in force from ``activate_at`` under ``epoch`` (the fencing token)."""
+    """The ids in force from ``activate_at`` under ``epoch`` (the fencing token), and the
+    convicted agents on probation (``probation``) and of them those that never rejoin
+    (``barred``, convicted of a cause in :data:`NEVER_REJOIN`): a monitor that adopts
+    the configuration from this roster (restarted, or taking the seat) keeps them out
+    of the standby pool as the one that convicted them did."""
 
     epoch: int
     activate_at: int
     ids: tuple
+    probation: tuple = ()
+    barred: tuple = ()
 
 
 class GainSource:
@@ -380,6 +386,7 @@ class MonitorCore:
         self.epoch = int(epoch)
         self.verdicts: list = []
         self.on_probation: set = set()    # convicted, not yet healthy for rejoin_s
+        self.barred: set = set()          # on probation for good (NEVER_REJOIN)
         self._epoch_seen = 0              # the highest epoch accepted from the network
         self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
@@ -525,8 +532,15 @@ class MonitorCore:
 
     @property
     def roster_message(self):
-        """The :class:`RosterUpdate` in force (re-published by the shell), or None."""
-        return self._roster_msg
+        """The :class:`RosterUpdate` in force (re-published by the shell), with the
+        agents on probation as they are now, or None."""
+        m = self._roster_msg
+        return None if m is None else self._roster_update(m.epoch, m.activate_at, m.ids)
+
+    def _roster_update(self, epoch: int, activate_at: int, ids) -> RosterUpdate:
+        return RosterUpdate(int(epoch), int(activate_at), tuple(int(a) for a in ids),
+                            probation=tuple(sorted(self.on_probation)),
+                            barred=tuple(sorted(self.barred)))
 
     def new_records(self) -> list:
         """``(kind, fields)`` of what happened since the last call, for the run's record
@@ -812,7 +826,7 @@ class MonitorCore:
             asg = Assignment(agent, self.epoch, at, spec)
             out.append(asg)
             self._unconfirmed[agent] = asg
-        self._roster_msg = RosterUpdate(self.epoch, at, tuple(self.roster.ids))
+        self._roster_msg = self._roster_update(self.epoch, at, self.roster.ids)
         out.append(self._roster_msg)
         self._sent_at = now
         if self.history:
@@ -940,6 +954,7 @@ class MonitorCore:
             self.convicted_at[a] = now
             self.on_probation.add(a)
             self.agents[a].healthy_since = None
+        self.barred.update(v.agent for v in verdicts if v.cause in NEVER_REJOIN)
         for v in verdicts:
             self.events.append(f"verdict: agent {v.agent} {v.cause} ({v.evidence})")
         if self._pending is not None:
@@ -1061,7 +1076,7 @@ class MonitorCore:
                 asg = Assignment(agent, self.epoch, activate_at, spec)
                 out.append(asg)
                 self._unconfirmed[agent] = asg
-        roster_msg = RosterUpdate(self.epoch, activate_at, tuple(nxt.ids))
+        roster_msg = self._roster_update(self.epoch, activate_at, nxt.ids)
         out.append(roster_msg)
         self._roster_msg = roster_msg
         self._sent_at = self._assigned_at = now
@@ -1117,7 +1132,7 @@ class MonitorCore:
         at = max(self.current_step(now), 0) + (self.lead if lead is None else lead)
         out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
         self._unconfirmed = {m.agent: m for m in out}
-        self._roster_msg = RosterUpdate(self.epoch, at, tuple(new.ids))
+        self._roster_msg = self._roster_update(self.epoch, at, new.ids)
         out.append(self._roster_msg)
         self._sent_at = self._assigned_at = now
         self.history.append({"epoch": self.epoch, "activate_at": at, "failed": [],
@@ -1163,8 +1178,7 @@ class MonitorCore:
         estimates) stays on probation for good: looking healthy proves nothing of it."""
         for a in sorted(self.on_probation):
             st = self.agents[a]
-            last = [v.cause for v in self.verdicts if v.agent == a]
-            if last and last[-1] in NEVER_REJOIN:
+            if a in self.barred:
                 continue
             if a in self.roster.ids:
                 if a not in self.failed:            # taken again meanwhile
@@ -1240,7 +1254,8 @@ class MonitorCore:
             self.events.append(line)
             self._adopt_wait = line
 
-    def adopt(self, ids=None, epoch: int = 0) -> bool:
+    def adopt(self, ids=None, epoch: int = 0, probation=(), barred=(),
+              activate_at: int | None = None) -> bool:
         """Rebuild the configuration in force from the agents' statuses.
 
         A monitor that was (re)started, or that takes over from another one, knows
@@ -1285,9 +1300,12 @@ class MonitorCore:
                     W[i, rows.index(b)] = w
             W[i, i] = 1.0 - W[i].sum()
             measure.append(tuple(s.index_of(label) for label in st["measure"]))
+        convicted = {int(a) for a in probation} - set(rows)
+        self.on_probation |= convicted
+        self.barred |= {int(a) for a in barred} & convicted
         standby = tuple(a for a, st in sorted(self.agents.items())
                         if a not in rows and st.alive and not st.status.get("active")
-                        and a not in self.failed)
+                        and a not in self.failed and a not in convicted)
         table = self.roster.table
         D = table[np.ix_([a - 1 for a in rows], [a - 1 for a in rows])]
         D = np.where((W > 0) & ~np.eye(len(rows), dtype=bool), D, 0)
@@ -1301,11 +1319,18 @@ class MonitorCore:
             return False
         self.roster = Roster(scen, tuple(rows), standby, table, D)
         self.failed.update(a for a in range(1, s.N + 1) if a not in rows)
+        self.failed.update(convicted)
         self.G, self.specs = None, {}
         self.epoch = max([self.epoch, int(epoch)] + [st.epoch for st in self.agents.values()])
         self.behind = False
+        if activate_at is not None and int(epoch) == self.epoch:
+            self._roster_msg = self._roster_update(epoch, activate_at, rows)
         self.events.append(f"adopted the configuration in force: ids {rows}, standby "
-                           f"{list(standby)}, epoch {self.epoch}")
+                           f"{list(standby)}, epoch {self.epoch}" + (
+                               f"; on probation (convicted before): {sorted(convicted)}"
+                               if convicted else "") + (
+                               f", never to rejoin: {sorted(self.barred & convicted)}"
+                               if self.barred & convicted else ""))
         return True
 
 
@@ -1380,10 +1405,13 @@ class MonitorSeat:
         chaos run)."""
         core, heard = self.core, self.heard_roster
         newest = max(core.epoch, self._seen_epoch())
+        convicted = {} if heard is None else {"probation": heard.get("probation", ()),
+                                              "barred": heard.get("barred", ())}
         if heard is not None and heard["epoch"] >= newest \
-                and core.adopt(heard["ids"], heard["epoch"]):
+                and core.adopt(heard["ids"], heard["epoch"],
+                               activate_at=heard["activate_at"], **convicted):
             return True
-        return core.adopt(None, newest)
+        return core.adopt(None, newest, **convicted)
 
     def decide(self, now: float, monitors_alive) -> str:
         """``monitors_alive``: the monitors whose token is up, as ids or as ``(id,

@@ -302,7 +302,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                                 run=run))
                         elif isinstance(m, RosterUpdate):
                             peer.put(topics.ctl_key(run, 0), wire.encode_roster(
-                                m.epoch, m.activate_at, m.ids, signer=signer, run=run))
+                                m.epoch, m.activate_at, m.ids, signer=signer, run=run,
+                                probation=m.probation, barred=m.barred))
                             next_roster = now + ROSTER_S
                     for line in core.events:
                         print(f"monitor {monitor_id}: {line}", file=log, flush=True)
@@ -317,7 +318,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     if core.roster_message is not None and now >= next_roster:
                         m = core.roster_message
                         peer.put(topics.ctl_key(run, 0), wire.encode_roster(
-                            m.epoch, m.activate_at, m.ids, signer=signer, run=run))
+                            m.epoch, m.activate_at, m.ids, signer=signer, run=run,
+                            probation=m.probation, barred=m.barred))
                         next_roster = now + ROSTER_S
                 if core.run_ended(now):
                     for line in core.events:

@@ -233,6 +233,10 @@ def roster_schema() -> Schema:
         "epoch": Int(1, 2**62),
         "activate_at": _STEP,
         "ids": AgentIds(),
+        # the convicted agents on probation, and of them those never to rejoin: what a
+        # monitor adopting this roster keeps out of the standbys; optional (none)
+        "probation": AgentIds(required=False),
+        "barred": AgentIds(required=False),
         **_SIGNED,
     })
 
@@ -329,9 +333,14 @@ def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: di
     return encode(msg)
 
 
-def encode_roster(epoch: int, activate_at: int, ids, signer=None, run: str | None = None) -> bytes:
+def encode_roster(epoch: int, activate_at: int, ids, signer=None, run: str | None = None,
+                  probation=(), barred=()) -> bytes:
     msg = {"kind": "roster", "epoch": int(epoch), "activate_at": int(activate_at),
            "ids": [int(a) for a in ids]}
+    if probation:
+        msg["probation"] = [int(a) for a in probation]
+    if barred:
+        msg["barred"] = [int(a) for a in barred]
     return encode(msg if signer is None else signer.sign(msg, run))
 
 

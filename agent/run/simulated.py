@@ -639,7 +639,8 @@ class SimRuntime:
             self._roster_out(src, msg)
 
     def _roster_out(self, src, msg) -> None:
-        payload = wire.encode_roster(msg.epoch, msg.activate_at, msg.ids)
+        payload = wire.encode_roster(msg.epoch, msg.activate_at, msg.ids,
+                                     probation=msg.probation, barred=msg.barred)
         self._record(src.name, topics.ctl_key(self.run_id, 0), payload)
         shared = _Shared(payload, self._schemas["roster"])
         for a in self.agents:
