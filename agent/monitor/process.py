@@ -250,7 +250,10 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     if sender is None:
                         stats.count_dropped("key")
                         continue
-                    core.on_status(msg, now, sender=sender)
+                    # stamped when it arrived, as the estimates seen and the tokens are: a
+                    # loop that lags would make a queued status look recent (a token that
+                    # went after it, with its process, was then taken for a lapse)
+                    core.on_status(msg, item.arrival, sender=sender)
                 for item in estimates_in.drain():
                     sender = estimate_sender.agent_of(item.key)
                     if sender is not None:
