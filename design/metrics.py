@@ -4,7 +4,8 @@ One definition of the steady mean-squared error used by the simulator, the live 
 summary, the paper's reproduction and the tests: the mean over the last quarter of the
 steps, ``max(1, steps // 4)`` entries (the first three quarters are the transient); a
 step without any estimate (NaN, in a live record) is left out, an infinite one makes it
-infinite. And one definition of the error of a step: :func:`mse_of_step`.
+infinite. And one definition of the error of a step: :func:`mse_of_step`; of the
+uncertainty of one run's steady MSE: :func:`batch_means_se`.
 
 Examples
 --------
@@ -16,7 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["steady_window", "steady_mse", "mse_of_step", "mean_recorded"]
+__all__ = ["steady_window", "steady_mse", "mse_of_step", "mean_recorded", "BATCHES",
+           "batch_means_se"]
+
+#: Batches of :func:`batch_means_se` (10-30 is the usual advice, Schmeiser 1982: fewer
+#: batches are longer, so their means are less correlated, at the price of a noisier
+#: standard error).
+BATCHES = 10
 
 
 def steady_window(steps: int) -> int:
@@ -83,3 +90,28 @@ def mse_of_step(estimates, truth) -> float | None:
     """
     errs = [float(np.mean((np.asarray(x) - truth) ** 2)) for x in estimates]
     return float(np.mean(errs)) if errs else None
+
+
+def batch_means_se(values, batches: int = BATCHES) -> float | None:
+    """The standard error of the mean of a window of per-step MSEs of one run, by batch
+    means: the window (steps nobody estimated left out) cut into ``batches`` consecutive
+    batches of equal length (the first ``len % batches`` entries left out), the sample
+    standard deviation of the batch means over ``sqrt(batches)``. The per-step errors of
+    one run are correlated over a few steps (more as the loop's radius nears 1), so their
+    plain standard deviation over ``sqrt(n)`` would understate it. None when the window
+    has fewer than two steps per batch or an infinite entry.
+
+    >>> batch_means_se([1.0, 3.0] * 10, batches=10)     # every batch's mean is 2
+    0.0
+    >>> round(batch_means_se([1.0] * 10 + [3.0] * 10, batches=2), 6)
+    1.0
+    >>> batch_means_se([1.0, 2.0, 3.0]) is None           # too short to tell
+    True
+    """
+    a = np.asarray(list(values), dtype=float)
+    a = a[~np.isnan(a)]
+    if batches < 2 or len(a) < 2 * batches or not np.isfinite(a).all():
+        return None
+    length = len(a) // batches
+    means = a[len(a) - batches * length:].reshape(batches, length).mean(axis=1)
+    return float(means.std(ddof=1) / np.sqrt(batches))

@@ -253,3 +253,23 @@ def test_the_gains_file_says_how_it_was_designed_where_it_is_read(paper14, tmp_p
     assert first.endswith("(method default, objective mse; as designed (taubar "
                           f"{int(paper14.delays.max())}): exact radius 0.9, exact steady MSE "
                           "0.25)")
+
+
+def test_a_steady_mse_is_printed_with_its_standard_error_and_its_window():
+    """``up`` and ``watch`` print the steady MSE with its batch-means standard error and
+    the steps it covers (a 300-step run's MSE alone read as more certain than it is)."""
+    from agent.run.summary import failure_lines, steady_text
+    from design.metrics import batch_means_se
+
+    rng = np.random.default_rng(3)
+    window = list(1.0 + 0.2 * rng.standard_normal(100))
+    se = batch_means_se(window)
+    assert 0.01 < se < 0.04                 # 0.2 / sqrt(100) = 0.02 for white noise
+    summary = {"mse_steady_after_recovery": 0.2983, "mse_steady_after_recovery_se": se,
+               "mse_steady_after_recovery_window": [344, 400],
+               "mse_steady_exact_after_recovery": 0.2712, "failures": []}
+    (line,) = failure_lines(summary)
+    assert line == f"  after recovery: mse_steady 0.2983 ± {se:.2g} over steps 344-400 " \
+                   "(predicted 0.2712)"
+    assert steady_text({"m": 1.0, "m_se": None, "m_window": [3, 3]}, "m") == \
+        "1 over steps 3-3 (too few for a standard error)"

@@ -102,8 +102,9 @@ def test_summary_of_a_watched_recording(fed, tmp_path):
     summary, steps, mse = summarize(config, fed.recording, None, None)
     assert summary["steps"] == 3 and summary["drops"] == 3 and summary["late"] == 1
     assert summary["exit_status"] == {} and summary["orphans"] == []
-    # the last quarter of 3 steps is the last step
+    # the last quarter of 3 steps is the last step: too short for a standard error
     assert summary["mse_steady"] == 1.0
+    assert summary["mse_steady_window"] == [3, 3] and summary["mse_steady_se"] is None
 
 
 def test_live_view_forms():

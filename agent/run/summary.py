@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from design.metrics import mean_recorded, mse_of_step, steady_mse, steady_window
+from design.metrics import (batch_means_se, mean_recorded, mse_of_step, steady_mse,
+                            steady_window)
 
 __all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
            "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
@@ -165,6 +166,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     # averages the same final steps as the run's own recorder)
     tail = steady_window(K)
     mse_steady = mean_recorded(mse[-tail:])
+    window = [int(steps[-tail:][0]), int(steps[-1])] if steps else None
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
     children = rec.children.children.values() if rec.children is not None else ()
     summary = {
@@ -184,6 +186,9 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "drop": c.drop,
         "rho_exact": loop_rho,
         "mse_steady": mse_steady,
+        # its standard error by batch means, and the steps it covers (the last quarter)
+        "mse_steady_se": batch_means_se(mse[-tail:]),
+        "mse_steady_window": window,
         "mse_steady_exact": predicted,
         "drops": sum(s.get("drops", 0) for s in last.values()),
         "late": sum(s.get("late", 0) for s in last.values()),
@@ -293,7 +298,7 @@ def headline_lines(summary: dict, scenario) -> list:
     the configuration in force, the message counts, each failure, the run folder."""
     exact = summary.get("mse_steady_exact_in_force")
     first = (f"{scenario.name}: {summary['steps']} steps, {scenario.N} agents, mse_steady "
-             f"{summary['mse_steady']:.4g} (predicted "
+             f"{steady_text(summary, 'mse_steady')} (predicted "
              + (f"{exact:.4g} for the configuration in force" if exact is not None
                 else "n/a: the window spans a switch")
              + (f"; DIVERGED at step {summary['diverged_at']}"
@@ -333,9 +338,31 @@ def failure_lines(summary) -> list:
                      "readings")
     if "mse_steady_after_recovery" in summary:
         after = summary.get("mse_steady_exact_after_recovery")
-        lines.append(f"  after recovery: mse_steady {summary['mse_steady_after_recovery']:.4g}"
+        lines.append(f"  after recovery: mse_steady "
+                     f"{steady_text(summary, 'mse_steady_after_recovery')}"
                      f" (predicted {after if after is not None else float('nan'):.4g})")
     return lines
+
+
+def steady_text(summary: dict, key: str) -> str:
+    """A steady MSE of a summary with its standard error and the steps it covers.
+
+    >>> steady_text({"m": 0.2788, "m_se": 0.0123, "m_window": [300, 399]}, "m")
+    '0.2788 ± 0.012 over steps 300-399'
+    >>> steady_text({"m": 0.2788, "m_se": None, "m_window": [398, 399]}, "m")
+    '0.2788 over steps 398-399 (too few for a standard error)'
+    >>> steady_text({"m": 0.2788}, "m")
+    '0.2788'
+    """
+    value, se, window = summary[key], summary.get(f"{key}_se"), summary.get(f"{key}_window")
+    text = f"{value:.4g}"
+    if se is not None:
+        text += f" ± {se:.2g}"
+    if window:
+        text += f" over steps {window[0]}-{window[1]}"
+        if se is None:
+            text += " (too few for a standard error)"
+    return text
 
 
 #: Most warnings taken from the processes' logs into a summary (a log is never read whole
@@ -696,6 +723,13 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
         after = [m for k, m in zip(steps_done, mse) if k >= at]
         out["mse_steady_after_recovery"] = steady_mse(after) if after else float("nan")
+        after_window = [k for k in steps_done if k >= at][-steady_window(len(after)):] \
+            if after else []
+        out["mse_steady_after_recovery_se"] = batch_means_se(
+            after[-steady_window(len(after)):]) if after else None
+        out["mse_steady_after_recovery_window"] = [int(after_window[0]),
+                                                   int(after_window[-1])] \
+            if after_window else None
         try:
             from design.closed_loop import exact_performance
             from design.roster import link_delay_table, roster_from_specs

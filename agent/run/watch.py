@@ -214,14 +214,14 @@ def summary_json(result: WatchResult) -> str:
 def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = None) -> list:
     """What ``socmon watch`` prints at the end: how the watch ended and the MSE against its
     prediction, the failures, and the run folder ``out`` (as the user named it)."""
-    from agent.run.summary import failure_lines
+    from agent.run.summary import failure_lines, steady_text
 
     summary = result.summary
     pred = summary.get("mse_steady_exact")
     how = {"steps": "recorded up to --steps", "world ended": "ended with its world",
            "interrupted": "watched until interrupted"}.get(result.ended, result.ended)
     lines = [f"{config.scenario.name}: run {config.net.run} {how}, last step "
-             f"{summary['steps']}: mse_steady {summary['mse_steady']:.4g}"
+             f"{summary['steps']}: mse_steady {steady_text(summary, 'mse_steady')}"
              + (f" (predicted {pred:.4g})" if pred is not None else " (no --gains: no "
                 "prediction)")
              + f", drops {summary['drops']}, late {summary['late']}, malformed "
