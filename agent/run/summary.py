@@ -297,7 +297,10 @@ def headline_lines(summary: dict, scenario) -> list:
     """The lines ``socmon up`` prints of a finished run: the MSE against its prediction for
     the configuration in force, the message counts, each failure, the run folder."""
     exact = summary.get("mse_steady_exact_in_force")
-    first = (f"{scenario.name}: {summary['steps']} steps, {scenario.N} agents, mse_steady "
+    rosters = summary.get("rosters") or []
+    now = len(rosters[-1]["ids"]) if rosters else scenario.N
+    first = (f"{scenario.name}: {summary['steps']} steps, {scenario.N} agents"
+             + (f" ({now} in force at the end)" if now != scenario.N else "") + ", mse_steady "
              f"{steady_text(summary, 'mse_steady')} (predicted "
              + (f"{exact:.4g} for the configuration in force" if exact is not None
                 else "n/a: the window spans a switch")
@@ -566,6 +569,11 @@ def configurations_run(rosters, est_epoch, assigns, kills, neighbours0):
     return out
 
 
+#: Configurations between the first and the last whose exact steady MSE a summary
+#: computes (``rosters[i].mse_steady_exact``), for ``mse.png``.
+MAX_ROSTERS_EXACT = 8
+
+
 def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
     """``(ids, {id: RoleSpec})`` of the last roster (or of the one of ``epoch``), from the
     assignments recorded up to that epoch."""
@@ -742,6 +750,17 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
             out["mse_steady_exact_after_recovery"] = None
             out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")
+        out["rosters"][-1]["mse_steady_exact"] = out["mse_steady_exact_after_recovery"]
+        # the exact level of each configuration in force in between (mse.png draws it over
+        # its steps; a churning run's many are left out)
+        for r in out["rosters"][1:-1][:MAX_ROSTERS_EXACT]:
+            try:
+                ids_r, specs_r = specs_in_force(rosters, assigns, scenario, G0,
+                                                epoch=r["epoch"])
+                r["mse_steady_exact"] = exact_performance(
+                    *roster_from_specs(scenario, table, ids_r, specs_r)).mse_or_inf
+            except Exception:          # noqa: BLE001 - a level not drawn, nothing else
+                r["mse_steady_exact"] = None
         # recovered: the roles in force, and the error after them near its exact level
         exact = out.get("mse_steady_exact_after_recovery")
         measured = out["mse_steady_after_recovery"]
@@ -966,6 +985,54 @@ def plottable(mse) -> np.ndarray:
     return np.isfinite(mse) & (mse > 0) & (mse < 1e250)
 
 
+def smoothing_window(steps: int) -> int:
+    """Steps of the running mean ``mse.png`` draws over the raw trace: a 50th of the run,
+    at least 5; 1 (no smoothing) for runs under 100 steps.
+
+    >>> [smoothing_window(k) for k in (50, 400, 4000)]
+    [1, 8, 80]
+    """
+    return 1 if steps < 100 else max(5, steps // 50)
+
+
+def running_mean(values, window: int) -> np.ndarray:
+    """The mean of each ``window`` consecutive values ending at each one (fewer at the
+    start), values a log plot cannot show (not finite, not positive) left out; NaN where
+    none is left.
+
+    >>> running_mean([1.0, 3.0, float("nan"), 5.0], 2).tolist()
+    [1.0, 2.0, 3.0, 5.0]
+    """
+    v = np.asarray(values, dtype=float)
+    ok = plottable(v)
+    total = np.concatenate([[0.0], np.cumsum(np.where(ok, v, 0.0))])
+    count = np.concatenate([[0], np.cumsum(ok)])
+    hi = np.arange(1, len(v) + 1)
+    lo = np.maximum(0, hi - int(window))
+    n = count[hi] - count[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, (total[hi] - total[lo]) / np.maximum(n, 1), np.nan)
+
+
+def plot_title(summary) -> str:
+    """``mse.png``'s title: the scenario, the seed and the agents in force, first and last.
+
+    >>> plot_title({"scenario": "p", "seed": 0, "rosters": [{"activate_at": 0, "ids": [1, 2]},
+    ...             {"activate_at": 173, "ids": [4, 2]}]})
+    'p, seed 0: agents 1, 2; from step 173: 4, 2 (1 reassignment)'
+    """
+    rosters = summary.get("rosters") or []
+    names = lambda ids: ", ".join(map(str, ids))            # noqa: E731
+    if not rosters:
+        return f"{summary['scenario']}, seed {summary['seed']}: {summary.get('agents')} agents"
+    title = f"{summary['scenario']}, seed {summary['seed']}: agents {names(rosters[0]['ids'])}"
+    if len(rosters) > 1:
+        n = len(rosters) - 1
+        title += (f"; from step {rosters[-1]['activate_at']}: {names(rosters[-1]['ids'])} "
+                  f"({n} reassignment{'s' if n > 1 else ''})")
+    return title
+
+
 def gain_changes(summary) -> list:
     """Steps at which a configuration took effect that no failure explains (new gains for
     the same roles: a refined gain, gains for learned delays), as ``mse.png`` marks them
@@ -1006,14 +1073,33 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
         return written
     ok = plottable(mse)
     mse = np.asarray(mse, dtype=float)
-    fig, ax = plt.subplots(figsize=(8.5, 4))
-    ax.semilogy(np.asarray(steps_done)[ok], mse[ok], lw=1, label="live run")
+    steps_done = np.asarray(steps_done)
+    fig, ax = plt.subplots(figsize=(9.5, 4.2))
+    window = smoothing_window(len(mse))
+    if window > 1:       # a long run's raw trace is a solid block: its running mean on top
+        ax.semilogy(steps_done[ok], mse[ok], lw=0.6, color="tab:blue", alpha=0.3,
+                    label="live run, each step")
+        ax.semilogy(steps_done, running_mean(mse, window), lw=1.4, color="tab:blue",
+                    label=f"live run, mean of {window} steps")
+    else:
+        ax.semilogy(steps_done[ok], mse[ok], lw=1, label="live run")
+    # the exact level of each configuration over the steps it was in force
+    rosters = summary.get("rosters") or []
+    first_switch = rosters[1]["activate_at"] if len(rosters) > 1 else None
+    last_step = int(steps_done[-1]) if len(steps_done) else 0
     if predicted and predicted != float("inf"):
-        ax.axhline(predicted, color="k", ls="--", lw=0.8, label="predicted steady MSE")
-    after = summary.get("mse_steady_exact_after_recovery")
-    if after and after != float("inf"):
-        ax.axhline(after, color="tab:green", ls=":", lw=0.9,
-                   label="predicted after recovery")
+        ax.hlines(predicted, 0, first_switch if first_switch is not None else last_step,
+                  color="k", ls="--", lw=0.9, label="exact steady MSE, initial configuration")
+    for i, r in enumerate(rosters[1:], start=1):
+        level = r.get("mse_steady_exact")
+        if i == len(rosters) - 1 and level is None:
+            level = summary.get("mse_steady_exact_after_recovery")
+        if level and level != float("inf"):
+            end = rosters[i + 1]["activate_at"] if i + 1 < len(rosters) else last_step
+            ax.hlines(level, r["activate_at"], end, color="tab:green", ls="--", lw=0.9,
+                      label="exact steady MSE of the configuration in force"
+                      if i == 1 else None)
+    top = ax.get_xaxis_transform()          # x in steps, y in axes fraction: labels on top
     for i, f in enumerate(summary.get("failures", [])):
         if f.get("detected") is False:
             ax.axvline(f["died_step"], color="tab:red", lw=1.5, ls=":",
@@ -1021,9 +1107,15 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
             continue
         ax.axvline(f["detected_step"], color="tab:red", lw=0.8, ls="--",
                    label="detected" if i == 0 else None)
+        ax.text(f["detected_step"], 0.99, f" agent {f['agent']}: {f['cause']}", transform=top,
+                rotation=90, va="top", ha="right", fontsize=7, color="tab:red")
         if f.get("activate_at") is not None:
             ax.axvline(f["activate_at"], color="tab:green", lw=0.8,
                        label="reassigned" if i == 0 else None)
+            rep = (f.get("replacement") or {}).get("agent")
+            if rep is not None:
+                ax.text(f["activate_at"], 0.01, f" agent {rep} for {f['agent']}", transform=top,
+                        rotation=90, va="bottom", ha="left", fontsize=7, color="tab:green")
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
@@ -1047,7 +1139,7 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
                    label="link impairments changed" if i == 0 else None)
     ax.set_xlabel("step")
     ax.set_ylabel("MSE (mean over agents and states)")
-    ax.set_title(f"{summary['scenario']}: {summary['agents']} agents, seed {summary['seed']}")
+    ax.set_title(plot_title(summary), fontsize=10)
     # beside the axes: inside, it hid the fault and recovery lines of some runs
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0,
               fontsize="small")
