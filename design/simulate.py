@@ -100,6 +100,8 @@ from .residuals import ResidualTest, residual_test
 __all__ = [
     "Fault",
     "FAULT_KINDS",
+    "SENSOR_FAULT_KINDS",
+    "apply_sensor_faults",
     "Recovery",
     "SimulationError",
     "SimulationResult",
@@ -166,6 +168,34 @@ class Fault:
         if self.kind == "drift":
             return self.size * sigma * (k - self.start + 1) / self.ramp
         return self.size * sigma
+
+
+#: The kinds of :class:`Fault` that act on an agent's readings.
+SENSOR_FAULT_KINDS = ("bias", "drift", "noise")
+
+
+def apply_sensor_faults(faults, k: int, zeta, sigma: float):
+    """The measurement noise ``zeta`` of one agent's readings at step ``k`` (last axis:
+    its measured nodes, in its role's order) with its sensor faults applied from their
+    start: every ``noise`` fault scales it, then every ``bias`` and ``drift`` adds its
+    offset (``sigma``: the sensor noise's standard deviation). The one rule of the
+    simulator and of an agent process given scripted sensor faults
+    (``socmon up --fault bias:...``); other kinds are left alone.
+
+    >>> apply_sensor_faults([Fault("bias", 0, 10, 2.0), Fault("noise", 0, 5, 3.0)], 10,
+    ...                     np.array([0.1, -0.1]), 0.5).tolist()
+    [1.3, 0.7]
+    >>> apply_sensor_faults([Fault("bias", 0, 10, 2.0)], 9, np.array([0.1]), 0.5).tolist()
+    [0.1]
+    """
+    active = [f for f in faults if f.kind in SENSOR_FAULT_KINDS and k >= f.start]
+    for f in active:
+        if f.kind == "noise":
+            zeta = zeta * f.size
+    for f in active:
+        if f.kind != "noise":
+            zeta = zeta + f.offset(k, sigma) * f.vector(np.shape(zeta)[-1])
+    return zeta
 
 
 def _check_faults(faults, N, steps, n=None, measure=None):
@@ -605,14 +635,8 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                 nbs, noise_parts = _neighbours(config, i, held, est[a], k, max_age)
                 role = config.roles[i]
                 zeta = noise.measurement_noise(seed, a, k, len(role.measured), config.r, trials)
-                extra = None
-                for fault in fault_of.get(a, ()):
-                    if fault.kind == "noise" and k >= fault.start:
-                        zeta = zeta * fault.size
-                    elif fault.kind in ("bias", "drift") and k >= fault.start:
-                        off = fault.offset(k, math.sqrt(config.r)) \
-                            * fault.vector(len(role.measured))
-                        extra = off if extra is None else extra + off
+                if a in fault_of:
+                    zeta = apply_sensor_faults(fault_of[a], k, zeta, math.sqrt(config.r))
                 if error_coords:
                     # x_k = A^age x_{k-age} + S_age(k): subtract what the truth gained
                     d = None
@@ -623,8 +647,6 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
                     y = zeta
                 else:
                     y = x[:, list(role.measured)] + zeta
-                if extra is not None:
-                    y = y + extra
                 prior, new[a] = estimator_step(P, role, est[a], nbs, y)
                 if rec is not None:
                     rec.agent_step(i, a, k, y, prior, held, P, S if error_coords else None)

@@ -62,7 +62,8 @@ def test_a_live_liar_is_convicted_replaced_and_not_taken_back(tmp_path, two_rece
     every estimate, so that a loaded host's late estimates do not put the tests on hold
     (an agent's tests start over after a late input); how the default deadline fares is
     measured in docs/residuals.md, not asserted. ``--check-simulator`` is not given: the
-    simulator replays scripted crashes only, not a lie (it would say so and exit 1)."""
+    simulator replays a lie, but not the reassignment a lie's conviction brings (it would
+    say so and exit 1)."""
     s, folder = _up(tmp_path, two_receivers, "--fault", "lie:300:1:0:5",
                     "--deadline-ms", "30000", steps=800)
     story = monitor_story(folder)
@@ -93,4 +94,20 @@ def test_a_healthy_run_of_the_same_scenario_raises_no_alert(tmp_path, two_receiv
     assert s["failures"] == [] and s["residual_alerts"] == [], \
         (s["failures"], s["residual_alerts"], story)
     assert s["rosters"][-1]["ids"] == [1, 2, 3]
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9, (s["simulator_compared"], s["warnings"])
+
+
+def test_a_live_sensor_bias_is_an_alert_naming_its_agent_and_equals_the_simulator(tmp_path):
+    """Agent 1's sensor reads 5 noise std-devs high from step 300 (``--fault
+    bias:300:1:0:5``, the agent adding it to its readings as the simulator does): its own
+    innovation test alarms within a few steps and the monitor raises a ``sensor bias``
+    alert naming agent 1 (not a conviction: docs/residuals.md says why), and the run
+    equals the simulator's replay of the same fault."""
+    s, folder = _up(tmp_path, "paper-14-live", "--fault", "bias:300:1:0:5",
+                    "--check-simulator", steps=500)
+    story = monitor_story(folder)
+    assert s["failures"] == [], (s["failures"], story)
+    (alert,) = s["residual_alerts"]
+    assert (alert["agent"], alert["fault"]) == (1, "sensor bias"), (alert, story)
+    assert 300 <= alert["step"] <= 330, alert
     assert s["max_rel_diff_vs_simulator"] <= 1e-9, (s["simulator_compared"], s["warnings"])

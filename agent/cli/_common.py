@@ -153,7 +153,10 @@ def add_fault_schedule_arguments(parser) -> None:
                              "worldstop:STEP::SECONDS), monitorsgone (every monitor "
                              "SIGKILLed for good), lie (the agent publishes its estimates "
                              "VALUE noise std-devs off from STEP: lie:STEP:AGENT:0:VALUE, "
-                             "docs/residuals.md); see docs/monitor.md")
+                             "docs/residuals.md), bias, drift, noise (the agent's sensor "
+                             "goes wrong from STEP: VALUE noise std-devs added, VALUE "
+                             "std-devs more each 100 steps, or its noise VALUE times its "
+                             "model: bias:STEP:AGENT:0:VALUE); see docs/monitor.md")
 
 
 def add_local_transport_arguments(parser) -> None:

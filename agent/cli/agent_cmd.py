@@ -30,6 +30,12 @@ def add_arguments(parser) -> None:
                         help="scripted misbehaviour: from STEP on, publish estimates SIZE "
                              "measurement-noise std-devs off on every component, the agent's "
                              "own estimate staying honest (socmon up --fault lie uses it)")
+    parser.add_argument("--sensor-fault", action="append", default=[],
+                        metavar="KIND:STEP:SIZE",
+                        help="scripted sensor fault (repeatable): from STEP on, bias (SIZE "
+                             "noise std-devs added to every reading), drift (SIZE std-devs "
+                             "after 100 steps, growing on) or noise (the sensor noise "
+                             "times SIZE) (socmon up --fault bias/drift/noise uses it)")
     parser.add_argument("--crash-at", type=c.int_flag(lo=1), default=None, metavar="STEP",
                         help="scripted crash: publish step STEP-1, then SIGKILL itself "
                              "(reproducible failures; socmon up --kill uses it)")

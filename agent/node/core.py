@@ -245,6 +245,10 @@ class AgentConfig:
     lie : design.simulate.Fault or None
         A scripted misbehaviour (kind ``lie``): the estimates it publishes from the fault's
         step on carry its offset, its own estimate staying honest (as the simulator's).
+    sensor_faults : tuple of design.simulate.Fault
+        Scripted faults of its sensor (kinds ``bias``, ``drift``, ``noise``): its readings
+        from each fault's step on, as the simulator's
+        (:func:`design.simulate.apply_sensor_faults`).
     """
 
     agent: int
@@ -264,6 +268,7 @@ class AgentConfig:
     drop: float = 0.0
     residuals: object = None
     lie: object = None
+    sensor_faults: tuple = ()
 
 
 class _Neighbour:
@@ -819,6 +824,11 @@ class AgentCore:
         role = self.role
         cols = [c for c, m in enumerate(role.measure) if m in readings]
         z = self._measurement_noise(k, len(role.measure))
+        if self.config.sensor_faults:
+            from design.simulate import apply_sensor_faults   # (its module is slow to load)
+
+            z = apply_sensor_faults(self.config.sensor_faults, k, z,
+                                    math.sqrt(self.config.measurement_noise))
         y = np.array([readings[role.measure[c]] for c in cols]) + z[cols]
         held = self._est_role           # the estimator's role for this role and readings
         if held is None or held[0] is not role or held[1] != cols:
@@ -930,7 +940,7 @@ def initial_role(scenario, gains, agent: int):
 
 def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: float,
                  impair_seed: int = 0, drop: float = 0.0, max_age=None,
-                 residuals: bool = False, lie=None) -> AgentConfig:
+                 residuals: bool = False, lie=None, sensor_faults=()) -> AgentConfig:
     """The :class:`AgentConfig` of agent ``agent`` (1-based) of ``scenario``.
 
     The receiver-side delay of link b -> ``agent`` is
@@ -961,7 +971,8 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
         drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age),
         residuals=residual_tests_for(scenario, gains, delays, i)
-        if residuals and gains is not None and i < scenario.N else None, lie=lie)
+        if residuals and gains is not None and i < scenario.N else None, lie=lie,
+        sensor_faults=tuple(sensor_faults))
 
 
 #: the largest augmented loop (nN (1 + largest delay)) whose residual tests an agent

@@ -21,7 +21,7 @@ from design.scenario import resolve_delays
 from agent.run.inputs import InputError, check_run_flags, gains_for, load_scenario_arg
 
 __all__ = ["AgentOptions", "agent_options", "manifest_verifiers", "check_agent_id",
-           "parse_lie", "start_agent"]
+           "parse_lie", "parse_sensor_fault", "start_agent"]
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,9 @@ def agent_options(args, *, net_config_arg, parse_int) -> AgentOptions:
     config = agent_config(scenario, args.id, G, args.seed, delays, deadline_ms / 1000.0,
                           impair_seed=args.seed * 1000 + args.id, drop=args.drop,
                           residuals=args.drop == 0,
-                          lie=parse_lie(args.lie, args.id, parse_int))
+                          lie=parse_lie(args.lie, args.id, parse_int),
+                          sensor_faults=[parse_sensor_fault(text, args.id, parse_int)
+                                         for text in getattr(args, "sensor_fault", [])])
     return AgentOptions(config=config, net=net, crash_at=args.crash_at, verifier=verifier,
                         operator_verifier=operator_verifier)
 
@@ -148,6 +150,32 @@ def parse_lie(text, agent: int, parse_int):
     if not sep or not 0 <= value <= 1e6:
         raise InputError(f"--lie: expected STEP:SIZE with SIZE in [0, 1e6], got {text!r}")
     return Fault("lie", agent - 1, parse_int(step, "--lie STEP", lo=1), value)
+
+
+def parse_sensor_fault(text, agent: int, parse_int):
+    """``--sensor-fault KIND:STEP:SIZE`` of agent ``agent`` (1-based) ->
+    :class:`design.simulate.Fault` (kind ``bias``, ``drift`` or ``noise``);
+    ``parse_int(text, flag, lo=...)`` reads STEP.
+
+    >>> parse_sensor_fault("bias:150:5", 3, lambda text, flag, lo: int(text))
+    Fault(kind='bias', agent=2, start=150, size=5.0, ramp=100, direction=None)
+    >>> parse_sensor_fault("tilt:150:5", 3, None)
+    Traceback (most recent call last):
+    ...
+    agent.run.inputs.InputError: --sensor-fault: expected KIND:STEP:SIZE with KIND one of bias, drift, noise and SIZE in [0, 1e6], got 'tilt:150:5'
+    """
+    from design.simulate import SENSOR_FAULT_KINDS, Fault
+
+    kind, _, rest = str(text).partition(":")
+    step, sep, size = rest.partition(":")
+    try:
+        value = float(size)
+    except ValueError:
+        value = -1.0
+    if kind not in SENSOR_FAULT_KINDS or not sep or not 0 <= value <= 1e6:
+        raise InputError(f"--sensor-fault: expected KIND:STEP:SIZE with KIND one of "
+                         f"{', '.join(SENSOR_FAULT_KINDS)} and SIZE in [0, 1e6], got {text!r}")
+    return Fault(kind, agent - 1, parse_int(step, "--sensor-fault STEP", lo=1), value)
 
 
 def start_agent(options: AgentOptions) -> int:

@@ -52,10 +52,13 @@ __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KI
 #: linkdown: the agent's host's link brought down for ``seconds`` (a real partition; a run
 #: on a testbed of network namespaces only, :mod:`agent.testbed.netns`).
 #: monitorsgone: every monitor (active and standby) SIGKILLed, none started again.
+#: lie: the agent publishes its estimates VALUE noise std-devs off (scripted); bias, drift,
+#: noise: its sensor goes wrong (scripted, :func:`design.simulate.apply_sensor_faults`).
 FAULT_KINDS = ("crash", "kill", "stop", "hang", "sensor", "monitor", "partition", "delay",
-               "drop", "linkdown", "worldstop", "monitorstop", "monitorsgone", "lie")
+               "drop", "linkdown", "worldstop", "monitorstop", "monitorsgone", "lie",
+               "bias", "drift", "noise")
 #: The kinds an agent process is told of at its start (scripted at a step, like a crash).
-SCRIPTED_FAULTS = ("crash", "lie")
+SCRIPTED_FAULTS = ("crash", "lie", "bias", "drift", "noise")
 #: The kinds that act on a process other than an agent (no AGENT in ``--fault``).
 PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop", "monitorsgone")
 
@@ -95,6 +98,10 @@ class Fault:
             "monitorstop": "monitor stopped (SIGSTOP)",
             "monitorsgone": "every monitor killed (SIGKILL), none started again",
             "lie": "agent {a} publishes its estimates {v:g} noise std-devs off (scripted)",
+            "bias": "agent {a}'s readings biased by {v:g} noise std-devs (scripted)",
+            "drift": "agent {a}'s readings drift by {v:g} noise std-devs each 100 steps "
+                     "(scripted)",
+            "noise": "agent {a}'s sensor noise {v:g} times its model (scripted)",
         }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
         return what + (f" for {self.seconds:g} s" if self.seconds else "")
 
@@ -188,6 +195,7 @@ class LocalRun:
             common += ["--keys", str((c.out / "keys").resolve())]
         crash_at = {f.agent: f.step for f in c.faults if f.kind == "crash"}
         lie = {f.agent: f for f in c.faults if f.kind == "lie"}
+        from design.simulate import SENSOR_FAULT_KINDS
         out = {"world": ["world", c.scenario_arg, *common, "--listen", ep[1],
                          "--steps", str(c.steps), "--step-ms", str(c.step_ms),
                          "--start-timeout", str(c.start_timeout)]
@@ -204,6 +212,9 @@ class LocalRun:
                 argv += ["--crash-at", str(crash_at[a])]
             if a in lie:
                 argv += ["--lie", f"{lie[a].step}:{lie[a].value!r}"]
+            for f in c.faults:
+                if f.agent == a and f.kind in SENSOR_FAULT_KINDS:
+                    argv += ["--sensor-fault", f"{f.kind}:{f.step}:{f.value!r}"]
             out[f"agent-{a}"] = argv
         out["monitor"] = ["monitor", c.scenario_arg, *common, "--listen", ep[c.M + 2],
                           *_connect_to(ep[1:c.M + 2]),

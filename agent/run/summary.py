@@ -862,8 +862,18 @@ def compare_simulator(config, rec, steps_done):
     fail = recover = None
     # a crash scheduled after the run's last step never happened
     kills = {f.agent: f.step for f in c.faults if f.kind == "crash" and f.step <= K}
-    if any(f.kind != "crash" for f in c.faults):
-        return float("inf"), "the simulator replays scripted crashes (--kill) only"
+    # what an agent was scripted to do wrong (a lie, a sensor fault) the simulator does
+    # alike, for an agent of the initial configuration
+    from design.simulate import FAULT_KINDS as SIMULATED
+    from design.simulate import Fault as SimFault
+
+    scripted = [f for f in c.faults if f.kind in SIMULATED]
+    if any(f.kind != "crash" and f not in scripted for f in c.faults):
+        return float("inf"), ("the simulator replays scripted crashes (--kill), lies and "
+                              "sensor faults only")
+    if any(f.agent > c.scenario.N for f in scripted):
+        return float("inf"), "the simulator scripts faults of the initial agents only"
+    sim_faults = [SimFault(f.kind, f.agent - 1, f.step, f.value) for f in scripted]
     if kills:
         # a standby killed before it took a role never computed: nothing to replay
         steps_of = sorted({f for a, f in kills.items() if a <= c.scenario.N})
@@ -915,7 +925,7 @@ def compare_simulator(config, rec, steps_done):
         return float("inf"), "a reassignment without a scripted crash cannot be replayed"
     res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
                    drop=c.drop, fail=fail, recover=recover, coordinates="absolute",
-                   record_estimates=True)
+                   record_estimates=True, faults=sim_faults)
     if len(steps_done) != K + 1:
         return float("inf"), "incomplete run"
     sim_est = np.asarray(res.estimates)[0]
