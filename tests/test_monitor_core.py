@@ -1396,18 +1396,23 @@ def test_a_lie_seen_by_a_single_receiver_is_an_alert_only(core):
     assert any("single receiver: not corroborated" in e for e in alert["evidence"])
 
 
+def _convict_the_liar(core):
+    """``core`` after agent 1's lie of LIE_OF_1 at step 61, reported at t = 1.1."""
+    _advance(core, 0.0, 1.0, lambda t: int(50 * t))
+    for a in (1, 2, 3):
+        core.on_status(_residual_status(a, 62, LIE_OF_1[a], 61), 1.1)
+    core.tick(1.1)
+    return core
+
+
 def test_a_convicted_liar_is_not_taken_back_after_probation(complete_core):
     """Agent 1 is convicted for lying and fenced into a standby; it then looks as healthy
     as a standby can (up, advancing with the others, no impaired link) for three times
     rejoin_s: it stays on probation and out of the pool, so the next failure (agent 2's
     crash) finds no standby, where a hung agent would have rejoined
     (test_a_convicted_agent_rejoins_the_standbys_after_probation_only)."""
-    core = complete_core
+    core = _convict_the_liar(complete_core)
     step = lambda t: int(50 * t)                                    # noqa: E731
-    _advance(core, 0.0, 1.0, step)
-    for a in (1, 2, 3):
-        core.on_status(_residual_status(a, 62, LIE_OF_1[a], 61), 1.1)
-    core.tick(1.1)
     assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "inconsistent estimates")]
     t = 1.2
     while t < 1.2 + 3 * core.config.rejoin_s:
@@ -1435,12 +1440,8 @@ def test_a_monitor_that_adopts_keeps_the_convicted_liar_out_of_the_standbys(comp
     from agent.monitor.core import MonitorSeat
     from agent.protocol import wire
 
-    core = complete_core
+    core = _convict_the_liar(complete_core)
     step = lambda t: int(50 * t)                                    # noqa: E731
-    _advance(core, 0.0, 1.0, step)
-    for a in (1, 2, 3):
-        core.on_status(_residual_status(a, 62, LIE_OF_1[a], 61), 1.1)
-    core.tick(1.1)
     m = core.roster_message
     assert (m.ids, m.probation, m.barred) == ((4, 2, 3), (1,), (1,))
     heard = wire.decode(wire.encode_roster(m.epoch, m.activate_at, m.ids,
