@@ -75,3 +75,31 @@ def test_ignore_check_fails_when_venv_or_a_package_is_mishandled():
     check_docker.check_ignore(rules + [("agent", False)], ["agent"], problems)
     assert problems == [".dockerignore: .venv/bin/python would be in the build context",
                         ".dockerignore: excludes 'agent', which the Dockerfile copies"]
+
+
+def test_compose_checks_the_monitor_wait_and_the_watch_stopped_first(tmp_path):
+    text = (ROOT / "docker" / "compose.yaml").read_text()
+    bad = text.replace(' "--wait-monitor", "1",', "").replace(
+        "      monitor: { condition: service_started }\n", "")
+    assert bad.count("service_started") == text.count("service_started") - 1
+    (tmp_path / "compose.yaml").write_text(bad)
+    problems = []
+    check_docker.check_compose(problems, ENV, tmp_path / "compose.yaml")
+    assert problems == [
+        "compose.yaml: world: the clock does not wait for the monitor (--wait-monitor)",
+        "compose.yaml: watch: does not depend on monitor (stopped after them)"]
+
+
+def test_dockerfile_check_fails_when_pip_installs_into_the_system_python(tmp_path):
+    text = (ROOT / "docker" / "Dockerfile").read_text()
+    assert 'RUN python3 -m venv "$VIRTUAL_ENV"\n' in text
+    (tmp_path / "Dockerfile").write_text(text.replace('RUN python3 -m venv "$VIRTUAL_ENV"\n', ""))
+    problems = []
+    check_docker.check_dockerfile(problems, tmp_path / "Dockerfile")
+    assert problems == ["Dockerfile: pip installs before a venv is made (python3 -m venv)"]
+
+
+def test_docker_times_parse_with_nanoseconds():
+    assert check_docker._docker_time("1970-01-01T00:00:01.123456789Z") == pytest.approx(
+        1.123456789)
+    assert check_docker._docker_time("1970-01-01T01:00:02+01:00") == 2.0
