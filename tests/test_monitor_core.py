@@ -1349,6 +1349,24 @@ def test_a_corroborated_lie_is_convicted_and_its_role_reassigned(complete_core):
     assert len(core.verdicts) == 1
 
 
+def test_a_liars_quiet_status_read_before_its_receivers_alarms_still_counts(complete_core):
+    """Agent 1's status covering the lie's first step (its own tests quiet) is read one
+    tick before its receivers' alarms. The picture at the first alarm keeps it: a
+    corroborated conviction. (Before: the monitor cleared what it had heard at every quiet
+    tick, so agent 1 counted as reporting no test at all, as if agents 2 and 3 did not
+    send to it, and the lie stayed an alert: the live liar test failed that way in about
+    a third of its runs.)"""
+    core = complete_core
+    _advance(core, 0.0, 1.0, lambda t: 50 * t)
+    core.on_status(_residual_status(1, 62, LIE_OF_1[1], 61), 1.05)
+    core.tick(1.05)
+    for a in (2, 3):
+        core.on_status(_residual_status(a, 62, LIE_OF_1[a], 61), 1.1)
+    core.tick(1.1)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "inconsistent estimates")]
+    assert core.residual_alerts == []
+
+
 @pytest.mark.parametrize("levels, why", [
     # agent 2's own innovation alarms nearly as strongly: a near-tie (here broken in
     # favour of a sensor bias of agent 2), never corroborated

@@ -652,6 +652,11 @@ class MonitorCore:
         levels = res.get("levels") if isinstance(res, dict) else None
         if not isinstance(levels, dict):
             return
+        if self._residual_alarm_step is None:
+            # no alarm pending: this status's levels replace the agent's last (kept, not
+            # cleared at a quiet tick: the status covering the first alarm may be read a
+            # tick before the alarm is, and is the agent's part of that picture)
+            self._residual_peaks[agent] = {}
         peaks = self._residual_peaks.setdefault(agent, {})
         for name, level in list(levels.items())[:64]:
             if isinstance(level, bool) or not isinstance(level, (int, float)) \
@@ -729,7 +734,6 @@ class MonitorCore:
             return
         first = self._residual_alarm_step
         if first is None:
-            self._residual_peaks = {}
             return
         if any(self.agents[a].step < first for a in self.roster.ids):
             return                     # not every agent has reported the steps since
