@@ -406,7 +406,7 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
               for at, ids, ep in rosters[1:]]
     items.sort(key=lambda x: x["step"])
     write_atomic(out / "timeline.json", json.dumps(to_jsonable(items), indent=2) + "\n")
-    from agent.run.summary import plottable, pyplot
+    from agent.run.summary import plottable, pyplot, running_mean, smoothing_window
 
     plt = pyplot()
     if plt is None:
@@ -415,7 +415,11 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
     mse = np.asarray(mse, dtype=float)
     fig, (ax, lane) = plt.subplots(2, 1, figsize=(10.5, 5), sharex=True,
                                    gridspec_kw={"height_ratios": [3, 1.4]})
-    ax.semilogy(np.asarray(steps)[ok], mse[ok], lw=0.8)
+    window = smoothing_window(len(mse))
+    ax.semilogy(np.asarray(steps)[ok], mse[ok], lw=0.6 if window > 1 else 0.8,
+                color="tab:blue", alpha=0.3 if window > 1 else 1.0)
+    if window > 1:
+        ax.semilogy(np.asarray(steps), running_mean(mse, window), lw=1.3, color="tab:blue")
     ax.set_ylabel("MSE")
     ax.set_title(f"{summary['scenario']}: chaos, seed {summary['seed']}")
     M = summary["agents"] + summary["standby"]
@@ -448,9 +452,11 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
                    Line2D([], [], color="g", marker="|", ls="", ms=10,
                           label="roles in force (activation)")],
                 loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, frameon=False)
-    ax.legend(handles=[Line2D([], [], lw=0.8, label="MSE (live)"),
-                       Line2D([], [], color="tab:green", lw=0.8, ls="--",
-                              label="a new configuration in force")],
+    traces = [Line2D([], [], lw=0.6, alpha=0.3, label="MSE (live), each step"),
+              Line2D([], [], lw=1.3, label=f"its mean over {window} steps")] \
+        if window > 1 else [Line2D([], [], lw=0.8, label="MSE (live)")]
+    ax.legend(handles=traces + [Line2D([], [], color="tab:green", lw=0.8, ls="--",
+                                       label="a new configuration in force")],
               loc="upper right", fontsize=8)
     fig.tight_layout()
     try:
