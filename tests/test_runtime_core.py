@@ -450,3 +450,60 @@ def test_a_replay_of_old_estimates_does_not_change_the_learned_delay(paper14, ga
         core.on_estimate(2, stamp, held[stamp], mesh.now)
     core.poll(mesh.now)
     assert core.learned_delays() == {2: 2}
+
+
+@pytest.mark.parametrize("lag", [0, 3, 12])
+def test_neighbour_only_a_new_link_from_an_agent_never_heard_equals_the_simulator(
+        paper14, gains14, lag):
+    """Neighbour-only subscriptions (tests.runtime_harness.Mesh): agent 2 crashes at step
+    12 and the standby 4 takes its row at 17; agent 1 crashes at 10 and is removed at
+    24, when agent 3 listens to agent 4 over a 3-step link, an agent it never heard before
+    (it subscribes at the assignment, at 18). Agent 4's cache gives it 4's last estimates,
+    the one stamped 24 - 1 - 3 among them; answered ``lag`` ticks late (a loaded machine),
+    that history and the live estimates held back with it come only after step 24 began,
+    when the link's delay is not learned yet. The estimates equal the simulator's, which
+    reads stamp 20 on the new link at step 24, whatever the lag."""
+    from design.roster import Roster, replan, role_specs
+    from design.simulate import Recovery, simulate
+
+    f1, f2, a1, a2, steps = 10, 12, 17, 24, 40
+    r0 = Roster.initial(paper14, D3)
+    _, r1 = replan(r0, [2])
+    _, r2 = replan(r1, [1])
+    rng = np.random.default_rng(4)
+    G1 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r1.scenario.measure]
+    G2 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r2.scenario.measure]
+    specs1 = role_specs(r1, G1, take_over={4: 2})
+    specs2 = role_specs(r2, G2)
+    assert 4 in specs2[3].neighbours and 4 not in specs1[3].neighbours
+    mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1e6, neighbour_only=True,
+                history_lag=lag)
+    for k in range(steps + 1):
+        if k == f1:
+            mesh.crash(1)
+        if k == f2:
+            mesh.crash(2)
+        if k == f2 + 1:
+            for agent, spec in specs1.items():
+                if agent in mesh.agents:
+                    mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a1))
+        if k == a1 + 1:
+            for agent, spec in specs2.items():
+                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=2, at=a2))
+        mesh.tick()
+    for _ in range(lag):                   # the last held-back estimates come
+        mesh.pass_time(0.001)
+        mesh.ticks += 1
+    core = mesh.agents[3]
+    assert 4 not in core.nbrs or core.nbrs[4].heard       # heard at last, never before 18
+    assert mesh.sources[3] == {4}
+    chain = [Recovery(r1.scenario, G1, r1.ids, replaces={4: 1}, delays=r1.delays,
+                      activate_at=a1),
+             Recovery(r2.scenario, G2, r2.ids, delays=r2.delays, activate_at=a2)]
+    res = simulate(paper14, gains14, steps=steps, trials=1, seed=5, delays=D3,
+                   fail=[(f1, [0]), (f2, [1])], recover=chain, coordinates="absolute",
+                   record_estimates=True)
+    ids = (3, 4)
+    live = _mesh_estimates(mesh, ids, steps)
+    live[a1 - 1, 1] = np.nan
+    np.testing.assert_allclose(live, _sim_estimates(res, ids), rtol=1e-12, atol=1e-12)

@@ -274,7 +274,7 @@ class AgentConfig:
 class _Neighbour:
     """What an agent holds from one other agent."""
 
-    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held", "since",
+    __slots__ = ("est", "lateness", "heard", "missed", "alive", "step_held", "joined",
                  "cont", "newest", "in_order")
 
     def __init__(self, window: int):
@@ -287,13 +287,23 @@ class _Neighbour:
         self.missed: set = set()         # stamps needed but missing at a deadline
         self.alive = True
         self.step_held = 0               # messages held by an injected step delay
-        self.since = -1                  # oldest stamp usable on the link of the current role
+        self.joined = 0                  # the step the link joined the current role
         self.cont = None                 # (failed agent, first own stamp): the link
                                          # continues that agent's stream before it
 
     @property
     def tau(self):
         return min(self.lateness) if self.lateness else None
+
+    @property
+    def since(self) -> int:
+        """The oldest stamp usable on the link of the current role: ``joined - 1 - tau``,
+        with the delay learned by now (0 while nothing came: nothing is held then). Read
+        when used, not fixed when the link joined: with neighbour-only subscriptions a
+        new link's first estimates (its publisher's cache answering the subscription) may
+        come after the step it joined, and only they teach its delay."""
+        tau = self.tau
+        return self.joined - 1 - (0 if tau is None else tau)
 
     def keep(self, stamp: int, x, history: int) -> None:
         """Hold ``x`` stamped ``stamp``; drop the stamps ``history`` or more older than the
@@ -741,12 +751,14 @@ class AgentCore:
             out.append((k - 1, self.x, role.epoch))     # published under the new epoch
         # a link new in this role carries, like the simulator's, only what is delivered on
         # it from step k on: the estimate stamped k - 1 - tau and later ones (what the
-        # agent heard from that neighbour before is not held on this link)
+        # agent heard from that neighbour before is not held on this link); tau is the
+        # link's delay when the link is read (_Neighbour.since), which a link heard for the
+        # first time at this step may not have taught yet
         old = self.role.neighbours if self.role is not None else {}
         for j in role.neighbours:
             if j not in old:
                 nb = self._nb(j)
-                nb.since = k - 1 - (nb.tau if nb.tau is not None else 0)
+                nb.joined = k
                 # the continuity rule (design.estimator.continued_stamp): a neighbour
                 # that takes over a failed agent's row carries, before its own first
                 # estimate (stamped k - 1), the stream this agent receives from that agent
@@ -810,7 +822,8 @@ class AgentCore:
         agent's row (:func:`design.estimator.continued_stamp`), that agent's before ``j``'s
         first stamp. ``(None, j)`` when nothing is usable."""
         nb = self.nbrs[j]
-        s = nb.freshest(at_most, lambda st: st >= nb.since and self._usable(j, st))
+        since = nb.since
+        s = nb.freshest(at_most, lambda st: st >= since and self._usable(j, st))
         if s is None and nb.cont is not None:
             f, first = nb.cont
             src = self.nbrs[f]
