@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -570,8 +571,11 @@ def configurations_run(rosters, est_epoch, assigns, kills, neighbours0):
 
 
 #: Configurations between the first and the last whose exact steady MSE a summary
-#: computes (``rosters[i].mse_steady_exact``), for ``mse.png``.
+#: computes (``rosters[i].mse_steady_exact``), for ``mse.png``: at most this many, and
+#: only when the last configuration's took less than EXACT_IN_BETWEEN_S of CPU (a large
+#: network's exact loop takes seconds to minutes).
 MAX_ROSTERS_EXACT = 8
+EXACT_IN_BETWEEN_S = 1.0
 
 
 def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
@@ -738,13 +742,16 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         out["mse_steady_after_recovery_window"] = [int(after_window[0]),
                                                    int(after_window[-1])] \
             if after_window else None
+        exact_cost = None
         try:
             from design.closed_loop import exact_performance
             from design.roster import link_delay_table, roster_from_specs
 
             table = link_delay_table(scenario, delays)
             new, G, D = roster_from_specs(scenario, table, ids, specs)
+            started = time.process_time()
             perf = exact_performance(new, G, D)
+            exact_cost = time.process_time() - started
             out["rho_exact_after_recovery"] = perf.rho
             out["mse_steady_exact_after_recovery"] = perf.mse_or_inf
         except Exception as exc:       # noqa: BLE001 - reported, the run's data is kept
@@ -752,8 +759,9 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             out.setdefault("warnings", []).append(f"no exact prediction after recovery: {exc}")
         out["rosters"][-1]["mse_steady_exact"] = out["mse_steady_exact_after_recovery"]
         # the exact level of each configuration in force in between (mse.png draws it over
-        # its steps; a churning run's many are left out)
-        for r in out["rosters"][1:-1][:MAX_ROSTERS_EXACT]:
+        # its steps), where the last one's was cheap; a churning run's many are left out
+        cheap = exact_cost is not None and exact_cost < EXACT_IN_BETWEEN_S
+        for r in out["rosters"][1:-1][:MAX_ROSTERS_EXACT if cheap else 0]:
             try:
                 ids_r, specs_r = specs_in_force(rosters, assigns, scenario, G0,
                                                 epoch=r["epoch"])
