@@ -1521,6 +1521,26 @@ def test_a_restarted_monitor_adopts_what_the_agents_run_over_an_older_roster_hea
     assert c.roster.ids == (1, 3, 4) and c.epoch == 2 and 2 in c.failed
 
 
+def test_a_passive_monitor_does_not_take_the_seat_once_the_world_has_ended(paper14):
+    """Monitor 1 leaves once the world's end is heard; monitor 2, which heard it too, stays
+    passive (before: it took the seat after the run and raised monitor 1's residual alert
+    again from the same last statuses)."""
+    from agent.monitor.core import MonitorSeat
+
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    seat = MonitorSeat(MonitorCore(MonitorConfig(), paper14, G, paper14.delays), 2, 0.0,
+                       listen_s=1.5)
+    seat.decide(0.5, [(1, "a"), (2, "z")])
+    assert seat.decide(2.0, [(1, "a"), (2, "z")]) == "idle"
+    seat.core.on_world_end(500)
+    assert seat.decide(3.0, [(2, "z")]) == "idle" and not seat.active
+    other = MonitorSeat(MonitorCore(MonitorConfig(), paper14, G, paper14.delays), 2, 0.0,
+                        listen_s=1.5)
+    other.decide(0.5, [(1, "a"), (2, "z")])
+    assert other.decide(2.0, [(1, "a"), (2, "z")]) == "idle"
+    assert other.decide(3.0, [(2, "z")]) == "act"          # the run going on: it acts
+
+
 def test_the_seat_goes_at_once_to_a_monitor_back_from_a_pause_not_to_a_restarted_one(paper14):
     """Monitor 1's token goes (paused past the lease) and comes back with the same
     session: it acts at once, so monitor 2 stands by at once (two monitors never act

@@ -1448,6 +1448,11 @@ class MonitorSeat:
         others = sorted(i for i in self._alive_ids
                         if now - self.seen_since[i] >= self.listen_s - HANDOVER_S)
         should = (not others or self.id < others[0]) and now >= self.listen_until
+        if should and not self.active and core.detector.world_end is not None:
+            # the run is over (the world's end heard): nothing is left to answer, and what
+            # this monitor would act on are the last statuses the one before it acted on
+            # (it raised a residual alert again, after the world's last step)
+            return "idle"
         if should and not self.active:
             if core.history and not core.behind:
                 pass                     # it acted before and nobody acted since

@@ -578,6 +578,28 @@ MAX_ROSTERS_EXACT = 8
 EXACT_IN_BETWEEN_S = 1.0
 
 
+def residual_alerts(records) -> list:
+    """The residual alerts of the monitors' records, one per alarm: the same alert (agent,
+    fault, first alarm step) raised again by another monitor (one that took the seat and
+    isolated the same statuses: it does not know what the one before it said) is counted
+    once.
+
+    >>> a = {"kind": "residual_alert", "agent": 1, "fault": "sensor bias", "step": 304,
+    ...      "score": 1.03, "evidence": ["innovation of agent 1 at 1.03 x its threshold"]}
+    >>> [r["agent"] for r in residual_alerts([a, dict(a, t=9.0), dict(a, step=700)])]
+    [1, 1]
+    """
+    out, seen = [], set()
+    for r in records:
+        key = (r.get("agent"), r.get("fault"), r.get("step"))
+        if r.get("kind") != "residual_alert" or key in seen:
+            continue
+        seen.add(key)
+        out.append({"agent": r.get("agent"), "fault": r.get("fault"), "step": r.get("step"),
+                    "score": r.get("score"), "evidence": r.get("evidence")})
+    return out
+
+
 def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
     """``(ids, {id: RoleSpec})`` of the last roster (or of the one of ``epoch``), from the
     assignments recorded up to that epoch."""
@@ -709,10 +731,7 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
            "rejoins": [{"agent": r.get("agent"), "step": r.get("step"),
                         "healthy_s": r.get("healthy_s"), "standby": r.get("standby")}
                        for r in records if r.get("kind") == "rejoin"],
-           "residual_alerts": [{"agent": r.get("agent"), "fault": r.get("fault"),
-                                "step": r.get("step"), "score": r.get("score"),
-                                "evidence": r.get("evidence")}
-                               for r in records if r.get("kind") == "residual_alert"]}
+           "residual_alerts": residual_alerts(records)}
     for f in failures:           # a convicted agent that came back and passed probation
         back = [r for r in out["rejoins"] if r["agent"] == f["agent"]
                 and (f.get("detected_step") or 0) <= (r["step"] or 0)]
