@@ -303,6 +303,25 @@ def _spec_message(spec, epoch, at):
             **({"continues": dict(spec.continues)} if spec.continues else {})}
 
 
+def _run_schedule(mesh, steps, crashes, assignments, pass_s=None):
+    """Step ``mesh`` through step ``steps``: at a step of ``crashes`` ({step: agents}) those
+    agents crash; at the step of each ``(step, specs, epoch, activate_at)`` of
+    ``assignments`` every live agent given a spec gets its assignment; ``pass_s`` seconds
+    pass after each tick when given."""
+    for k in range(steps + 1):
+        for agent in crashes.get(k, ()):
+            mesh.crash(agent)
+        for at, specs, epoch, activate_at in assignments:
+            if k == at:
+                for agent, spec in specs.items():
+                    if agent in mesh.agents:
+                        mesh.agents[agent].on_assignment(
+                            _spec_message(spec, epoch=epoch, at=activate_at))
+        mesh.tick()
+        if pass_s is not None:
+            mesh.pass_time(pass_s)
+
+
 def test_a_chain_of_reassignments_equals_the_simulator(paper14, gains14):
     """Agents 1 and 2 crash together, but the reassignments come one after the other
     (first 1 -> standby 4 with 2 still a row, then 2 removed): the live protocol and the
@@ -322,19 +341,8 @@ def test_a_chain_of_reassignments_equals_the_simulator(paper14, gains14):
     specs1 = role_specs(r1, G1, take_over={4: 1})
     specs2 = role_specs(r2, G2)
     mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1.0)
-    for k in range(steps + 1):
-        if k == f:
-            mesh.crash(1)
-            mesh.crash(2)
-        if k == f + 1:
-            for agent, spec in specs1.items():
-                if agent in mesh.agents:
-                    mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a1))
-        if k == a1 + 1:
-            for agent, spec in specs2.items():
-                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=2, at=a2))
-        mesh.tick()
-        mesh.pass_time(1.1)
+    _run_schedule(mesh, steps, {f: (1, 2)}, [(f + 1, specs1, 1, a1), (a1 + 1, specs2, 2, a2)],
+                  pass_s=1.1)
     chain = [Recovery(r1.scenario, G1, r1.ids, replaces={4: 0}, delays=r1.delays,
                       activate_at=a1),
              Recovery(r2.scenario, G2, r2.ids, delays=r2.delays, activate_at=a2)]
@@ -367,20 +375,8 @@ def test_failures_at_different_steps_replay_in_the_simulator(paper14, gains14):
     specs1 = role_specs(r1, G1, take_over={4: 2})
     specs2 = role_specs(r2, G2)
     mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1.0)
-    for k in range(steps + 1):
-        if k == f1:
-            mesh.crash(1)
-        if k == f2:
-            mesh.crash(2)
-        if k == f2 + 1:
-            for agent, spec in specs1.items():
-                if agent in mesh.agents and agent not in (1, 2):
-                    mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a1))
-        if k == a1 + 1:
-            for agent, spec in specs2.items():
-                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=2, at=a2))
-        mesh.tick()
-        mesh.pass_time(1.1)
+    _run_schedule(mesh, steps, {f1: (1,), f2: (2,)},
+                  [(f2 + 1, specs1, 1, a1), (a1 + 1, specs2, 2, a2)], pass_s=1.1)
     chain = [Recovery(r1.scenario, G1, r1.ids, replaces={4: 1}, delays=r1.delays,
                       activate_at=a1),
              Recovery(r2.scenario, G2, r2.ids, delays=r2.delays, activate_at=a2)]
@@ -478,19 +474,8 @@ def test_neighbour_only_a_new_link_from_an_agent_never_heard_equals_the_simulato
     assert 4 in specs2[3].neighbours and 4 not in specs1[3].neighbours
     mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1e6, neighbour_only=True,
                 history_lag=lag)
-    for k in range(steps + 1):
-        if k == f1:
-            mesh.crash(1)
-        if k == f2:
-            mesh.crash(2)
-        if k == f2 + 1:
-            for agent, spec in specs1.items():
-                if agent in mesh.agents:
-                    mesh.agents[agent].on_assignment(_spec_message(spec, epoch=1, at=a1))
-        if k == a1 + 1:
-            for agent, spec in specs2.items():
-                mesh.agents[agent].on_assignment(_spec_message(spec, epoch=2, at=a2))
-        mesh.tick()
+    _run_schedule(mesh, steps, {f1: (1,), f2: (2,)},
+                  [(f2 + 1, specs1, 1, a1), (a1 + 1, specs2, 2, a2)])
     for _ in range(lag):                   # the last held-back estimates come
         mesh.pass_time(0.001)
         mesh.ticks += 1
