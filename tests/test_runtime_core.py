@@ -303,6 +303,20 @@ def _spec_message(spec, epoch, at):
             **({"continues": dict(spec.continues)} if spec.continues else {})}
 
 
+def _two_replans(scenario, first, second, seed):
+    """The configurations after agent ``first`` is replaced (standby 4 takes its row) and
+    then agent ``second`` removed, random gains for each (``seed``), and their role specs:
+    ``(r1, r2, G1, G2, specs1, specs2)``."""
+    from design.roster import Roster, replan, role_specs
+
+    _, r1 = replan(Roster.initial(scenario, D3), [first])
+    _, r2 = replan(r1, [second])
+    rng = np.random.default_rng(seed)
+    G1 = [0.3 * rng.normal(size=(scenario.n, len(m))) for m in r1.scenario.measure]
+    G2 = [0.3 * rng.normal(size=(scenario.n, len(m))) for m in r2.scenario.measure]
+    return (r1, r2, G1, G2, role_specs(r1, G1, take_over={4: first}), role_specs(r2, G2))
+
+
 def _run_schedule(mesh, steps, crashes, assignments, pass_s=None):
     """Step ``mesh`` through step ``steps``: at a step of ``crashes`` ({step: agents}) those
     agents crash; at the step of each ``(step, specs, epoch, activate_at)`` of
@@ -328,18 +342,10 @@ def test_a_chain_of_reassignments_equals_the_simulator(paper14, gains14):
     simulator's chain of recoveries agree estimate by estimate. The standby had heard
     agent 2 before; on its new link to 2 it uses only what arrives from its activation
     on, as the simulator does."""
-    from design.roster import Roster, replan, role_specs
     from design.simulate import Recovery, simulate
 
     f, a1, a2, steps = 10, 14, 17, 40
-    r0 = Roster.initial(paper14, D3)
-    _, r1 = replan(r0, [1])
-    _, r2 = replan(r1, [2])
-    rng = np.random.default_rng(3)
-    G1 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r1.scenario.measure]
-    G2 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r2.scenario.measure]
-    specs1 = role_specs(r1, G1, take_over={4: 1})
-    specs2 = role_specs(r2, G2)
+    r1, r2, G1, G2, specs1, specs2 = _two_replans(paper14, 1, 2, seed=3)
     mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1.0)
     _run_schedule(mesh, steps, {f: (1, 2)}, [(f + 1, specs1, 1, a1), (a1 + 1, specs2, 2, a2)],
                   pass_s=1.1)
@@ -361,19 +367,11 @@ def test_failures_at_different_steps_replay_in_the_simulator(paper14, gains14):
     The standby starts from agent 2's last estimate (stamp 11) propagated over 5 steps,
     not from the first failure's step: the simulator's failures at their own steps and
     the live protocol agree estimate by estimate."""
-    from design.roster import Roster, replan, role_specs
     from design.simulate import Recovery, simulate
 
     f1, f2, a1, a2, steps = 10, 12, 17, 24, 40
-    r0 = Roster.initial(paper14, D3)
-    _, r1 = replan(r0, [2])
-    _, r2 = replan(r1, [1])
+    r1, r2, G1, G2, specs1, specs2 = _two_replans(paper14, 2, 1, seed=4)
     assert 4 in r1.ids and 1 in r1.ids and 1 not in r2.ids
-    rng = np.random.default_rng(4)
-    G1 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r1.scenario.measure]
-    G2 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r2.scenario.measure]
-    specs1 = role_specs(r1, G1, take_over={4: 2})
-    specs2 = role_specs(r2, G2)
     mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1.0)
     _run_schedule(mesh, steps, {f1: (1,), f2: (2,)},
                   [(f2 + 1, specs1, 1, a1), (a1 + 1, specs2, 2, a2)], pass_s=1.1)
@@ -459,18 +457,10 @@ def test_neighbour_only_a_new_link_from_an_agent_never_heard_equals_the_simulato
     that history and the live estimates held back with it come only after step 24 began,
     when the link's delay is not learned yet. The estimates equal the simulator's, which
     reads stamp 20 on the new link at step 24, whatever the lag."""
-    from design.roster import Roster, replan, role_specs
     from design.simulate import Recovery, simulate
 
     f1, f2, a1, a2, steps = 10, 12, 17, 24, 40
-    r0 = Roster.initial(paper14, D3)
-    _, r1 = replan(r0, [2])
-    _, r2 = replan(r1, [1])
-    rng = np.random.default_rng(4)
-    G1 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r1.scenario.measure]
-    G2 = [0.3 * rng.normal(size=(paper14.n, len(m))) for m in r2.scenario.measure]
-    specs1 = role_specs(r1, G1, take_over={4: 2})
-    specs2 = role_specs(r2, G2)
+    r1, r2, G1, G2, specs1, specs2 = _two_replans(paper14, 2, 1, seed=4)
     assert 4 in specs2[3].neighbours and 4 not in specs1[3].neighbours
     mesh = Mesh(paper14, gains14, seed=5, delays=D3, deadline_s=1e6, neighbour_only=True,
                 history_lag=lag)
