@@ -92,6 +92,7 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -116,6 +117,10 @@ __all__ = [
     "isolate",
     "reports_at",
     "AgentResiduals",
+    "AgentTests",
+    "agent_tests",
+    "configuration_tests",
+    "AGENT_MAX_ORDER",
     "SENSOR_BIAS",
     "INCONSISTENT",
     "TIE_RATIO",
@@ -153,6 +158,12 @@ WARMUP_TOL = 1e-5
 WARMUP_MAX_STEPS = 100_000
 #: Largest order of the augmented state for which the dense Lyapunov solve is done.
 MAX_ORDER = 4000
+#: The largest loop (nN (1 + largest delay)) whose residual tests are computed for the
+#: agents of a run: by each agent at its start (the initial configuration) and by the
+#: monitor's gain worker for every configuration it designs gains for. paper-14-live with
+#: its own delays (order 126) takes 0.02 s; at 7-step delays (order 336) 22 s and at 15
+#: (672) 95 s on this machine under load: too long for a process's start or a switch.
+AGENT_MAX_ORDER = 200
 
 INNOVATION = "innovation"
 DISCREPANCY = "discrepancy"
@@ -802,55 +813,193 @@ def reports_at(test: ResidualTest, levels) -> list:
     return out
 
 
-class AgentResiduals:
-    """One agent's residual tests, stepped as it computes (what a live agent runs).
+@dataclass(frozen=True, eq=False)
+class AgentTests:
+    """One agent's residual tests of one configuration: what it runs
+    (:class:`AgentResiduals`) and what an assignment carries to it (:meth:`to_wire`).
 
-    ``test`` is the configuration's :class:`ResidualTest`; ``row`` the agent's 0-based
-    row in it. At each step :meth:`step` takes the agent's innovation (None when some
-    readings were missing) and, per in-neighbour row, the discrepancy of the estimate it
-    used (None when that estimate was not the on-time one: held, late or lost). A
-    residual that is None starts its window over: a late or held estimate is outside the
-    distribution the threshold was computed for, so its test resumes ``window`` fresh
-    steps later. Returns ``{residual name: level}`` of the statistics formed at that step
-    (statistic / threshold; >= 1 is an alarm), as :meth:`ResidualTest.window_statistics`
-    forms them for the simulator.
+    ``agent`` is its id; ``residuals`` its :class:`Residual` tests, its innovation first,
+    named and keyed by agent id (``sender`` is the in-neighbour's id, ``agent`` its own);
+    ``window`` and ``warmup`` as in :class:`ResidualTest` (the warm-up counts from the
+    configuration's first step). Rebuilt from the wire (:meth:`from_wire`), a residual
+    keeps what its statistic needs: ``cov_step`` and ``cov_window`` are None.
+    """
+
+    agent: int
+    residuals: tuple
+    window: int
+    warmup: int
+
+    @property
+    def first_step(self) -> int:
+        return self.warmup + self.window
+
+    def to_wire(self) -> dict:
+        """The assignment's ``residuals`` field (docs/runtime.md): ``window``, ``warmup``
+        and per test ``from`` (the sender's id, 0 for the innovation), ``age`` (0 for the
+        innovation), ``whiten``, ``alpha``, ``threshold`` and, for a singular one,
+        ``null``, ``null_floor`` and ``null_threshold``."""
+        tests = []
+        for r in self.residuals:
+            t = {"from": 0 if r.sender is None else int(r.sender),
+                 "age": 0 if r.age is None else int(r.age),
+                 "whiten": np.ascontiguousarray(r.whiten, dtype=float),
+                 "alpha": float(r.alpha), "threshold": float(r.threshold)}
+            if r.null_basis is not None:
+                t.update(null=np.ascontiguousarray(r.null_basis, dtype=float),
+                         null_floor=float(r.null_floor),
+                         null_threshold=float(r.null_threshold))
+            tests.append(t)
+        return {"window": int(self.window), "warmup": int(self.warmup), "tests": tests}
+
+    @classmethod
+    def from_wire(cls, agent: int, msg: dict, n: int, measured: int,
+                  neighbours) -> "AgentTests":
+        """The tests of agent ``agent`` from an assignment's ``residuals`` field (its
+        structure and types checked by the wire schema), checked against the role they
+        come with: ``n`` states, ``measured`` readings, the in-neighbour ids
+        ``neighbours``. Raises ResidualError naming every problem."""
+        problems, residuals = [], []
+        tests = list(msg["tests"])
+        innovations = [t for t in tests if t["from"] == 0]
+        if len(innovations) != 1 or tests[0]["from"] != 0:
+            problems.append("residuals: the innovation's test must come first, once")
+        senders = [t["from"] for t in tests if t["from"] != 0]
+        strangers = sorted(set(senders) - set(neighbours))
+        if strangers or len(set(senders)) != len(senders):
+            problems.append(f"residuals: links from {sorted(senders)} are not this role's "
+                            f"in-neighbours {sorted(neighbours)} once each")
+        for t in tests:
+            sender = t["from"] or None
+            dim = n if sender is not None else int(measured)
+            W = np.asarray(t["whiten"], dtype=float)
+            null = t.get("null")
+            name = (f"innovation {agent}" if sender is None else f"link {sender}->{agent}")
+            k = 0 if null is None else np.shape(null)[1]
+            bad = []
+            if W.ndim != 2 or W.shape[1] != dim or W.shape[0] + k > dim:
+                bad.append(f"whiten {W.shape} for a residual of {dim}")
+            if null is not None and (np.ndim(null) != 2 or np.shape(null)[0] != dim or k < 1):
+                bad.append(f"null {np.shape(null)} for a residual of {dim}")
+            if (sender is None) != (t["age"] == 0):
+                bad.append(f"age {t['age']}")
+            if null is not None and not t.get("null_floor", 0) > 0:
+                bad.append("null_floor must be > 0")
+            if bad:
+                problems.append(f"residuals: {name}: " + ", ".join(bad))
+                continue
+            residuals.append(Residual(
+                name=name, kind=INNOVATION if sender is None else DISCREPANCY, agent=agent,
+                sender=sender, age=t["age"] or None, offset=0, dim=dim,
+                dof=W.shape[0], cov_step=None, cov_window=None, whiten=W,
+                alpha=float(t["alpha"]), threshold=float(t["threshold"]),
+                null_basis=None if null is None else np.asarray(null, dtype=float),
+                null_floor=float(t.get("null_floor", 0.0)),
+                null_threshold=float(t.get("null_threshold", math.inf))))
+        if problems:
+            raise ResidualError("; ".join(problems))
+        return cls(agent=int(agent), residuals=tuple(residuals), window=int(msg["window"]),
+                   warmup=int(msg["warmup"]))
+
+
+def agent_tests(test: ResidualTest, ids=None) -> dict:
+    """``{agent id: AgentTests}`` of every agent of ``test``'s configuration, row i held
+    by ``ids[i]`` (default ``1..N``: the initial configuration, whose names are
+    ``test``'s own).
 
     >>> import numpy as np
     >>> from design.scenario import load_scenario
     >>> s = load_scenario("paper-14-live")
     >>> G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
-    >>> res = AgentResiduals(residual_test(s, G, window=2), row=0)
+    >>> tests = agent_tests(residual_test(s, G, window=2), ids=(4, 2, 3))
+    >>> [r.name for r in tests[4].residuals]
+    ['innovation 4', 'link 2->4']
+    """
+    ids = tuple(range(1, test.N + 1)) if ids is None else tuple(int(a) for a in ids)
+    if len(ids) != test.N:
+        raise ResidualError(f"ids: {len(ids)} ids for a configuration of {test.N} agents")
+    out = {}
+    for row, a in enumerate(ids):
+        mine = []
+        for r in test.for_agent(row):
+            sender = None if r.sender is None else ids[r.sender]
+            mine.append(dataclasses.replace(
+                r, agent=a, sender=sender,
+                name=f"innovation {a}" if sender is None else f"link {sender}->{a}"))
+        out[a] = AgentTests(agent=a, residuals=tuple(mine), window=test.window,
+                            warmup=test.warmup)
+    return out
+
+
+def configuration_tests(scenario, G, delays, ids=None, max_order: int = AGENT_MAX_ORDER,
+                        **kwargs) -> dict:
+    """:func:`agent_tests` of :func:`residual_test` of a configuration (rows held by
+    ``ids``), or ``{}`` when its loop is above ``max_order`` or not stable (no steady
+    covariance to test against)."""
+    D = np.asarray(scenario.delays if delays is None else delays)
+    top = int(D.max()) if D.size else 0
+    if scenario.n * scenario.N * (1 + top) > max_order:
+        return {}
+    try:
+        return agent_tests(residual_test(scenario, G, D, **kwargs), ids)
+    except ResidualError:
+        return {}
+
+
+class AgentResiduals:
+    """One agent's residual tests, stepped as it computes (what a live agent runs).
+
+    ``tests`` are its :class:`AgentTests` of the configuration in force (under ``epoch``,
+    from step ``start``: its warm-up counts from there, as from a run's start). At each
+    step :meth:`step` takes the agent's innovation (None when some readings were missing)
+    and, per in-neighbour id, the discrepancy of the estimate it used (None when that
+    estimate was not the on-time one: held, late or lost). A residual that is None starts
+    its window over: a late or held estimate is outside the distribution the threshold
+    was computed for, so its test resumes ``window`` fresh steps later. Returns
+    ``{residual name: level}`` of the statistics formed at that step (statistic /
+    threshold; >= 1 is an alarm), as :meth:`ResidualTest.window_statistics` forms them
+    for the simulator.
+
+    >>> import numpy as np
+    >>> from design.scenario import load_scenario
+    >>> s = load_scenario("paper-14-live")
+    >>> G = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    >>> res = AgentResiduals(agent_tests(residual_test(s, G, window=2))[1])
     >>> [r.name for r in res.residuals]
     ['innovation 1', 'link 2->1']
-    >>> res.step(1, np.zeros(1), {1: np.zeros(s.n)})    # in the warm-up: nothing formed
+    >>> res.step(1, np.zeros(1), {2: np.zeros(s.n)})    # in the warm-up: nothing formed
     {}
     """
 
-    def __init__(self, test: ResidualTest, row: int):
-        self.test = test
-        self.row = int(row)
-        self.residuals = test.for_agent(self.row)
-        self.window = test.window
-        self.first_step = test.first_step
-        #: in-neighbour row -> the age its link is tested at (``1 + tau``): an estimate of
+    def __init__(self, tests: AgentTests, epoch: int = 0, start: int | None = None):
+        self.tests = tests
+        self.epoch = int(epoch)
+        self.residuals = list(tests.residuals)
+        self.window = tests.window
+        self.warmup = tests.warmup
+        self.first_step = tests.first_step
+        #: in-neighbour id -> the age its link is tested at (``1 + tau``): an estimate of
         #: another age (a delay learned otherwise) is outside the tested distribution
         self.link_age = {r.sender: r.age for r in self.residuals if r.sender is not None}
         self._rings = {r.name: [] for r in self.residuals}
         self.disturbed_at = None          # the last step whose inputs were not on time
+        if start is not None:
+            self.disturb(start)
 
     def disturb(self, k: int) -> None:
         """Step k ran on inputs the thresholds do not cover (a held, late or lost
-        neighbour estimate, missing readings): the agent's own error left the healthy
-        loop's distribution, and so do its later residuals until the transient decays.
-        Every test starts over ``warmup`` steps later (as after the start)."""
+        neighbour estimate, missing readings, the configuration's first step): the
+        agent's own error left the healthy loop's distribution, and so do its later
+        residuals until the transient decays. Every test starts over ``warmup`` steps
+        later (as after the start)."""
         self.disturbed_at = int(k)
         for ring in self._rings.values():
             ring.clear()
 
     def step(self, k: int, innovation, discrepancies: dict) -> dict:
         levels = {}
-        quiet = self.test.warmup if self.disturbed_at is None \
-            else self.disturbed_at + self.test.warmup
+        quiet = self.warmup if self.disturbed_at is None \
+            else self.disturbed_at + self.warmup
         for r in self.residuals:
             v = innovation if r.sender is None else discrepancies.get(r.sender)
             ring = self._rings[r.name]

@@ -96,3 +96,21 @@ def test_signed_impairments_verify_and_forged_ones_fail():
         v.check(decode_impairment(forged))
     with pytest.raises(SignatureError, match="missing"):
         v.check(decode_impairment(encode_impairment("clear_all")))
+
+
+def test_an_assignments_residual_tests_are_signed_with_it(signer):
+    """The residual tests an assignment carries verify as the monitor signed them; a
+    threshold raised by an outsider (to hide a lie) does not."""
+    v = ControlVerifier(signer.public_bytes(), "r")
+    tests = {"window": 8, "warmup": 40, "tests": [
+        {"from": 0, "age": 0, "whiten": np.full((1, 1), 0.5), "alpha": 3e-7,
+         "threshold": 27.5},
+        {"from": 2, "age": 2, "whiten": np.eye(14)[:12], "alpha": 3e-7, "threshold": 60.1,
+         "null": np.eye(14)[:, 12:], "null_floor": 1e-9, "null_threshold": 30.2}]}
+    payload = wire.encode_ctl(1, 1, 10, ["7"], {2: 0.5}, 0.5, np.ones((14, 1)),
+                              signer=signer, run="r", residuals=tests)
+    msg = wire.decode(payload, wire.ctl_schema(14))
+    v.check(dict(msg), replay=False)
+    msg["residuals"]["tests"][1]["threshold"] = 6.0e9
+    with pytest.raises(SignatureError, match="does not verify"):
+        v.check(msg)

@@ -1303,14 +1303,15 @@ def complete_core(paper14):
     return c
 
 
-def _residual_status(agent, step, levels, first_at, epoch=0):
-    """A status whose residual tests reached ``levels``; those >= 1 first alarmed at
-    ``first_at``."""
+def _residual_status(agent, step, levels, first_at, epoch=0, tests_epoch=None):
+    """A status whose residual tests (of the configuration of ``tests_epoch``; unsaid:
+    the initial one's) reached ``levels``; those >= 1 first alarmed at ``first_at``."""
     return {**_status(agent, step, epoch=epoch),
             "residuals": {"levels": levels, "first": {k: [first_at, v] for k, v in levels.items()
                                                       if v >= 1},
                           "alarms": int(any(v >= 1 for v in levels.values())),
-                          "disturbed": -1, "settle": 40}}
+                          "disturbed": -1, "settle": 40,
+                          **({} if tests_epoch is None else {"epoch": tests_epoch})}}
 
 
 #: Agent 1 lies from step 61 (levels as the simulator gives them on this network): both
@@ -1711,3 +1712,38 @@ def test_most_tokens_gone_at_once_after_fresh_statuses_is_the_monitors_own_lapse
         _feed_lapse(core, paper14, t, age_of_2=1)
         t = round(t + 0.05, 6)
     assert core.verdicts == []
+
+
+def test_a_lie_after_a_recovery_is_convicted_on_the_new_configurations_tests(complete_core):
+    """After agent 1's conviction (standby 4 in its row, epoch 1), agent 2 lies: reports of
+    the tests of another configuration (the initial one's, an agent that did not switch
+    them) are no evidence; once agents 4, 2 and 3 report tests of epoch 1, both receivers
+    of agent 2 single it out and it is convicted on those tests."""
+    core = _convict_the_liar(complete_core)
+    step = lambda t: int(50 * t)                                    # noqa: E731
+    assert core.roster.ids == (4, 2, 3) and core.epoch == 1
+    at = core.history[-1]["activate_at"]
+    t = 1.2
+    while step(t) < at + 5:
+        for a in (4, 2, 3):
+            core.on_status(_status(a, step(t), epoch=1), t)
+        core.tick(t)
+        t += 0.1
+    lie = {4: {"innovation 4": 0.01, "link 2->4": 3.8e5, "link 3->4": 5.1e3},
+           3: {"innovation 3": 0.001, "link 2->3": 1.3e5, "link 4->3": 8.6e3},
+           2: {"innovation 2": 0.01, "link 4->2": 0.15, "link 3->2": 0.2}}
+    k = step(t)
+    for a in (4, 2, 3):          # stale tests: those of the initial configuration
+        core.on_status(_residual_status(a, k, lie[a], k - 1, epoch=1, tests_epoch=0), t)
+    core.tick(t)
+    assert [v.agent for v in core.verdicts] == [1] and core.residual_alerts == []
+    t += 0.1
+    k = step(t)
+    for a in (4, 2, 3):
+        core.on_status(_residual_status(a, k, lie[a], k - 1, epoch=1, tests_epoch=1), t)
+    core.tick(t)
+    core.tick(t + 0.05)
+    assert [(v.agent, v.cause) for v in core.verdicts] == \
+        [(1, "inconsistent estimates"), (2, "inconsistent estimates")], core.events
+    assert "residual tests of the configuration of epoch 1" in core.verdicts[1].evidence
+    assert "agent 4 (link 2->4" in core.verdicts[1].evidence

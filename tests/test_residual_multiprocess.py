@@ -5,7 +5,8 @@ The scenario: paper-14-live with every agent listening to both others (``topolog
 "complete"``, written to tmp_path), so that each agent has two receivers and a lie can be
 corroborated (on paper-14-live itself every agent has one receiver: an alert only). Its
 augmented loop has order nN(1 + largest delay) = 14 x 3 x 1 = 42, below
-``agent.node.core.RESIDUAL_MAX_ORDER`` (200): every agent computes its thresholds at start.
+``design.residuals.AGENT_MAX_ORDER`` (200): every agent computes its thresholds at start,
+and the monitor those of every later configuration (its assignments carry them).
 
 Each test is one ``socmon up`` on loopback (world, agents, standby and monitors as OS
 processes in their own process groups, stopped by ``up`` itself), bounded by a deadline;
@@ -84,6 +85,27 @@ def test_a_live_liar_is_convicted_replaced_and_not_taken_back(tmp_path, two_rece
     assert s["rejoins"] == [] and "rejoined_step" not in f, story
     events = [json.loads(line) for line in (folder / "events.jsonl").read_text().splitlines()]
     assert [e["agent"] for e in events if e["kind"] == "verdict"] == [1]
+
+
+def test_a_liar_after_a_recovery_is_convicted_on_the_new_configurations_tests(
+        tmp_path, two_receivers):
+    """Agent 3 is killed at step 200 and standby 4 takes its row; agent 2 lies from step
+    550. The assignments of the new configuration carried each agent's residual tests of
+    it (computed by the monitor's gain worker with the gains): both receivers of agent 2
+    (1 and 4) flag it on those tests and it is convicted ``inconsistent estimates``; the
+    survivors take its node."""
+    s, folder = _up(tmp_path, two_receivers, "--kill", "200:3", "--fault", "lie:550:2:0:5",
+                    "--deadline-ms", "30000", steps=850)
+    story = monitor_story(folder)
+    assert [(f["agent"], f["cause"]) for f in s["failures"]] == \
+        [(3, "crash"), (2, "inconsistent estimates")], (s["failures"], story)
+    f = s["failures"][1]
+    assert "residual tests of the configuration of epoch" in f["evidence"], f
+    first = int(re.search(r"first alarm at step (\d+)", f["evidence"]).group(1))
+    assert 551 <= first <= f["detected_step"] < f["activate_at"], (f, story)
+    assert "agent 1 (link 2->1" in f["evidence"] and "agent 4 (link 2->4" in f["evidence"]
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert s["rosters"][-1]["ids"] == [1, 4] and s["residual_alerts"] == []
 
 
 def test_a_healthy_run_of_the_same_scenario_raises_no_alert(tmp_path, two_receivers):

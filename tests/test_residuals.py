@@ -2,6 +2,7 @@
 Monte-Carlo false-alarm rates, isolation on hand-built reports, faults in the simulator."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -504,3 +505,132 @@ def test_an_agent_forms_the_simulators_residual_statistics(live):
     assert set(status["levels"]) == {"innovation 1", "link 2->1"}
     assert status["levels"]["innovation 1"] == pytest.approx(np.nanmax(want[:, 0]), rel=1e-3)
     assert mesh.agents[1].status()["residuals"]["levels"] == {}     # peaks since the last
+
+
+# -- the tests of a configuration after a switch, carried by the assignments ---------------
+
+def _assignment_message(spec, tests, epoch, at):
+    """``ctl/<agent>`` as the monitor encodes it, decoded as the agent decodes it."""
+    from agent.monitor.core import Assignment
+    from agent.protocol import wire
+
+    payload = Assignment(spec.agent, epoch, at, spec, tests).encode()
+    return wire.decode(payload, wire.ctl_schema(len(spec.gain)))
+
+
+def test_an_agents_tests_travel_in_its_assignment_and_give_the_same_levels(live):
+    """A configuration whose rows are held by ids 4, 2, 3: each agent's tests, named by
+    id, go through the assignment's wire form (encode, decode, checked against the role)
+    and form exactly the levels of the tests they came from."""
+    from agent.node.core import validate_assignment
+    from design.residuals import AgentResiduals, agent_tests
+    from design.roster import Roster, replan, role_specs
+
+    s, G = live
+    _, r1 = replan(Roster.initial(s), [1])
+    assert r1.ids == (4, 2, 3)
+    tests = agent_tests(residual_test(r1.scenario, G, r1.delays), r1.ids)
+    assert [r.name for r in tests[4].residuals] == ["innovation 4", "link 2->4"]
+    specs = role_specs(r1, G, take_over={4: 1})
+    rng = np.random.default_rng(0)
+    for a in r1.ids:
+        msg = _assignment_message(specs[a], tests[a], epoch=1, at=50)
+        role = validate_assignment(msg, a, s.labels, tuple(range(1, 5)), s.n)
+        got, want = AgentResiduals(role.residuals), AgentResiduals(tests[a])
+        assert [r.name for r in got.residuals] == [r.name for r in want.residuals]
+        p = len(specs[a].measure)
+        for k in range(1, want.first_step + 20):
+            innovation = rng.normal(size=p)
+            disc = {j: rng.normal(size=s.n) for j in want.link_age}
+            levels = want.step(k, innovation, disc)
+            assert got.step(k, innovation, disc) == pytest.approx(levels, rel=1e-12)
+        assert want.step(want.first_step + 20, np.zeros(p), {})     # tests were formed
+
+
+def test_an_assignment_with_broken_residual_tests_is_refused_naming_them(live):
+    """Bad tests in an assignment: refused by the wire schema (types, non-finite numbers)
+    or by the agent against its role (a link from an agent it does not listen to, a
+    whitening of the wrong width), the field named; nothing is applied."""
+    from agent.node.core import AgentCore, AssignmentError, agent_config, validate_assignment
+    from agent.protocol import wire
+    from broker_free_net.codec import MalformedMessage
+    from design.residuals import agent_tests
+    from design.roster import Roster, role_specs
+
+    s, G = live
+    r0 = Roster.initial(s)
+    tests = agent_tests(residual_test(s, G))
+    spec = role_specs(r0, G)[1]
+    msg = _assignment_message(spec, tests[1], epoch=1, at=50)
+
+    def broken(change):
+        part = tests[1].to_wire()
+        change(part)
+        return {**msg, "residuals": part}
+
+    def refused_by_the_agent(m, words):
+        with pytest.raises(AssignmentError, match=words):
+            validate_assignment(m, 1, s.labels, (1, 2, 3, 4), s.n)
+
+    refused_by_the_agent(broken(lambda p: p["tests"][1].update({"from": 3})),
+                         r"residuals: links from \[3\] are not this role's in-neighbours \[2\]")
+    refused_by_the_agent(broken(lambda p: p["tests"][0].update({"whiten": np.eye(2)})),
+                         r"residuals: innovation 1: whiten \(2, 2\) for a residual of 1")
+    refused_by_the_agent(broken(lambda p: p["tests"].reverse()),
+                         "the innovation's test must come first")
+    for change, field in ((lambda p: p["tests"][0].update({"threshold": math.inf}),
+                           "residuals.tests[0].threshold"),
+                          (lambda p: p["tests"][1].pop("whiten"), "residuals.tests[1]"),
+                          (lambda p: p.update({"window": 0}), "residuals.window")):
+        payload = wire.encode_ctl(1, 1, 50, spec.measure, spec.neighbours, spec.self_weight,
+                                  spec.gain, residuals=broken(change)["residuals"])
+        with pytest.raises(MalformedMessage, match=re.escape(field)):
+            wire.decode(payload, wire.ctl_schema(s.n))
+    core = AgentCore(agent_config(s, 1, G, 0, s.delays, 1.0, residuals=True))
+    with pytest.raises(AssignmentError):
+        core.on_assignment(broken(lambda p: p["tests"][1].update({"from": 3})))
+    assert core.pending is None and core.ctl_rejected == 1
+
+
+def test_agents_run_the_tests_an_assignment_carries_from_its_step(live):
+    """Every agent of paper-14-live is given its role again under epoch 1 from step A,
+    agents 1 and 2 with their tests of that configuration (the monitor's
+    :func:`agent.monitor.core.with_residual_tests`), agent 3 without: 1 and 2 form no
+    level until their warm-up and window have passed from A, then exactly the
+    simulator's levels, and report them under epoch 1; agent 3's tests are off."""
+    from agent.monitor.core import with_residual_tests
+    from design.roster import Roster, role_specs
+    from tests.runtime_harness import Mesh
+
+    s, G = live
+    test = residual_test(s, G)
+    r0 = Roster.initial(s)
+    _, info = with_residual_tests(r0, G, {})
+    specs = role_specs(r0, G)
+    A = test.first_step + 10
+    back = A + test.warmup + test.window          # the first level formed again
+    steps = back + 30
+    sim = simulate(s, G, steps=steps, trials=1, seed=4, delays=s.delays, residuals=test,
+                   coordinates="absolute")
+    want = sim.residual_stats[0] / test.thresholds
+    mesh = Mesh(s, G, seed=4, delays=s.delays, residuals=True)
+    got = np.full_like(want, np.nan)
+    index = {name: c for c, name in enumerate(test.names)}
+    for k in range(steps + 1):
+        if k == A - 5:
+            for a in (1, 2, 3):
+                mesh.agents[a].on_assignment(_assignment_message(
+                    specs[a], info["residuals"][a] if a != 3 else None, epoch=1, at=A))
+        mesh.tick()
+        for a in (1, 2, 3):
+            core = mesh.agents[a]
+            for name, level in core.residual_levels.items():
+                got[core.step, index[name]] = level
+    mine = [index[n] for n in index if n.endswith(("1", "->1", "2", "->2"))]
+    formed = ~np.isnan(got[:, mine])
+    assert formed[test.first_step:A].all() and not formed[A:back].any()
+    assert formed[back:].all()
+    assert np.allclose(got[back:, mine], want[back:, mine], rtol=1e-7, atol=1e-9)
+    assert np.isnan(got[A:, [index["innovation 3"], index["link 1->3"]]]).all()
+    assert mesh.agents[1].status()["residuals"]["epoch"] == 1
+    assert mesh.agents[3].status()["residuals"]["off"] == "the configuration changed"

@@ -150,12 +150,26 @@ class MonitorConfig:
 
 @dataclass(frozen=True, eq=False)
 class Assignment:
-    """One role for one agent, under ``epoch`` from step ``activate_at``."""
+    """One role for one agent, under ``epoch`` from step ``activate_at``, with the agent's
+    residual tests of that configuration when they are known (``tests``:
+    :class:`design.residuals.AgentTests`)."""
 
     agent: int
     epoch: int
     activate_at: int
     spec: object         # design.roster.RoleSpec
+    tests: object = None
+
+    def encode(self, signer=None, run: str | None = None) -> bytes:
+        """The ``ctl/<agent>`` message (:func:`agent.protocol.wire.encode_ctl`), signed
+        with ``signer`` for run ``run`` when given."""
+        from agent.protocol import wire
+
+        sp = self.spec
+        return wire.encode_ctl(self.agent, self.epoch, self.activate_at, sp.measure,
+                               sp.neighbours, sp.self_weight, sp.gain, take_over=sp.take_over,
+                               signer=signer, continues=sp.continues, run=run,
+                               residuals=None if self.tests is None else self.tests.to_wire())
 
 
 @dataclass(frozen=True)
@@ -302,15 +316,35 @@ def design_gains_for(roster, kind: str = "fast", progress=None, init=None):
     the fast one when it is not stable. Bounded by iterations, not by the clock
     (``progress``: called at every iteration, see :func:`design.gain_design.design_gains`). ``G`` is
     None when no stabilising gain was found; ``info`` holds ``kind``, the exact radius
-    ``rho``, the exact steady MSE ``mse`` and the design's ``seconds``.
+    ``rho``, the exact steady MSE ``mse``, the design's ``seconds`` and ``residuals``, each
+    agent's residual tests of the configuration with those gains
+    (:func:`design.residuals.configuration_tests`: ``{}`` above
+    :data:`design.residuals.AGENT_MAX_ORDER`), which its assignment carries.
     """
+    return with_residual_tests(roster, *_design_gains(roster, kind, progress, init))
+
+
+def with_residual_tests(roster, G, info: dict):
+    """``(G, info)`` with ``info["residuals"]``: each agent's residual tests of ``roster``
+    with gains ``G`` (:func:`design.residuals.configuration_tests`; ``{}`` above
+    :data:`design.residuals.AGENT_MAX_ORDER` or when ``G`` is None)."""
+    from design.residuals import configuration_tests
+
+    info = dict(info)
+    info["residuals"] = {} if G is None else configuration_tests(roster.scenario, G,
+                                                                 roster.delays, roster.ids)
+    return G, info
+
+
+def _design_gains(roster, kind: str = "fast", progress=None, init=None):
+    """:func:`design_gains_for` but the residual tests."""
     from design.errors import SocmonError
     from design.reconfigure import (fast_recovery_gains, polished_recovery_gains,
                                     refined_recovery_gains)
 
     if kind == "polished":
         if init is None:
-            init, first = design_gains_for(roster, "fast", progress)
+            init, first = _design_gains(roster, "fast", progress)
             if init is None:
                 return None, first
         try:
@@ -319,7 +353,7 @@ def design_gains_for(roster, kind: str = "fast", progress=None, init=None):
         except SocmonError:
             res = None
         if res is None or not res.stable:
-            return design_gains_for(roster, "fast", progress)
+            return _design_gains(roster, "fast", progress)
         return list(res.G), {"kind": "fast", "polished": True, "rho": float(res.rho),
                              "mse": None, "seconds": float(res.seconds)}
     design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
@@ -331,10 +365,24 @@ def design_gains_for(roster, kind: str = "fast", progress=None, init=None):
     except SocmonError:
         res = None
     if res is None or not res.stable:
-        return design_gains_for(roster, "fast", progress) if kind == "refined" else (None, {})
+        return _design_gains(roster, "fast", progress) if kind == "refined" else (None, {})
     return list(res.G), {"kind": kind, "rho": float(res.rho),
                          "mse": None if res.mse_steady is None else float(res.mse_steady),
                          "seconds": float(res.seconds)}
+
+
+def _tests_epoch(res) -> int | None:
+    """The epoch of the configuration whose residual tests an agent's status reports
+    (``residuals``: 0, the initial one's, from agents that do not say), or None when it
+    reports none."""
+    if not isinstance(res, dict) or not isinstance(res.get("levels"), dict):
+        return None
+    epoch = res.get("epoch", 0)
+    return epoch if isinstance(epoch, int) and not isinstance(epoch, bool) else None
+
+
+def _configuration_words(epoch: int) -> str:
+    return "the initial configuration" if epoch == 0 else f"the configuration of epoch {epoch}"
 
 
 def _residual_name(name) -> tuple | None:
@@ -423,6 +471,7 @@ class MonitorCore:
         self._residual_last_alarm = -1    # the newest status step with an alarm
         self._residual_hold = False       # an episode was isolated: wait until it is over
         self._residual_verdicts: list = []   # corroborated isolations, until convicted
+        self._residual_epoch = self.epoch  # the configuration whose tests are noted
 
     # -- the configuration in force, and the detector's view of it ---------------------
     @property
@@ -650,8 +699,8 @@ class MonitorCore:
         isolation (untrusted input: names and levels checked, at most 64 of them)."""
         res = msg.get("residuals")
         levels = res.get("levels") if isinstance(res, dict) else None
-        if not isinstance(levels, dict):
-            return
+        if not isinstance(levels, dict) or _tests_epoch(res) != self.epoch:
+            return                # no tests, or those of another configuration
         if self._residual_alarm_step is None:
             # no alarm pending: this status's levels replace the agent's last (kept, not
             # cleared at a quiet tick: the status covering the first alarm may be read a
@@ -689,8 +738,9 @@ class MonitorCore:
         self._residual_peaks, self._residual_first, self._residual_alarm_step = {}, {}, None
 
     def _residual_alerts(self, now: float) -> None:
-        """The agents' residual tests (tests of the initial configuration, epoch 0 only)
-        isolated to one agent (:func:`design.residuals.isolate`): a corroborated
+        """The agents' residual tests of the configuration in force (the initial one's,
+        computed by each agent, or those its assignments carried: every agent of the
+        configuration must report tests of the current epoch) isolated to one agent (:func:`design.residuals.isolate`): a corroborated
         ``inconsistent estimates`` is a verdict (convicted by :meth:`tick` like any other);
         anything else is an alert, an event and a record once per agent and kind.
 
@@ -709,10 +759,17 @@ class MonitorCore:
         told from a fault of that receiver or link, and a ``sensor bias`` read from an
         agent's own innovation may be a fault elsewhere that reached its prior
         (docs/residuals.md); a wrong conviction removes a healthy agent."""
-        if self.epoch != 0 or self.history:
-            return
         from design.residuals import INCONSISTENT, AgentReport, isolate
 
+        if self._residual_epoch != self.epoch:
+            # a new configuration: what was noted of the last one's tests is no picture
+            # of this one's
+            self._reset_residuals()
+            self._residual_hold, self._residual_epoch = False, self.epoch
+        if self._pending is not None or any(
+                _tests_epoch(self.agents[a].status.get("residuals")) != self.epoch
+                for a in self.roster.ids):
+            return     # a switch under way, or an agent not (yet) testing this configuration
         newest = self.last_step_reported
         settle, disturbed = 0, {}
         for a in self.roster.ids:
@@ -767,7 +824,8 @@ class MonitorCore:
                 and agent in self.roster.ids and agent not in self.failed:
             own = next(r for r in reports if r.agent == agent)
             evidence = (
-                f"residual tests of the initial configuration, first alarm at step {first}: "
+                f"residual tests of {_configuration_words(self.epoch)}, first alarm at step "
+                f"{first}: "
                 + " and ".join(f"agent {i} (link {agent}->{i} at {lv:.3g} x threshold)"
                                for i, lv in verdict.flagged_by)
                 + f" flag its published estimates; its own tests were quiet then "
@@ -826,8 +884,9 @@ class MonitorCore:
         at = self.current_step(now) + self.lead
         out = []
         self._unconfirmed = {}
+        tests = self.gain_info.get("residuals") or {}
         for agent, spec in self.specs.items():
-            asg = Assignment(agent, self.epoch, at, spec)
+            asg = Assignment(agent, self.epoch, at, spec, tests.get(agent))
             out.append(asg)
             self._unconfirmed[agent] = asg
         self._roster_msg = self._roster_update(self.epoch, at, self.roster.ids)
@@ -1075,9 +1134,10 @@ class MonitorCore:
             or p.get("joint", False)
         self._unconfirmed = {a: asg for a, asg in self._unconfirmed.items() if a in nxt.ids}
         out = []
+        tests = info.get("residuals") or {}
         for agent, spec in specs.items():
             if not spec.same_as(self.specs.get(agent)) or spec.take_over or superseded:
-                asg = Assignment(agent, self.epoch, activate_at, spec)
+                asg = Assignment(agent, self.epoch, activate_at, spec, tests.get(agent))
                 out.append(asg)
                 self._unconfirmed[agent] = asg
         roster_msg = self._roster_update(self.epoch, activate_at, nxt.ids)
@@ -1134,7 +1194,8 @@ class MonitorCore:
         self.specs = role_specs(new, G)
         self.epoch += 1
         at = max(self.current_step(now), 0) + (self.lead if lead is None else lead)
-        out = [Assignment(a, self.epoch, at, sp) for a, sp in self.specs.items()]
+        tests = info.get("residuals") or {}
+        out = [Assignment(a, self.epoch, at, sp, tests.get(a)) for a, sp in self.specs.items()]
         self._unconfirmed = {m.agent: m for m in out}
         self._roster_msg = self._roster_update(self.epoch, at, new.ids)
         out.append(self._roster_msg)

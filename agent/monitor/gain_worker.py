@@ -418,7 +418,7 @@ def refined_gains_from(roster, init, progress=None):
     (:data:`WARM_PATIENCE`) stops after 6 to 8, with an
     exact steady MSE within 4e-6 (relative) of the design from the reset gain for each of
     communities-32's 32 single failures (README, "Gains for large networks")."""
-    from agent.monitor.core import design_gains_for
+    from agent.monitor.core import design_gains_for, with_residual_tests
     from design.errors import SocmonError
     from design.reconfigure import refined_recovery_gains
 
@@ -430,9 +430,10 @@ def refined_gains_from(roster, init, progress=None):
         res = None
     if res is None or not res.stable:
         return design_gains_for(roster, "refined", progress)
-    return list(res.G), {"kind": "refined", "rho": float(res.rho),
-                         "mse": None if res.mse_steady is None else float(res.mse_steady),
-                         "seconds": float(res.seconds)}
+    return with_residual_tests(roster, list(res.G), {
+        "kind": "refined", "rho": float(res.rho),
+        "mse": None if res.mse_steady is None else float(res.mse_steady),
+        "seconds": float(res.seconds)})
 
 
 class _Sink:

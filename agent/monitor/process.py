@@ -297,12 +297,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                 if active:
                     for m in core.tick(now):
                         if isinstance(m, Assignment):
-                            sp = m.spec
-                            peer.put(topics.ctl_key(run, m.agent), wire.encode_ctl(
-                                m.agent, m.epoch, m.activate_at, sp.measure, sp.neighbours,
-                                sp.self_weight, sp.gain, take_over=sp.take_over, signer=signer,
-                                continues=sp.continues,
-                                run=run))
+                            peer.put(topics.ctl_key(run, m.agent),
+                                     m.encode(signer=signer, run=run))
                         elif isinstance(m, RosterUpdate):
                             peer.put(topics.ctl_key(run, 0), wire.encode_roster(
                                 m.epoch, m.activate_at, m.ids, signer=signer, run=run,

@@ -148,6 +148,9 @@ class Role:
     take_over: int | None = None
     #: new neighbour -> the failed agent whose stream it continues (the continuity rule)
     continues: dict = field(default_factory=dict)
+    #: the agent's residual tests of the configuration this role belongs to
+    #: (design.residuals.AgentTests), when the assignment carried them
+    residuals: object = None
 
 
 def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
@@ -191,9 +194,18 @@ def validate_assignment(msg: dict, agent: int, labels, agents, n: int) -> Role:
     if bad:
         problems.append(f"continues: neighbours {bad} are not new neighbours continuing "
                         "another agent of the run")
+    tests = None
+    if msg.get("residuals") is not None and not problems:
+        from design.residuals import AgentTests, ResidualError
+
+        try:
+            tests = AgentTests.from_wire(agent, msg["residuals"], n, len(msg["measure"]),
+                                         [a for a, w in nbrs.items() if w > 0])
+        except ResidualError as exc:
+            problems.append(str(exc))
     if problems:
         raise AssignmentError("; ".join(problems))
-    return Role(take_over=take_over, continues=continues,
+    return Role(take_over=take_over, continues=continues, residuals=tests,
                 epoch=int(msg["epoch"]), activate_at=int(msg["activate_at"]),
                 measure=tuple(msg["measure"]),
                 neighbours={a: w for a, w in nbrs.items() if w > 0},
@@ -242,6 +254,9 @@ class AgentConfig:
         The agent's residual tests of its initial configuration (its innovation, and the
         discrepancy of each in-neighbour's on-time estimate, against thresholds from the
         exact loop); their levels are in its status while that configuration holds.
+    test_residuals : bool
+        Run the residual tests an assignment carries (those of the configuration it
+        belongs to, computed by the monitor) from its ``activate_at`` on.
     lie : design.simulate.Fault or None
         A scripted misbehaviour (kind ``lie``): the estimates it publishes from the fault's
         step on carry its offset, its own estimate staying honest (as the simulator's).
@@ -267,6 +282,7 @@ class AgentConfig:
     max_age: int = hold_limit(0)
     drop: float = 0.0
     residuals: object = None
+    test_residuals: bool = False
     lie: object = None
     sensor_faults: tuple = ()
 
@@ -396,6 +412,12 @@ class AgentCore:
         self._residual_peak: dict = {}    # ... their largest since the last status
         self._residual_first: dict = {}   # test -> (step, level) of its first alarm since
         self.residual_alarms = 0          # steps at which a test alarmed (level >= 1)
+        # the residual tests in force (design.residuals.AgentResiduals) and the role they
+        # belong to: the initial configuration's, then those an assignment carries; they
+        # hold while that role does and no newer roster is in force
+        self.residuals = config.residuals
+        self._residuals_role = config.role
+        self._ever_tested = config.residuals is not None
 
     # -- helpers ------------------------------------------------------------------
     @property
@@ -765,7 +787,29 @@ class AgentCore:
                 f = role.continues.get(j)
                 nb.cont = (f, k - 1) if f is not None and f in self.nbrs else None
         self.role, self.pending, self.epoch = role, None, role.epoch
+        self._new_residuals(role, k)
         return out
+
+    def _new_residuals(self, role: Role, k: int) -> None:
+        """The residual tests of ``role``'s configuration, from step k (their warm-up
+        counts from there), when its assignment carried them and this agent runs them;
+        else none (the old ones tested a loop no longer run). What was reported of the
+        old tests is not carried over."""
+        from design.residuals import AgentResiduals
+
+        tested = role.residuals is not None and self.config.test_residuals
+        self.residuals = AgentResiduals(role.residuals, epoch=role.epoch, start=k) \
+            if tested else None
+        self._residuals_role = role
+        self._ever_tested = self._ever_tested or tested
+        self._residual_peak, self._residual_first, self.residual_levels = {}, {}, {}
+
+    def _residuals_in_force(self) -> bool:
+        """The tests in force belong to the role run and no newer roster replaced their
+        configuration (a change that reassigned others but not this agent)."""
+        res = self.residuals
+        return res is not None and self.role is self._residuals_role \
+            and self.roster_epoch <= res.epoch
 
     def _usable(self, sender: int, stamp: int) -> bool:
         """False iff a keyed drop lost the estimate of ``sender`` stamped ``stamp``."""
@@ -856,7 +900,7 @@ class AgentCore:
             self.states[state] += 1
             nbs.append(nb)
         prior, post = estimator_step(self.powers, est_role, self.x, nbs, y)
-        if self.config.residuals is not None and role is self.config.role:
+        if self._residuals_in_force():
             self._residuals(k, y if len(cols) == len(role.measure) else None,
                             prior, est_role, plan)
         self._finish(k, post)
@@ -866,7 +910,7 @@ class AgentCore:
         """The residual tests of step k (:class:`design.residuals.AgentResiduals`): the
         innovation when every reading came, and on each link whose estimate used was the
         on-time one at the tested age, ``A^age xhat^j - prior``."""
-        res = self.config.residuals
+        res = self.residuals
         if y is None or any(s != need or src != j for j, (s, need, src) in plan.items()):
             res.disturb(k)
         innovation = None if y is None else y - prior[list(est_role.measured)]
@@ -874,8 +918,8 @@ class AgentCore:
         for j, (s, need, src) in plan.items():
             # the on-time estimate, at the age the link's test was computed for (a delay
             # learned otherwise, e.g. after a burst of late messages, is not tested)
-            if s is not None and s == need and src == j and k - s == ages.get(j - 1):
-                disc[j - 1] = self.nbrs[j].est[s] @ self.powers.transposed(k - s) - prior
+            if s is not None and s == need and src == j and k - s == ages.get(j):
+                disc[j] = self.nbrs[j].est[s] @ self.powers.transposed(k - s) - prior
         self.residual_levels = res.step(k, innovation, disc)
         for name, level in self.residual_levels.items():
             self._residual_peak[name] = max(level, self._residual_peak.get(name, 0.0))
@@ -895,20 +939,21 @@ class AgentCore:
     def _residual_status(self) -> dict:
         """``residuals``: the largest level of each test since the last status, the step
         and level of each test's first alarm since then, the alarm steps so far, the last
-        disturbed step; ``off`` once the initial configuration no longer holds."""
-        if self.config.residuals is None:
+        disturbed step and the epoch of the configuration tested; ``off`` while no tests
+        of the configuration in force are run."""
+        if not self._ever_tested:
             return {}
-        if self.role is not self.config.role:
+        if not self._residuals_in_force():
             return {"residuals": {"off": "the configuration changed",
                                   "alarms": self.residual_alarms}}
         peak, self._residual_peak = self._residual_peak, {}
         first, self._residual_first = self._residual_first, {}
-        res = self.config.residuals
+        res = self.residuals
         return {"residuals": {"levels": {k: round(v, 4) for k, v in peak.items()},
                               "first": {k: [s, round(v, 4)] for k, (s, v) in first.items()},
                               "alarms": self.residual_alarms,
                               "disturbed": -1 if res.disturbed_at is None else res.disturbed_at,
-                              "settle": res.test.warmup + res.test.window}}
+                              "settle": res.warmup + res.window, "epoch": res.epoch}}
 
     def status(self) -> dict:
         """The status fields of this agent (see docs/runtime.md)."""
@@ -962,7 +1007,8 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
     agents included), so that a role change keeps the delays the simulator and the
     monitor assume. ``max_age`` defaults to ``hold_limit(delays.max())``.
     ``residuals``: run the residual tests of the initial configuration
-    (:func:`residual_tests_for`) when the agent has a role in it.
+    (:func:`residual_tests_for`) when the agent has a role in it, and those the
+    assignments carry.
     """
     from design.estimator import hold_limit
     from design.roster import link_delay_table
@@ -984,27 +1030,17 @@ def agent_config(scenario, agent: int, gains, seed: int, delays, deadline_s: flo
         link_delays=link_delays, deadline_s=float(deadline_s), impair_seed=impair_seed,
         drop=float(drop), max_age=hold_limit(top) if max_age is None else int(max_age),
         residuals=residual_tests_for(scenario, gains, delays, i)
-        if residuals and gains is not None and i < scenario.N else None, lie=lie,
+        if residuals and gains is not None and i < scenario.N else None,
+        test_residuals=bool(residuals), lie=lie,
         sensor_faults=tuple(sensor_faults))
-
-
-#: the largest augmented loop (nN (1 + largest delay)) whose residual tests an agent
-#: computes at start: paper-14-live with its own delays (order 126) 0.02 s; at 7-step
-#: delays (order 336) 22 s and at 15 (672) 95 s on this machine under load, too long
-#: for a process's start
-RESIDUAL_MAX_ORDER = 200
 
 
 def residual_tests_for(scenario, gains, delays, row: int):
     """:class:`design.residuals.AgentResiduals` of agent row ``row`` of the initial
-    configuration, or None when its loop is above :data:`RESIDUAL_MAX_ORDER` or not
-    stable (no steady covariance to test against)."""
-    from design.residuals import AgentResiduals, ResidualError, residual_test
+    configuration, or None when its loop is above
+    :data:`design.residuals.AGENT_MAX_ORDER` or not stable (no steady covariance to test
+    against)."""
+    from design.residuals import AgentResiduals, configuration_tests
 
-    top = int(np.max(delays)) if np.size(delays) else 0
-    if scenario.n * scenario.N * (1 + top) > RESIDUAL_MAX_ORDER:
-        return None
-    try:
-        return AgentResiduals(residual_test(scenario, gains, delays), row)
-    except ResidualError:
-        return None
+    tests = configuration_tests(scenario, gains, delays).get(row + 1)
+    return AgentResiduals(tests) if tests is not None else None

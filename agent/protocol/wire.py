@@ -42,6 +42,7 @@ __all__ = [
     "WeightMap",
     "IntMap",
     "Loose",
+    "ResidualTests",
     "sensors_schema",
     "truth_schema",
     "est_schema",
@@ -171,6 +172,43 @@ class Loose:
         return value
 
 
+class ResidualTests:
+    """An assignment's ``residuals``: the receiving agent's residual tests of the new
+    configuration (:meth:`design.residuals.AgentTests.to_wire`). Checks the structure and
+    the types, decodes the arrays; the agent checks them against its role
+    (:meth:`design.residuals.AgentTests.from_wire`)."""
+
+    _TEST = {"from": Int(0, MAX_AGENT), "age": Int(0, MAX_STEP), "whiten": F64Array((None, None)),
+             "alpha": Float(0.0, 1.0), "threshold": Float(0.0, 1e300),
+             "null": F64Array((None, None), required=False),
+             "null_floor": Float(0.0, 1e300, required=False),
+             "null_threshold": Float(0.0, 1e300, required=False)}
+    MAX_TESTS = 1025
+
+    def __init__(self, required: bool = False):
+        self.required = required
+
+    def check(self, name, value):
+        if not isinstance(value, dict) or set(value) != {"window", "warmup", "tests"}:
+            raise MalformedMessage("type", "expected a map of window, warmup and tests", name)
+        out = {"window": Int(1, 4096).check(f"{name}.window", value["window"]),
+               "warmup": Int(0, MAX_STEP).check(f"{name}.warmup", value["warmup"]), "tests": []}
+        tests = value["tests"]
+        if not isinstance(tests, list) or not 0 < len(tests) <= self.MAX_TESTS:
+            raise MalformedMessage("type", f"tests: expected a list of 1..{self.MAX_TESTS} "
+                                   "tests", name)
+        for i, t in enumerate(tests):
+            where = f"{name}.tests[{i}]"
+            if not isinstance(t, dict) or not set(t) <= set(self._TEST) \
+                    or not {k for k, spec in self._TEST.items() if spec.required} <= set(t):
+                raise MalformedMessage("type", "expected a map of from, age, whiten, alpha, "
+                                       "threshold and optionally null, null_floor and "
+                                       "null_threshold", where)
+            out["tests"].append({k: self._TEST[k].check(f"{where}.{k}", v)
+                                 for k, v in t.items()})
+        return out
+
+
 _STEP = Int(0, MAX_STEP)
 #: an authenticated control message: signer's sequence and Ed25519 signature
 #: (agent.protocol.control_auth)
@@ -222,6 +260,9 @@ def ctl_schema(n: int) -> Schema:
         # new neighbour -> the failed agent whose stream it continues (design.estimator's
         # continuity rule); optional: an assignment without it continues nothing
         "continues": IntMap(agent_keys=True, required=False),
+        # the agent's residual tests of the new configuration (design.residuals.
+        # AgentTests.to_wire); optional: without it the agent's tests are off from the switch
+        "residuals": ResidualTests(required=False),
         **_SIGNED,
     })
 
@@ -312,7 +353,7 @@ def encode_est(agent: int, step: int, x, epoch: int, t: float) -> bytes:
 def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: dict,
                self_weight: float, gain, take_over: int | None = None, signer=None,
                continues: dict | None = None,
-               run: str | None = None) -> bytes:
+               run: str | None = None, residuals: dict | None = None) -> bytes:
     """Encode a role assignment; ``neighbours`` maps agent id (int) -> weight.
 
     With ``signer`` (:class:`agent.protocol.control_auth.ControlSigner`) and ``run``, the message
@@ -325,6 +366,8 @@ def encode_ctl(agent: int, epoch: int, activate_at: int, measure, neighbours: di
         msg["take_over"] = int(take_over)
     if continues:
         msg["continues"] = {int(a): int(f) for a, f in continues.items()}
+    if residuals is not None:
+        msg["residuals"] = residuals
     if signer is not None:
         msg = signer.sign(msg, run)
     msg["neighbours"] = {str(a): w for a, w in msg["neighbours"].items()}

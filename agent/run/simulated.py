@@ -628,10 +628,7 @@ class SimRuntime:
 
     def _publish(self, src, msg) -> None:
         if isinstance(msg, Assignment):
-            sp = msg.spec
-            payload = wire.encode_ctl(msg.agent, msg.epoch, msg.activate_at, sp.measure,
-                                      sp.neighbours, sp.self_weight, sp.gain,
-                                      take_over=sp.take_over, continues=sp.continues)
+            payload = msg.encode()
             self._record(src.name, topics.ctl_key(self.run_id, msg.agent), payload)
             self._send(src.name, f"agent-{msg.agent}",
                        lambda a=msg.agent: self._on_ctl(a, payload))
