@@ -476,27 +476,36 @@ def test_a_healthy_run_raises_no_alarm(live):
 
 # -- the live agent's side -------------------------------------------------------------
 
-def test_an_agent_forms_the_simulators_residual_statistics(live):
-    """AgentCore stepped by hand (in-memory mesh, the scenario's delays) forms, at every
-    step, the same residual levels as the simulator's trial of the same seed; its status
-    carries the largest level of each test since the last status."""
+def _levels_in_a_mesh(s, G, test, steps, before_tick=lambda mesh, k: None):
+    """``(mesh, want, got, index)``: the levels of ``test`` the simulator's trial of seed 4
+    gives (steps x tests), those the agents of an in-memory mesh formed at each step
+    (NaN where none), and the column of each test's name; ``before_tick(mesh, k)`` runs
+    before the world's step k."""
     from tests.runtime_harness import Mesh
 
-    s, G = live
-    test = residual_test(s, G)
-    steps = test.first_step + 40
     sim = simulate(s, G, steps=steps, trials=1, seed=4, delays=s.delays, residuals=test,
                    coordinates="absolute")
     want = sim.residual_stats[0] / test.thresholds
     mesh = Mesh(s, G, seed=4, delays=s.delays, residuals=True)
     got = np.full_like(want, np.nan)
     index = {name: c for c, name in enumerate(test.names)}
-    for _ in range(steps + 1):
+    for k in range(steps + 1):
+        before_tick(mesh, k)
         mesh.tick()
         for a in range(1, s.N + 1):
             core = mesh.agents[a]
             for name, level in core.residual_levels.items():
                 got[core.step, index[name]] = level
+    return mesh, want, got, index
+
+
+def test_an_agent_forms_the_simulators_residual_statistics(live):
+    """AgentCore stepped by hand (in-memory mesh, the scenario's delays) forms, at every
+    step, the same residual levels as the simulator's trial of the same seed; its status
+    carries the largest level of each test since the last status."""
+    s, G = live
+    test = residual_test(s, G)
+    mesh, want, got, _ = _levels_in_a_mesh(s, G, test, test.first_step + 40)
     formed = ~np.isnan(want)
     assert formed[test.first_step:].all() and not formed[:test.first_step].any()
     assert np.array_equal(formed, ~np.isnan(got))
@@ -600,7 +609,6 @@ def test_agents_run_the_tests_an_assignment_carries_from_its_step(live):
     simulator's levels, and report them under epoch 1; agent 3's tests are off."""
     from agent.monitor.core import with_residual_tests
     from design.roster import Roster, role_specs
-    from tests.runtime_harness import Mesh
 
     s, G = live
     test = residual_test(s, G)
@@ -609,23 +617,14 @@ def test_agents_run_the_tests_an_assignment_carries_from_its_step(live):
     specs = role_specs(r0, G)
     A = test.first_step + 10
     back = A + test.warmup + test.window          # the first level formed again
-    steps = back + 30
-    sim = simulate(s, G, steps=steps, trials=1, seed=4, delays=s.delays, residuals=test,
-                   coordinates="absolute")
-    want = sim.residual_stats[0] / test.thresholds
-    mesh = Mesh(s, G, seed=4, delays=s.delays, residuals=True)
-    got = np.full_like(want, np.nan)
-    index = {name: c for c, name in enumerate(test.names)}
-    for k in range(steps + 1):
+
+    def reassign(mesh, k):
         if k == A - 5:
             for a in (1, 2, 3):
                 mesh.agents[a].on_assignment(_assignment_message(
                     specs[a], info["residuals"][a] if a != 3 else None, epoch=1, at=A))
-        mesh.tick()
-        for a in (1, 2, 3):
-            core = mesh.agents[a]
-            for name, level in core.residual_levels.items():
-                got[core.step, index[name]] = level
+
+    mesh, want, got, index = _levels_in_a_mesh(s, G, test, back + 30, reassign)
     mine = [index[n] for n in index if n.endswith(("1", "->1", "2", "->2"))]
     formed = ~np.isnan(got[:, mine])
     assert formed[test.first_step:A].all() and not formed[A:back].any()
