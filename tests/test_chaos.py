@@ -96,6 +96,35 @@ def test_the_checker_flags_a_conviction_without_a_fault(live, tmp_path):
     assert [x.invariant for x in v] == ["convictions"]
 
 
+def test_lies_and_biases_are_drawn_once_per_agent_within_their_sizes(live):
+    """``lie`` and ``bias`` come only when asked for (the default kinds are those before
+    them), at most one of either per agent, 2 to 8 noise std-devs."""
+    for seed in range(10):
+        assert not {f.kind for f in draw_schedule(live, seed=seed, duration=3000, rate=6)} \
+            & {"lie", "bias"}
+        skewed = [f for f in draw_schedule(live, seed=seed, duration=5000,
+                                           kinds=("lie", "bias"), rate=6)]
+        assert skewed and len({f.agent for f in skewed}) == len(skewed)
+        assert all(f.kind in ("lie", "bias") and 2.0 <= f.value <= 8.0 for f in skewed)
+
+
+def test_the_checker_flags_an_alert_on_an_agent_without_a_fault(live, tmp_path):
+    """A residual alert that names a fault on an agent nothing was injected into breaks
+    ``alerts``; on the biased agent (from its step), or ``unexplained``, it does not. While
+    a liar holds its role the error is not judged (its lie goes on until convicted)."""
+    rosters = [(0, (1, 2, 3), 0)]
+    rec = _recording(live, rosters, {a: {k: 0 for k in range(301)} for a in (1, 2, 3)})
+    faults = [Fault(100, "bias", 2, 0.0, 5.0), Fault(90, "lie", 3, 0.0, 5.0)]
+    alerts = [{"agent": 1, "fault": "sensor bias", "step": 105, "score": 2.0},
+              {"agent": 2, "fault": "sensor bias", "step": 104, "score": 9.0},
+              {"agent": 2, "fault": "sensor bias", "step": 99, "score": 9.0},
+              {"agent": 1, "fault": "unexplained", "step": 130, "score": 1.1}]
+    v = check_invariants(_config(live, faults, tmp_path), rec,
+                         {**_summary(), "residual_alerts": alerts}, list(range(301)),
+                         [0.1] * 150 + [50.0] * 151)
+    assert [(x.invariant, x.step) for x in v] == [("alerts", 105), ("alerts", 99)], v
+
+
 def test_the_checker_flags_a_missing_recovery_and_a_dead_process(live, tmp_path):
     rosters = [(0, (1, 2, 3), 0)]
     rec = _recording(live, rosters, {a: {k: 0 for k in range(301)} for a in (1, 2, 3)})

@@ -24,8 +24,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--duration", type=c.int_flag(lo=1), default=1000, metavar="STEPS",
                         help="steps to run (default 1000)")
     parser.add_argument("--faults", default="kill,stop,hang,sensor,monitor,partition,delay,drop",
-                        help="fault kinds to draw from (default: all of kill, stop, hang, "
-                             "sensor, monitor, partition, delay, drop)")
+                        help="fault kinds to draw from (default: kill, stop, hang, "
+                             "sensor, monitor, partition, delay, drop; lie and bias may be "
+                             "added: an agent that lies, or whose sensor is biased)")
     parser.add_argument("--rate", type=float, default=3.0,
                         help="faults per 1000 steps (default 3; at least 160 steps apart)")
     c.add_designed_gains_arguments(parser)

@@ -46,10 +46,16 @@ from agent.run.local import Fault
 # the scheduling slack before a verdict is required lives with the rule it serves
 from agent.run.summary import VERDICT_SLACK_S, conviction_bound_s  # noqa: F401
 
-__all__ = ["CHAOS_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
+__all__ = ["CHAOS_KINDS", "DEFAULT_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
 
 #: the fault kinds ``socmon chaos`` draws from (``crash`` is the scripted variant of up)
-CHAOS_KINDS = ("kill", "stop", "hang", "sensor", "monitor", "partition", "delay", "drop")
+#: The kinds a chaos run draws unless told otherwise.
+DEFAULT_KINDS = ("kill", "stop", "hang", "sensor", "monitor", "partition", "delay", "drop")
+#: Every kind it can draw: the defaults, and agents that keep running but are wrong (the
+#: residual tests' work, docs/residuals.md): ``lie`` (it publishes its estimates a few
+#: noise std-devs off), ``bias`` (its sensor reads a few std-devs off), from their step to
+#: the run's end.
+CHAOS_KINDS = DEFAULT_KINDS + ("lie", "bias")
 
 
 @dataclass(frozen=True)
@@ -74,14 +80,16 @@ class Violation:
         return {"invariant": self.invariant, "step": self.step, "evidence": self.evidence}
 
 
-def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: float = 3.0,
+def draw_schedule(scenario, seed: int, duration: int, kinds=DEFAULT_KINDS, rate: float = 3.0,
                   step_ms: float = 20.0, bounds: Bounds = Bounds()) -> list:
     """A fault schedule for ``duration`` steps: about ``rate`` faults per 1000 steps.
 
     Faults are at least ``bounds.gap`` steps apart, after ``bounds.warmup``; a killed
     agent is never a target again; at least one agent of each parent SCC's measurers or
     a standby is left alive (the schedule never kills the last agents), so recovery stays
-    possible. Durations (stop, partition, delay, drop) are drawn in seconds.
+    possible. Durations (stop, partition, delay, drop) are drawn in seconds; the size of
+    a lie or a bias in noise std-devs (2 to 8: from inside the noise to far out), one
+    of them at most per agent.
     """
     rng = np.random.default_rng([int(seed), 0xC4A05])
     kinds = tuple(kinds)
@@ -95,6 +103,7 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: f
     rng.shuffle(slots)
     steps = sorted(s + int(rng.integers(0, bounds.gap // 4)) for s in slots[:count])
     out = []
+    skewed = set()                  # agents that lie or whose sensor is biased
     for k in steps:
         kind = kinds[int(rng.integers(len(kinds)))]
         if kind == "monitor":
@@ -127,6 +136,9 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=CHAOS_KINDS, rate: f
         elif kind == "drop":
             out.append(Fault(k, "drop", agent, float(np.round(rng.uniform(1.0, 2.5), 2)),
                              float(np.round(rng.uniform(0.1, 0.5), 2))))
+        elif kind in ("lie", "bias") and agent not in skewed:
+            skewed.add(agent)
+            out.append(Fault(k, kind, agent, 0.0, float(np.round(rng.uniform(2.0, 8.0), 2))))
     return out
 
 
@@ -279,13 +291,23 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     marks = sorted([f.step for f in c.faults] + [x["at"] for x in configs[1:]]
                    + [v["detected_step"] for v in summary.get("failures", [])
                       if v.get("detected_step") is not None])
+    # a lie or a sensor bias skews the error for as long as its agent holds a role (an
+    # undetected one, or one only alerted, for good): no bound is stated there
+    skewed = []                     # [start, end) of the steps judged by no bound
+    ends = [at for at, _, _ in rec.rosters[1:]] + [math.inf]
+    for f in c.faults:
+        if f.kind in ("lie", "bias"):
+            skewed += [(max(at, f.step), end + bounds.settle_steps)
+                       for (at, ids, _), end in zip(rec.rosters, ends)
+                       if f.agent in ids and end > f.step]
     mse_at = dict(zip(steps, mse))
     predicted = {x["epoch"]: _exact_mse(x["scenario"], x["G"], x["D"]) for x in configs}
     k = 0
     while k + bounds.window <= last:
         span = range(k, k + bounds.window)
         quiet = all(not (m <= j < m + bounds.settle_steps) for j in span for m in marks) \
-            and k >= bounds.settle_steps
+            and k >= bounds.settle_steps \
+            and not any(a <= j < b for j in (span[0], span[-1]) for a, b in skewed)
         if quiet:
             epochs = {_roster_at(rec.rosters, j)[2] for j in span}
             if len(epochs) == 1:
@@ -300,7 +322,8 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
 
     # -- convictions -------------------------------------------------------------------------
     faulty = {f.agent for f in c.faults
-              if f.kind in ("kill", "crash", "stop", "hang", "sensor", "partition")}
+              if f.kind in ("kill", "crash", "stop", "hang", "sensor", "partition", "lie",
+                            "bias")}
     for v in summary.get("failures", []):
         if v.get("detected") is False:
             if v.get("role") == "active":
@@ -311,6 +334,18 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
             out.append(Violation("convictions", v["detected_step"],
                                  f"agent {v['agent']} convicted ({v['cause']}: "
                                  f"{v.get('evidence')}) but no fault was injected into it"))
+    # -- alerts ------------------------------------------------------------------------------
+    # a residual alert that names a fault (a sensor bias, inconsistent estimates) accuses
+    # an agent: one a fault was injected into by then (an "unexplained" one says that the
+    # alarms fit no rule, and names the strongest alarm's agent for the operator to look at)
+    for alert in summary.get("residual_alerts", []):
+        if alert.get("fault") == "unexplained":
+            continue
+        if not any(f.agent == alert["agent"] and f.step <= alert["step"] for f in c.faults):
+            out.append(Violation("alerts", alert["step"],
+                                 f"residual alert on agent {alert['agent']} ({alert['fault']}"
+                                 f", level {alert.get('score')}) but no fault was injected "
+                                 f"into it by step {alert['step']}"))
     return out
 
 

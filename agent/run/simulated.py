@@ -50,6 +50,7 @@ a step cost more than the step.
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import itertools
 import math
@@ -82,7 +83,10 @@ __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS", "run_schedules
 
 #: The kinds of :class:`agent.run.local.Fault` a simulated run applies.
 FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", "drop",
-               "slow", "monitor", "monitorstop", "monitorsgone")
+               "slow", "monitor", "monitorstop", "monitorsgone", "lie", "bias")
+#: The kinds scripted into an agent at its start (as ``up`` passes them on the command
+#: line): its process carries them out at their step.
+SCRIPTED = ("crash", "lie", "bias")
 #: The kinds that act on the monitors (the acting one, or all for ``monitorsgone``).
 MONITOR_FAULTS = ("monitor", "monitorstop", "monitorsgone")
 
@@ -267,6 +271,34 @@ class _SimMonitor:
         self.session = f"{self.id}-{runtime.now:.6f}"    # its token's session: one a start
 
 
+#: each agent's residual tests of a run's initial configuration, by configuration: the
+#: runs of a batch of schedules start from the same one
+_INITIAL_TESTS: dict = {}
+
+
+def _agent_config(scenario, a, G, seed, delays, deadline, skewed):
+    """:func:`agent.node.core.agent_config` of agent ``a``, with the lie and sensor bias
+    of ``skewed`` (faults of kinds ``lie``, ``bias``) scripted into the agents they name,
+    as ``up`` passes them (``--lie``, ``--sensor-fault``), and the residual tests on when
+    there are any."""
+    from design.residuals import AgentResiduals, configuration_tests
+    from design.simulate import Fault as AgentFault
+
+    config = agent_config(scenario, a, G, seed, delays, deadline,
+                          lie=next((AgentFault("lie", a - 1, f.step, f.value) for f in skewed
+                                    if f.kind == "lie" and f.agent == a), None),
+                          sensor_faults=[AgentFault("bias", a - 1, f.step, f.value)
+                                         for f in skewed if f.kind == "bias" and f.agent == a])
+    if not skewed:
+        return config
+    key = _configuration_key(scenario, G, delays)
+    if key not in _INITIAL_TESTS:
+        _INITIAL_TESTS[key] = configuration_tests(scenario, G, delays)
+    tests = _INITIAL_TESTS[key].get(a) if a <= scenario.N else None
+    return dataclasses.replace(config, test_residuals=True,
+                               residuals=None if tests is None else AgentResiduals(tests))
+
+
 class SimRuntime:
     """One run of ``scenario`` with gains ``G`` and link ``delays`` (steps), ``faults``
     applied, in simulated time. :meth:`run` returns a :class:`SimResult`."""
@@ -296,8 +328,11 @@ class SimRuntime:
         self._jitter_at = 0
         self._link_free: dict = {}
         deadline = c.step_s if c.deadline_s is None else c.deadline_s
-        self.agents = {a: AgentCore(agent_config(scenario, a, self.G, self.seed, self.delays,
-                                                 deadline))
+        # agents that lie or whose sensor is biased run the residual tests, all of them
+        # (the initial configuration's from its start, the later ones' as assigned)
+        skewed = [f for f in self.faults if f.kind in ("lie", "bias")]
+        self.agents = {a: AgentCore(_agent_config(scenario, a, self.G, self.seed, self.delays,
+                                                  deadline, skewed))
                        for a in range(1, self.M + 1)}
         self._names = {a: f"agent-{a}" for a in self.agents}     # their process names
         self._agent_of = {name: a for a, name in self._names.items()}
@@ -414,7 +449,7 @@ class SimRuntime:
         shared = _Shared(wire.encode_sensors(k, w.x), self._schemas["sensors"])
         for a in self.agents:
             self._send("world", self._names[a], lambda a=a: self._on_sensors(a, shared))
-        for f in [f for f in self.faults if f.step == k and f.kind != "crash"]:
+        for f in [f for f in self.faults if f.step == k and f.kind not in SCRIPTED]:
             self._fault(f)
         if k < self._steps:
             w.advance()
@@ -765,15 +800,16 @@ def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
     :func:`agent.run.chaos.draw_schedule`, run by :class:`SimRuntime` and checked by
     :func:`agent.run.chaos.check_invariants`. Returns the report (``report_lines`` prints it):
     runs and CPU seconds, faults by kind, verdicts by cause, detection steps after stop,
-    hang and kill faults and switch steps after the verdicts (median, min, max), and every
-    violation with its seed. ``progress(seed, violations)`` is called after each run."""
+    hang, kill and lie faults and switch steps after the verdicts (median, min, max), the
+    residual alerts by what they name, and every violation with its seed. ``progress(seed, violations)`` is called after each run."""
     import time
     from collections import Counter
 
     from agent.run.chaos import draw_schedule
 
     faults, verdicts, broken, runs_s = Counter(), Counter(), [], []
-    detection = {k: [] for k in ("kill", "hang", "stop")}
+    detection = {k: [] for k in ("kill", "hang", "stop", "lie")}
+    alerts = Counter()           # residual alerts: on an agent that lies or is biased, or not
     switch = []
     for seed in seeds:
         schedule = draw_schedule(scenario, seed, steps, kinds=kinds, rate=rate)
@@ -795,6 +831,11 @@ def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
                 detection[fault.kind].append(f["detected_step"] - fault.step)
             if f.get("activate_at") is not None:
                 switch.append(f["activate_at"] - f["detected_step"])
+        for alert in result.summary.get("residual_alerts", []):
+            on = {g.kind for g in schedule if g.agent == alert["agent"]
+                  and g.step <= alert["step"] and g.kind in ("lie", "bias")}
+            alerts[f"{alert['fault']} on an agent that "
+                   + ("lies" if "lie" in on else "is biased" if on else "does neither")] += 1
         if progress is not None:
             progress(seed, found)
 
@@ -806,7 +847,8 @@ def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
             "cpu_s": float(np.sum(runs_s)), "cpu_s_median": float(np.median(runs_s)),
             "faults": dict(faults), "verdicts": dict(verdicts),
             "detection_steps": {k: spread(v) for k, v in detection.items() if v},
-            "switch_steps": spread(switch), "violations": broken}
+            "switch_steps": spread(switch), "residual_alerts": dict(alerts),
+            "violations": broken}
 
 
 def report_lines(report: dict) -> list:
@@ -821,6 +863,8 @@ def report_lines(report: dict) -> list:
         median, low, high = report["switch_steps"]
         lines.append(f"  roles in force {median:.0f} steps after the verdict (median), "
                      f"{low} to {high}")
+    if report.get("residual_alerts"):
+        lines.append(f"residual alerts (not convictions): {report['residual_alerts']}")
     broken = report["violations"]
     lines.append(f"violations: {len(broken)}, in {len({v['seed'] for v in broken})} of "
                  f"{report['runs']} runs")
