@@ -883,8 +883,11 @@ class AgentTests:
                 bad.append(f"null {np.shape(null)} for a residual of {dim}")
             if (sender is None) != (t["age"] == 0):
                 bad.append(f"age {t['age']}")
-            if null is not None and not t.get("null_floor", 0) > 0:
-                bad.append("null_floor must be > 0")
+            if not t["threshold"] > 0:
+                bad.append("threshold must be > 0")
+            if null is not None and not (t.get("null_floor", 0) > 0
+                                         and t.get("null_threshold", 0) > 0):
+                bad.append("null_floor and null_threshold must be > 0 with null")
             if bad:
                 problems.append(f"residuals: {name}: " + ", ".join(bad))
                 continue
@@ -942,7 +945,8 @@ def configuration_tests(scenario, G, delays, ids=None, max_order: int = AGENT_MA
         return {}
     try:
         return agent_tests(residual_test(scenario, G, D, **kwargs), ids)
-    except ResidualError:
+    except (ResidualError, np.linalg.LinAlgError, ValueError):
+        # not stable, or a solve that failed: no tests (the caller's designs go on)
         return {}
 
 

@@ -1747,3 +1747,35 @@ def test_a_lie_after_a_recovery_is_convicted_on_the_new_configurations_tests(com
         [(1, "inconsistent estimates"), (2, "inconsistent estimates")], core.events
     assert "residual tests of the configuration of epoch 1" in core.verdicts[1].evidence
     assert "agent 4 (link 2->4" in core.verdicts[1].evidence
+
+
+def test_an_earlier_alert_on_an_agent_does_not_stop_its_conviction_for_a_lie(complete_core):
+    """Agent 1 is first flagged by both receivers but one only just (1.2 x its threshold:
+    an alert, not corroborated); once that episode is over, both flag it clearly: it is
+    convicted (the alert, raised once per agent and kind, used to swallow the conviction
+    too)."""
+    core = complete_core
+    step = lambda t: int(50 * t)                                    # noqa: E731
+    _advance(core, 0.0, 1.0, step)
+    weak = {1: {"innovation 1": 0.01, "link 2->1": 0.15, "link 3->1": 0.2},
+            2: {"innovation 2": 0.01, "link 1->2": 3.0e4, "link 3->2": 0.1},
+            3: {"innovation 3": 0.001, "link 1->3": 1.2, "link 2->3": 0.1}}
+    for a in (1, 2, 3):
+        core.on_status(_residual_status(a, 52, weak[a], 51), 1.05)
+    core.tick(1.05)
+    assert [(r["agent"], r["fault"]) for r in core.residual_alerts] == \
+        [(1, "inconsistent estimates")] and core.verdicts == []
+    t = 1.1
+    quiet = {a: {k: 0.1 for k in levels} for a, levels in weak.items()}
+    while step(t) < 52 + 45:                   # the episode ends after its settle window
+        for a in (1, 2, 3):
+            core.on_status(_residual_status(a, step(t), quiet[a], 0), t)
+        core.tick(t)
+        t += 0.1
+    k = step(t)
+    for a in (1, 2, 3):
+        core.on_status(_residual_status(a, k + 1, LIE_OF_1[a], k), t)
+    core.tick(t)
+    core.tick(t + 0.05)
+    assert [(v.agent, v.cause) for v in core.verdicts] == [(1, "inconsistent estimates")], \
+        core.events

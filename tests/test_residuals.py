@@ -587,6 +587,11 @@ def test_an_assignment_with_broken_residual_tests_is_refused_naming_them(live):
                          r"residuals: innovation 1: whiten \(2, 2\) for a residual of 1")
     refused_by_the_agent(broken(lambda p: p["tests"].reverse()),
                          "the innovation's test must come first")
+    refused_by_the_agent(broken(lambda p: p["tests"][0].update({"threshold": 0.0})),
+                         r"residuals: innovation 1: threshold must be > 0")
+    singular = next(i for i, t in enumerate(tests[1].to_wire()["tests"]) if "null" in t)
+    refused_by_the_agent(broken(lambda p: p["tests"][singular].update({"null_threshold": 0})),
+                         "null_floor and null_threshold must be > 0 with null")
     for change, field in ((lambda p: p["tests"][0].update({"threshold": math.inf}),
                            "residuals.tests[0].threshold"),
                           (lambda p: p["tests"][1].pop("whiten"), "residuals.tests[1]"),

@@ -816,12 +816,17 @@ class MonitorCore:
                                f"of agents {blind} were starting over then")
             return
         verdict = isolate(reports)        # agent ids throughout
-        if verdict is None or (verdict.agent, verdict.kind) in self._alerted:
+        if verdict is None:
             return
-        self._alerted.add((verdict.agent, verdict.kind))
         agent = verdict.agent
-        if verdict.kind == INCONSISTENT and verdict.corroborated \
-                and agent in self.roster.ids and agent not in self.failed:
+        convict = verdict.kind == INCONSISTENT and verdict.corroborated \
+            and agent in self.roster.ids and agent not in self.failed
+        # an alert is raised once per agent and kind; a corroborated lie convicts whatever
+        # was alerted of that agent before (an earlier, weaker picture of the same lie)
+        if not convict and (agent, verdict.kind) in self._alerted:
+            return
+        self._alerted.add((agent, verdict.kind))
+        if convict:
             own = next(r for r in reports if r.agent == agent)
             evidence = (
                 f"residual tests of {_configuration_words(self.epoch)}, first alarm at step "
