@@ -460,10 +460,14 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
     M = summary["agents"] + summary["standby"]
     colours = {"kill": "tab:red", "stop": "tab:orange", "partition": "tab:purple",
                "delay": "tab:brown", "drop": "tab:olive", "monitor": "k", "crash": "tab:red",
-               "hang": "tab:pink", "sensor": "tab:cyan"}
+               "hang": "tab:pink", "sensor": "tab:cyan", "lie": "darkred", "bias": "gold"}
+    last = steps[-1] if len(steps) else 0
     for f in schedule:
         y = f.agent if f.agent else 0
-        width = max(1.0, f.seconds * 1000.0 / summary["step_ms"]) if f.seconds else 3
+        if f.kind in ("lie", "bias"):          # from its step to the run's end
+            width = max(1.0, last - f.step)
+        else:
+            width = max(1.0, f.seconds * 1000.0 / summary["step_ms"]) if f.seconds else 3
         lane.barh(y, width, left=f.step, height=0.6, color=colours.get(f.kind, "grey"),
                   alpha=0.8)
         lane.text(f.step, y + 0.35, f.kind, fontsize=7)
