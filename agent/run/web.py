@@ -48,6 +48,7 @@ import ipaddress
 import json
 import math
 import threading
+import textwrap
 import time
 from collections import deque
 from pathlib import Path
@@ -342,7 +343,8 @@ def event_text(e: dict) -> str | None:
     if kind == "verdict":
         who = "the network" if e.get("agent") == 0 else f"agent {e.get('agent')}"
         return (f"{who} convicted: {e.get('cause')} at step {e.get('step')}"
-                + (f" ({str(e.get('evidence'))[:160]})" if e.get("evidence") else ""))
+                + (f" ({textwrap.shorten(str(e.get('evidence')), 160, placeholder=' ...')})"
+                   if e.get("evidence") else ""))
     if kind == "reassign":
         reps = [f"agent {r.get('by')} measures node {r.get('to')} for agent {r.get('failed')}"
                 f" (was node {r.get('from')})" for r in e.get("replacements") or []]
