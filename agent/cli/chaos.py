@@ -49,6 +49,8 @@ def run(args) -> int:
 
 def _chaos(args) -> int:
     from agent.run.chaos import live_chaos
+    from agent.run.local import live_view
+    from agent.run.web import live_state_factory
     from agent.run.chaos_report import (NO_FAULT_WARNING, live_report_text, seed_range,
                                         simulated_report_text)
     from agent.run.simulated import simulated_chaos
@@ -59,7 +61,8 @@ def _chaos(args) -> int:
         report = simulated_chaos(args, seeds)
         print(simulated_report_text(report, seeds, args.rate, as_json=args.json))
         return 1 if report["violations"] else 0
-    report, status, reassignments = live_chaos(args, say_on_stderr("chaos", args.quiet))
+    with live_view(live_state_factory(None)):     # verdicts and reassignments, as heard
+        report, status, reassignments = live_chaos(args, say_on_stderr("chaos", args.quiet))
     if not report["faults"]:
         print(NO_FAULT_WARNING, file=sys.stderr)
     print(live_report_text(report, reassignments, as_json=args.json))
