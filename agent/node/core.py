@@ -412,11 +412,10 @@ class AgentCore:
         self._residual_peak: dict = {}    # ... their largest since the last status
         self._residual_first: dict = {}   # test -> (step, level) of its first alarm since
         self.residual_alarms = 0          # steps at which a test alarmed (level >= 1)
-        # the residual tests in force (design.residuals.AgentResiduals) and the role they
-        # belong to: the initial configuration's, then those an assignment carries; they
-        # hold while that role does and no newer roster is in force
+        # the residual tests in force (design.residuals.AgentResiduals): the initial
+        # configuration's, then those an assignment carries (a role changes only there);
+        # they hold while the agent has its role and no newer roster is in force
         self.residuals = config.residuals
-        self._residuals_role = config.role
         self._ever_tested = config.residuals is not None
 
     # -- helpers ------------------------------------------------------------------
@@ -800,16 +799,14 @@ class AgentCore:
         tested = role.residuals is not None and self.config.test_residuals
         self.residuals = AgentResiduals(role.residuals, epoch=role.epoch, start=k) \
             if tested else None
-        self._residuals_role = role
         self._ever_tested = self._ever_tested or tested
         self._residual_peak, self._residual_first, self.residual_levels = {}, {}, {}
 
     def _residuals_in_force(self) -> bool:
-        """The tests in force belong to the role run and no newer roster replaced their
+        """The agent has a role (not fenced) and no newer roster replaced the tests'
         configuration (a change that reassigned others but not this agent)."""
         res = self.residuals
-        return res is not None and self.role is self._residuals_role \
-            and self.roster_epoch <= res.epoch
+        return res is not None and self.role is not None and self.roster_epoch <= res.epoch
 
     def _usable(self, sender: int, stamp: int) -> bool:
         """False iff a keyed drop lost the estimate of ``sender`` stamped ``stamp``."""
