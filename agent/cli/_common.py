@@ -3,6 +3,7 @@ JSON."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 
@@ -198,6 +199,40 @@ def add_web_arguments(parser, what: str = "the run") -> None:
                              "reaches it sees the run; no authentication)")
 
 
+def add_operator_key_arguments(parser) -> None:
+    """``--attach``, ``--operator-key`` (and its deprecated name ``--control-key``),
+    ``--timeout`` and ``--no-confirm``: how ``socmon inject`` signs a change and waits for
+    the agents to confirm it."""
+    add_attach_argument(parser, takes=", and its operator key (RUN_FOLDER/operator.key) to "
+                                      "sign the change")
+    parser.add_argument("--operator-key", metavar="FILE",
+                        help="the run's operator key (socmon up writes RUN_FOLDER/operator.key): "
+                             "sign the change, as agents started with the run's manifest "
+                             "require")
+    parser.add_argument("--control-key", dest="deprecated_control_key", metavar="FILE",
+                        help="deprecated name of --operator-key (still works, with a warning): "
+                             "this is the operator key, not the control key monitor "
+                             "--control-key takes")
+    parser.add_argument("--timeout", type=float, default=10.0,
+                        help="seconds to wait for the agents to confirm (default 10)")
+    parser.add_argument("--no-confirm", action="store_true",
+                        help="publish and exit without waiting for confirmation")
+
+
+@contextlib.contextmanager
+def served_page(args, command: str):
+    """The live page of ``--web``/``--web-remote`` (None without them) for the ``with``
+    block, its address said on stderr as ``<command>: ...`` (even with ``--quiet``: it is
+    what was asked for)."""
+    from agent.run.web import open_page, page_words
+
+    page = open_page(args.web, args.web_remote)
+    with page or contextlib.nullcontext():
+        if page is not None:
+            print(f"{command}: {page_words(page)}", file=sys.stderr, flush=True)
+        yield page
+
+
 def add_json_argument(parser, help: str = "print JSON instead of text") -> None:
     """``--json``: the command's record on stdout as JSON (docs/json.md)."""
     parser.add_argument("--json", action="store_true", help=help)
@@ -349,6 +384,18 @@ def load_signer(path, flag: str = "--control-key"):
     except ValueError:
         raise CommandError(f"{flag}: {str(path)!r} is not a 32-byte Ed25519 private key") \
             from None
+
+
+def operator_signer(args, info, warn):
+    """The signer of ``socmon inject``'s change: ``--operator-key`` (or its deprecated name,
+    ``warn(text)`` saying so), else the operator key of the ``--attach``-ed run ``info``,
+    else None (the change goes unsigned)."""
+    from agent.run.inject import operator_key_arg
+
+    key, flag = operator_key_arg(args.operator_key, args.deprecated_control_key, warn=warn)
+    if key is None and info is not None and info.operator_key is not None:
+        key, flag = str(info.operator_key), "--attach"
+    return load_signer(key, flag) if key else None
 
 
 def run_command(body):

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import sys
 
-from agent.cli._common import (add_attach_argument, attach_run, int_flag, load_signer,
-                               net_config_arg, run_command)
+from agent.cli._common import (add_operator_key_arguments, attach_run, int_flag,
+                               net_config_arg, operator_signer, run_command)
 
 HELP = "inject a link delay, drop rate or partition into a running deployment"
 
@@ -50,47 +50,26 @@ def add_arguments(parser) -> None:
     p = sub.add_parser("clear", help="remove every impairment of link SRC -> DST")
     _link(p)
     p = sub.add_parser("clear-all", help="remove every impairment of every link")
-    _common(p)
+    add_operator_key_arguments(p)
     for p in sub.choices.values():
         add_net_arguments(p)
-
-
-def _common(p):
-    add_attach_argument(p, takes=", and its operator key (RUN_FOLDER/operator.key) to sign "
-                                 "the change")
-    p.add_argument("--operator-key", metavar="FILE",
-                   help="the run's operator key (socmon up writes RUN_FOLDER/operator.key): "
-                        "sign the change, as agents started with the run's manifest require")
-    p.add_argument("--control-key", dest="deprecated_control_key", metavar="FILE",
-                   help="deprecated name of --operator-key (still works, with a warning): "
-                        "this is the operator key, not the control key monitor "
-                        "--control-key takes")
-    p.add_argument("--timeout", type=float, default=10.0,
-                   help="seconds to wait for the agents to confirm (default 10)")
-    p.add_argument("--no-confirm", action="store_true",
-                   help="publish and exit without waiting for confirmation")
 
 
 def _link(p):
     p.add_argument("src", type=int_flag(lo=1), help="sending agent id")
     p.add_argument("dst", type=int_flag(lo=1), help="receiving agent id")
-    _common(p)
+    add_operator_key_arguments(p)
 
 
 def run(args) -> int:
     def body():
-        from agent.run.inject import change_from_args, encode_change, inject, operator_key_arg
+        from agent.run.inject import change_from_args, encode_change, inject
 
         change = change_from_args(args)
-        key, flag = operator_key_arg(args.operator_key, args.deprecated_control_key,
-                                     warn=lambda text: print(f"inject: warning: {text}",
-                                                             file=sys.stderr))
-        info = attach_run(args)
-        if key is None and info is not None and info.operator_key is not None:
-            key, flag = str(info.operator_key), "--attach"
-        signer = load_signer(key, flag) if key else None
-        payload = encode_change(change, signer, args.run)
-        inject(net_config_arg(args, identity="operator"), change, payload, args.timeout,
+        signer = operator_signer(args, attach_run(args), warn=lambda text: print(
+            f"inject: warning: {text}", file=sys.stderr))
+        inject(net_config_arg(args, identity="operator"), change,
+               encode_change(change, signer, args.run), args.timeout,
                confirm=not args.no_confirm,
                say=lambda text: print(f"inject: {text}", file=sys.stderr))
         return 0

@@ -50,20 +50,16 @@ def run(args) -> int:
 
 
 def _up(args) -> int:
-    import contextlib
-
+    from agent.cli._common import served_page
     from agent.cli._progress import ProgressLine
     from agent.run.setup import live_run
     from agent.run.terminal import finished_run_text, say_on_stderr
     from agent.run.local import live_view
-    from agent.run.web import live_state_factory, open_page, page_words
+    from agent.run.web import live_state_factory
 
     line = ProgressLine("up", enabled=not (args.quiet or args.json))
-    page = open_page(args.web, args.web_remote)
     try:
-        with page or contextlib.nullcontext(), live_view(live_state_factory(page)):
-            if page is not None:        # said even with --quiet: it is what was asked for
-                print(f"up: {page_words(page)}", file=sys.stderr, flush=True)
+        with served_page(args, "up") as page, live_view(live_state_factory(page)):
             done = live_run(args, say_on_stderr("up", args.quiet),
                             design_progress=line.design, on_designed=line.close)
     finally:

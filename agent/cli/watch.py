@@ -64,18 +64,12 @@ def run(args) -> int:
 
 
 def _watch(args) -> int:
-    import contextlib
-
+    from agent.cli._common import served_page
     from agent.run.watch import (NoWorld, live_view_for, summary_json, summary_lines, watch,
                                  watch_config)
-    from agent.run.web import open_page, page_words
 
     config = watch_config(args, attach_run(args))
-    with contextlib.ExitStack() as stack:
-        page = open_page(args.web, args.web_remote)
-        if page is not None:
-            stack.enter_context(page)
-            print(f"watch: {page_words(page)}", file=sys.stderr, flush=True)
+    with served_page(args, "watch") as page:
         if not args.json:
             print(f"watch: run {config.net.run} via "
                   f"{', '.join(config.net.connect) or 'multicast'}; Ctrl-C ends the watch"
