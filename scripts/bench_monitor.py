@@ -235,8 +235,11 @@ def _figure(value) -> str:
 STEP_S = 0.02           # socmon up's default step period
 
 
-def per_failure(tmp, taus, kill_step, steps):
-    """One run per (T, agent killed): the switch measured against the hold window."""
+def per_failure(tmp, taus, kill_step, steps, busy=0, no_precompute=False):
+    """One run per (T, agent killed): the switch measured against the hold window, beside
+    ``busy`` loops; with ``no_precompute`` every failure is unforeseen (``up
+    --no-precompute``): its first gain is designed on request, and the gain wait (verdict
+    -> the gains sent) measures the urgent design path."""
     import os
 
     sys.path.insert(0, str(ROOT))
@@ -244,22 +247,28 @@ def per_failure(tmp, taus, kill_step, steps):
 
     scen = load_scenario(SCENARIO)
     agents = list(range(1, len(scen.measure) + 1))
-    print(f"{SCENARIO}, 20 ms steps, kill at step {kill_step}, one run per (T, agent); "
+    print(f"{SCENARIO}, 20 ms steps, kill at step {kill_step}, one run per (T, agent), "
+          f"{busy} busy loops{', no precompute' if no_precompute else ''}; "
           f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     print(f"{'T':>3} {'agent':>5} {'detect ms':>9} {'v->force steps':>14} {'ms':>6} "
-          f"{'hold':>4} {'v->confirmed ms':>15} {'reissues':>8} {'first gain':>18} "
-          f"{'refined epoch':>13}", flush=True)
+          f"{'hold':>4} {'gain wait ms':>12} {'v->confirmed ms':>15} {'reissues':>8} "
+          f"{'first gain':>18} {'refined epoch':>13} {'load':>5}", flush=True)
     rows = []
     for tau in taus:
         for a in agents:
             out = tmp / f"T{tau}-kill{a}"
+            stop = busy_loops(busy)
             try:
                 s = up(out, "--kill", f"{kill_step}:{a}", "--delays", f"uniform:{tau}",
-                       "--seed", str(a), steps=steps)
+                       "--seed", str(a), *(["--no-precompute"] if no_precompute else []),
+                       steps=steps)
             except RuntimeError as e:
                 print(f"{tau:3} {a:5} run failed: {str(e)[-300:]}", flush=True)
                 rows.append({"T": tau, "agent": a, "error": str(e)[-300:]})
                 continue
+            finally:
+                load = os.getloadavg()[0]
+                stop()
             log = (out / "logs" / f"agent-{a}.log").read_text()
             m = re.search(r"SIGKILL at t=([0-9.]+)", log)
             ev = events(out)
@@ -278,6 +287,9 @@ def per_failure(tmp, taus, kill_step, steps):
                    "force_steps": (f["activate_at"] - f["detected_step"]
                                    if f and f.get("activate_at") is not None else None),
                    "confirm_ms": 1e3 * (c["t"] - v["detected_t"]) if c and v else None,
+                   "gain_wait_ms": (1e3 * (r["mono_sent"] - r["mono"])
+                                    if r and "mono_sent" in r else None),
+                   "load": load,
                    "reissues": len(s.get("reissues", [])),
                    "first_gain": (f"{r.get('gains')}{' pre' if r.get('precomputed') else ''}"
                                   f" {r.get('gains_rho') or float('nan'):.3f}" if r else None),
@@ -287,9 +299,14 @@ def per_failure(tmp, taus, kill_step, steps):
             fs = row["force_steps"]
             print(f"{tau:3} {a:5} {_fmt(row['detect_ms']):>9} {_fmt(fs):>14} "
                   f"{_fmt(fs * STEP_S * 1e3 if fs is not None else None):>6} {tau + 17:4} "
-                  f"{_fmt(row['confirm_ms']):>15} {row['reissues']:8} "
-                  f"{row['first_gain'] or '-':>18} {_fmt(row['refined_epoch']):>13}",
-                  flush=True)
+                  f"{_fmt(row['gain_wait_ms']):>12} {_fmt(row['confirm_ms']):>15} "
+                  f"{row['reissues']:8} {row['first_gain'] or '-':>18} "
+                  f"{_fmt(row['refined_epoch']):>13} {load:5.1f}", flush=True)
+    waits = [r["gain_wait_ms"] for r in rows if r.get("gain_wait_ms") is not None]
+    if waits:
+        print(f"verdict -> first gain sent: median {statistics.median(waits):.0f} ms, max "
+              f"{max(waits):.0f} ms over {len(waits)} runs; within 1 s: "
+              f"{sum(w <= 1000 for w in waits)} of {len(waits)}")
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"run folders: {tmp}")
     (tmp / "per_failure.json").write_text(json.dumps(rows, indent=1))
@@ -375,6 +392,9 @@ def main():
                     help="two kills --gap steps apart: the second one's gain designed on "
                          "request")
     ap.add_argument("--gap", type=int, default=8, help="steps between the --sequential kills")
+    ap.add_argument("--no-precompute", action="store_true",
+                    help="--per-failure runs with up --no-precompute: every failure is "
+                         "unforeseen, its first gain designed on request")
     args = ap.parse_args()
     try:
         taus = [int(t) for t in args.taus.split(",")]
@@ -388,7 +408,7 @@ def main():
     if args.false_positives:
         return false_positives(args, tmp)
     if args.per_failure:
-        per_failure(tmp, taus, args.kill_step, args.steps)
+        per_failure(tmp, taus, args.kill_step, args.steps, args.busy, args.no_precompute)
         return
     if args.sequential:
         return sequential(args, tmp, taus)

@@ -94,6 +94,20 @@ def add_deadline_argument(parser, note: str = "") -> None:
                              f"neighbour estimates (default: the step period{note})")
 
 
+def add_monitor_arguments(parser) -> None:
+    """``--no-monitor``, ``--monitors N`` and ``--no-precompute``: the monitors a local run
+    starts."""
+    parser.add_argument("--no-monitor", action="store_true",
+                        help="run without the monitor (a failed agent is then never replaced)")
+    parser.add_argument("--monitors", type=int_flag(lo=1, hi=9), default=2, metavar="N",
+                        help="monitors started (default 2): the first acts, the others stand "
+                             "by and take over when it dies or is paused")
+    parser.add_argument("--no-precompute", action="store_true",
+                        help="the monitors design no failure's gains ahead: each failure waits "
+                             "for its first gain to be designed on request (less CPU at the "
+                             "start and after every switch; slower answers)")
+
+
 def add_drop_argument(parser) -> None:
     """``--drop P`` of a live run: estimates lost on a link, drawn from the run seed."""
     parser.add_argument("--drop", type=float, default=0.0,

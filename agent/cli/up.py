@@ -33,11 +33,7 @@ def add_arguments(parser) -> None:
     c.add_deadline_argument(parser, "; 30000 with --check-simulator, so that nothing is dropped")
     c.add_start_timeout_argument(parser)
     c.add_quiet_argument(parser)
-    parser.add_argument("--no-monitor", action="store_true",
-                        help="run without the monitor (a failed agent is then never replaced)")
-    parser.add_argument("--monitors", type=c.int_flag(lo=1, hi=9), default=2, metavar="N",
-                        help="monitors started (default 2): the first acts, the others stand "
-                             "by and take over when it dies or is paused")
+    c.add_monitor_arguments(parser)
     c.add_drop_argument(parser)
     c.add_fault_schedule_arguments(parser)
     c.add_hang_timeout_arguments(parser)

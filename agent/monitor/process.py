@@ -150,7 +150,7 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     # the first monitor starts its design processes at once (their imports overlap its
     # listening time and the start handshake); a standby monitor when it first acts
     worker = GainWorker(start=monitor_id == 1,
-                        warm_up=monitor_id == 1 and precompute and prepare_s > 0)
+                        warm_up=monitor_id == 1 and prepare_s > 0)
     gains = GainSource(worker=worker)
     core = MonitorCore(config or MonitorConfig(), scenario, G, delays, gains=gains)
     stats = MessageStats()

@@ -125,6 +125,8 @@ class RunConfig:
     #: monitors started (ids 1..monitors; the smallest live id acts, the others stand by
     #: and take over when it dies or is paused past the link lease)
     monitors: int = 2
+    #: the monitors precompute the gains of the foreseen failures (False: ``--no-precompute``)
+    precompute: bool = True
     hang_timeout: float = TIMING.hang_timeout_s
     hang_timeout_max: float = TIMING.hang_timeout_max_s
     drop: float = 0.0
@@ -223,6 +225,8 @@ class LocalRun:
                           "--hang-timeout-max", str(c.hang_timeout_max), "--step-ms", str(c.step_ms),
                           "--events", str((c.out / "events.jsonl").resolve()),
                           "--control-key", str((c.out / "control.key").resolve())]
+        if not c.precompute:
+            out["monitor"].append("--no-precompute")
         return out
 
     # -- the run -------------------------------------------------------------------------

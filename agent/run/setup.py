@@ -123,6 +123,7 @@ def run_config(args, say, prog="up", design_progress=None):
                      delays=delays, delays_spec=args.delays, steps=args.steps, seed=args.seed,
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
                      monitor=not args.no_monitor, monitors=getattr(args, "monitors", 2),
+                     precompute=not getattr(args, "no_precompute", False),
                      hang_timeout=args.hang_timeout, hang_timeout_max=args.hang_timeout_max,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
                      secure=getattr(args, "secure", False), run_id=run_id, listen=listen,
