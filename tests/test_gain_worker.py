@@ -121,3 +121,45 @@ def test_a_refined_gain_from_the_gains_in_force_is_as_good_as_from_the_reset_gai
     assert warm is not None and warm_info["kind"] == "refined" and warm_info["rho"] < 1
     assert len(warm) == nxt.scenario.N
     assert warm_info["mse"] <= cold_info["mse"] * 1.005, (warm_info, cold_info)
+
+
+_NICENESS_OF_THE_DESIGN_PROCESSES = r"""
+import json, os, sys, time
+from agent.monitor.gain_worker import BACKGROUND_NICE, GainWorker
+from agent.shell.priority import LATENCY_NICE, raise_for_latency
+
+base, now, words = raise_for_latency()
+worker = GainWorker(start=True, base_nice=base)
+deadline = time.monotonic() + 60
+seen = {}
+while time.monotonic() < deadline:
+    # the precompute and background processes set theirs once they have started
+    seen = {p.name: os.getpriority(os.PRIO_PROCESS, p.pid) for p in worker._procs}
+    if seen.get("socmon-gains-background") == base + BACKGROUND_NICE \
+            and seen.get("socmon-gains-precompute") == base:
+        break
+    time.sleep(0.05)
+worker.close()
+print(json.dumps({"base": base, "now": now, "words": words, "seen": seen}))
+"""
+
+
+def test_the_urgent_design_shares_the_monitors_raised_priority_and_the_heavy_ones_do_not():
+    """The monitor's loop asks for LATENCY_NICE (agent.shell.priority); its urgent design
+    process inherits it, the precompute goes back to the niceness the monitor was started
+    with and the background to that + BACKGROUND_NICE (they must not take the agents'
+    CPU). Where raising is not permitted, everything stays at the started niceness."""
+    import json
+    import subprocess
+    import sys
+
+    from agent.monitor.gain_worker import BACKGROUND_NICE
+    from agent.shell.priority import LATENCY_NICE
+
+    out = subprocess.run([sys.executable, "-c", _NICENESS_OF_THE_DESIGN_PROCESSES],
+                         capture_output=True, text=True, timeout=120, check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    base, now = got["base"], got["now"]
+    assert now == (min(base, LATENCY_NICE) if "CAP_SYS_NICE" not in got["words"] else base)
+    assert got["seen"] == {"socmon-gains-urgent": now, "socmon-gains-precompute": base,
+                           "socmon-gains-background": base + BACKGROUND_NICE}
