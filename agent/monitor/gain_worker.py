@@ -14,15 +14,13 @@ waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
   gain within seconds even on a loaded machine, then polishes each of them (a few MSE
   iterations from the fast gain: within 0.5 % of the refined MSE on paper-14-live, where
   the fast gain alone is 1.6-2.4x it and made the error's peak after the switch) (at
-  the niceness the monitor was started with, the agents': niced, it got too little CPU
-  beside two busy loops; the monitor's loop and the urgent process ask for more,
-  :mod:`agent.shell.priority`); it
+  the monitor's priority: niced, it got too little CPU beside two busy loops); it
   pauses at its next design iteration while the urgent one designs a first gain (when both shared one process, a request waited for the
   precompute design in progress: 1.6 s from verdict to roles beside two busy loops);
 - the *background* one refines the precomputed ones (the gain of least steady MSE, seconds each), and
   computes the exact steady MSE of a fast gain put in force (:meth:`GainWorker.assess`:
   the fast design does not compute it, a Lyapunov solve of seconds); a newer
-  configuration supersedes the list it works on. It runs at a lower priority (nice +10), so
+  configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
   that on a loaded machine the monitor's loop, the agents and the urgent designs go first
   (at nice 10 beside two busy loops it got too little CPU to finish even the fast pass
   in the first 3 s of a run).
@@ -38,10 +36,9 @@ monitor's zenoh session and its threads are not forked) and import only ``design
 from __future__ import annotations
 
 import multiprocessing
+import os
 import queue
 import sys
-
-from agent.shell.priority import niceness, set_niceness
 
 __all__ = ["GainWorker", "BACKGROUND_NICE", "keep_freed_memory",
            "precompute_single_failures", "refined_gains_from", "unforeseen_single_failures"]
@@ -55,13 +52,9 @@ PAIRS_UP_TO = 4
 class GainWorker:
     """Two design processes and their queues; :meth:`close` ends them."""
 
-    def __init__(self, start: bool = False, warm_up: bool = False, base_nice: int | None = None):
+    def __init__(self, start: bool = False, warm_up: bool = False):
         self._ctx = multiprocessing.get_context("spawn")
         self._warm = bool(warm_up)       # the urgent process warms up first (_warm_up)
-        # the urgent process keeps the niceness it inherits (the monitor's, raised by
-        # agent.shell.priority); the precompute goes back to base_nice (the agents'), the
-        # background to base_nice + BACKGROUND_NICE
-        self._base_nice = base_nice
         self._procs: list = []           # started now, or at the first request (a standby
         self._generation = 0             # monitor that never acts never starts them)
         if start:
@@ -80,11 +73,9 @@ class GainWorker:
             ctx.Process(target=_serve_urgent, args=(self._urgent, self._results, idle,
                                                     self._warm),
                         name="socmon-gains-urgent", daemon=True),
-            ctx.Process(target=_serve_precompute, args=(self._fast, self._results, idle,
-                                                        self._base_nice),
+            ctx.Process(target=_serve_precompute, args=(self._fast, self._results, idle),
                         name="socmon-gains-precompute", daemon=True),
-            ctx.Process(target=_serve_background, args=(self._background, self._results,
-                                                        self._base_nice),
+            ctx.Process(target=_serve_background, args=(self._background, self._results),
                         name="socmon-gains-background", daemon=True),
         ]
         for p in self._procs:
@@ -236,7 +227,7 @@ def _serve_urgent(requests, results, idle, warm_up: bool = False) -> None:
                 idle.set()
 
 
-def _serve_precompute(requests, results, idle, base_nice=None) -> None:
+def _serve_precompute(requests, results, idle) -> None:
     """At the monitor's priority, pausing at every design iteration while the urgent
     process designs a first gain (``idle`` clear): the fast gains of the single failures
     of the newest precompute first (so that the next failure is foreseen within a second
@@ -254,8 +245,6 @@ def _serve_precompute(requests, results, idle, base_nice=None) -> None:
 
     _quiet_signals()
     keep_freed_memory()
-    if base_nice is not None:
-        set_niceness(base_nice)
     refine, fast = deque(), deque()    # configurations still to design
     first = {}                         # key -> the fast gain its polish starts from
     arrived = deque()                  # requests read while a refinement was in progress
@@ -472,10 +461,13 @@ class _Sink:
         self.results.put((roster, G, info or {}))
 
 
-def _serve_background(requests, results, base_nice=None) -> None:
+def _serve_background(requests, results) -> None:
     _quiet_signals()
     keep_freed_memory()
-    set_niceness((niceness() if base_nice is None else base_nice) + BACKGROUND_NICE)
+    try:
+        os.nice(BACKGROUND_NICE)
+    except OSError:
+        pass
     pending = None
     while True:
         item = pending if pending is not None else requests.get()

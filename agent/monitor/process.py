@@ -46,7 +46,6 @@ from agent.protocol.control_auth import SignatureError
 from agent.protocol.timing import DEFAULT as TIMING
 from agent.monitor.gain_worker import GainWorker
 from agent.shell.memory import TRIM_S, heap_trimmer
-from agent.shell.priority import raise_for_latency
 from agent.monitor.core import (
     ROSTER_S,
     TICK_S,
@@ -148,13 +147,10 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
     if isinstance(stop, _Stop):
         signal.signal(signal.SIGTERM, stop)
         signal.signal(signal.SIGINT, stop)
-    # before the transport's threads and the design processes, which inherit it
-    base_nice, _, nice_words = raise_for_latency()
-    print(f"monitor {monitor_id}: {nice_words}", file=log, flush=True)
     # the first monitor starts its design processes at once (their imports overlap its
     # listening time and the start handshake); a standby monitor when it first acts
     worker = GainWorker(start=monitor_id == 1,
-                        warm_up=monitor_id == 1 and prepare_s > 0, base_nice=base_nice)
+                        warm_up=monitor_id == 1 and prepare_s > 0)
     gains = GainSource(worker=worker)
     core = MonitorCore(config or MonitorConfig(), scenario, G, delays, gains=gains)
     stats = MessageStats()
