@@ -21,16 +21,22 @@ through the router.
 ``--baseline DIR``: each run is also made with the code of the tree DIR (a checkout of an
 earlier commit), right after this tree's, at the same period: before and after in one
 run, under the same load. ``--monitor``: the runs have the monitor (and its precompute).
+``--scenario NAME``: that scenario instead of ``communities-N`` (``paper-14-live``: the
+hop target's case). ``--raw-rtt``: beside each run, two bare zenoh-python peers ping
+once a step (``scripts/raw_rtt.py``): the raw round trip under the same load, and the
+hop's median over it.
 
 Usage::
 
     python scripts/bench_scale.py [--sizes 4,16,32] [--steps 1000] [--step-ms 10,20,40]
                                   [--transports peer,router] [--baseline DIR] [--monitor]
+                                  [--scenario NAME] [--raw-rtt]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -115,6 +121,42 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
     return summary
 
 
+class RawRoundTrip:
+    """``scripts/raw_rtt.py``'s pong and ping beside a run (``with``): one ping a step
+    period; :attr:`result` once the block ends (median and p99 in ms, or None)."""
+
+    def __init__(self, step_ms: float, out: Path):
+        self.step_ms, self.out, self.result = step_ms, out, None
+
+    def __enter__(self):
+        from broker_free_net.ports import listen_port
+
+        endpoint = f"tcp/127.0.0.1:{listen_port()}"
+        script = str(ROOT / "scripts" / "raw_rtt.py")
+        self.procs = [subprocess.Popen([sys.executable, script, "pong", "--listen", endpoint],
+                                       start_new_session=True)]
+        self.procs.append(subprocess.Popen(
+            [sys.executable, script, "ping", "--connect", endpoint, "--period-ms",
+             str(self.step_ms), "--out", str(self.out)], start_new_session=True))
+        return self
+
+    def __exit__(self, *exc):
+        for p in reversed(self.procs):          # the ping first: it writes its figures
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        try:
+            self.result = json.loads(self.out.read_text())
+        except (OSError, ValueError):
+            self.result = None
+        return False
+
+
 def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
     span = steps * step_ms / 1000.0
     hops = [h for h in summary.get("hop_ms", {}).values() if h]
@@ -148,6 +190,10 @@ def _received_per_step(summary: dict, steps: int):
     got = [sum(e.get("received", {}).values())
            for e in summary.get("estimates_from", {}).values()]
     return statistics.mean(got) / max(1, steps) if got else None
+
+
+def _ratio(a, b) -> str:
+    return f"{a / b:.2f}x" if a is not None and b else "-"
 
 
 def fmt(value, spec):
@@ -207,6 +253,11 @@ def main(argv=None) -> int:
                         help="also run each case with the code of this tree (before/after)")
     parser.add_argument("--monitor", action="store_true",
                         help="run the monitor too (default: no monitor)")
+    parser.add_argument("--scenario", metavar="NAME",
+                        help="this scenario instead of communities-N for each of --sizes")
+    parser.add_argument("--raw-rtt", action="store_true",
+                        help="measure the raw zenoh round trip beside each run "
+                             "(scripts/raw_rtt.py)")
     parser.add_argument("--table", metavar="FILE",
                         help="only print the table of a --json FILE written before")
     args = parser.parse_args(argv)
@@ -215,6 +266,10 @@ def main(argv=None) -> int:
         print_table(results, sorted({x["step_ms"] for r in results for x in r["runs"]}))
         return 0
     sizes = [int(x) for x in args.sizes.split(",")]
+    if args.scenario:
+        from design.scenario import load_scenario
+
+        sizes = [load_scenario(args.scenario).N]
     periods = sorted(float(x) for x in args.step_ms.split(","))
     transports = args.transports.split(",")
     trees = [("this", ROOT)]
@@ -228,7 +283,7 @@ def main(argv=None) -> int:
           flush=True)
     results = []
     for N in sizes:
-        scenario = scenario_for(N, tmp)
+        scenario = args.scenario or scenario_for(N, tmp)
         gains = tmp / f"gains-{N}.npz"
         t = time.monotonic()
         proc = socmon("design", scenario, "--target", "0.97", "--out", str(gains), "--json",
@@ -246,14 +301,20 @@ def main(argv=None) -> int:
             for step_ms in periods:
                 out = tmp / f"run-{N}-{transport}-{tree}-{step_ms:g}"
                 load = os.getloadavg()[0]
+                probe = (RawRoundTrip(step_ms, tmp / f"{out.name}-raw-rtt.json") if args.raw_rtt
+                         else contextlib.nullcontext())
                 try:
-                    row = describe(run_up(scenario, gains, args.steps, step_ms, out, router,
-                                          root, args.monitor),
-                                   N, args.steps, step_ms)
+                    with probe:
+                        summary = run_up(scenario, gains, args.steps, step_ms, out, router,
+                                         root, args.monitor)
+                    row = describe(summary, N, args.steps, step_ms)
                 except RuntimeError as exc:
                     print(f"  {transport:6} {step_ms:4g} ms: failed: {exc}", flush=True)
                     continue
                 row["load_average"] = load
+                raw = probe.result if args.raw_rtt else None
+                row["raw_rtt_median_ms"] = raw and raw.get("median_ms")
+                row["raw_rtt_p99_ms"] = raw and raw.get("p99_ms")
                 tried.append(row)
                 print(f"  {transport:6} {tree:8} {step_ms:4g} ms: sustained "
                       f"{'yes' if row['sustained'] else 'no '}  missed {row['drops']} "
@@ -264,7 +325,11 @@ def main(argv=None) -> int:
                       f"({fmt(row['cpu_percent_per_agent'], '.0f')} %)  router "
                       f"{fmt(row['router_cpu_percent'], '.0f')} %  wall {row['wall_s']:.0f} s"
                       f"  received {fmt(row['received_per_step'], '.1f')}/step"
-                      f"  load {load:.1f}",
+                      f"  load {load:.1f}" + (
+                          f"  raw zenoh RTT {fmt(row['raw_rtt_median_ms'], '.2f')} / "
+                          f"{fmt(row['raw_rtt_p99_ms'], '.1f')} ms, hop median / RTT median "
+                          f"{_ratio(row['hop_median_ms'], row['raw_rtt_median_ms'])}"
+                          if args.raw_rtt else ""),
                       flush=True)
                 if row["sustained"]:
                     break
