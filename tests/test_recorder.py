@@ -272,3 +272,25 @@ def test_a_status_with_an_epoch_far_above_any_seen_is_not_recorded():
     r.feed(k.status_key("demo", 1), w.encode_status({**status,
                                                      "epoch": TIMING.epoch_jump_max}))
     assert r.recording.status[1]["epoch"] == TIMING.epoch_jump_max
+
+
+def test_up_no_precompute_reaches_every_monitor(tmp_path):
+    """``up --no-precompute`` (RunConfig.precompute False) is passed to the monitor's
+    command line, which the standby monitors' lines are built from; by default it is not."""
+    import types
+
+    from agent.run.local import LocalRun
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    ep = [f"tcp/127.0.0.1:{7000 + i}" for i in range(len(s.measure) + 8)]
+    rec = types.SimpleNamespace(run_id="r1")
+    lines = {}
+    for precompute in (True, False):
+        config = RunConfig(scenario=s, scenario_arg="paper-14-live", G=None,
+                           gains_path=tmp_path / "g.npz", delays=s.delays, delays_spec="scenario",
+                           steps=10, seed=0, step_ms=20.0, deadline_ms=20.0, out=tmp_path,
+                           precompute=precompute)
+        lines[precompute] = LocalRun(config)._argv(rec, ep)["monitor"]
+    assert "--no-precompute" in lines[False] and "--no-precompute" not in lines[True]
+    assert lines[False][:len(lines[True])] == lines[True]
