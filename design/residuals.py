@@ -461,12 +461,15 @@ def _warmup(loop, M, P, blocks, window) -> int:
     # rows times M per step, not the order-cubed power M^t (the urgent design of an
     # unforeseen failure waited for this)
     # (M is a delayed loop's augmented state: a few per cent of it is not zero)
+    blocks = [(Wh, C) for Wh, C in blocks if Wh.shape[0]]     # a block of no rows: norm 0
+    if not blocks:
+        return start + window
     Z = np.vstack([Wh @ C for Wh, C in blocks])
     Mt = sp.csr_matrix(M.T)
     cuts = np.cumsum([0] + [Wh.shape[0] for Wh, _C in blocks])
     for t in range(WARMUP_MAX_STEPS):
-        gram = Z @ Z.T          # ||Z_b||_2^2: the largest eigenvalue of its diagonal block
-        norms.append(math.sqrt(max(max(float(np.linalg.eigvalsh(gram[a:b, a:b])[-1]), 0.0)
+        # ||Z_b||_2^2 is the largest eigenvalue of Z_b Z_b^T (a few rows square)
+        norms.append(math.sqrt(max(max(float(np.linalg.eigvalsh(Z[a:b] @ Z[a:b].T)[-1]), 0.0)
                                    for a, b in zip(cuts, cuts[1:]))))
         if t + 1 >= window:
             worst = sum(norms[t + 1 - window:t + 1])

@@ -21,10 +21,11 @@ through the router.
 ``--baseline DIR``: each run is also made with the code of the tree DIR (a checkout of an
 earlier commit), right after this tree's, at the same period: before and after in one
 run, under the same load. ``--monitor``: the runs have the monitor (and its precompute).
-``--scenario NAME``: that scenario instead of ``communities-N`` (``paper-14-live``: the
-hop target's case). ``--raw-rtt``: beside each run, two bare zenoh-python peers ping
-once a step (``scripts/raw_rtt.py``): the raw round trip under the same load, and the
-hop's median over it.
+``--scenario NAME``: that scenario instead of ``communities-N`` (``--sizes`` is then its
+agent count; ``paper-14-live``: the hop target's case). ``--raw-rtt``: beside each run,
+two bare zenoh-python peers ping once a step (``scripts/raw_rtt.py``): the raw round trip
+over the run's steps (from the world's clock start, as the hop), and the hop's median
+over it.
 
 Usage::
 
@@ -92,7 +93,7 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
                              *(["--router"] if router else [])], cwd=root, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
-    at_start = {}
+    at_start, clock_start = {}, None
     try:
         deadline = time.monotonic() + 900
         world_log = out / "logs" / "world.log"
@@ -105,9 +106,14 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
             if started:
                 at_start = {name: _cpu_s(p["pid"]) for name, p in pids.items()
                             if name.startswith("agent-") or name == "router"}
+                clock_start = time.time()
                 break
             time.sleep(0.05)
         stdout, stderr = proc.communicate(timeout=900 + steps * step_ms / 1000 * 5)
+        # the steps: from the world's clock start to the run's last step (its span at the
+        # period; what follows is the run folder being written)
+        steps_window = (None if clock_start is None
+                        else (clock_start, min(time.time(), clock_start + steps * step_ms / 1e3)))
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -118,6 +124,7 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
         raise RuntimeError(f"up exited with {proc.returncode} and no summary: "
                            f"{' '.join(stderr.split())[-400:]}") from None
     summary["cpu_at_clock_start"] = at_start
+    summary["steps_window"] = steps_window
     return summary
 
 
@@ -135,10 +142,26 @@ class RawRoundTrip:
         script = str(ROOT / "scripts" / "raw_rtt.py")
         self.procs = [subprocess.Popen([sys.executable, script, "pong", "--listen", endpoint],
                                        start_new_session=True)]
-        self.procs.append(subprocess.Popen(
-            [sys.executable, script, "ping", "--connect", endpoint, "--period-ms",
-             str(self.step_ms), "--out", str(self.out)], start_new_session=True))
+        try:
+            self.procs.append(subprocess.Popen(
+                [sys.executable, script, "ping", "--connect", endpoint, "--period-ms",
+                 str(self.step_ms), "--out", str(self.out)], start_new_session=True))
+        except OSError:
+            self.__exit__(None, None, None)
+            raise
         return self
+
+    def over(self, window):
+        """Median and p99 (ms) of the round trips sent within ``window`` (wall-clock
+        ``(start, end)``: the run's steps), and how many; None without any."""
+        if not self.result or window is None:
+            return None
+        rtts = sorted(r for t, r in self.result.get("samples", []) if window[0] <= t <= window[1])
+        if not rtts:
+            return None
+        return {"median_ms": 1e3 * statistics.median(rtts),
+                "p99_ms": 1e3 * rtts[int(0.99 * (len(rtts) - 1))], "n": len(rtts),
+                "lost": self.result.get("lost")}
 
     def __exit__(self, *exc):
         for p in reversed(self.procs):          # the ping first: it writes its figures
@@ -312,7 +335,7 @@ def main(argv=None) -> int:
                     print(f"  {transport:6} {step_ms:4g} ms: failed: {exc}", flush=True)
                     continue
                 row["load_average"] = load
-                raw = probe.result if args.raw_rtt else None
+                raw = probe.over(summary.get("steps_window")) if args.raw_rtt else None
                 row["raw_rtt_median_ms"] = raw and raw.get("median_ms")
                 row["raw_rtt_p99_ms"] = raw and raw.get("p99_ms")
                 tried.append(row)

@@ -52,46 +52,59 @@ def pong(listen: str) -> int:
 
 
 def ping(connect: str, period_ms: float, out: str, count: int | None = None,
-         start_timeout: float = 30.0) -> int:
+         start_timeout: float = 30.0, timeout: float = 5.0) -> int:
+    """Ping once a period until SIGTERM or ``count``; write ``out`` (JSON: the summary and
+    every round trip as ``[wall-clock time sent, seconds]``) whatever ends it, a ping
+    without its pong within ``timeout`` counted ``lost``."""
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     got = {}
-    answered = threading.Event()
+    arrived = threading.Condition()
 
     def on_pong(sample):
-        got[struct.unpack("<q", sample.payload.to_bytes())[0]] = time.perf_counter()
-        answered.set()
+        with arrived:
+            got[struct.unpack("<q", sample.payload.to_bytes())[0]] = time.perf_counter()
+            arrived.notify_all()
 
-    rtts, lost = [], 0
-    with _session(connect=connect) as s:
-        pub = s.declare_publisher(PING)
-        s.declare_subscriber(PONG, on_pong)
-        deadline = time.monotonic() + start_timeout        # the pong's first answer
-        while not got and time.monotonic() < deadline and not stop.is_set():
-            pub.put(struct.pack("<q", -1))
-            answered.wait(0.1)
-        if not got:
-            print("raw_rtt: no pong answered", file=sys.stderr)
-            return 1
-        period = period_ms / 1000.0
-        seq, next_at = 0, time.perf_counter()
-        while not stop.is_set() and (count is None or seq < count):
-            answered.clear()
-            t0 = time.perf_counter()
-            pub.put(struct.pack("<q", seq))
-            if answered.wait(1.0) and seq in got:
-                rtts.append(got.pop(seq) - t0)
-            else:
-                lost += 1
-            seq += 1
-            next_at += period
-            stop.wait(max(0.0, next_at - time.perf_counter()))
-    summary = {"n": len(rtts), "lost": lost, "period_ms": period_ms,
-               "median_ms": 1e3 * statistics.median(rtts) if rtts else None,
-               "p99_ms": (1e3 * sorted(rtts)[int(0.99 * (len(rtts) - 1))] if rtts else None)}
-    with open(out, "w") as f:
-        json.dump(summary, f)
-    return 0
+    samples, lost, answered = [], 0, False
+    try:
+        with _session(connect=connect) as s:
+            pub = s.declare_publisher(PING)
+            s.declare_subscriber(PONG, on_pong)
+            deadline = time.monotonic() + start_timeout        # the pong's first answer
+            while not stop.is_set() and time.monotonic() < deadline:
+                pub.put(struct.pack("<q", -1))
+                with arrived:
+                    if arrived.wait_for(lambda: -1 in got, timeout=0.1):
+                        answered = True
+                        break
+            if not answered:
+                print("raw_rtt: no pong answered" if not stop.is_set() else
+                      "raw_rtt: stopped before the pong answered", file=sys.stderr)
+            period, seq = period_ms / 1000.0, 0
+            next_at = time.perf_counter()
+            while answered and not stop.is_set() and (count is None or seq < count):
+                wall, t0 = time.time(), time.perf_counter()
+                pub.put(struct.pack("<q", seq))
+                with arrived:
+                    if arrived.wait_for(lambda: seq in got or stop.is_set(), timeout=timeout) \
+                            and seq in got:
+                        samples.append([wall, got.pop(seq) - t0])
+                    elif not stop.is_set():
+                        lost += 1
+                    got.clear()                    # a pong later than its deadline: gone
+                seq += 1
+                next_at = max(next_at + period, time.perf_counter())   # no burst after a stall
+                stop.wait(max(0.0, next_at - time.perf_counter()))
+    finally:
+        rtts = sorted(r for _, r in samples)
+        summary = {"n": len(rtts), "lost": lost, "period_ms": period_ms,
+                   "median_ms": 1e3 * statistics.median(rtts) if rtts else None,
+                   "p99_ms": 1e3 * rtts[int(0.99 * (len(rtts) - 1))] if rtts else None,
+                   "samples": samples}
+        with open(out, "w") as f:
+            json.dump(summary, f)
+    return 0 if answered else 1
 
 
 def main(argv=None) -> int:

@@ -274,14 +274,21 @@ def test_a_status_with_an_epoch_far_above_any_seen_is_not_recorded():
     assert r.recording.status[1]["epoch"] == TIMING.epoch_jump_max
 
 
-def test_up_no_precompute_reaches_every_monitor(tmp_path):
-    """``up --no-precompute`` (RunConfig.precompute False) is passed to the monitor's
-    command line, which the standby monitors' lines are built from; by default it is not."""
+def test_up_no_precompute_reaches_every_monitor(tmp_path, live_gains):
+    """``up --no-precompute`` makes RunConfig.precompute False, which puts the flag on the
+    first monitor's command line and on the standby monitors' built from it; by default
+    it is on none."""
     import types
 
-    from agent.run.local import LocalRun
+    from agent.cli.main import build_parser
+    from agent.run.local import LocalRun, _standby_monitor
+    from agent.run.setup import run_config
     from design.scenario import load_scenario
 
+    for flags, want in (([], True), (["--no-precompute"], False)):
+        args = build_parser().parse_args(["up", "paper-14-live", "--gains", str(live_gains),
+                                          "--out", str(tmp_path / f"run-{want}"), *flags])
+        assert run_config(args, lambda text: None).precompute is want
     s = load_scenario("paper-14-live")
     ep = [f"tcp/127.0.0.1:{7000 + i}" for i in range(len(s.measure) + 8)]
     rec = types.SimpleNamespace(run_id="r1")
@@ -294,3 +301,5 @@ def test_up_no_precompute_reaches_every_monitor(tmp_path):
         lines[precompute] = LocalRun(config)._argv(rec, ep)["monitor"]
     assert "--no-precompute" in lines[False] and "--no-precompute" not in lines[True]
     assert lines[False][:len(lines[True])] == lines[True]
+    standby = {p: _standby_monitor(lines[p], 2, "tcp/127.0.0.1:7999") for p in lines}
+    assert "--no-precompute" in standby[False] and "--no-precompute" not in standby[True]

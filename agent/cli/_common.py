@@ -400,13 +400,15 @@ def load_signer(path, flag: str = "--control-key"):
             from None
 
 
-def operator_signer(args, info, warn):
+def operator_signer(args, warn):
     """The signer of ``socmon inject``'s change: ``--operator-key`` (or its deprecated name,
-    ``warn(text)`` saying so), else the operator key of the ``--attach``-ed run ``info``,
-    else None (the change goes unsigned)."""
+    ``warn(text)`` saying so), else the operator key of the ``--attach``-ed run, else None
+    (the change goes unsigned). The key flags are checked before ``--attach`` is read
+    (:func:`attach_run`, which fills ``--run`` and the transport from the run)."""
     from agent.run.inject import operator_key_arg
 
     key, flag = operator_key_arg(args.operator_key, args.deprecated_control_key, warn=warn)
+    info = attach_run(args)
     if key is None and info is not None and info.operator_key is not None:
         key, flag = str(info.operator_key), "--attach"
     return load_signer(key, flag) if key else None

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import sys
 
-from agent.cli._common import (add_operator_key_arguments, attach_run, int_flag,
-                               net_config_arg, operator_signer, run_command)
+from agent.cli._common import (add_operator_key_arguments, int_flag, net_config_arg,
+                               operator_signer, run_command)
 
 HELP = "inject a link delay, drop rate or partition into a running deployment"
 
@@ -66,8 +66,8 @@ def run(args) -> int:
         from agent.run.inject import change_from_args, encode_change, inject
 
         change = change_from_args(args)
-        signer = operator_signer(args, attach_run(args), warn=lambda text: print(
-            f"inject: warning: {text}", file=sys.stderr))
+        signer = operator_signer(args, warn=lambda text: print(f"inject: warning: {text}",
+                                                               file=sys.stderr))
         inject(net_config_arg(args, identity="operator"), change,
                encode_change(change, signer, args.run), args.timeout,
                confirm=not args.no_confirm,

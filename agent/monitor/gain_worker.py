@@ -191,7 +191,10 @@ def _warm_up(design_gains_for) -> None:
     found its failure not precomputed yet under load). Only then: a monitor started again
     in a run in progress joins at once, and its warm-up beside the new precompute made it
     miss a partition 130 steps later (chaos seed 103: 3 runs of 3 with it, 0 of 1
-    without)."""
+    without). With ``--no-precompute`` the monitor joins at once and the warm-up runs at
+    the run's start: a failure in its first second queues behind it, which costs that
+    request the warm-up's one small design (about 25 ms), the imports being what the
+    request would pay cold anyway."""
     try:
         from design.roster import Roster
         from design.scenario import load_scenario

@@ -148,7 +148,8 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
         signal.signal(signal.SIGTERM, stop)
         signal.signal(signal.SIGINT, stop)
     # the first monitor starts its design processes at once (their imports overlap its
-    # listening time and the start handshake); a standby monitor when it first acts
+    # listening time and the start handshake; the urgent one warms up, gain_worker._warm_up,
+    # with or without the precompute); a standby monitor when it first acts
     worker = GainWorker(start=monitor_id == 1,
                         warm_up=monitor_id == 1 and prepare_s > 0)
     gains = GainSource(worker=worker)
