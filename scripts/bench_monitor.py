@@ -407,6 +407,8 @@ def main():
         return recovery_table(args, tmp)
     if args.false_positives:
         return false_positives(args, tmp)
+    if args.no_precompute and not args.per_failure:
+        ap.error("--no-precompute: only with --per-failure")
     if args.per_failure:
         per_failure(tmp, taus, args.kill_step, args.steps, args.busy, args.no_precompute)
         return

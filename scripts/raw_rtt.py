@@ -118,9 +118,15 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True)
     p.add_argument("--count", type=int, default=None)
     args = ap.parse_args(argv)
-    if args.role == "pong":
-        return pong(args.listen)
-    return ping(args.connect, args.period_ms, args.out, args.count)
+    import zenoh
+
+    try:
+        if args.role == "pong":
+            return pong(args.listen)
+        return ping(args.connect, args.period_ms, args.out, args.count)
+    except zenoh.ZError as exc:          # a bad endpoint, a port taken: named, exit 2
+        print(f"raw_rtt: {args.role}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

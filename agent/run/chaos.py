@@ -42,20 +42,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.run.fault_kinds import WRONG_KINDS
 from agent.run.local import Fault
 # the scheduling slack before a verdict is required lives with the rule it serves
 from agent.run.summary import VERDICT_SLACK_S, conviction_bound_s  # noqa: F401
 
 __all__ = ["CHAOS_KINDS", "DEFAULT_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
 
-#: the fault kinds ``socmon chaos`` draws from (``crash`` is the scripted variant of up)
-#: The kinds a chaos run draws unless told otherwise.
+#: The kinds a chaos run draws unless told otherwise (``crash`` is up's scripted kill).
 DEFAULT_KINDS = ("kill", "stop", "hang", "sensor", "monitor", "partition", "delay", "drop")
 #: Every kind it can draw: the defaults, and agents that keep running but are wrong (the
 #: residual tests' work, docs/residuals.md): ``lie`` (it publishes its estimates a few
 #: noise std-devs off), ``bias`` (its sensor reads a few std-devs off), from their step to
 #: the run's end.
-CHAOS_KINDS = DEFAULT_KINDS + ("lie", "bias")
+CHAOS_KINDS = DEFAULT_KINDS + WRONG_KINDS
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,7 @@ def draw_schedule(scenario, seed: int, duration: int, kinds=DEFAULT_KINDS, rate:
         elif kind == "drop":
             out.append(Fault(k, "drop", agent, float(np.round(rng.uniform(1.0, 2.5), 2)),
                              float(np.round(rng.uniform(0.1, 0.5), 2))))
-        elif kind in ("lie", "bias") and agent not in skewed:
+        elif kind in WRONG_KINDS and agent not in skewed:
             skewed.add(agent)
             out.append(Fault(k, kind, agent, 0.0, float(np.round(rng.uniform(2.0, 8.0), 2))))
     return out
@@ -296,7 +296,7 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
     skewed = []                     # [start, end) of the steps judged by no bound
     ends = [at for at, _, _ in rec.rosters[1:]] + [math.inf]
     for f in c.faults:
-        if f.kind in ("lie", "bias"):
+        if f.kind in WRONG_KINDS:
             skewed += [(max(at, f.step), end + bounds.settle_steps)
                        for (at, ids, _), end in zip(rec.rosters, ends)
                        if f.agent in ids and end > f.step]
@@ -464,7 +464,7 @@ def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:
     last = steps[-1] if len(steps) else 0
     for f in schedule:
         y = f.agent if f.agent else 0
-        if f.kind in ("lie", "bias"):          # from its step to the run's end
+        if f.kind in WRONG_KINDS:             # from its step to the run's end
             width = max(1.0, last - f.step)
         else:
             width = max(1.0, f.seconds * 1000.0 / summary["step_ms"]) if f.seconds else 3

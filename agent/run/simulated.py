@@ -77,6 +77,7 @@ from agent.monitor.core import (
     RosterUpdate,
 )
 from agent.protocol.timing import DEFAULT as TIMING
+from agent.run.fault_kinds import SCRIPTED_FAULTS, WRONG_KINDS
 
 __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS", "run_schedules",
            "report_lines"]
@@ -86,7 +87,7 @@ FAULT_KINDS = ("crash", "kill", "hang", "stop", "sensor", "partition", "delay", 
                "slow", "monitor", "monitorstop", "monitorsgone", "lie", "bias")
 #: The kinds scripted into an agent at its start (as ``up`` passes them on the command
 #: line): its process carries them out at their step.
-SCRIPTED = ("crash", "lie", "bias")
+SCRIPTED = tuple(k for k in SCRIPTED_FAULTS if k in FAULT_KINDS)
 #: The kinds that act on the monitors (the acting one, or all for ``monitorsgone``).
 MONITOR_FAULTS = ("monitor", "monitorstop", "monitorsgone")
 
@@ -330,7 +331,7 @@ class SimRuntime:
         deadline = c.step_s if c.deadline_s is None else c.deadline_s
         # agents that lie or whose sensor is biased run the residual tests, all of them
         # (the initial configuration's from its start, the later ones' as assigned)
-        skewed = [f for f in self.faults if f.kind in ("lie", "bias")]
+        skewed = [f for f in self.faults if f.kind in WRONG_KINDS]
         self.agents = {a: AgentCore(_agent_config(scenario, a, self.G, self.seed, self.delays,
                                                   deadline, skewed))
                        for a in range(1, self.M + 1)}
@@ -801,7 +802,8 @@ def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
     :func:`agent.run.chaos.check_invariants`. Returns the report (``report_lines`` prints it):
     runs and CPU seconds, faults by kind, verdicts by cause, detection steps after stop,
     hang, kill and lie faults and switch steps after the verdicts (median, min, max), the
-    residual alerts by what they name, and every violation with its seed. ``progress(seed, violations)`` is called after each run."""
+    residual alerts by what they name, and every violation with its seed.
+    ``progress(seed, violations)`` is called after each run."""
     import time
     from collections import Counter
 
@@ -833,7 +835,7 @@ def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
                 switch.append(f["activate_at"] - f["detected_step"])
         for alert in result.summary.get("residual_alerts", []):
             on = {g.kind for g in schedule if g.agent == alert["agent"]
-                  and g.step <= alert["step"] and g.kind in ("lie", "bias")}
+                  and g.step <= alert["step"] and g.kind in WRONG_KINDS}
             alerts[f"{alert['fault']} on an agent that "
                    + ("lies" if "lie" in on else "is biased" if on else "does neither")] += 1
         if progress is not None:
