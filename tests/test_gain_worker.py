@@ -1,6 +1,7 @@
 """agent.monitor.gain_worker: the design processes answer requests and precompute every single
 failure of the configuration in force (real spawned processes, no network)."""
 
+import queue
 import time
 
 import pytest
@@ -67,9 +68,17 @@ def test_a_newer_precompute_goes_before_a_refinement_and_starts_from_the_gains_i
     """A refinement (seconds at T = 7) asked just before the precompute of a new
     configuration gives way to it: every single failure's fast gain comes back before the
     refined gain, each designed from the gains in force (carried: below the fast design's
-    target already, so no iteration was needed)."""
+    target already, so no iteration was needed).
+
+    The precompute process alone, fed what :meth:`GainWorker.request` and
+    :meth:`GainWorker.precompute` send it: beside it, the background process refines the
+    same single failures, and under load its refined gain of the first one came back
+    before the precompute's last fast gain (CI, stop 39)."""
+    import multiprocessing
+
     import numpy as np
 
+    from agent.monitor.gain_worker import _serve_precompute
     from design.closed_loop import closed_loop_for
     from design.gain_design import design_gains
     from design.reconfigure import FAST_TARGET
@@ -80,17 +89,32 @@ def test_a_newer_precompute_goes_before_a_refinement_and_starts_from_the_gains_i
     G = design_gains(s, delays=roster.delays, starts=1, max_iter=30).G
     _, in_force = replan(roster, [3])
     singles = [GainSource.key(nxt) for a, nxt in plan_failures(roster) if len(a) == 1]
-    worker = GainWorker(start=True)
+    ctx = multiprocessing.get_context("spawn")
+    requests, results, idle = ctx.Queue(), ctx.Queue(), ctx.Event()
+    idle.set()
+    proc = ctx.Process(target=_serve_precompute, args=(requests, results, idle), daemon=True)
+    proc.start()
+    got = []
+    refined = lambda: [i for r, _, i in got if i.get("kind") == "refined"]  # noqa: E731
     try:
-        worker.request(in_force, kinds=("refined",))
-        worker.precompute(roster, G)
-        refined = lambda got: [i for r, _, i in got if i.get("kind") == "refined"]  # noqa
-        got = _collect(worker, lambda g: refined(g), deadline_s=600.0)
+        requests.put(("refine", in_force))
+        requests.put(("precompute", roster, [list(g) for g in G]))
+        deadline = time.monotonic() + 600.0
+        while not refined() and time.monotonic() < deadline and proc.is_alive():
+            try:
+                got.append(results.get(timeout=0.5))
+            except queue.Empty:
+                pass
     finally:
-        worker.close()
-    assert refined(got), "no refined gain within 600 s"
+        requests.put(None)
+        proc.join(timeout=10.0)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(timeout=5.0)
+    assert refined(), "no refined gain within 600 s"
     order = [GainSource.key(r) for r, _, i in got]
     first_refined = next(k for k, (_, _, i) in enumerate(got) if i.get("kind") == "refined")
+    assert GainSource.key(got[first_refined][0]) == GainSource.key(in_force)
     assert set(singles) <= set(order[:first_refined]), [i for _, _, i in got]
     kept = 0
     for r, Gr, info in got[:first_refined]:
