@@ -128,6 +128,28 @@ def test_a_run_across_namespaces_equals_the_simulator(tmp_path, live_gains, pref
 @pytest.mark.multiprocess
 @pytest.mark.netns
 @pytest.mark.slow
+def test_a_routed_run_across_namespaces_recovers_a_crash(tmp_path, live_gains, prefix):
+    """``--router --netns``: the zenoh router on a host of its own, every other process its
+    client from its own host; agent 2 killed, the standby takes its role, and the
+    estimates equal design.simulate's with the recovery."""
+    s = _up(tmp_path, live_gains, prefix, "--router", "--kill", "100:2", "--check-simulator",
+            steps=300)
+    assert s["max_rel_diff_vs_simulator"] <= 1e-9 and s["malformed"] == 0
+    (f,) = s["failures"]
+    assert f["agent"] == 2 and f["replacement"]["agent"] == 4 and s["recovered"], f
+    procs = json.loads((tmp_path / "run" / "run.json").read_text())["processes"]
+    assert procs["router"]["endpoint"].startswith("tcp/10.200.0.8:")   # after the monitor's
+    hosts = {name: p["netns"] for name, p in procs.items()}
+    assert hosts["router"] == f"{prefix}-rtr"
+    # a host each but the standby monitor's (the monitor's) and the recorder's (up's own,
+    # not a child)
+    assert len(set(hosts.values())) == len(netns.host_names(4, router=True)) - 1
+    assert all("endpoint" not in p for name, p in procs.items() if name != "router")
+
+
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.slow
 def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, live_gains,
                                                                     prefix):
     """Agent 2's link is down for 2 s: the monitor convicts it while it is cut off (its

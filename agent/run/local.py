@@ -245,10 +245,9 @@ class LocalRun:
                                              c.scenario.measurement_noise))
         rec = recorder.recording
         scheme = "tls" if c.secure else "tcp"
+        # ep[M + 3]: the router's (a routed run's), on its own host with --netns
         ep = [f"{scheme}/{self._host_ip(name)}:{p}"
-              for name, p in zip(host_names(M), rec.ports)]
-        if c.router:                   # the router listens on loopback (not with --netns)
-            ep.append(f"{scheme}/127.0.0.1:{rec.ports[M + 3]}")
+              for name, p in zip(host_names(M, c.router), rec.ports)]
         # standby monitors: on the monitor's host, after the router's endpoint
         standby_ep = [f"{scheme}/{self._host_ip('monitor')}:{p}"
                       for p in rec.ports[M + 3 + c.router:]]
@@ -291,7 +290,8 @@ class LocalRun:
         live = None
         try:
             if c.router:        # up before its clients, which try it for 10 s only
-                children.start("router", ["router", "--listen", router_ep])
+                children.start("router", ["router", "--listen", router_ep],
+                               self._wrap("router"))
                 _wait_listening(children, "router", c.start_timeout)
             with topics.open_peer(NetConfig(run=rec.run_id, lease_ms=RECORDER_LEASE_MS,
                                             zenoh_config=str(mesh_config),
@@ -560,7 +560,7 @@ class LocalRun:
         from agent.run.folder import write_run_json
 
         c = self.config
-        names = host_names(c.M) + (["router"] if c.router else [])
+        names = host_names(c.M, c.router)
         procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)
                  if not c.router or name == "router"}     # clients do not listen
         for name, child in rec.children.children.items():

@@ -65,9 +65,6 @@ def run_config(args, say, prog="up", design_progress=None):
     timing_arg(step_s=step_ms / 1000.0, lead_steps=MonitorConfig.lead_steps,
                hang_timeout_s=args.hang_timeout, hang_timeout_max_s=args.hang_timeout_max,
                start_timeout_s=args.start_timeout)
-    if getattr(args, "router", False) and getattr(args, "netns", False):
-        raise InputError("--router: not with --netns (the router would need a host of its "
-                           "own on the testbed)")
     if getattr(args, "router", False) and getattr(args, "secure", False):
         raise InputError("--router: not with --secure (the access control of a secured run "
                            "names the process at the other end of each link, which a router "
@@ -172,7 +169,7 @@ def testbed_for(args, config, say):
     why = unavailable_reason()
     if why is not None:
         raise InputError(f"--netns: {why}", status=1)
-    testbed = Testbed(host_names(config.M), prefix=args.netns_prefix)
+    testbed = Testbed(host_names(config.M, router=config.router), prefix=args.netns_prefix)
 
     def on_term(*_):                  # SIGTERM outside the run itself: still clean up
         raise KeyboardInterrupt

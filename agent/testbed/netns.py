@@ -75,10 +75,16 @@ def _run(*argv: str) -> None:
                            f"{(done.stderr or done.stdout).strip() or done.returncode}")
 
 
-def host_names(M: int) -> list:
+def host_names(M: int, router: bool = False) -> list:
     """The processes of a run with ``M`` agents (standbys included), one host each, in
-    endpoint order: recorder, world, agents, monitor."""
-    return ["recorder", "world", *(f"agent-{a}" for a in range(1, M + 1)), "monitor"]
+    endpoint order: recorder, world, agents, monitor, and the zenoh router of a routed run
+    (``router``) on a host of its own, as it would be on real machines.
+
+    >>> host_names(1, router=True)
+    ['recorder', 'world', 'agent-1', 'monitor', 'router']
+    """
+    return (["recorder", "world", *(f"agent-{a}" for a in range(1, M + 1)), "monitor"]
+            + (["router"] if router else []))
 
 
 def host_of(process: str) -> str:
@@ -105,7 +111,8 @@ def default_prefix() -> str:
 
 def _short(host: str) -> str:
     """The host's part of its names (bridge port names have at most 15 characters)."""
-    return host.replace("agent-", "a").replace("recorder", "rec").replace("monitor", "mon")
+    return host.replace("agent-", "a").replace("recorder", "rec").replace("monitor", "mon").replace(
+        "router", "rtr")
 
 
 def list_namespaces() -> list:
