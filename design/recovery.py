@@ -385,8 +385,11 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
     add_links : bool
         Add the fewest links restoring strong connectivity when needed (default True).
     numerical : bool
-        Also build the new Scenario and check (A, H') and (W' (x) A, D_H') numerically:
-        ranks, unobservable modes, detectability (``plan.numerical``).
+        Also check (A, H') and (W' (x) A, D_H') numerically: ranks, unobservable modes,
+        detectability (``plan.numerical``; empty without). The new Scenario
+        (``plan.scenario_after``) is built either way. The distributed check is a
+        staircase of order nN: 1.2-2.8 s at communities-32, where the structural plan takes
+        milliseconds.
 
     Raises
     ------
@@ -395,8 +398,6 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
     """
     failed = _check_failed(scenario, failed)
     plan = _plan(_Context(scenario), failed, add_links)
-    if not numerical:
-        return plan
     num, new = {}, None
     if plan.agent_ids and plan.network_strongly_connected_after:
         new = scenario.replace(
@@ -406,6 +407,9 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
             measure=plan.measure_after,
             standby=scenario.standby - sum(1 for a in plan.agent_ids if a > scenario.N),
         )
+    if not numerical:
+        return RecoveryPlan(**{**plan.__dict__, "scenario_after": new})
+    if new is not None:
         central = pair_observability(new.A, new.H_all)
         distributed = distributed_detectability(new.A, new.W, new.measure)
         num = {

@@ -130,8 +130,13 @@ class Roster:
                       self.table, D)
 
 
-def replan(roster: Roster, failed_ids, add_links: bool = True):
+def replan(roster: Roster, failed_ids, add_links: bool = True, numerical: bool = True):
     """Plan the failure of agents ``failed_ids`` (1-based ids) on the roster in force.
+
+    ``numerical``: also check the next configuration's observability and distributed
+    detectability numerically (``plan.numerical``, :func:`design.recovery.plan_recovery`);
+    the monitor, which acts on the structural plan and leaves the numbers to the gain
+    design, passes False.
 
     Returns ``(plan, next_roster)``: ``plan`` is the :class:`design.recovery.RecoveryPlan`
     on ``roster.scenario`` (rows), whose ``agent_ids`` are translated to run ids;
@@ -142,7 +147,7 @@ def replan(roster: Roster, failed_ids, add_links: bool = True):
     s = roster.scenario
     # plan_recovery numbers standbys N+1.. after the rows of the scenario it is given
     local = s.replace(standby=len(roster.standby_ids), delays=roster.delays)
-    plan = plan_recovery(local, rows, add_links=add_links)
+    plan = plan_recovery(local, rows, add_links=add_links, numerical=numerical)
     to_run = {i + 1: roster.ids[i] for i in range(s.N)}
     to_run.update({s.N + 1 + k: a for k, a in enumerate(roster.standby_ids)})
     ids_after = tuple(to_run[a] for a in plan.agent_ids)

@@ -65,6 +65,29 @@ def test_paper14_single_failure_standby_takes_the_place(paper14, f, node_to):
     assert plan.agent_ids[f] == 4
 
 
+def test_a_plan_without_the_numerical_checks_gives_the_same_next_configuration(paper14):
+    """``numerical=False`` (what the monitor asks: the checks are a staircase of order nN,
+    seconds at communities-32) builds the same next scenario, and only the numbers are
+    left out; replan's next roster is the same either way."""
+    from design.roster import Roster, replan
+
+    for failed in ([0], [1, 2], [0, 1, 2]):
+        full, bare = plan_recovery(paper14, failed), plan_recovery(paper14, failed,
+                                                                   numerical=False)
+        assert full.numerical and bare.numerical == {}
+        assert (full.scenario_after is None) == (bare.scenario_after is None)
+        if full.scenario_after is not None:
+            for name in ("W", "delays", "measure", "standby", "name"):
+                a, b = getattr(full.scenario_after, name), getattr(bare.scenario_after, name)
+                assert np.array_equal(np.asarray(a, dtype=object), np.asarray(b, dtype=object))
+    r = Roster.initial(paper14)
+    for a in r.ids:
+        (_, full), (_, bare) = replan(r, [a]), replan(r, [a], numerical=False)
+        assert (full.ids, full.standby_ids) == (bare.ids, bare.standby_ids)
+        assert np.array_equal(full.delays, bare.delays)
+        assert full.scenario.measure == bare.scenario.measure
+
+
 def test_paper14_tolerances(paper14):
     ft = failure_tolerance(paper14)
     assert (ft.p, ft.exact, ft.witness) == (1, True, (0, 1))

@@ -1034,7 +1034,7 @@ class MonitorCore:
             return self._emit_reassign(now)
         roster = dataclasses.replace(self.roster, standby_ids=self.standby_pool(now, failed))
         try:
-            plan, nxt = replan(roster, failed)
+            plan, nxt = replan(roster, failed, numerical=False)
         except SocmonError as exc:
             nxt, plan = None, None
             self.events.append(f"no recovery plan: {exc}")
@@ -1076,7 +1076,7 @@ class MonitorCore:
         base = dataclasses.replace(base, standby_ids=tuple(
             a for a in base.standby_ids if a not in both and a not in self.failed))
         try:
-            plan, nxt = replan(base, both)
+            plan, nxt = replan(base, both, numerical=False)
         except SocmonError:
             return None
         if nxt is None or not plan.structurally_observable_after \

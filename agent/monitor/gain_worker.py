@@ -347,7 +347,7 @@ def plan_failures(roster) -> list:
     planned = []
     for a in sets:
         try:
-            _, nxt = replan(roster, a)
+            _, nxt = replan(roster, a, numerical=False)
         except SocmonError:
             continue
         if nxt is not None:

@@ -238,7 +238,7 @@ def check_invariants(config, rec, summary, steps, mse, bounds: Bounds = Bounds()
                         and (v.get("rejoined_step") or math.inf) > f.step
                         for v in summary.get("failures", []))), table, cfg["D"])
         try:
-            plan, nxt = replan(roster, [f.agent])
+            plan, nxt = replan(roster, [f.agent], numerical=False)
         except SocmonError:
             continue
         if nxt is None or not plan.structurally_observable_after:
