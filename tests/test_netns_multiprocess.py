@@ -97,6 +97,35 @@ def test_a_downed_link_cuts_a_host_off_and_nothing_is_left_behind(prefix):
     assert _root_addresses() == before
 
 
+@pytest.mark.netns
+def test_every_host_of_a_32_agent_mesh_reaches_every_other(prefix):
+    """The 35 hosts of a 32-agent run (and the router's 36th): every pair connects. They
+    need 1,190 neighbour entries and the kernel learns at most 1,024 for all namespaces
+    together; before the testbed gave each host permanent ones, connections of a few pairs
+    stayed in SYN-SENT and one agent of a 32-agent mesh never started."""
+    hosts = netns.host_names(32, router=True)
+    with netns.Testbed(hosts, prefix=prefix) as tb:
+        servers = []
+        for h in hosts:
+            with tb.inside(h):
+                server = socket.socket()
+            server.bind((tb.ip(h), 0))
+            server.listen(len(hosts))
+            servers.append(server)
+        try:
+            failed = [(a, b) for a in hosts for b, server in zip(hosts, servers)
+                      if a != b and not _connects(tb, a, b, server.getsockname()[1], 5.0)]
+        finally:
+            for server in servers:
+                server.close()
+        assert failed == []
+        neigh = subprocess.run(["ip", "-n", tb.namespace("agent-7"), "neigh", "show",
+                                tb.ip("agent-31")], capture_output=True, text=True,
+                               check=True).stdout
+        assert tb.mac("agent-31") in neigh and "PERMANENT" in neigh
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]
+
+
 # -- whole runs -------------------------------------------------------------------------------
 def _up(tmp_path, gains, prefix, *flags, steps):
     code, out, err = _socmon("up", "paper-14-live", "--steps", str(steps), "--gains",

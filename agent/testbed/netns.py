@@ -4,7 +4,12 @@ A :class:`Testbed` makes one network namespace per host and one *switch* namespa
 holds a Linux bridge; every host is wired to the switch by a veth pair (``eth0`` inside
 the host, ``p-<host>`` on the bridge) and gets an address of :data:`SUBNET` on ``eth0``.
 Hosts reach each other only through the bridge, over real IP links, as separate machines
-on one switch would. Nothing is added to the namespace the testbed was made from: the
+on one switch would. Each host knows every other host's hardware address from the start
+(permanent neighbour entries): the kernel's ARP table is one for all namespaces, at most
+``gc_thresh3`` (1,024 by default) learned entries, and a mesh of 35 hosts needs 1,190; past
+it a host's new neighbours were never resolved ("neighbor table overflow") and its
+connections stayed in SYN-SENT, so one agent of a 32-agent mesh heard nobody. Permanent
+entries are not counted against that limit. Nothing is added to the namespace the testbed was made from: the
 veth pairs are created inside the switch namespace and their host ends moved straight into
 the hosts, and every address lives inside a namespace the testbed made. Testbeds made
 side by side do not collide (their namespaces are disjoint, so the same subnet serves all);
@@ -60,12 +65,15 @@ def _ip_binary() -> str | None:
         (p for p in ("/usr/sbin/ip", "/sbin/ip", "/usr/bin/ip") if os.access(p, os.X_OK)), None)
 
 
-def _run(*argv: str) -> None:
+def _run(*argv: str, batch: str | None = None) -> None:
+    """``ip *argv``; with ``batch``, ``ip *argv -batch -`` fed those command lines."""
     ip = _ip_binary()
     if ip is None:
         raise TestbedError("iproute2's `ip` command was not found")
+    if batch is not None:
+        argv = (*argv, "-batch", "-")
     try:
-        done = subprocess.run([ip, *argv], capture_output=True, text=True,
+        done = subprocess.run([ip, *argv], capture_output=True, text=True, input=batch,
                               timeout=_IP_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         raise TestbedError(f"`ip {' '.join(argv)}` did not finish in {_IP_TIMEOUT_S:g} s") \
@@ -209,6 +217,11 @@ class Testbed:
         self._check(host)
         return self._ips[host]
 
+    def mac(self, host: str) -> str:
+        """The hardware address of ``host``'s ``eth0``: locally administered, its IPv4
+        address in the last four bytes (``10.200.0.2`` -> ``02:00:0a:c8:00:02``)."""
+        return "02:00:" + ":".join(f"{b:02x}" for b in ipaddress.ip_address(self.ip(host)).packed)
+
     def port(self, host: str) -> str:
         """The bridge port (in the switch namespace) that ``host`` is wired to."""
         self._check(host)
@@ -243,12 +256,16 @@ class Testbed:
                 self._add_ns(ns)
                 _run("-n", ns, "link", "set", "lo", "up")
                 _run(*sw, "link", "add", port, "type", "veth", "peer", "name", "eth0",
-                     "netns", ns)
+                     "address", self.mac(host), "netns", ns)
                 _run(*sw, "link", "set", port, "master", "br0")
                 _run(*sw, "link", "set", port, "up")
                 _run("-n", ns, "addr", "add", f"{self.ip(host)}/{SUBNET.prefixlen}", "dev",
                      "eth0")
                 _run("-n", ns, "link", "set", "eth0", "up")
+            for host in self.hosts:
+                _run("-n", self.namespace(host), batch="".join(
+                    f"neigh replace {self.ip(h)} lladdr {self.mac(h)} dev eth0 nud permanent\n"
+                    for h in self.hosts if h != host))
         except BaseException:
             self.close()
             raise
