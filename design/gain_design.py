@@ -39,7 +39,8 @@ from .errors import NotObservableError, SocmonError
 from .gap import GAP_MARGIN, gap_report
 from .gradient import GapTerms, LoopModel, bfgs_minimise
 from .graph import influence_structure, unmeasured_parents
-from .observability import distributed_detectability
+from .observability import (STABLE_BOUND_MARGIN, distributed_detectability,
+                            stable_modes_bound)
 from .scenario import resolve_delays
 
 __all__ = [
@@ -78,6 +79,8 @@ _DEFAULT_OPTIONS = {
     "gaps": True,           # keep every single failure's gap loop stable where possible
     "gap_margin": GAP_MARGIN,   # ... with exact radius below 1 - gap_margin
     "report_gaps": True,    # report every gap's exact radius (one eigenvalue problem each)
+    "pair_rank": True,      # the distributed pair's rank even when W (x) A is stable (False:
+                            # check_detectable(rank=False), the recovery designs)
 }
 _CCL_OPTIONS = {
     "solver": "CLARABEL",
@@ -207,26 +210,35 @@ class Detectability:
 
     ``rank`` of ``order`` = nN; ``unobservable_modes`` are the eigenvalues of the
     unobservable part; ``detectable`` iff all of them lie strictly inside the unit circle.
+    ``rank`` and ``unobservable_modes`` are None when not computed (``check_detectable(...,
+    rank=False)`` with every mode of W (x) A inside the unit circle).
     """
 
-    rank: int
+    rank: int | None
     order: int
-    unobservable_modes: tuple
+    unobservable_modes: tuple | None
     detectable: bool
 
     @property
-    def observable(self) -> bool:
-        return self.rank == self.order
+    def observable(self) -> bool | None:
+        return None if self.rank is None else self.rank == self.order
 
     def to_dict(self) -> dict:
-        mods = [abs(z) for z in self.unobservable_modes]
+        if self.unobservable_modes is None:
+            top = None
+        else:
+            top = max((abs(z) for z in self.unobservable_modes), default=0.0)
         return {"rank": self.rank, "order": self.order, "observable": self.observable,
-                "detectable": self.detectable,
-                "max_unobservable_modulus": max(mods) if mods else 0.0}
+                "detectable": self.detectable, "max_unobservable_modulus": top}
 
 
-def check_detectable(scenario) -> Detectability:
+def check_detectable(scenario, rank: bool = True) -> Detectability:
     """Check that a stabilising structured gain can exist; raise if it cannot.
+
+    ``rank=False``: when every mode of W (x) A lies inside the unit circle
+    (:func:`design.observability.distributed_detectable`) the pair is detectable whatever
+    its rank, which is then not computed (a staircase of order nN: the design's option
+    ``pair_rank``, off for the monitor's recovery designs).
 
     Raises
     ------
@@ -252,6 +264,9 @@ def check_detectable(scenario) -> Detectability:
             f"{'have' if len(sccs) > 1 else 'has'} no sensor; let an agent measure a node "
             "of each", sccs)
 
+    order = scenario.n * scenario.N
+    if not rank and stable_modes_bound(scenario.A, scenario.W) < 1.0 - STABLE_BOUND_MARGIN:
+        return Detectability(rank=None, order=order, unobservable_modes=None, detectable=True)
     p = distributed_detectability(scenario.A, scenario.W, scenario.measure)
     d = Detectability(rank=p.rank, order=p.order,
                       unobservable_modes=tuple(complex(z) for z in p.unobservable_modes),
@@ -402,7 +417,7 @@ class _Reporter:
 
 def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, report=None):
     report = report or _Reporter(None, t0, None)
-    detect = check_detectable(scenario)
+    detect = check_detectable(scenario, rank=opts.get("pair_rank", True))
     if method == "ccl":
         res = _design_ccl(scenario, D, opts, report)
     else:

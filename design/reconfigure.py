@@ -153,12 +153,13 @@ def fast_recovery_gains(scenario_after, delays, init=None, seed: int = 0,
     """A first stabilising gain for ``scenario_after``: objective rho, stop below
     ``target``, at most ``max_iter`` iterations (one start from ``init`` when given,
     else two). Deterministic; ``rho`` is exact; ``mse_steady`` is not computed. Without
-    the gap terms and the gap report (N eigenvalue problems of the companion order: 3 of
+    the distributed pair's rank when W (x) A is stable (detectable then: the check is a
+    staircase of order nN, 1.1-1.5 s at communities-32), the gap terms and the gap report (N eigenvalue problems of the companion order: 3 of
     order 864 for Sampson at T = 15): the refined gain has them."""
     from .gain_design import design_gains
 
     opts = {"starts": 1 if init is not None else 2, "gaps": False, "report_gaps": False,
-            **options}
+            "pair_rank": False, **options}
     return design_gains(scenario_after, delays=_resolve_new(scenario_after, delays),
                         objective="rho", seed=seed, target=target, max_iter=max_iter,
                         init=init, exact_mse=False, **opts)
@@ -182,7 +183,8 @@ def polished_recovery_gains(scenario_after, delays, init, max_iter: int = POLISH
     to minutes)."""
     from .gain_design import design_gains
 
-    opts = {"starts": 1, "gaps": False, "report_gaps": False, **options}
+    opts = {"starts": 1, "gaps": False, "report_gaps": False, "pair_rank": False,
+            **options}
     return design_gains(scenario_after, delays=_resolve_new(scenario_after, delays),
                         objective="mse", seed=seed, init=init, max_iter=max_iter,
                         exact_mse=False, **opts)
@@ -193,7 +195,7 @@ def refined_recovery_gains(scenario_after, delays, init=None, seed: int = 0, **o
     else the design's default starts); exact radius and exact steady MSE."""
     from .gain_design import design_gains
 
-    opts = dict(options)
+    opts = {"pair_rank": False, **options}
     if init is not None:
         opts.setdefault("starts", 1)
     return design_gains(scenario_after, delays=_resolve_new(scenario_after, delays),

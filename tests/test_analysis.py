@@ -347,6 +347,57 @@ def test_distributed_detectability_against_the_textbook_tests():
     assert seen == {(False, True), (True, True), (True, False)}  # every case is met
 
 
+def test_distributed_detectable_without_the_staircase_agrees_with_it():
+    """The shortcut (every mode of W (x) A inside the unit circle: detectable, no
+    staircase) and the staircase say the same on random pairs, stable and unstable A,
+    stochastic and sub-stochastic W (a gap's), some nodes unmeasured; and the stable
+    ones never reach the staircase."""
+    from design import observability as ob
+
+    rng = np.random.default_rng(11)
+    seen = set()
+    for trial in range(60):
+        n, N = int(rng.integers(2, 6)), int(rng.integers(2, 4))
+        A = (rng.random((n, n)) < 0.4) * rng.uniform(-1.0, 1.0, size=(n, n))
+        rho = max(abs(np.linalg.eigvals(A))) or 1.0
+        A *= rng.choice([0.5, 0.95, 1.05, 1.5]) / rho
+        W = rng.random((N, N)) * (rng.random((N, N)) < 0.7) + np.eye(N)
+        W /= W.sum(axis=1, keepdims=True)
+        if trial % 3 == 0:
+            W[0] *= 0.5                    # a gap's row: the failed neighbour's weight gone
+        measure = [sorted(set(rng.integers(n, size=int(rng.integers(0, 2)) + 1).tolist()))
+                   for _ in range(N)]
+        ob._DETECTABILITY.clear()
+        full = distributed_detectability(A, W, measure).detectable
+        bound = ob.stable_modes_bound(A, W)
+        assert bound >= max(abs(np.linalg.eigvals(np.kron(W, A)))) - 1e-12, trial
+        assert ob.distributed_detectable(A, W, measure) == full, trial
+        seen.add((bound < 1, full))
+    assert seen == {(True, True), (False, True), (False, False)}
+
+
+def test_check_detectable_without_the_rank_and_the_recovery_designs():
+    """``check_detectable(rank=False)`` on communities-32 (A stable, radius 0.95) answers
+    without the staircase; paper-14 (A unstable) computes the rank either way, and a
+    recovery design's gain is the same as the design that computed it."""
+    from design.gain_design import check_detectable
+    from design.reconfigure import fast_recovery_gains
+    from design.scenario import load_scenario
+
+    big = load_scenario("communities-32")
+    quick = check_detectable(big, rank=False)
+    assert quick.detectable and quick.rank is None and quick.order == big.n * big.N
+    assert quick.to_dict()["max_unobservable_modulus"] is None
+    paper = load_scenario("paper-14")
+    assert check_detectable(paper, rank=False) == check_detectable(paper)
+    assert check_detectable(paper).rank == 33
+    live = load_scenario("paper-14-live")
+    a = fast_recovery_gains(live, "uniform:3")
+    b = fast_recovery_gains(live, "uniform:3", pair_rank=True)
+    assert a.detectability["rank"] is None and b.detectability["rank"] == 33
+    assert all(np.array_equal(x, y) for x, y in zip(a.G, b.G)) and a.rho == b.rho
+
+
 def test_cli_analyze_exits_1_on_an_undetectable_scenario(tmp_path, capsys):
     """An unstable mode no agent sees (node 1 grows, only node 2 is measured): a negative
     result, exit 1, said on stderr; a detectable one exits 0."""
