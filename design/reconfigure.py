@@ -154,8 +154,9 @@ def fast_recovery_gains(scenario_after, delays, init=None, seed: int = 0,
     ``target``, at most ``max_iter`` iterations (one start from ``init`` when given,
     else two). Deterministic; ``rho`` is exact; ``mse_steady`` is not computed. Without
     the distributed pair's rank when W (x) A is stable (detectable then: the check is a
-    staircase of order nN, 1.1-1.5 s at communities-32), the gap terms and the gap report (N eigenvalue problems of the companion order: 3 of
-    order 864 for Sampson at T = 15): the refined gain has them."""
+    staircase of order nN, 1.1-1.5 s at communities-32), the gap terms and the gap report
+    (N eigenvalue problems of the companion order: 3 of order 864 for Sampson at T = 15):
+    the refined gain has them."""
     from .gain_design import design_gains
 
     opts = {"starts": 1 if init is not None else 2, "gaps": False, "report_gaps": False,

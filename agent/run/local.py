@@ -466,9 +466,9 @@ class LocalRun:
                     for ev in alive_watch.drain():
                         if ev.role == "monitor" and world_end is None and c.monitor:
                             change = recorder.on_monitor_liveliness(ev.id, ev.any_alive)
-                            if recorder.step < 0:     # before the clock: no step to miss
-                                pass                  # (summary._no_monitor_windows)
-                            elif change == "none":
+                            if recorder.step < 0:     # before the clock no step is missed
+                                change = None         # (summary._no_monitor_windows)
+                            if change == "none":
                                 self.say(f"WARNING: no monitor alive at step {recorder.step}:"
                                          " a failure from now on is neither detected nor "
                                          "recovered")

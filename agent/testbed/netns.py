@@ -6,14 +6,15 @@ the host, ``p-<host>`` on the bridge) and gets an address of :data:`SUBNET` on `
 Hosts reach each other only through the bridge, over real IP links, as separate machines
 on one switch would. Each host knows every other host's hardware address from the start
 (permanent neighbour entries): the kernel's ARP table is one for all namespaces, at most
-``gc_thresh3`` (1,024 by default) learned entries, and a mesh of 35 hosts needs 1,190; past
-it a host's new neighbours were never resolved ("neighbor table overflow") and its
+``gc_thresh3`` (1,024 by default) learned entries, and a mesh of 35 hosts needs 1,190;
+past it a host's new neighbours were never resolved ("neighbor table overflow") and its
 connections stayed in SYN-SENT, so one agent of a 32-agent mesh heard nobody. Permanent
-entries are not counted against that limit. Nothing is added to the namespace the testbed was made from: the
-veth pairs are created inside the switch namespace and their host ends moved straight into
-the hosts, and every address lives inside a namespace the testbed made. Testbeds made
-side by side do not collide (their namespaces are disjoint, so the same subnet serves all);
-only the namespace names are global, so each testbed takes a unique ``prefix``.
+entries are not counted against that limit. Nothing is added to the namespace the testbed
+was made from: the veth pairs are created inside the switch namespace and their host ends
+moved straight into the hosts, and every address lives inside a namespace the testbed
+made. Testbeds made side by side do not collide (their namespaces are disjoint, so the
+same subnet serves all); only the namespace names are global, so each testbed takes a
+unique ``prefix``.
 
 A link brought down (:meth:`Testbed.set_link`) is the host's cable pulled at the switch:
 the bridge port goes down, the host's ``eth0`` loses its carrier, and packets in both
@@ -119,8 +120,10 @@ def default_prefix() -> str:
 
 def _short(host: str) -> str:
     """The host's part of its names (bridge port names have at most 15 characters)."""
-    return host.replace("agent-", "a").replace("recorder", "rec").replace("monitor", "mon").replace(
-        "router", "rtr")
+    for long, short in (("agent-", "a"), ("recorder", "rec"), ("monitor", "mon"),
+                        ("router", "rtr")):
+        host = host.replace(long, short)
+    return host
 
 
 def list_namespaces() -> list:
@@ -220,7 +223,8 @@ class Testbed:
     def mac(self, host: str) -> str:
         """The hardware address of ``host``'s ``eth0``: locally administered, its IPv4
         address in the last four bytes (``10.200.0.2`` -> ``02:00:0a:c8:00:02``)."""
-        return "02:00:" + ":".join(f"{b:02x}" for b in ipaddress.ip_address(self.ip(host)).packed)
+        address = ipaddress.ip_address(self.ip(host)).packed
+        return "02:00:" + ":".join(f"{b:02x}" for b in address)
 
     def port(self, host: str) -> str:
         """The bridge port (in the switch namespace) that ``host`` is wired to."""
