@@ -41,6 +41,24 @@ def test_crashed_agent_is_replaced_and_the_run_equals_the_simulator(tmp_path, li
     assert 0.2 * predicted < s["mse_steady_after_recovery"] < 5 * predicted, s
 
 
+def test_a_run_recording_every_seventh_step_reads_its_switch_from_every_step(tmp_path,
+                                                                             live_gains):
+    """``--record-every 7``: the MSE, the files and the simulator check are over steps 0,
+    7, ... and the last; the switch step is still the one the agents used (read from every
+    estimate's epoch, not rounded to the kept steps), and the run equals the simulator."""
+    s = _up(tmp_path, live_gains, "--kill", "100:1", "--check-simulator", "--record-every",
+            "7", steps=300)
+    (f,) = s["failures"]
+    assert s["record_every"] == 7 and s["recovered"] and s["max_rel_diff_vs_simulator"] <= 1e-9
+    # read from every estimate's epoch: a switch at a step not kept is not moved to the
+    # next kept one (nor would the replay equal the run)
+    assert s["rosters"][-1]["activate_at"] == f["activate_at"]
+    steps = json.loads((tmp_path / "run" / "mse.json").read_text())["step"]
+    assert steps == [*range(0, 300, 7), 300]
+    with np.load(tmp_path / "run" / "estimates.npz") as z:
+        assert z["step"].tolist() == steps
+
+
 def test_two_failures_at_once_are_replaced_as_in_the_paper(tmp_path, live_gains):
     """Agents 1 and 2 (nodes 7 and 9) fail together: nodes 8 and 10 are measured again
     (the paper's Fig. 3), by the standby and by a survivor. Under load the two kills land

@@ -303,3 +303,30 @@ def test_up_no_precompute_reaches_every_monitor(tmp_path, live_gains):
     assert lines[False][:len(lines[True])] == lines[True]
     standby = {p: _standby_monitor(lines[p], 2, "tcp/127.0.0.1:7999") for p in lines}
     assert "--no-precompute" in standby[False] and "--no-precompute" not in standby[True]
+
+
+def test_a_recorder_keeping_every_kth_step_keeps_every_epoch():
+    """``record_every=3, last_step=7``: the states of steps 0, 3, 6 and 7 only, the epoch
+    of every estimate (the rosters in force are read from them), the newest step from
+    every truth; the MSE over the kept steps is their own."""
+    r = Recorder(RUN, n=2, N=1, M=1, record_every=3, last_step=7)
+    for k in range(8):
+        x = np.array([k, -k], float)
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, x))
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, x + [k, 0], epoch=0, t=0.0))
+    rec = r.recording
+    assert sorted(rec.truth) == sorted(rec.est[1]) == [0, 3, 6, 7]
+    assert sorted(rec.est_epoch[1]) == list(range(8)) and r.step == 7
+    assert r.estimates_received == 8
+    steps, mse = mse_by_step(rec, 7)
+    assert steps == [0, 3, 6, 7]
+    np.testing.assert_allclose(mse, [k * k / 2 for k in steps])
+    with pytest.raises(ValueError, match="record_every"):
+        Recorder(RUN, n=2, N=1, M=1, record_every=0)
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "x"])
+def test_up_record_every_is_checked(tmp_path, capsys, value):
+    assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), "--record-every",
+                 value]) == 2
+    assert "--record-every" in capsys.readouterr().err

@@ -27,6 +27,13 @@ def add_arguments(parser) -> None:
     c.add_run_folder_arguments(parser, "runs/<scenario>-<time>-s<seed>")
     parser.add_argument("--check-simulator", action="store_true",
                         help="compare with design.simulate (same seed); exit 1 if they differ")
+    parser.add_argument("--record-every", type=c.int_flag(lo=1), default=1, metavar="K",
+                        help="the recorder keeps the truth and the estimates of every K-th "
+                             "step (and the last) only: the MSE, its plot, the check against "
+                             "the simulator and estimates.npz are over those steps; the "
+                             "rosters, failures and message counts over every step "
+                             "(default 1: every step; for large or long runs, "
+                             "docs/runtime.md)")
     c.add_json_argument(parser, "print the summary as JSON")
     c.add_delays_argument(parser)
     c.add_step_ms_argument(parser)

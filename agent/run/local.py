@@ -122,6 +122,8 @@ class RunConfig:
     listen: str | None = None        # the recorder's endpoint (every child connects to it)
     #: one ``socmon router`` process; every other process is its client (no peer mesh)
     router: bool = False
+    #: the recorder keeps the states of every k-th step (and the last) only (``--record-every``)
+    record_every: int = 1
 
     @property
     def M(self) -> int:
@@ -241,6 +243,7 @@ class LocalRun:
                             ports=[listen_port() for _ in range(
                                 M + 3 + c.router + max(c.monitors - 1, 0))],
                             control_public=signer.public_bytes(),
+                            record_every=c.record_every, last_step=K,
                             scale=StateScale(c.scenario.A, c.scenario.process_noise,
                                              c.scenario.measurement_noise))
         rec = recorder.recording
@@ -440,10 +443,11 @@ class LocalRun:
                             world_end = time.monotonic()
                         elif child.name in ("world", "router") or (world_end is None
                                                                    and c.abort_on_exit) \
-                                or not rec.truth:
+                                or recorder.step < 0:
                             # before the clock starts every child is needed: the world
                             # would wait its whole start timeout for this one
-                            when = "the end of the run" if rec.truth else "the clock started"
+                            when = "the end of the run" if recorder.step >= 0 \
+                                else "the clock started"
                             raise RunFailed(f"{child.name} exited with status "
                                             f"{child.returncode} before {when}; "
                                             f"its log ends:\n{children.tail(child.name)}")
@@ -489,7 +493,7 @@ class LocalRun:
                     for item in sorted(u for u in undo if u[0] <= now):
                         undo.remove(item)
                         end(item[1], k_now)
-                    if not rec.truth and now > start_deadline:
+                    if recorder.step < 0 and now > start_deadline:
                         raise RunFailed(f"the clock did not start within {c.start_timeout:g} s;"
                                         f" world log:\n{children.tail('world')}")
                     running = {ch.name for ch in children.running()}
@@ -499,7 +503,7 @@ class LocalRun:
                     done = K in rec.truth and all(K in rec.est[a] for a in active)
                     if done or (world_end is not None and now - world_end > 5.0):
                         break
-                    if now >= next_progress and rec.truth:
+                    if now >= next_progress and recorder.step >= 0:
                         next_progress = now + 1.0
                         silent = _world_silent_for(recorder)
                         if silent > TIMING.agent_world_gone_s and not silence_said:

@@ -91,11 +91,21 @@ class Recorder:
         The model's scale: a truth or an estimate far beyond it (the agents' own rule) is
         not recorded but counted (``stats`` reason ``implausible``), so a forged 1e300
         cannot make the run's MSE infinite.
+    record_every, last_step : int
+        Keep the truth and the estimates' states of every ``record_every``-th step only
+        (and of ``last_step``, the run's last): a large or long run's record grows by a
+        state per agent a step otherwise (``up --record-every``). Every message is still
+        decoded and checked, and every estimate's epoch kept: the steps the rosters came
+        into force are read from them.
     """
 
     def __init__(self, run_id: str, n: int, N: int, M: int, ports=(),
                  keep_steps: int | None = None, control_public: bytes | None = None,
-                 scale=None, clock=time.time):
+                 scale=None, clock=time.time, record_every: int = 1,
+                 last_step: int | None = None):
+        if not (isinstance(record_every, int) and record_every >= 1):
+            raise ValueError(f"record_every: expected an integer >= 1, got {record_every!r}")
+        self.record_every, self.last_step = record_every, last_step
         rec = self.recording = Recording(run_id=run_id, ports=list(ports))
         rec.est = {a: {} for a in range(1, M + 1)}
         rec.est_epoch = {a: {} for a in range(1, M + 1)}
@@ -194,7 +204,8 @@ class Recorder:
             if m is not None and not self._plausible(m, READING_MULTIPLE):
                 self.stats.count_dropped("implausible")
             elif m is not None:
-                rec.truth[m["step"]] = np.array(m["x"])
+                if self.records(m["step"]):
+                    rec.truth[m["step"]] = np.array(m["x"])
                 if m["step"] > self._newest:
                     self.truth_at = time.monotonic()
                 self._newest = max(self._newest, m["step"])
@@ -210,7 +221,8 @@ class Recorder:
             elif m is not None and not self._plausible(m, ESTIMATE_MULTIPLE):
                 self.stats.count_dropped("implausible")
             elif m is not None:
-                rec.est[m["agent"]][m["step"]] = np.array(m["x"])
+                if self.records(m["step"]):
+                    rec.est[m["agent"]][m["step"]] = np.array(m["x"])
                 rec.est_epoch[m["agent"]][m["step"]] = m["epoch"]
                 self.estimates_received += 1
         elif kind == "status":
@@ -255,6 +267,14 @@ class Recorder:
                 else:
                     self.stats.count_dropped("event")
         self.recording.recorder_malformed = self.stats.total_dropped
+
+    def records(self, step: int) -> bool:
+        """Whether the states of ``step`` are kept (``record_every``, ``last_step``).
+
+        >>> Recorder("demo", n=1, N=1, M=1, record_every=10, last_step=25).records(25)
+        True
+        """
+        return step % self.record_every == 0 or step == self.last_step
 
     def _authentic(self, msg):
         """``msg`` if it is not a control message or carries the run's control signature

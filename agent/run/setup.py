@@ -124,7 +124,8 @@ def run_config(args, say, prog="up", design_progress=None):
                      hang_timeout=args.hang_timeout, hang_timeout_max=args.hang_timeout_max,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
                      secure=getattr(args, "secure", False), run_id=run_id, listen=listen,
-                     router=getattr(args, "router", False))
+                     router=getattr(args, "router", False),
+                     record_every=getattr(args, "record_every", 1))
 
 
 def check_run_endpoint(run_id, listen, secure) -> tuple:

@@ -164,8 +164,8 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
     # the last quarter of the run's K steps (by position: a watcher that attached late
-    # averages the same final steps as the run's own recorder)
-    tail = steady_window(K)
+    # averages the same final steps as the run's own recorder); of the recorded ones
+    tail = -(-steady_window(K) // getattr(c, "record_every", 1))
     mse_steady = mean_recorded(mse[-tail:])
     window = [int(steps[-tail:][0]), int(steps[-1])] if steps else None
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
@@ -178,6 +178,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "seed": c.seed,
         "steps": int(steps[-1]) if steps else -1,
         "steps_requested": K,
+        "record_every": getattr(c, "record_every", 1),
         "step_ms": c.step_ms,
         "deadline_ms": c.deadline_ms,
         "agents": N,
@@ -959,7 +960,8 @@ def compare_simulator(config, rec, steps_done):
     res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
                    drop=c.drop, fail=fail, recover=recover, coordinates="absolute",
                    record_estimates=True, faults=sim_faults)
-    if len(steps_done) != K + 1:
+    every = getattr(c, "record_every", 1)
+    if len(steps_done) != len(range(0, K + 1, every)) + (K % every != 0):
         return float("inf"), "incomplete run"
     sim_est = np.asarray(res.estimates)[0]
     worst, compared, first = 0.0, 0, None
@@ -1119,13 +1121,16 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
     steps_done = np.asarray(steps_done)
     fig, ax = plt.subplots(figsize=(9.5, 4.2))
     window = smoothing_window(len(mse))
+    every = summary.get("record_every", 1)
+    each = "each step" if every == 1 else f"every {every}th step"
     if window > 1:       # a long run's raw trace is a solid block: its running mean on top
         ax.semilogy(steps_done[ok], mse[ok], lw=0.6, color="tab:blue", alpha=0.3,
-                    label="live run, each step")
+                    label=f"live run, {each}")
         ax.semilogy(steps_done, running_mean(mse, window), lw=1.4, color="tab:blue",
-                    label=f"live run, mean of {window} steps")
+                    label=f"live run, mean of {window} {'steps' if every == 1 else 'of them'}")
     else:
-        ax.semilogy(steps_done[ok], mse[ok], lw=1, label="live run")
+        ax.semilogy(steps_done[ok], mse[ok], lw=1,
+                    label="live run" + ("" if every == 1 else f", {each}"))
     # the exact level of each configuration over the steps it was in force
     rosters = summary.get("rosters") or []
     first_switch = rosters[1]["activate_at"] if len(rosters) > 1 else None
