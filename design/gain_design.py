@@ -39,8 +39,7 @@ from .errors import NotObservableError, SocmonError
 from .gap import GAP_MARGIN, gap_report
 from .gradient import GapTerms, LoopModel, bfgs_minimise
 from .graph import influence_structure, unmeasured_parents
-from .observability import (STABLE_BOUND_MARGIN, distributed_detectability,
-                            stable_modes_bound)
+from .observability import all_modes_stable, distributed_detectability
 from .scenario import resolve_delays
 
 __all__ = [
@@ -265,7 +264,7 @@ def check_detectable(scenario, rank: bool = True) -> Detectability:
             "of each", sccs)
 
     order = scenario.n * scenario.N
-    if not rank and stable_modes_bound(scenario.A, scenario.W) < 1.0 - STABLE_BOUND_MARGIN:
+    if not rank and all_modes_stable(scenario.A, scenario.W, scenario.measure):
         return Detectability(rank=None, order=order, unobservable_modes=None, detectable=True)
     p = distributed_detectability(scenario.A, scenario.W, scenario.measure)
     d = Detectability(rank=p.rank, order=p.order,

@@ -55,8 +55,8 @@ import scipy.sparse.linalg as spla
 
 from .closed_loop import DENSE_FALLBACK_MAX_ORDER, ClosedLoop
 from .errors import SocmonError
-from .gap import gap_detectability, gap_weights
-from .observability import distributed_detectable
+from .gap import gap_weights
+from .observability import all_modes_stable, distributed_detectability
 from .structured import block_gain, lag_blocks, noise_blocks
 
 __all__ = ["LoopModel", "bfgs_minimise", "OptimResult", "DENSE_SPECTRUM_MAX_ORDER"]
@@ -718,10 +718,10 @@ class GapTerms:
         """Check the detectability of the gaps of ``failed_ids``; drop those without."""
         for f in sorted(set(failed_ids)):
             keep, W2 = gap_weights(self.scenario.W, f - 1)
-            if distributed_detectable(self.scenario.A, W2,
-                                      [self.scenario.measure[r] for r in keep]):
-                continue                # at once when W2 (x) A is stable
-            d = gap_detectability(self.scenario, f - 1)
+            measure = [self.scenario.measure[r] for r in keep]
+            if all_modes_stable(self.scenario.A, W2, measure):
+                continue                # detectable at once: every mode of W2 (x) A stable
+            d = distributed_detectability(self.scenario.A, W2, measure)
             if not d.detectable:
                 self.impossible.append((f, float(d.max_unobservable_modulus)))
                 self.models = [t for t in self.models if t[0] != f]

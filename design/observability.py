@@ -34,6 +34,7 @@ __all__ = [
     "distributed_pair",
     "distributed_detectability",
     "distributed_detectable",
+    "all_modes_stable",
     "stable_modes_bound",
     "DENSE_KRON_MAX_ORDER",
 ]
@@ -249,18 +250,37 @@ def stable_modes_bound(A, W) -> float:
     >>> stable_modes_bound(np.diag([0.5, -0.9]), np.array([[0.5, 0.5], [0.25, 0.75]]))
     0.9
     """
-    if sp.issparse(A) or A.shape[0] > STABLE_BOUND_MAX_ORDER:
+    if sp.issparse(A):
         return float("inf")
-    rho_A = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A, dtype=float))))) \
-        if A.shape[0] else 0.0
-    return float(np.max(np.sum(np.abs(np.asarray(W, dtype=float)), axis=1))) * rho_A
+    A, W = np.atleast_2d(np.asarray(A, dtype=float)), np.atleast_2d(np.asarray(W, dtype=float))
+    if A.shape[0] > STABLE_BOUND_MAX_ORDER:
+        return float("inf")
+    rho_A = float(np.max(np.abs(np.linalg.eigvals(A)), initial=0.0))
+    return float(np.max(np.sum(np.abs(W), axis=1), initial=0.0)) * rho_A
+
+
+def all_modes_stable(A, W, measure) -> bool:
+    """Whether every mode of ``W (x) A`` lies inside the unit circle by
+    :func:`stable_modes_bound` (below 1 - :data:`STABLE_BOUND_MARGIN`), for a well-formed
+    pair only (A and W square, one measured list per agent, nodes of A): then the pair
+    ``(W (x) A, D_H)`` is detectable whatever the measurements. False otherwise, also for
+    a malformed pair, which :func:`distributed_detectability` rejects with its error."""
+    if not sp.issparse(A):
+        A = np.atleast_2d(np.asarray(A, dtype=float))
+    W = np.asarray(W, dtype=float)
+    n = A.shape[0]
+    if A.ndim != 2 or A.shape != (n, n) or W.ndim != 2 or W.shape[0] != W.shape[1] \
+            or W.shape[0] != len(measure) or not len(measure) \
+            or not all(0 <= int(v) < n for m in measure for v in m):
+        return False
+    return stable_modes_bound(A, W) < 1.0 - STABLE_BOUND_MARGIN
 
 
 def distributed_detectable(A, W, measure, tol=None) -> bool:
     """Whether (W (x) A, D_H) is detectable, as :func:`distributed_detectability` says,
     without its staircase when every mode of ``W (x) A`` lies inside the unit circle
-    (:func:`stable_modes_bound` below 1 - :data:`STABLE_BOUND_MARGIN`): then every
-    unobservable mode does too, whatever the measurements.
+    (:func:`all_modes_stable`): then every unobservable mode does too, whatever the
+    measurements.
 
     Why: the staircase is of order nN (1.1-1.5 s at communities-32, most of the
     monitor's fast design of a single failure there), where a stable A answers at once.
@@ -270,14 +290,15 @@ def distributed_detectable(A, W, measure, tol=None) -> bool:
     >>> distributed_detectable(np.diag([0.5, 1.2]), np.eye(2), [[0], [0]])
     False
     """
-    if stable_modes_bound(A, W) < 1.0 - STABLE_BOUND_MARGIN:
+    if all_modes_stable(A, W, measure):
         return True
     return distributed_detectability(A, W, measure, tol).detectable
 
 
-#: distributed_detectability's answers by (A, W, measure, tol): the recovery plan and the
-#: design of its gain ask it of one configuration in turn (a staircase of order nN each:
-#: 1.2-2.8 s at communities-32)
+#: distributed_detectability's answers by (A, W, measure, tol): a recovery plan with its
+#: numerical checks (``socmon plan``, ``analyze``) and the design of its gain ask it of one
+#: configuration in turn (a staircase of order nN each: 1.2-2.8 s at communities-32; the
+#: monitor's plans and designs skip it when every mode of W (x) A is stable)
 _DETECTABILITY: dict = {}
 _DETECTABILITY_MAX = 64
 

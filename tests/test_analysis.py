@@ -347,7 +347,7 @@ def test_distributed_detectability_against_the_textbook_tests():
     assert seen == {(False, True), (True, True), (True, False)}  # every case is met
 
 
-def test_distributed_detectable_without_the_staircase_agrees_with_it():
+def test_distributed_detectable_without_the_staircase_agrees_with_it(monkeypatch):
     """The shortcut (every mode of W (x) A inside the unit circle: detectable, no
     staircase) and the staircase say the same on random pairs, stable and unstable A,
     stochastic and sub-stochastic W (a gap's), some nodes unmeasured; and the stable
@@ -371,9 +371,33 @@ def test_distributed_detectable_without_the_staircase_agrees_with_it():
         full = distributed_detectability(A, W, measure).detectable
         bound = ob.stable_modes_bound(A, W)
         assert bound >= max(abs(np.linalg.eigvals(np.kron(W, A)))) - 1e-12, trial
-        assert ob.distributed_detectable(A, W, measure) == full, trial
+        ob._DETECTABILITY.clear()
+        with monkeypatch.context() as m:
+            if bound < 1 - 1e-9:           # the stable ones never reach the staircase
+                m.setattr(ob, "distributed_detectability", _no_staircase)
+            assert ob.distributed_detectable(A, W, measure) == full, trial
         seen.add((bound < 1, full))
     assert seen == {(True, True), (False, True), (False, False)}
+
+
+def _no_staircase(*args, **kwargs):
+    raise AssertionError("the staircase was run for a stable W (x) A")
+
+
+@pytest.mark.parametrize("A, W, measure, error", [
+    (np.diag([0.5, 0.9]), np.ones((2, 3)) / 3, [[0], [1]], ValueError),     # W not square
+    (np.diag([0.5, 0.9]), np.eye(2), [[0], [5]], IndexError),             # no node 5
+])
+def test_distributed_detectable_rejects_a_malformed_pair_as_the_staircase_does(A, W, measure,
+                                                                               error):
+    from design import observability as ob
+
+    with pytest.raises(error):
+        ob.distributed_detectability(A, W, measure)
+    with pytest.raises(error):
+        ob.distributed_detectable(A, W, measure)
+    # lists are matrices too
+    assert ob.distributed_detectable([[0.5, 0.0], [0.0, 0.9]], [[1.0]], [[0]]) is True
 
 
 def test_check_detectable_without_the_rank_and_the_recovery_designs():

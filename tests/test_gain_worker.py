@@ -127,6 +127,24 @@ def test_a_newer_precompute_goes_before_a_refinement_and_starts_from_the_gains_i
     assert kept >= 1
 
 
+def test_a_refinement_asked_alone_comes_back_refined_and_nothing_else():
+    """``request(roster, kinds=("refined",))``, what the monitor asks for a configuration
+    put in force on a fast gain: the precompute process designs its refined gain, and no
+    first gain is designed for it (the urgent process is not asked)."""
+    s = load_scenario("paper-14-live")
+    _, in_force = replan(Roster.initial(s, resolve_delays(s, "uniform:3")), [2])
+    worker = GainWorker(start=True)
+    try:
+        worker.request(in_force, kinds=("refined",))
+        got = _collect(worker, lambda g: any(i.get("kind") == "refined" for _, _, i in g))
+    finally:
+        worker.close()
+    assert [(GainSource.key(r), i["kind"]) for r, _, i in got] == \
+        [(GainSource.key(in_force), "refined")]
+    (_, G, info), = got
+    assert G is not None and info["rho"] < 1 and info["mse"] > 0
+
+
 def test_a_refined_gain_from_the_gains_in_force_is_as_good_as_from_the_reset_gain():
     """The monitor's refined precompute starts each single failure's MSE design from the
     gains in force carried over (a shorter stop rule): certified, and its exact steady MSE

@@ -291,6 +291,7 @@ class LocalRun:
         old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         t_begin = time.monotonic()
         live = None
+        absence_said = False           # up has said no monitor is alive (and not since back)
         try:
             if c.router:        # up before its clients, which try it for 10 s only
                 children.start("router", ["router", "--listen", router_ep],
@@ -469,15 +470,16 @@ class LocalRun:
                                      f"at step {k_now}; the run goes on")
                     for ev in alive_watch.drain():
                         if ev.role == "monitor" and world_end is None and c.monitor:
-                            change = recorder.on_monitor_liveliness(ev.id, ev.any_alive)
-                            if recorder.step < 0:     # before the clock no step is missed
-                                change = None         # (summary._no_monitor_windows)
-                            if change == "none":
-                                self.say(f"WARNING: no monitor alive at step {recorder.step}:"
-                                         " a failure from now on is neither detected nor "
-                                         "recovered")
-                            elif change == "back":
-                                self.say(f"a monitor is alive again at step {recorder.step}")
+                            recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                    # said from the clock's start on (before it no step is missed:
+                    # summary._no_monitor_windows), also for a lapse that began before it
+                    absent = rec.no_monitor_since is not None and world_end is None
+                    if recorder.step >= 0 and absent != absence_said:
+                        absence_said = absent
+                        self.say(f"WARNING: no monitor alive at step {recorder.step}: a "
+                                 "failure from now on is neither detected nor recovered"
+                                 if absent else
+                                 f"a monitor is alive again at step {recorder.step}")
                     if live is not None:
                         live.tick(recorder, None if live.board is None else
                                   {int(i) for r, i in alive_watch.alive()

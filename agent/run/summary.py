@@ -828,12 +828,13 @@ def _no_monitor_windows(events) -> list:
     """``(from, to)`` steps while no monitor token was up (the recorder's monitor events);
     ``to`` is inf when none came back. Before the clock (step -1) no step runs and no
     failure can go unanswered (the world starts its clock once the first monitor is up):
-    a window that ended there is none, one that went on starts at step 0 (a standby
+    a window that ended there (or as the clock started) is none, one that went on starts at
+    step 0 (a standby
     monitor's token that lapsed on a loaded host before the clock was reported as "NO
     MONITOR ALIVE from step -1 to step -1").
 
     >>> _no_monitor_windows([{"process": "monitor", "monitors_alive": 0, "step": -1},
-    ...                      {"process": "monitor", "monitors_alive": 1, "step": -1},
+    ...                      {"process": "monitor", "monitors_alive": 1, "step": 0},
     ...                      {"process": "monitor", "monitors_alive": 0, "step": 10},
     ...                      {"process": "monitor", "monitors_alive": 1, "step": 30},
     ...                      {"process": "monitor", "monitors_alive": 0, "step": 50}])
@@ -849,7 +850,7 @@ def _no_monitor_windows(events) -> list:
                 since = None
     if since is not None:
         absent.append((since, math.inf))
-    return [(max(a, 0), b) for a, b in absent if b >= 0]
+    return [(max(a, 0), b) for a, b in absent if b > 0 or (a >= 0 and b >= 0)]
 
 
 def _undetected(deaths, convicted, absent, rosters, last_step=None) -> list:

@@ -9,7 +9,8 @@ on one switch would. Each host knows every other host's hardware address from th
 ``gc_thresh3`` (1,024 by default) learned entries, and a mesh of 35 hosts needs 1,190;
 past it a host's new neighbours were never resolved ("neighbor table overflow") and its
 connections stayed in SYN-SENT, so one agent of a 32-agent mesh heard nobody. Permanent
-entries are not counted against that limit. Nothing is added to the namespace the testbed
+entries are not counted against that limit (Linux 4.20 and later; before, a testbed that
+large fails to be made, with the `ip` command's error). Nothing is added to the namespace the testbed
 was made from: the veth pairs are created inside the switch namespace and their host ends
 moved straight into the hosts, and every address lives inside a namespace the testbed
 made. Testbeds made side by side do not collide (their namespaces are disjoint, so the
