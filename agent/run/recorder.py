@@ -39,7 +39,7 @@ from agent.protocol import wire
 from agent.shell.memory import TRIM_S, heap_trimmer
 from agent.protocol.timing import DEFAULT as TIMING
 
-__all__ = ["Recording", "Recorder", "watch_run", "WatchEnd"]
+__all__ = ["Recording", "Recorder", "kept_step", "watch_run", "WatchEnd"]
 
 #: Most events (the monitor's, heard on the wire, and role drops) a recording keeps.
 MAX_EVENTS = 100_000
@@ -68,6 +68,16 @@ class Recording:
     monitor_seen: bool = False                         # a monitor's token was ever heard
     no_monitor_since: int | None = None                # step the last monitor token went
     world_silent: dict | None = None                   # {step, seconds}: agents left it
+
+
+def kept_step(step: int, record_every: int, last_step: int | None) -> bool:
+    """Whether a recorder keeping every ``record_every``-th step and the run's last
+    (``up --record-every``) keeps the states of ``step``.
+
+    >>> [k for k in range(26) if kept_step(k, 10, 25)]
+    [0, 10, 20, 25]
+    """
+    return step % record_every == 0 or step == last_step
 
 
 class Recorder:
@@ -269,12 +279,8 @@ class Recorder:
         self.recording.recorder_malformed = self.stats.total_dropped
 
     def records(self, step: int) -> bool:
-        """Whether the states of ``step`` are kept (``record_every``, ``last_step``).
-
-        >>> Recorder("demo", n=1, N=1, M=1, record_every=10, last_step=25).records(25)
-        True
-        """
-        return step % self.record_every == 0 or step == self.last_step
+        """Whether the states of ``step`` are kept (:func:`kept_step`)."""
+        return kept_step(step, self.record_every, self.last_step)
 
     def _authentic(self, msg):
         """``msg`` if it is not a control message or carries the run's control signature

@@ -961,8 +961,10 @@ def compare_simulator(config, rec, steps_done):
     res = simulate(c.scenario, G, steps=K, trials=1, seed=c.seed, delays=c.delays,
                    drop=c.drop, fail=fail, recover=recover, coordinates="absolute",
                    record_estimates=True, faults=sim_faults)
+    from agent.run.recorder import kept_step
+
     every = getattr(c, "record_every", 1)
-    if len(steps_done) != len(range(0, K + 1, every)) + (K % every != 0):
+    if len(steps_done) != sum(kept_step(k, every, K) for k in range(K + 1)):
         return float("inf"), "incomplete run"
     sim_est = np.asarray(res.estimates)[0]
     worst, compared, first = 0.0, 0, None
