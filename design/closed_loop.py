@@ -65,6 +65,13 @@ DENSE_FALLBACK_MAX_ORDER = 8000
 #: ARPACK runs from two starting vectors must agree on the radius to this relative
 #: tolerance; else with more Arnoldi vectors, else the dense eigenvalues decide.
 ARPACK_AGREE_RTOL = 1e-10
+#: :meth:`ClosedLoop.count_outside` samples its circle at up to this many points ...
+COUNT_MAX_POINTS = 1024
+#: ... and pays (:attr:`ClosedLoop.count_pays`) for loops of at most this many estimated
+#: states nN (a linear solve of that order per point) with delays of at least
+#: :data:`COUNT_MIN_TAUBAR` steps (below, the dense eigenvalue problem costs as little).
+COUNT_MAX_STATES = 160
+COUNT_MIN_TAUBAR = 3
 
 
 def spectral_radius(M, dense=None) -> float:
@@ -277,6 +284,79 @@ class ClosedLoop:
 
     def is_stable(self, margin: float = 0.0) -> bool:
         return self.spectral_radius() < 1.0 - margin
+
+    def count_outside(self, c: float, max_points: int = COUNT_MAX_POINTS) -> int | None:
+        """How many eigenvalues of the delayed loop have a modulus above ``c`` (with their
+        multiplicity), counted by the argument principle; None when the count does not
+        settle within ``max_points`` points of the circle (an eigenvalue on or near it).
+
+        The eigenvalues are the roots of ``det(lambda^(T+1) I - sum_r lambda^(T-r) F_r)
+        = lambda^((T+1) nN) q(1/lambda)`` with the polynomial ``q(w) = det Q(w)``, ``Q(w)
+        = I - sum_r w^(r+1) F_r`` (``q(0) = 1``): those of modulus above ``c`` are the zeros
+        of ``q`` inside ``|w| < 1/c``, ``(1/2 pi i) oint q'/q dw``, the mean over the
+        circle of ``w tr(Q(w)^-1 Q'(w))``. The trapezoid sum converges geometrically when
+        no zero is near the circle (the error of a zero at ``w0`` is about
+        ``(|w0| c)^(-K)`` for ``K`` points); it is taken on nested grids of 32, 64, ...
+        points (half of them: ``Q`` is real, its values at conjugate points conjugate)
+        until two consecutive sums agree on an integer. A solve of order nN a point instead
+        of an eigenvalue problem of order (T+1) nN: Sampson-like at 15-step delays (nN =
+        72, order 1,152) 30-60 ms against 0.35-0.4 s.
+
+        >>> A = np.array([[1.1]]); W = np.array([[1.0]])
+        >>> loop = ClosedLoop(A, W, np.zeros((1, 1), int), [(0,)], [np.array([[0.5]])])
+        >>> loop.count_outside(0.6), loop.count_outside(0.5)     # the one eigenvalue: 0.55
+        (0, 1)
+        """
+        c = float(c)
+        if not c > 0:
+            raise ValueError(f"count_outside: the radius must be positive, got {c!r}")
+        m = self.n * self.N
+        lags = np.array(self.lags, dtype=float)
+        F = np.stack([self.F(int(r)) for r in self.lags]).astype(complex)
+
+        def integrand(k, K):
+            # w tr(Q^-1 Q'(w)) = -tr(Q^-1 sum_r (r+1) w^(r+1) F_r) at w_k = e^(2 pi i k/K)/c
+            w = np.exp(2j * np.pi * np.asarray(k, dtype=float) / K) / c
+            coef = w[:, None] ** (lags[None, :] + 1.0)
+            Q = np.eye(m) - np.einsum("kl,lij->kij", coef, F)
+            dQ = np.einsum("kl,lij->kij", coef * (lags[None, :] + 1.0), F)
+            try:
+                X = np.linalg.solve(Q, dQ)
+            except np.linalg.LinAlgError:
+                return None
+            return -np.trace(X, axis1=1, axis2=2)
+
+        # the sum over k = 0..K-1 is g_0 + g_(K/2) + 2 Re sum_(0<k<K/2) g_k
+        K = 32
+        g = integrand(np.arange(K // 2 + 1), K)
+        if g is None:
+            return None
+        total = g[0].real + g[-1].real + 2.0 * g[1:-1].real.sum()
+        previous = None
+        with np.errstate(all="ignore"):
+            while True:
+                value = total / K
+                if not np.isfinite(value):
+                    return None
+                n = round(value)
+                if (previous is not None and n >= 0 and abs(value - n) < 1e-7
+                        and abs(previous - n) < 1e-2):
+                    return int(n)
+                if 2 * K > max_points:
+                    return None
+                previous, K = value, 2 * K
+                g = integrand(np.arange(1, K // 2, 2), K)     # the new points, odd k
+                if g is None:
+                    return None
+                total += 2.0 * g.real.sum()
+
+    @property
+    def count_pays(self) -> bool:
+        """True when :meth:`count_outside` costs less than the exact radius: at most
+        :data:`COUNT_MAX_STATES` estimated states and delays of at least
+        :data:`COUNT_MIN_TAUBAR` steps, radius not known yet."""
+        return (self._rho is None and self.taubar >= COUNT_MIN_TAUBAR
+                and self.n * self.N <= COUNT_MAX_STATES)
 
     # -- noise and steady error -----------------------------------------------------
     def noise_input(self, q: float, r: float):

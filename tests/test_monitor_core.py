@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from agent.monitor.core import Assignment, MonitorConfig, MonitorCore, RosterUpdate
+from agent.monitor.core import (Assignment, GainSource, MonitorConfig, MonitorCore, RosterUpdate,
+                                _gain_words, design_gains_for)
 
 
 def _status(agent, step, epoch=0, active=True, pending=0, sensor_last=None):
@@ -635,9 +636,9 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     for a in roster.ids:
         core.on_status(_status(a, 110, epoch=1), 2.2)
     assert core.tick(2.2) == []                           # in force; no refined gain yet
-    from agent.monitor.gain_worker import steady_mse_of
+    from agent.monitor.gain_worker import performance_of
 
-    mse = steady_mse_of(roster, fast_G)                   # what the worker sends back
+    mse = performance_of(roster, fast_G).mse              # what the worker sends back
     assert mse > 0
     core.gains.put(roster, fast_G, {**fast, "mse": mse})
     assert core.tick(2.25) == []
@@ -1802,3 +1803,57 @@ def test_an_alarm_at_the_tests_first_formed_step_is_not_isolated(complete_core, 
     assert [(v.agent, v.cause) for v in core.verdicts] == \
         ([(1, "inconsistent estimates")] if convicted else []), core.events
     assert convicted or any("not isolated" in e for e in core.events)
+
+
+def test_a_first_gain_counted_below_its_target_is_the_exact_designs_and_its_radius_follows(
+        monkeypatch):
+    """A foreseen or unforeseen failure's first gain from the gains in force: when the
+    start's eigenvalues are counted below the fast target, no eigenvalue problem of the
+    delayed loop is solved; the gain is the one the exact radius picks, and the worker's
+    assessment brings the exact radius (with the steady MSE) into the monitor's record."""
+    from design.closed_loop import ClosedLoop
+    from design.reconfigure import FAST_TARGET, fast_recovery_gains
+    from design.roster import Roster, carried_gains
+    from design.scenario import load_scenario, uniform_delays
+
+    from agent.monitor.gain_worker import performance_of, plan_failures
+
+    s = load_scenario("paper-14-live")
+    r0 = Roster.initial(s, uniform_delays(s.W, 7))
+    G0, _ = design_gains_for(r0, "fast")
+    (roster,) = [nxt for a, nxt in plan_failures(r0) if a == [2]]
+    init = carried_gains(r0, G0, roster)
+    exact = fast_recovery_gains(roster.scenario, roster.delays, init=init, starts=2)
+    assert exact.rho < FAST_TARGET and exact.iterations == 0        # the start, as it is
+    with monkeypatch.context() as m:
+        m.setattr(ClosedLoop, "companion",
+                  lambda *a, **k: pytest.fail("a companion eigenvalue problem was solved"))
+        G, info = design_gains_for(roster, "fast", init=init)
+    assert info["rho"] is None and info["rho_below"] in (FAST_TARGET, (1 + FAST_TARGET) / 2)
+    assert all(np.array_equal(g, h) for g, h in zip(G, exact.G))
+    assert f"radius below {info['rho_below']:g} (counted; exact to follow)" in _gain_words(info)
+    perf = performance_of(roster, G)
+    assert perf.rho == pytest.approx(exact.rho, rel=1e-12) and perf.rho < info["rho_below"]
+
+    # in force on that gain, then the worker's assessment: the record gets both figures
+    worker = _FakeWorker()
+    core = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.0, step_s=0.02),
+                       s.replace(delays=r0.delays), G0, r0.delays,
+                       gains=GainSource(worker=worker))
+    core.gains.put(roster, G, info)
+    for a in (1, 2, 3, 4):
+        core.on_liveliness("agent", a, True, 0.0)
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.on_liveliness("agent", 2, False, 2.05)
+    core.tick(2.05)
+    assert core.history[-1]["gains_rho"] is None
+    assert core.history[-1]["gains_rho_below"] == info["rho_below"]
+    for a in roster.ids:
+        core.on_status(_status(a, 110, epoch=1), 2.2)
+    core.tick(2.2)
+    core.gains.put(roster, G, {**info, "rho": perf.rho, "mse": perf.mse})
+    core.tick(2.25)
+    assert core.gain_notes == [{"epoch": 1, "gains": "fast", "gains_rho": perf.rho,
+                                "gains_mse": perf.mse}]
+    assert any(f"exact radius {perf.rho:.4f}, steady MSE {perf.mse:.4g}" in e
+               for e in core.events)

@@ -286,6 +286,8 @@ def _gain_record(info: dict) -> dict:
     """The keys a history record (and the monitor's events) keep of a gain's ``info``."""
     out = {"gains": info.get("kind", "unknown"), "gains_rho": info.get("rho"),
            "gains_mse": info.get("mse")}
+    if info.get("rho") is None and info.get("rho_below") is not None:
+        out["gains_rho_below"] = info["rho_below"]
     if info.get("polished"):
         out["gains_polished"] = True
     return out
@@ -297,6 +299,8 @@ def _gain_words(info: dict) -> str:
                                                        else "")
     if info.get("rho") is not None:
         words += f", exact radius {info['rho']:.4f}"
+    elif info.get("rho_below") is not None:
+        words += f", radius below {info['rho_below']:g} (counted; exact to follow)"
     if info.get("mse") is not None:
         words += f", steady MSE {info['mse']:.4g}"
     return words
@@ -358,17 +362,22 @@ def _design_gains(roster, kind: str = "fast", progress=None, init=None):
                              "mse": None, "seconds": float(res.seconds)}
     design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
     # a fast gain from a warm start (design.roster.carried_gains) tries it first, then the
-    # reset gain: one eigenvalue problem when the start is stable already
-    warm = {"init": init, "starts": 2} if kind == "fast" and init is not None else {}
+    # reset gain: no eigenvalue problem when the start's eigenvalues count below the
+    # target (its exact radius follows with its steady MSE, GainWorker.assess)
+    warm = ({"init": init, "starts": 2, "exact_rho": False}
+            if kind == "fast" and init is not None else {})
     try:
         res = design(roster.scenario, roster.delays, progress=progress, **warm)
     except SocmonError:
         res = None
     if res is None or not res.stable:
         return _design_gains(roster, "fast", progress) if kind == "refined" else (None, {})
-    return list(res.G), {"kind": kind, "rho": float(res.rho),
-                         "mse": None if res.mse_steady is None else float(res.mse_steady),
-                         "seconds": float(res.seconds)}
+    info = {"kind": kind, "rho": None if res.rho is None else float(res.rho),
+            "mse": None if res.mse_steady is None else float(res.mse_steady),
+            "seconds": float(res.seconds)}
+    if res.rho is None:
+        info["rho_below"] = float(res.rho_below)
+    return list(res.G), info
 
 
 def _tests_epoch(res) -> int | None:
@@ -1213,15 +1222,19 @@ class MonitorCore:
         return out
 
     def _note_gain_mse(self) -> None:
-        """The fast gain in force went out without its exact steady MSE; when the worker
-        sends it, it is said (an event, and a note in :attr:`gain_notes`)."""
-        if self.gain_info.get("kind") != "fast" or self.gain_info.get("mse") is not None:
+        """The fast gain in force went out without its exact steady MSE (and, when its
+        eigenvalues were counted below the target, without its exact radius); when the
+        worker sends them, they are said (an event, and a note in :attr:`gain_notes`)."""
+        if self.gain_info.get("kind") != "fast" or self.gain_info.get("mse") is not None \
+                or self.G is None:
             return
-        info = self.gains.info(self.roster)
-        if info.get("kind") != "fast" or info.get("mse") is None \
-                or info.get("rho") != self.gain_info.get("rho"):
+        G, info = self.gains.get(self.roster)
+        if info.get("kind") != "fast" or info.get("mse") is None or G is None \
+                or len(G) != len(self.G) \
+                or not all(np.array_equal(g, h) for g, h in zip(G, self.G)):
             return
-        self.gain_info = {**self.gain_info, "mse": info["mse"]}
+        self.gain_info = {**self.gain_info, "mse": info["mse"], "rho": info.get("rho")}
+        self.gain_info.pop("rho_below", None)
         self.gain_notes.append({"epoch": self.epoch, **_gain_record(self.gain_info)})
         self.events.append(f"epoch {self.epoch}: in force: {_gain_words(self.gain_info)}")
 

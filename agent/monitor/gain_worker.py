@@ -317,20 +317,21 @@ class _GiveWay(Exception):
     """A refinement in progress gives way to a newer precompute."""
 
 
-def steady_mse_of(roster, G):
-    """The exact steady MSE of gain ``G`` on the configuration ``roster`` with its delays
-    (:func:`design.closed_loop.exact_performance`; None when it has none)."""
+def performance_of(roster, G):
+    """The exact radius and steady MSE of gain ``G`` on the configuration ``roster`` with
+    its delays (:func:`design.closed_loop.exact_performance`)."""
     import numpy as np
 
     from design.closed_loop import exact_performance
 
     return exact_performance(roster.scenario, [np.asarray(g, dtype=float) for g in G],
-                             np.asarray(roster.delays)).mse
+                             np.asarray(roster.delays))
 
 
 def _assess(item, results) -> None:
     _, roster, G, info = item
-    results.put((roster, G, {**info, "mse": steady_mse_of(roster, G)}))
+    perf = performance_of(roster, G)
+    results.put((roster, G, {**info, "rho": perf.rho, "mse": perf.mse}))
 
 
 def plan_failures(roster) -> list:
