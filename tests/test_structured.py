@@ -225,10 +225,10 @@ def test_the_count_of_eigenvalues_outside_a_circle_is_the_dense_eigenvalues_coun
     assert answered > 350 and unstable > 100
 
 
-def test_a_counted_bound_is_the_target_else_halfway_to_1_else_none(monkeypatch):
-    """counted_bound (a fast recovery design's warm start): the target when every
-    eigenvalue is counted below it, halfway from it to 1 when one is above it, None when
-    one is above that too; no eigenvalue problem is solved for any of them."""
+def test_a_counted_bound_is_halfway_to_1_when_every_eigenvalue_is_below_it(monkeypatch):
+    """counted_bound (a fast recovery design's warm start): halfway from the target to 1
+    when every eigenvalue is counted below it, whether or not some is above the target;
+    None when one is above it; no eigenvalue problem is solved for any of them."""
     from design.gain_design import counted_bound
 
     rng = np.random.default_rng(5)
@@ -242,7 +242,7 @@ def test_a_counted_bound_is_the_target_else_halfway_to_1_else_none(monkeypatch):
                 break
     monkeypatch.setattr(cl, "spectral_radius",
                         lambda *a, **k: pytest.fail("an eigenvalue problem was solved"))
-    assert counted_bound(loop, rho + 0.1) == rho + 0.1
+    assert counted_bound(loop, rho + 0.1) == pytest.approx((1 + rho + 0.1) / 2)
     assert counted_bound(loop, rho - 0.05) == pytest.approx((1 + rho - 0.05) / 2)
     assert counted_bound(loop, 2 * rho - 1.1) is None
     delay_free = ClosedLoop(loop.A, loop.W, np.zeros_like(loop.delays), loop.measure, loop.G)
