@@ -153,7 +153,7 @@ class DesignResult:
     rho_below : float or None, with ``rho`` None: every eigenvalue of the loop has a
         modulus below this (:meth:`design.closed_loop.ClosedLoop.count_outside`)
     mse_steady : float or None, exact steady MSE ``trace(P)/(nN)`` (None when unstable)
-    stable : bool, ``rho < 1``
+    stable : bool, ``rho < 1`` (or, with ``rho`` None, counted below ``rho_below`` < 1)
     seconds : float, wall time of the design
     iterations : int, optimiser iterations (BFGS) or cone-complementarity iterations
     history : list of dict, one record per iteration / solve (status of every solve)

@@ -362,8 +362,9 @@ def _design_gains(roster, kind: str = "fast", progress=None, init=None):
                              "mse": None, "seconds": float(res.seconds)}
     design = refined_recovery_gains if kind == "refined" else fast_recovery_gains
     # a fast gain from a warm start (design.roster.carried_gains) tries it first, then the
-    # reset gain: no eigenvalue problem when the start's eigenvalues count below the
-    # target (its exact radius follows with its steady MSE, GainWorker.assess)
+    # reset gain: no eigenvalue problem when the start's eigenvalues count below halfway
+    # from the target to 1 (design.gain_design.counted_bound; its exact radius follows
+    # with its steady MSE, GainWorker.assess)
     warm = ({"init": init, "starts": 2, "exact_rho": False}
             if kind == "fast" and init is not None else {})
     try:
@@ -1223,7 +1224,7 @@ class MonitorCore:
 
     def _note_gain_mse(self) -> None:
         """The fast gain in force went out without its exact steady MSE (and, when its
-        eigenvalues were counted below the target, without its exact radius); when the
+        eigenvalues were counted below a bound, without its exact radius); when the
         worker sends them, they are said (an event, and a note in :attr:`gain_notes`)."""
         if self.gain_info.get("kind") != "fast" or self.gain_info.get("mse") is not None \
                 or self.G is None:
