@@ -25,7 +25,12 @@ Usage::
 
     python scripts/sim_peak.py [--scenario paper-14-live] [--taus 3,7,15] [--runs 50]
         [--steps 400] [--fail-step 150] [--design-s 0.5] [--initial-gain mse|rho]
-        [--gains-cache DIR]
+        [--gains-cache DIR] [--no-precompute]
+
+``--no-precompute``: as ``socmon up --no-precompute``, the monitors design nothing ahead;
+each failure's first gain is the fast design from the gains in force (the carried gains
+when their eigenvalues are counted below 0.975, :func:`design.gain_design.counted_bound`),
+requested when the failure comes and answered ``--design-s`` later.
 """
 
 from __future__ import annotations
@@ -100,13 +105,15 @@ def initial_gain(s, delays, tau: int, objective: str, cache) -> list:
 
 
 def main(scenario: str, taus, runs: int, steps: int, fail_step: int, design_s: float,
-         objective: str = "mse", cache=None) -> int:
+         objective: str = "mse", cache=None, precompute: bool = True) -> int:
     s = load_scenario(scenario)
-    config = SimConfig(design_s=design_s)
+    config = SimConfig(design_s=design_s, precompute=precompute)
     cases = [(a,) for a in range(1, s.N + 1)] + [(1, 2), ()]
     print(f"{s.name}: {runs} runs a case, {steps} steps, crash at step {fail_step}; the MSE "
           "averaged over the runs, against the exact level of the configuration in force; "
-          f"the run's gain: least {'steady MSE' if objective == 'mse' else 'radius'}")
+          f"the run's gain: least {'steady MSE' if objective == 'mse' else 'radius'}"
+          + ("" if precompute else f"; nothing precomputed, a first gain {design_s:g} s "
+             "after it is asked for"))
     print(f"{'T':>3} {'killed':>7} {'after':>8} {'peak/after':>10} {'at':>5} {'>2x':>4} "
           f"{'before/exact':>12} {'switch':>6} {'first gain':>10} {'recovered':>9} "
           f"{'cpu s':>6}", flush=True)
@@ -139,9 +146,11 @@ if __name__ == "__main__":
                              "least radius")
     parser.add_argument("--gains-cache", default=None,
                         help="folder keeping the run's gain per delay bound across calls")
+    parser.add_argument("--no-precompute", action="store_true",
+                        help="the monitors design nothing ahead (as up --no-precompute)")
     args = parser.parse_args()
     if not 50 <= args.fail_step < args.steps:
         parser.error("--fail-step: at least 50 (the level before it) and below --steps")
     taus = [int(t) for t in args.taus.split(",") if t]
     sys.exit(main(args.scenario, taus, args.runs, args.steps, args.fail_step, args.design_s,
-                  args.initial_gain, args.gains_cache))
+                  args.initial_gain, args.gains_cache, not args.no_precompute))

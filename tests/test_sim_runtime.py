@@ -401,3 +401,27 @@ def test_a_lie_after_a_recovery_is_convicted_on_the_new_configurations_tests(com
     assert "residual tests of the configuration of epoch " in f["evidence"], f
     assert 450 <= f["detected_step"] <= 470 and s["residual_alerts"] == []
     assert s["recovered"] is True and r.violations() == []
+
+
+def test_without_the_precompute_a_crash_is_answered_by_a_counted_first_gain(live):
+    """As ``up --no-precompute`` at 7-step delays: the crash's first gain is requested when
+    it comes; the gains in force, carried, are counted below halfway from the fast target
+    to 1 and go out without an eigenvalue problem; the refined gain follows; the run
+    recovers and equals the simulator's replay."""
+    from agent.monitor.core import design_gains_for
+    from design.reconfigure import FAST_TARGET
+    from design.roster import Roster
+
+    s, _ = live
+    delays = resolve_delays(s, "uniform:7")
+    G, _ = design_gains_for(Roster.initial(s, delays), "fast")
+    r = SimRuntime(s, G, delays, seed=1, faults=[Fault(150, "crash", 2)],
+                   config=SimConfig(precompute=False, design_s=0.2)).run(300)
+    assert r.summary["recovered"] is True
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    first, *later = [h for m in r.monitors.values()
+                     for h in (getattr(m, "core", None) or m[0]).history]
+    assert first["precomputed"] is False and first["gains"] == "fast"
+    assert first["gains_rho"] is None and first["gains_rho_below"] == (1 + FAST_TARGET) / 2
+    assert [h["gains"] for h in later] == ["refined"]

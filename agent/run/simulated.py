@@ -111,6 +111,8 @@ class SimConfig:
     restart_s: float = 0.5               # a killed monitor's successor declares its token
     #                                      this late (its start, its precompute: up)
     start_s: float = 0.5                 # the world's first step (agents heard each other)
+    precompute: bool = True              # False: as up --no-precompute, every failure's
+    #                                      first gain requested when it comes
     deadline_s: float | None = None      # agents' deadline; default one step
 
 
@@ -217,12 +219,15 @@ class _GainDesigns:
         self.generation = 0
 
     def _answer(self, roster, kinds, init=None):
-        for kind in kinds:
+        at = 0.0
+        for kind in kinds:                     # one after the other, design_s apart
+            at += self.rt.config.design_s
             G, info = self._design(roster, kind, init if kind == "fast" else None)
-            self.rt.after(self.rt.config.design_s,
-                          lambda G=G, info=info: self.ready.append((roster, G, info)))
+            self.rt.after(at, lambda G=G, info=info: self.ready.append((roster, G, info)))
 
-    def request(self, roster, kinds=("fast",), init=None):
+    def request(self, roster, kinds=("fast", "refined"), init=None):
+        # as GainWorker.request: a first gain, then the refined one (an unforeseen
+        # configuration's refined gain was never asked for here)
         self._answer(roster, kinds, init)
 
     def assess(self, roster, G, info):
@@ -705,7 +710,8 @@ class SimRuntime:
         m.seat.lines.clear()
         if m.seat.precompute:
             m.seat.precompute = False
-            m.designs.precompute(m.core.roster, m.core.G)
+            if self.config.precompute:
+                m.designs.precompute(m.core.roster, m.core.G)
         if state != "act":
             m.core.events.clear()
             return
@@ -714,7 +720,7 @@ class SimRuntime:
         m.core.events.clear()
         for kind, fields in m.core.new_records():
             self._monitor_event(m, kind, fields)
-            if kind == "reassign":
+            if kind == "reassign" and self.config.precompute:
                 m.designs.precompute(m.core.roster, m.core.G)
         roster = m.core.roster_message
         if roster is not None and self.now >= m.roster_at:
