@@ -355,7 +355,7 @@ def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
         if core.verdicts:
             break
     (v,) = core.verdicts
-    assert v.cause == "delay" and "radius" in v.evidence
+    assert v.cause == "delay" and "the exact loop is not stable (radius" in v.evidence
     asg = [m for m in out if isinstance(m, Assignment)]
     assert {m.agent for m in asg} == {1, 2, 3} and {m.epoch for m in asg} == {1}
     G_new = [asg_by.spec.gain for asg_by in sorted(asg, key=lambda m: m.agent)]
@@ -1857,3 +1857,27 @@ def test_a_first_gain_counted_below_its_target_is_the_exact_designs_and_its_radi
                                 "gains_mse": perf.mse}]
     assert any(f"exact radius {perf.rho:.4f}, steady MSE {perf.mse:.4g}" in e
                for e in core.events)
+
+
+def test_the_stability_of_learned_delays_is_counted_in_the_loop_not_solved_for(monkeypatch):
+    """The delay verdict's check runs in the monitor's loop: at long delays a stable
+    loop's eigenvalues are counted inside the unit circle, with no eigenvalue problem of
+    order (T+1) nN; an unstable one (whose eigenvalues crowd the circle, where the count
+    does not settle) gets its exact radius."""
+    from design.closed_loop import ClosedLoop, closed_loop_for
+    from design.roster import Roster
+    from design.scenario import load_scenario, uniform_delays
+
+    from agent.monitor.core import _stability
+
+    s = load_scenario("paper-14-live")
+    D = uniform_delays(s.W, 9)
+    G, _ = design_gains_for(Roster.initial(s, D), "fast")
+    unstable = closed_loop_for(s, [6.0 * g for g in G], D)
+    rho = float(np.max(np.abs(np.linalg.eigvals(unstable.companion(sparse=False)))))
+    assert rho > 1.01
+    assert _stability(unstable) == (False, f"radius {rho:.4f}")
+    monkeypatch.setattr(ClosedLoop, "spectral_radius",
+                        lambda *a: pytest.fail("an eigenvalue problem was solved"))
+    assert _stability(closed_loop_for(s, G, D)) == (
+        True, "every eigenvalue counted inside the unit circle: radius < 1")
