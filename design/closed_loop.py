@@ -72,6 +72,8 @@ COUNT_MAX_POINTS = 1024
 #: :data:`COUNT_MIN_TAUBAR` steps (below, the dense eigenvalue problem costs as little).
 COUNT_MAX_STATES = 160
 COUNT_MIN_TAUBAR = 3
+#: points of the circle solved at once (memory: about 50 x nN^2 bytes a point)
+COUNT_CHUNK = 64
 
 
 def spectral_radius(M, dense=None) -> float:
@@ -315,16 +317,21 @@ class ClosedLoop:
         F = np.stack([self.F(int(r)) for r in self.lags]).astype(complex)
 
         def integrand(k, K):
-            # w tr(Q^-1 Q'(w)) = -tr(Q^-1 sum_r (r+1) w^(r+1) F_r) at w_k = e^(2 pi i k/K)/c
-            w = np.exp(2j * np.pi * np.asarray(k, dtype=float) / K) / c
-            coef = w[:, None] ** (lags[None, :] + 1.0)
-            Q = np.eye(m) - np.einsum("kl,lij->kij", coef, F)
-            dQ = np.einsum("kl,lij->kij", coef * (lags[None, :] + 1.0), F)
-            try:
-                X = np.linalg.solve(Q, dQ)
-            except np.linalg.LinAlgError:
-                return None
-            return -np.trace(X, axis1=1, axis2=2)
+            # w tr(Q^-1 Q'(w)) = -tr(Q^-1 sum_r (r+1) w^(r+1) F_r) at w_k = e^(2 pi i k/K)/c,
+            # COUNT_CHUNK points at a time (three complex arrays of nN x nN a point)
+            out = []
+            for part in np.array_split(np.asarray(k, dtype=float),
+                                       max(1, -(-len(k) // COUNT_CHUNK))):
+                w = np.exp(2j * np.pi * part / K) / c
+                coef = w[:, None] ** (lags[None, :] + 1.0)
+                Q = np.eye(m) - np.einsum("kl,lij->kij", coef, F)
+                dQ = np.einsum("kl,lij->kij", coef * (lags[None, :] + 1.0), F)
+                try:
+                    X = np.linalg.solve(Q, dQ)
+                except np.linalg.LinAlgError:
+                    return None
+                out.append(-np.trace(X, axis1=1, axis2=2))
+            return np.concatenate(out)
 
         # the sum over k = 0..K-1 is g_0 + g_(K/2) + 2 Re sum_(0<k<K/2) g_k
         K = 32
