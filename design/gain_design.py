@@ -188,13 +188,13 @@ class DesignResult:
     rho_below: float | None = None
 
     def summary(self) -> dict:
-        """JSON-ready record (no gain arrays)."""
-        return {
+        """JSON-ready record (no gain arrays; ``rho_below`` only when the radius was
+        counted, not computed)."""
+        out = {
             "method": self.method,
             "objective": self.objective,
             "delays": np.asarray(self.delays).tolist(),
             "rho_exact": None if self.rho is None else float(self.rho),
-            "rho_below": self.rho_below,
             "mse_steady_exact": None if self.mse_steady is None else float(self.mse_steady),
             "stable": bool(self.stable),
             "seconds": float(self.seconds),
@@ -206,6 +206,9 @@ class DesignResult:
             "gaps": list(self.gaps),
             "gap_design": dict(self.gap_design),
         }
+        if self.rho_below is not None:
+            out["rho_below"] = float(self.rho_below)
+        return out
 
 
 # ---------------------------------------------------------------------------------
