@@ -440,7 +440,8 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
         res = _design_default(scenario, D, objective, seed, opts, t0, report, exact_mse)
     G, history, iterations, status, rho_exact, gap_info = res
     if rho_exact is None and method != "ccl" and not exact_mse:
-        # a warm start counted below a radius < 1 (option exact_rho False): stable
+        # a warm start counted below a radius < 1 (option exact_rho False): stable (ccl
+        # leaves rho_exact None too: its radius is computed below)
         below = next(h["rho_below"] for h in reversed(history) if "rho_below" in h)
         return _counted_result(scenario, D, method, objective, seed, opts, t0, detect, G,
                                history, status, below)

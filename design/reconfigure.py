@@ -14,7 +14,8 @@ share:
    the fast gain: what a precomputed failure switches to first) and
    :func:`refined_recovery_gains` (the MSE-optimised one) design from there; all are
    deterministic (bounded by iterations, no wall clock) and certified by the exact
-   radius of the delayed loop;
+   radius of the delayed loop (a fast design with ``exact_rho=False``: by its
+   eigenvalues counted below a bound, :func:`design.gain_design.counted_bound`);
 4. :func:`build_recovery` returns the simulator's :class:`design.simulate.Recovery`;
    :func:`precompute_failures` does steps 1-3 for every failure set of a kind.
 
@@ -152,7 +153,8 @@ def fast_recovery_gains(scenario_after, delays, init=None, seed: int = 0,
                         target: float = FAST_TARGET, max_iter: int = 60, **options):
     """A first stabilising gain for ``scenario_after``: objective rho, stop below
     ``target``, at most ``max_iter`` iterations (one start from ``init`` when given,
-    else two). Deterministic; ``rho`` is exact; ``mse_steady`` is not computed. Without
+    else two). Deterministic; ``rho`` is exact (None with ``exact_rho=False`` when the
+    start was counted below a bound: ``rho_below``); ``mse_steady`` is not computed. Without
     the distributed pair's rank when W (x) A is stable (detectable then: the check is a
     staircase of order nN, 1.1-1.5 s at communities-32), the gap terms and the gap report
     (N eigenvalue problems of the companion order: 3 of order 864 for Sampson at T = 15):

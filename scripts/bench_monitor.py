@@ -292,7 +292,10 @@ def per_failure(tmp, taus, kill_step, steps, busy=0, no_precompute=False):
                    "load": load,
                    "reissues": len(s.get("reissues", [])),
                    "first_gain": (f"{r.get('gains')}{' pre' if r.get('precomputed') else ''}"
-                                  f" {r.get('gains_rho') or float('nan'):.3f}" if r else None),
+                                  + (f" {r['gains_rho']:.3f}" if r.get("gains_rho") is not None
+                                     else f" <{r['gains_rho_below']:g}"
+                                     if r.get("gains_rho_below") is not None else " ?")
+                                  if r else None),
                    "refined_epoch": later[0]["epoch"] if later else None,
                    "recovered": s.get("recovered")}
             rows.append(row)

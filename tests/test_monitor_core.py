@@ -636,11 +636,17 @@ def test_a_failure_on_a_precomputed_fast_gain_gets_the_refined_one_later(paper14
     for a in roster.ids:
         core.on_status(_status(a, 110, epoch=1), 2.2)
     assert core.tick(2.2) == []                           # in force; no refined gain yet
-    from agent.monitor.gain_worker import performance_of
+    import queue
 
-    mse = performance_of(roster, fast_G).mse              # what the worker sends back
-    assert mse > 0
-    core.gains.put(roster, fast_G, {**fast, "mse": mse})
+    from agent.monitor.gain_worker import _assess
+
+    sent = queue.Queue()
+    _assess(("assess", roster, fast_G, fast), sent)       # what the worker sends back
+    _, G_back, assessed = sent.get_nowait()
+    mse = assessed["mse"]
+    assert mse > 0 and assessed["assessed"] is True
+    assert assessed["rho"] == pytest.approx(fast["rho"], rel=1e-12)
+    core.gains.put(roster, G_back, assessed)
     assert core.tick(2.25) == []
     assert core.gain_notes == [{"epoch": 1, "gains": "fast", "gains_rho": fast["rho"],
                                 "gains_mse": mse}]
@@ -1851,7 +1857,8 @@ def test_a_first_gain_counted_below_its_target_is_the_exact_designs_and_its_radi
     for a in roster.ids:
         core.on_status(_status(a, 110, epoch=1), 2.2)
     core.tick(2.2)
-    core.gains.put(roster, G, {**info, "rho": perf.rho, "mse": perf.mse})
+    assert ("assess",) in [k for _, k in worker.requests]     # asked for, once in force
+    core.gains.put(roster, G, {**info, "rho": perf.rho, "mse": perf.mse, "assessed": True})
     core.tick(2.25)
     assert core.gain_notes == [{"epoch": 1, "gains": "fast", "gains_rho": perf.rho,
                                 "gains_mse": perf.mse}]
@@ -1881,3 +1888,27 @@ def test_the_stability_of_learned_delays_is_counted_in_the_loop_not_solved_for(m
                         lambda *a: pytest.fail("an eigenvalue problem was solved"))
     assert _stability(closed_loop_for(s, G, D)) == (
         True, "every eigenvalue counted inside the unit circle: radius < 1")
+
+
+def test_an_assessment_is_kept_apart_and_completes_only_its_own_gain(paper14):
+    """The worker's assessment of a fast gain (its exact radius and MSE) is kept whatever
+    came for the configuration meanwhile: a polished gain in the cache is not replaced
+    by it, and the fast gain's entry, when still there, gets its figures."""
+    from design.roster import Roster
+
+    roster = Roster.initial(paper14)
+    fast = [np.ones((paper14.n, len(m))) for m in paper14.measure]
+    polished = [2 * g for g in fast]
+    gains = GainSource()
+    gains.put(roster, fast, {"kind": "fast", "rho": None, "rho_below": 0.975, "mse": None})
+    figures = {"kind": "fast", "rho": 0.93, "mse": 0.5, "assessed": True}
+    gains.put(roster, fast, figures)
+    G, info = gains.get(roster)
+    assert np.array_equal(G[0], fast[0]) and (info["rho"], info["mse"]) == (0.93, 0.5)
+    gains.put(roster, polished, {"kind": "fast", "polished": True, "rho": 0.9, "mse": None})
+    gains.put(roster, fast, {**figures, "rho": 0.94})
+    G, info = gains.get(roster)
+    assert np.array_equal(G[0], polished[0]) and info == {
+        "kind": "fast", "polished": True, "rho": 0.9, "mse": None}
+    G, info = gains.assessment(roster)
+    assert np.array_equal(G[0], fast[0]) and info["rho"] == 0.94

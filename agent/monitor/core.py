@@ -193,9 +193,12 @@ class GainSource:
     Each entry is ``(G, info)``: ``G`` the list of G_i by row, ``info`` what
     :func:`design_gains_for` says of it (``kind``: ``"fast"`` a first certified gain,
     ``"refined"`` the gain of least steady MSE, ``"initial"`` the run's own; ``rho``, the
-    exact radius of the delayed loop; ``mse``, its exact steady MSE; ``polished``, a fast
+    exact radius of the delayed loop, or None and ``rho_below`` when its eigenvalues were
+    counted below that; ``mse``, its exact steady MSE; ``polished``, a fast
     gain given a few MSE iterations). A refined entry is never replaced by a fast one, nor
-    a polished one by a plain fast one.
+    a polished one by a plain fast one. The worker's assessment of a gain (``assessed``:
+    its exact radius and MSE, :meth:`agent.monitor.gain_worker.GainWorker.assess`) is
+    kept apart (:meth:`assessment`) and completes the entry of the same gain.
 
     With a ``worker`` (:class:`agent.monitor.gain_worker.GainWorker`, the monitor process) nothing
     is designed here: :meth:`ready` asks the worker once and says False until its answer
@@ -205,6 +208,7 @@ class GainSource:
 
     def __init__(self, design=None, worker=None):
         self._cache: dict = {}            # key -> (G, info)
+        self._assessed: dict = {}         # key -> (G, info): the worker's assessments
         self._none: set = set()           # keys for which no stabilising gain was found
         self._requested: set = set()
         self._design = design or design_gains_for
@@ -225,12 +229,25 @@ class GainSource:
                 self._none.add(k)
             return
         old = self._cache.get(k)
+        if info.get("assessed"):
+            G = [np.asarray(g, dtype=float) for g in G]
+            self._assessed[k] = (G, info)
+            if old is not None and _same_gains(old[0], G):
+                self._cache[k] = (old[0], {**old[1], "rho": info.get("rho"),
+                                           "mse": info.get("mse")})
+            return
         if old is not None and info.get("kind") == "fast" and (
                 old[1].get("kind") == "refined"
                 or old[1].get("polished") and not info.get("polished")):
             return
         self._cache[k] = ([np.asarray(g, dtype=float) for g in G], info)
         self._none.discard(k)
+
+    def assessment(self, roster):
+        """``(G, info)`` of the worker's newest assessment for ``roster`` (a gain's exact
+        radius and steady MSE), or ``(None, {})``."""
+        entry = self._assessed.get(self.key(roster))
+        return (entry[0], dict(entry[1])) if entry is not None else (None, {})
 
     def has(self, roster) -> bool:
         return self.key(roster) in self._cache
@@ -280,6 +297,11 @@ class GainSource:
     def design(self, roster, refined: bool = False):
         """Design gains for ``roster`` now (no cache): ``(G or None, info)``."""
         return self._design(roster, "refined" if refined else "fast")
+
+
+def _same_gains(G, H) -> bool:
+    return G is not None and H is not None and len(G) == len(H) and all(
+        np.array_equal(g, h) for g, h in zip(G, H))
 
 
 def _gain_record(info: dict) -> dict:
@@ -387,7 +409,7 @@ def _stability(loop) -> tuple:
     milliseconds where the exact radius is a dense eigenvalue problem of order (T+1) nN,
     0.35-1 s for Sampson-like at 15-step delays, that held the loop's detection back),
     the exact radius when the count does not pay or settle."""
-    count = loop.count_outside(1.0) if loop.count_pays else None
+    count = loop.count_outside(1.0, max_points=512) if loop.count_pays else None
     if count is None:
         rho = loop.spectral_radius()
         return rho < 1, f"radius {rho:.4f}"
@@ -1240,16 +1262,19 @@ class MonitorCore:
         """The fast gain in force went out without its exact steady MSE (and, when its
         eigenvalues were counted below a bound, without its exact radius); when the
         worker sends them, they are said (an event, and a note in :attr:`gain_notes`)."""
-        if self.gain_info.get("kind") != "fast" or self.gain_info.get("mse") is not None \
+        if self.gain_info.get("kind") != "fast" or self.gain_info.get("assessed") \
                 or self.G is None:
             return
-        G, info = self.gains.get(self.roster)
-        if info.get("kind") != "fast" or info.get("mse") is None or G is None \
-                or len(G) != len(self.G) \
-                or not all(np.array_equal(g, h) for g, h in zip(G, self.G)):
+        G, info = self.gains.assessment(self.roster)
+        if info.get("rho") is None or not _same_gains(G, self.G):
             return
-        self.gain_info = {**self.gain_info, "mse": info["mse"], "rho": info.get("rho")}
-        self.gain_info.pop("rho_below", None)
+        below = self.gain_info.pop("rho_below", None)
+        self.gain_info = {**self.gain_info, "mse": info.get("mse"), "rho": info["rho"],
+                          "assessed": True}
+        if below is not None and not info["rho"] < below:
+            # the count said otherwise: never seen; said, and the refined gain replaces it
+            self.events.append(f"WARNING: epoch {self.epoch}: the fast gain's exact radius "
+                               f"{info['rho']:.4f} is not below {below:g}, as its count said")
         self.gain_notes.append({"epoch": self.epoch, **_gain_record(self.gain_info)})
         self.events.append(f"epoch {self.epoch}: in force: {_gain_words(self.gain_info)}")
 

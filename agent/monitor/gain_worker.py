@@ -6,7 +6,8 @@ guard then suspended its verdicts, and a design made inside the loop left every 
 waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
 
 - the *urgent* one designs, on request and nothing else, the first gain of a
-  configuration nobody foresaw: a certified gain (stable for the configuration's delays,
+  configuration nobody foresaw: a certified gain (stable for the configuration's delays:
+  its eigenvalues counted below 0.975, :func:`design.gain_design.counted_bound`, or its
   exact radius < 1), sent at once; its refined gain follows from the precompute process;
 - the *precompute* one designs the refined gain of a configuration put in force on a
   fast gain, and a fast gain for every single failure (and pairs, for
@@ -18,8 +19,9 @@ waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
   pauses at its next design iteration while the urgent one designs a first gain (when both shared one process, a request waited for the
   precompute design in progress: 1.6 s from verdict to roles beside two busy loops);
 - the *background* one refines the precomputed ones (the gain of least steady MSE, seconds each), and
-  computes the exact steady MSE of a fast gain put in force (:meth:`GainWorker.assess`:
-  the fast design does not compute it, a Lyapunov solve of seconds); a newer
+  computes the exact radius and steady MSE of a fast gain put in force
+  (:meth:`GainWorker.assess`: the fast design does not compute the MSE, a Lyapunov solve
+  of seconds, nor the radius of a gain it counted); a newer
   configuration supersedes the list it works on. It runs at a lower priority (nice 10), so
   that on a loaded machine the monitor's loop, the agents and the urgent designs go first
   (at nice 10 beside two busy loops it got too little CPU to finish even the fast pass
@@ -27,7 +29,8 @@ waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
 
 Results come back as ``(roster, G, info)``, ``info`` as
 :func:`agent.monitor.core.design_gains_for` gives it (``kind`` ``"fast"`` or ``"refined"``,
-the exact radius and steady MSE; G is None when no stabilising gain was found); the monitor's loop drains them with
+the exact radius, or ``rho_below`` when it was counted, and the steady MSE; G is None
+when no stabilising gain was found); the monitor's loop drains them with
 :meth:`GainWorker.poll` between ticks and hands them to its
 :class:`agent.monitor.core.GainSource`. The processes are started with ``spawn`` (the
 monitor's zenoh session and its threads are not forked) and import only ``design``.
@@ -94,8 +97,8 @@ class GainWorker:
             self._fast.put(("refine", roster))
 
     def assess(self, roster, G, info) -> None:
-        """The exact steady MSE of the gain ``G`` (``info`` its design's) for ``roster``,
-        sent back as ``(roster, G, info + mse)``. The background process computes it
+        """The exact radius and steady MSE of the gain ``G`` (``info`` its design's) for
+        ``roster``, sent back as ``(roster, G, info + rho, mse, assessed)``. The background process computes it
         between two refinements: a solve of up to tens of seconds at large delays must not
         hold an unforeseen failure's first gain back."""
         self._start()
@@ -331,7 +334,7 @@ def performance_of(roster, G):
 def _assess(item, results) -> None:
     _, roster, G, info = item
     perf = performance_of(roster, G)
-    results.put((roster, G, {**info, "rho": perf.rho, "mse": perf.mse}))
+    results.put((roster, G, {**info, "rho": perf.rho, "mse": perf.mse, "assessed": True}))
 
 
 def plan_failures(roster) -> list:

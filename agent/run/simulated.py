@@ -20,7 +20,8 @@ The model of the transport: every message takes ``latency_s`` plus a uniform jit
 nothing; a paused one receives its messages when it resumes. A liveliness token goes at
 once when its process dies (the kernel closes its sockets), ``lease_s`` after it stopped
 (zenoh's link lease), and comes back when a paused process resumes. Gains the monitor asks
-for come ``design_s`` after the request; the failures of the configuration in force are
+for come ``design_s`` after the request (a first gain, then its refined gain ``design_s``
+later: live, seconds to minutes); the failures of the configuration in force are
 precomputed as the monitor's worker does, one every ``precompute_s``, then polished, one
 every ``polish_s`` (designed at once in real time and cached across runs by
 configuration).
