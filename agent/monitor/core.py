@@ -1268,9 +1268,9 @@ class MonitorCore:
         G, info = self.gains.assessment(self.roster)
         if info.get("rho") is None or not _same_gains(G, self.G):
             return
-        below = self.gain_info.pop("rho_below", None)
-        self.gain_info = {**self.gain_info, "mse": info.get("mse"), "rho": info["rho"],
-                          "assessed": True}
+        below = self.gain_info.get("rho_below")
+        self.gain_info = {**{k: v for k, v in self.gain_info.items() if k != "rho_below"},
+                          "mse": info.get("mse"), "rho": info["rho"], "assessed": True}
         if below is not None and not info["rho"] < below:
             # the count said otherwise: never seen; said, and the refined gain replaces it
             self.events.append(f"WARNING: epoch {self.epoch}: the fast gain's exact radius "
