@@ -1912,3 +1912,16 @@ def test_an_assessment_is_kept_apart_and_completes_only_its_own_gain(paper14):
         "kind": "fast", "polished": True, "rho": 0.9, "mse": None}
     G, info = gains.assessment(roster)
     assert np.array_equal(G[0], fast[0]) and info["rho"] == 0.94
+
+
+def test_an_exact_radius_not_below_the_counted_bound_is_said(core):
+    """The assessment of a counted gain in force whose exact radius is not below the
+    bound its count gave: the figures are recorded and a WARNING says so."""
+    core.gain_info = {"kind": "fast", "rho": None, "rho_below": 0.975, "mse": None}
+    core.gains.put(core.roster, core.G, {"kind": "fast", "rho": 0.99, "mse": 0.7,
+                                         "assessed": True})
+    core.tick(0.1)
+    assert core.gain_info["rho"] == 0.99 and "rho_below" not in core.gain_info
+    assert core.gain_notes[-1]["gains_rho"] == 0.99
+    assert any(e.startswith("WARNING: epoch 0: the fast gain's exact radius 0.9900 is not "
+                            "below 0.975") for e in core.events)
