@@ -439,41 +439,44 @@ def _design(scenario, D, method, objective, seed, opts, t0, exact_mse=True, repo
     else:
         res = _design_default(scenario, D, objective, seed, opts, t0, report, exact_mse)
     G, history, iterations, status, rho_exact, gap_info = res
-    if rho_exact is None and method != "ccl" and not exact_mse:
-        # a warm start counted below a radius < 1 (option exact_rho False): stable (ccl
-        # leaves rho_exact None too: its radius is computed below)
-        below = next(h["rho_below"] for h in reversed(history) if "rho_below" in h)
-        return _counted_result(scenario, D, method, objective, seed, opts, t0, detect, G,
-                               history, status, below)
-    certify = report.stage("certifying (exact radius and steady MSE)", "rho", 0)
-    if certify is not None:
-        certify(0, float("nan"))        # one dense eigenvalue problem and Lyapunov solve
-    # the exact radius of this very gain, computed once (by ClosedLoop) where the design
-    # already did: a dense eigenvalue problem of order (taubar + 1) nN, or two ARPACK
-    # runs, are not repeated (nor by the MSE's certificate, which needs it)
-    loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G, rho=rho_exact)
-    rho = loop.spectral_radius()
-    stable = bool(rho < 1)
-    mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
-           if stable and exact_mse else None)
+    # a warm start counted below a radius < 1 (option exact_rho False): stable, no exact
+    # radius, MSE or gap report (ccl leaves rho_exact None too: its radius follows)
+    below = (next(h["rho_below"] for h in reversed(history) if "rho_below" in h)
+             if rho_exact is None and method != "ccl" and not exact_mse else None)
+    gaps = []
+    if below is not None:
+        rho, stable, mse = None, True, None
+    else:
+        certify = report.stage("certifying (exact radius and steady MSE)", "rho", 0)
+        if certify is not None:
+            certify(0, float("nan"))    # one dense eigenvalue problem and Lyapunov solve
+        # the exact radius of this very gain, computed once (by ClosedLoop) where the
+        # design already did: a dense eigenvalue problem of order (taubar + 1) nN, or two
+        # ARPACK runs, are not repeated (nor by the MSE's certificate, which needs it)
+        loop = ClosedLoop(scenario.A, scenario.W, D, scenario.measure, G, rho=rho_exact)
+        rho = loop.spectral_radius()
+        stable = bool(rho < 1)
+        mse = (loop.mse_steady(scenario.process_noise, scenario.measurement_noise)
+               if stable and exact_mse else None)
+        known = None
+        if gap_info and not gap_info["iterations"]:      # the gains the gap radii were of
+            known = {int(f): r for f, r in gap_info["rho_gap_before"].items()}
+        gaps = ([g.to_dict() for g in gap_report(scenario, G, D, mse=False, radii=known)]
+                if opts.get("report_gaps", True) or known else [])
+        for g in gaps:
+            g.pop("mse_steady_exact")
     # the delay-free loop: the same one when there are no delays
-    rho0 = rho if not np.any(D) else ClosedLoop(
+    rho0 = rho if rho is not None and not np.any(D) else ClosedLoop(
         scenario.A, scenario.W, np.zeros_like(D), scenario.measure, G).spectral_radius()
-    known = None
-    if gap_info and not gap_info["iterations"]:      # the gains the gap radii were of
-        known = {int(f): r for f, r in gap_info["rho_gap_before"].items()}
-    gaps = ([g.to_dict() for g in gap_report(scenario, G, D, mse=False, radii=known)]
-            if opts.get("report_gaps", True) or known else [])
-    for g in gaps:
-        g.pop("mse_steady_exact")
     shown = {k: v for k, v in opts.items() if k != "init"}
     return DesignResult(
-        G=G, method=method, objective=objective, delays=D, rho=float(rho),
+        G=G, method=method, objective=objective, delays=D,
+        rho=None if rho is None else float(rho),
         mse_steady=None if mse is None else float(mse), stable=stable,
         seconds=time.perf_counter() - t0, iterations=int(iterations), history=history,
         status=status, seed=int(seed), rho_delay_free=float(rho0),
         detectability=detect.to_dict(), options=shown, gaps=gaps,
-        gap_design=gap_info or {},
+        gap_design=gap_info or {}, rho_below=below,
     )
 
 
@@ -501,20 +504,6 @@ def counted_bound(loop, target: float) -> float | None:
     if c < 1 and loop.count_outside(c, max_points=COUNT_POINTS) == 0:
         return c
     return None
-
-
-def _counted_result(scenario, D, method, objective, seed, opts, t0, detect, G, history,
-                    status, below) -> DesignResult:
-    """The result of a design whose gain's eigenvalues were counted below ``below``: no
-    exact radius, no MSE, no gap report."""
-    rho0 = ClosedLoop(scenario.A, scenario.W, np.zeros_like(D), scenario.measure,
-                      G).spectral_radius()
-    shown = {k: v for k, v in opts.items() if k != "init"}
-    return DesignResult(
-        G=G, method=method, objective=objective, delays=D, rho=None, mse_steady=None,
-        stable=True, seconds=time.perf_counter() - t0, iterations=0, history=history,
-        status=status, seed=int(seed), rho_delay_free=float(rho0),
-        detectability=detect.to_dict(), options=shown, rho_below=float(below))
 
 
 def resolve_design_delays(scenario, delays) -> np.ndarray:
