@@ -155,6 +155,40 @@ def test_a_paused_monitor_suspends_its_verdicts(core):
     assert any("paused" in e for e in core.events)
 
 
+def test_the_head_start_counts_from_the_verdict_not_from_the_settle_window(paper14):
+    """The settle window (waiting for agents killed together) ends a step and a half after
+    the verdict: the precomputed roles still switch lead_steps after the verdict's step,
+    not lead_steps after the moment they go out."""
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    c = MonitorCore(MonitorConfig(hang_timeout_s=1.0, settle_s=0.03, step_s=0.02), paper14,
+                    G, paper14.delays)
+    for a in (1, 2, 3, 4):
+        c.on_liveliness("agent", a, True, 0.0)
+    _advance(c, 0.0, 2.0, lambda t: 50 * t)
+    c.on_liveliness("agent", 1, False, 2.05)
+    assert c.tick(2.05) == []                       # inside the settle window
+    out = c.tick(2.08)
+    (v,) = c.verdicts
+    assert v.step == c.current_step(2.05) and c.current_step(2.08) > v.step
+    (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert roster.activate_at == v.step + c.config.lead_steps
+
+
+def test_roles_designed_after_the_verdict_still_get_a_head_start(core):
+    """A gain ready 0.5 s (25 steps) after the verdict: its roles go out lead_steps - 1
+    steps ahead of the step then, never at a step already past."""
+    _advance(core, 0.0, 2.0, lambda t: 50 * t)
+    core.gains.ready = lambda *a, **k: False
+    core.on_liveliness("agent", 1, False, 2.05)
+    assert not [m for m in core.tick(2.05) if isinstance(m, RosterUpdate)]
+    (v,) = core.verdicts
+    del core.gains.ready
+    out = core.tick(2.55)
+    (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert roster.activate_at == core.current_step(2.55) + core.config.lead_steps - 1
+    assert roster.activate_at > v.step + core.config.lead_steps
+
+
 def test_unconfirmed_assignments_are_resent_then_reissued(core):
     _advance(core, 0.0, 2.0, lambda t: 50 * t)
     core.on_liveliness("agent", 1, False, 2.05)

@@ -49,11 +49,11 @@ def test_the_clock_starts_once_the_monitor_foresees_every_single_failure(live):
 
 
 def test_a_crash_before_the_roles_answering_another_is_answered_with_it(live):
-    """Agent 2 crashes, agent 1 eight steps later, before the roles answering agent 2 are
+    """Agent 2 crashes, agent 1 seven steps later, before the roles answering agent 2 are
     in force: the pair's gains, planned on the configuration still in force, are
     precomputed (pairs for small networks), so one epoch answers both, at once, and the
     run equals the simulator's replay."""
-    r = _run(live, [Fault(150, "crash", 2), Fault(158, "crash", 1)])
+    r = _run(live, [Fault(150, "crash", 2), Fault(157, "crash", 1)])
     diff, how = compare_simulator(r.config, r.recording, r.steps)
     assert diff <= 1e-12, how
     s = r.summary

@@ -72,7 +72,8 @@ class MonitorConfig:
         Age (steps) of the freshest estimate its listeners hold from an agent, beyond the
         link's delay, past which it counts as silent.
     lead_steps : int
-        ``activate_at`` = the newest step reported + this (the assignment's head start);
+        ``activate_at`` = the verdict's step + this (the assignment's head start), and
+        at least this less one step after the roles are sent (a gain designed on request);
         doubled by every re-issue up to twice the hang timeout, halved back towards it by
         every reassignment confirmed without one (:attr:`MonitorCore.lead`).
     resend_s : float
@@ -1168,7 +1169,12 @@ class MonitorCore:
         take_over = {r.by: roster.ids[r.failed] for r in plan.replacements if r.by_standby}
         specs = role_specs(nxt, G, take_over=take_over)
         self.epoch += 1
-        activate_at = max(self.current_step(now), 0) + self.lead
+        # the head start counts from the verdict: the settle window and a gain looked up
+        # come out of it, and it is never less than lead - 1 steps from now (a gain
+        # designed on request comes after the verdict's step has passed)
+        verdict_step = min((v.step for v in p["verdicts"]), default=-1)
+        activate_at = max(verdict_step + self.lead,
+                          max(self.current_step(now), 0) + max(self.lead - 1, 1))
         # a reassignment still waiting for its activate_at is superseded at the same step
         # (agents replace a pending assignment by a newer one): no agent runs the older
         # configuration for a step while another runs the newer one
