@@ -137,6 +137,26 @@ def test_a_pause_of_the_monitor_or_the_world_does_not_grow_the_hang_timeout(core
     assert core.hang_timeout() == core.config.hang_timeout_max_s and core.verdicts == []
 
 
+def test_an_agent_on_probation_does_not_grow_the_hang_timeout(core):
+    """Agent 1 convicted (crash) and fenced, still running as a standby on probation,
+    stalls 2.5 s: its stall is a fault's, not a healthy loop's, and the timeout stays at
+    its floor, so that another agent's later 1.5 s stop is still convicted (simulated, a
+    stopped standby's gaps had raised it to 3.65 s and such a stop went unconvicted)."""
+    _advance(core, 0.0, 2.0, lambda t: 50 * t, dt=0.2)
+    core.on_liveliness("agent", 1, False, 2.05)
+    core.tick(2.05)
+    assert 1 in core.failed
+    core.on_liveliness("agent", 1, True, 2.3)
+    _advance(core, 2.2, 4.0, lambda t: 50 * t, dt=0.2)
+    _advance(core, 4.2, 6.4, lambda t: 50 * t, skip=(1,), dt=0.2)    # agent 1 stalls
+    _advance(core, 6.6, 8.0, lambda t: 50 * t, dt=0.2)
+    assert 1 in core.on_probation and core.hang_timeout() == core.config.hang_timeout_s
+    # a healthy standby's stall (shorter than the timeout: not a hang) does grow it
+    _advance(core, 8.2, 9.0, lambda t: 50 * t, skip=(4,), dt=0.2)
+    _advance(core, 9.2, 9.4, lambda t: 50 * t, dt=0.2)
+    assert core.hang_timeout() > 1.5 * core.config.hang_timeout_s and core.verdicts[1:] == []
+
+
 def test_hang_needs_both_no_progress_and_the_others_moving_on(core):
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     out = _advance(core, 1.1, 1.9, lambda t: 50 * t, skip=(2,))

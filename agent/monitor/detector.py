@@ -440,11 +440,14 @@ class FailureDetector:
         if a.status_at is not None and a.status_at >= self._watching_since \
                 and self._last_tick is not None \
                 and now - self._last_tick < self.config.pause_guard_s \
-                and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at:
+                and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at \
+                and msg["agent"] not in self.failed:
             # a healthy gap between two of its statuses: one this monitor watched whole
             # (not across its own pause, nor the world's absence: after either, the
             # backlog's first status of each agent closes a gap as long as the pause), nor
-            # across the agent's own conviction
+            # across the agent's own conviction, nor of an agent on probation (convicted
+            # and not rejoined: its stalls are a fault's, and a stopped standby's gaps
+            # raised the timeout to 3.65 s, so that a later 1.5 s stop went unconvicted)
             self.pace.add(now - a.status_at, now)
         a.status_at = now
         if step >= self._clock[0]:
