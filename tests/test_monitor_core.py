@@ -1775,6 +1775,37 @@ def test_most_tokens_gone_at_once_after_fresh_statuses_is_the_monitors_own_lapse
     assert core.verdicts == []
 
 
+def test_the_token_that_comes_back_last_after_the_monitors_pause_is_no_crash(core, paper14):
+    """The monitor is stopped 5 s: when it resumes, every token goes at once (its links
+    lapsed: agents 2, 3, the world, 4, then 1); before its next tick the world's comes
+    back, and those of 2, 3 and 4, and agent 1's 0.3 s after them. Agent 1, then the only one gone, was
+    heard just before its token went; but it went with half the configuration's, so that
+    is no crash: nobody is convicted. (CI: agent 1 'crash' 0.1 s after the others came
+    back, a healthy agent replaced.)"""
+    core.on_liveliness("world", 0, True, 0.0)
+    t = 0.0
+    while t < 2.0:
+        _feed_lapse(core, paper14, t, age_of_2=1)
+        t = round(t + 0.05, 6)
+    t = 7.0                                        # the monitor was stopped 5 s
+    _feed_lapse(core, paper14, t, age_of_2=1)
+    for a in (2, 3):
+        core.on_liveliness("agent", a, False, t)
+    core.on_liveliness("world", 0, False, t)
+    for a in (4, 1):
+        core.on_liveliness("agent", a, False, t)
+    # before the monitor's next tick: the world's and the links of 2, 3 and 4 are back
+    core.on_liveliness("world", 0, True, 7.01)
+    for a in (2, 3, 4):
+        core.on_liveliness("agent", a, True, 7.02)
+    while t < 10.0:
+        t = round(t + 0.05, 6)
+        if t == 7.3:
+            core.on_liveliness("agent", 1, True, t)
+        _feed_lapse(core, paper14, t, age_of_2=1)
+    assert core.verdicts == []
+
+
 def test_a_lie_after_a_recovery_is_convicted_on_the_new_configurations_tests(complete_core):
     """After agent 1's conviction (standby 4 in its row, epoch 1), agent 2 lies: reports of
     the tests of another configuration (the initial one's, an agent that did not switch
