@@ -80,14 +80,16 @@ def _cpu_s(pid: int):
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=False) -> dict:
+def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=False,
+           extra=()) -> dict:
     """``socmon up``'s summary (the code of the tree ``root``), with
     ``cpu_at_clock_start``: the CPU each agent and the router had spent when the world's
     clock started (start-up: imports, session, gains), read from /proc, so that the CPU of
     the steps alone can be told apart."""
     argv = ["up", scenario, "--steps", str(steps), "--step-ms", str(step_ms), "--gains",
             str(gains), "--out", str(out), "--delays", "none", "--json",
-            "--quiet", "--start-timeout", "300", *([] if monitor else ["--no-monitor"])]
+            "--quiet", "--start-timeout", "300", *([] if monitor else ["--no-monitor"]),
+            *extra]
     env = dict(os.environ, PYTHONPATH=str(root))
     proc = subprocess.Popen([sys.executable, "-m", "agent.cli", *argv,
                              *(["--router"] if router else [])], cwd=root, env=env,
@@ -276,6 +278,9 @@ def main(argv=None) -> int:
                         help="also run each case with the code of this tree (before/after)")
     parser.add_argument("--monitor", action="store_true",
                         help="run the monitor too (default: no monitor)")
+    parser.add_argument("--up-arg", metavar="ARG", action="append", default=[],
+                        help="one more argument to every socmon up (repeatable), e.g. "
+                        "--up-arg=--monitors --up-arg=1")
     parser.add_argument("--scenario", metavar="NAME",
                         help="this scenario instead of communities-N for each of --sizes")
     parser.add_argument("--raw-rtt", action="store_true",
@@ -329,7 +334,7 @@ def main(argv=None) -> int:
                 try:
                     with probe:
                         summary = run_up(scenario, gains, args.steps, step_ms, out, router,
-                                         root, args.monitor)
+                                         root, args.monitor, args.up_arg)
                     row = describe(summary, N, args.steps, step_ms)
                 except RuntimeError as exc:
                     print(f"  {transport:6} {step_ms:4g} ms: failed: {exc}", flush=True)

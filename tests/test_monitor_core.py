@@ -2010,3 +2010,32 @@ def test_an_exact_radius_not_below_the_counted_bound_is_said(core):
     assert core.gain_notes[-1]["gains_rho"] == 0.99
     assert any(e.startswith("WARNING: epoch 0: the fast gain's exact radius 0.9900 is not "
                             "below 0.975") for e in core.events)
+
+
+def test_a_second_monitor_precomputes_once_the_clock_started_and_stands_down_when_passive(
+        paper14):
+    """Monitor 2 acting while monitor 1 prepares (the clock waits for monitor 1) does not
+    precompute: that duplicated monitor 1's work beside the starting agents. It does once
+    an agent reports a step, and stands down when monitor 1 takes the seat. Monitor 1
+    precomputes when it acts, clock or not (the clock waits for its precompute)."""
+    from agent.monitor.core import MonitorSeat
+
+    G = [0.5 * np.eye(14)[:, list(m)] for m in paper14.measure]
+    c = MonitorCore(MonitorConfig(), paper14, G, paper14.delays)
+    seat = MonitorSeat(c, 2, 0.0, listen_s=1.5)
+    for a in (1, 2, 3, 4):
+        c.on_liveliness("agent", a, True, 0.0)
+        c.on_status(_status(a, -1, active=a <= 3), 0.0)
+    assert seat.decide(2.0, [(2, "z")]) == "act"
+    assert not seat.precompute and not seat.stand_down
+    assert seat.decide(2.5, [(2, "z")]) == "act" and not seat.precompute
+    c.on_status(_status(1, 0), 2.6)                    # the clock started
+    assert seat.decide(2.6, [(2, "z")]) == "act" and seat.precompute
+    seat.precompute = False
+    seat.decide(2.7, [(1, "a"), (2, "z")])
+    assert seat.decide(2.7 + 1.5, [(1, "a"), (2, "z")]) == "idle"
+    assert seat.stand_down and not seat.precompute
+
+    first = MonitorSeat(MonitorCore(MonitorConfig(), paper14, G, paper14.delays), 1, 0.0,
+                        listen_s=1.5)
+    assert first.decide(2.0, [(1, "a")]) == "act" and first.precompute

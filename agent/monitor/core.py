@@ -1495,8 +1495,18 @@ class MonitorSeat:
 
     :meth:`decide` returns ``"act"`` (tick the core), ``"idle"`` (passive) or ``"wait"``
     (an adoption waits for more of the network); what it did is in :attr:`records`
-    (``active``, ``adopted``: the run's record), :attr:`lines` (for the log) and
-    :attr:`precompute` (the configuration in force changed), which the caller drains.
+    (``active``, ``adopted``: the run's record), :attr:`lines` (for the log),
+    :attr:`precompute` (precompute the failures of the configuration in force) and
+    :attr:`stand_down` (drop the precompute: another monitor acts), which the caller
+    drains.
+
+    The precompute of an acting monitor other than the first waits for the run's clock:
+    before it, the first monitor is still precomputing before it joins (the clock waits
+    for that, ``foresee_single_failures``), and a second monitor that acted meanwhile
+    duplicated that work beside the starting agents
+    (communities-32: three more design processes, each single failure's polish 9 s of
+    CPU), then kept at it for minutes after it went passive. A monitor that goes passive
+    stands down.
     """
 
     def __init__(self, core: MonitorCore, monitor_id: int, now: float,
@@ -1511,6 +1521,8 @@ class MonitorSeat:
         self.records: list = []
         self.lines: list = []
         self.precompute = False
+        self.stand_down = False
+        self._precompute_due = False   # acting: precompute once the run's clock started
         self._alive_in = None          # the last monitors_alive, and its other ids (_decide)
         self._alive_ids: tuple = ()
 
@@ -1549,6 +1561,9 @@ class MonitorSeat:
         state = self._decide(now, monitors_alive)
         if state != "act":
             self.core.watch(now)
+        if self._precompute_due and self.active and (self.id == 1
+                                                     or self.core.last_step_reported >= 0):
+            self.precompute, self._precompute_due = True, False
         return state
 
     def _decide(self, now: float, monitors_alive) -> str:
@@ -1589,16 +1604,17 @@ class MonitorSeat:
                     return "wait"
             self.lines.append("active")
             self.records.append(("active", {"monitor": self.id, "epoch": core.epoch}))
-            self.active = self.precompute = True
+            self.active = self._precompute_due = True
         elif not should and self.active:
             self.lines.append(f"another monitor ({others[0]}) is active; passive")
-            self.active = False
+            self.active = self._precompute_due = False
+            self.stand_down = True
         if self.active and core.behind:
             # the agents run an epoch this monitor never issued: another monitor acted while
             # this one was paused or cut off; rebuild from the network first
             if not self._adopt_heard():
                 return "wait"
             self.records.append(("adopted", {"monitor": self.id, "epoch": core.epoch}))
-            self.precompute = True
+            self._precompute_due = True
         return "act" if self.active else "idle"
 

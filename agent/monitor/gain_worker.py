@@ -12,13 +12,15 @@ waiting (1.9-10 s measured). :class:`GainWorker` runs three processes:
 - the *precompute* one designs the refined gain of a configuration put in force on a
   fast gain, and a fast gain for every single failure (and pairs, for
   small networks) of the configuration in force, so that a foreseen failure has its first
-  gain within seconds even on a loaded machine, then polishes each of them (a few MSE
+  gain within seconds even on a loaded machine, then polishes each of them where that
+  pays (:func:`refines_ahead`: not for large networks) (a few MSE
   iterations from the fast gain: within 0.5 % of the refined MSE on paper-14-live, where
   the fast gain alone is 1.6-2.4x it and made the error's peak after the switch) (at
   the monitor's priority: niced, it got too little CPU beside two busy loops); it
   pauses at its next design iteration while the urgent one designs a first gain (when both shared one process, a request waited for the
   precompute design in progress: 1.6 s from verdict to roles beside two busy loops);
-- the *background* one refines the precomputed ones (the gain of least steady MSE, seconds each), and
+- the *background* one refines the precomputed ones where that pays (:func:`refines_ahead`)
+  (the gain of least steady MSE, seconds each), and
   computes the exact radius and steady MSE of a fast gain put in force
   (:meth:`GainWorker.assess`: the fast design does not compute the MSE, a Lyapunov solve
   of seconds, nor the radius of a gain it counted); a newer
@@ -43,13 +45,17 @@ import os
 import queue
 import sys
 
-__all__ = ["GainWorker", "BACKGROUND_NICE", "keep_freed_memory",
+__all__ = ["GainWorker", "BACKGROUND_NICE", "keep_freed_memory", "precompute_queue",
+           "refines_ahead",
            "precompute_single_failures", "refined_gains_from", "unforeseen_single_failures"]
 
 #: Niceness of the background (refining) process.
 BACKGROUND_NICE = 10
 #: pairs of failures are precomputed too when the configuration has at most this many agents
 PAIRS_UP_TO = 4
+#: the precompute improves the foreseen failures' fast gains (polish, refinement) when the
+#: configuration's estimator has at most this many states (n x agents; :func:`refines_ahead`)
+REFINE_AHEAD_MAX_STATES = 1024
 
 
 class GainWorker:
@@ -113,6 +119,16 @@ class GainWorker:
         G = None if G is None else [list(g) for g in G]
         self._fast.put(("precompute", roster, G))
         self._background.put((self._generation, roster, G))
+
+    def stand_down(self) -> None:
+        """Drop every precompute, queued or under way (its design in progress ends first;
+        a refinement gives way at its next iteration): another monitor acts. Requests
+        are still served."""
+        if not self._procs:
+            return
+        self._generation += 1
+        self._fast.put(("precompute", None, None))
+        self._background.put((self._generation, None, None))
 
     def poll(self, timeout: float = 0.0) -> list:
         """Every result ready now (waiting up to ``timeout`` s for the first one):
@@ -247,7 +263,6 @@ def _serve_precompute(requests, results, idle) -> None:
     from collections import deque
 
     from agent.monitor.core import GainSource, design_gains_for
-    from design.roster import carried_gains
 
     _quiet_signals()
     keep_freed_memory()
@@ -306,14 +321,31 @@ def _serve_precompute(requests, results, idle) -> None:
             return
         if item[0] == "refine":
             refine.append(item[1])
+        elif item[1] is None:                      # stand down (GainWorker.stand_down)
+            refine, fast, first = deque(), deque(), {}
         else:
-            roster, G = item[1], item[2]
-            planned = plan_failures(roster)        # singles first, then pairs
-            # (configuration, kind, warm start, a single failure's first gain)
-            fast = deque([(nxt, "fast", None if G is None else carried_gains(roster, G, nxt),
-                           len(a) == 1) for a, nxt in planned]
-                         + [(nxt, "polished", None, False) for _, nxt in planned])
-            first = {}
+            fast, first = deque(precompute_queue(item[1], item[2])), {}
+
+
+def precompute_queue(roster, G=None) -> list:
+    """What the precompute process designs for the configuration in force ``roster``
+    (``G``: its gains, the warm start of each failure's fast gain), in order:
+    ``[(configuration, kind, warm start, a single failure's first gain)]``: the fast gain
+    of each planned failure (:func:`plan_failures`: singles first, then pairs), then
+    their polish where that pays (:func:`refines_ahead`).
+
+    >>> from design.roster import Roster
+    >>> from design.scenario import load_scenario
+    >>> [(kind, single) for _, kind, _, single
+    ...  in precompute_queue(Roster.initial(load_scenario("paper-14-live")))][:4]
+    [('fast', True), ('fast', True), ('fast', True), ('fast', False)]
+    """
+    from design.roster import carried_gains
+
+    planned = plan_failures(roster)
+    return ([(nxt, "fast", None if G is None else carried_gains(roster, G, nxt), len(a) == 1)
+             for a, nxt in planned]
+            + [(nxt, "polished", None, False) for _, nxt in planned if refines_ahead(nxt)])
 
 
 class _GiveWay(Exception):
@@ -359,6 +391,35 @@ def plan_failures(roster) -> list:
     return planned
 
 
+def refines_ahead(roster) -> bool:
+    """Whether the precompute improves the fast gains of the failures it foresees for a
+    configuration like ``roster`` (at most :data:`REFINE_AHEAD_MAX_STATES` estimator
+    states): the precompute process's polish of each, the background process's
+    refinement of each. Above the bound a foreseen failure switches to its fast gain and
+    the configuration then in force is refined on request, once. The live worker and the
+    simulated runtime both ask this.
+
+    Why: improving ahead pays where the fast gain is far from the refined one and the
+    refined design slow (paper-14-live: the fast gain's MSE 1.6-2.4x the refined one's,
+    its polish 0.1-0.5 s of CPU, the refined design seconds to minutes). A large
+    network's fast gain is the gains in force carried over, near the refined level
+    already (communities-32's single failures: 2 % above the polished MSE), and
+    improving it costs a network's worth of designs: a polish 4.7 s of CPU each at
+    communities-32 (communities-16: 0.5 s), a refinement about as much, 300 s for the 32
+    failures, run beside the 32 agents on two cores (the refinement niced even to 19),
+    and their estimates came late: 2.9-3.0 % of them with the monitor, 0.4-1.2 % with
+    neither pass (``scripts/bench_scale.py --sizes 32 --step-ms 20 --transports router
+    --monitor``).
+
+    >>> from design.roster import Roster
+    >>> from design.scenario import load_scenario
+    >>> [refines_ahead(Roster.initial(load_scenario(s)))
+    ...  for s in ("paper-14-live", "communities-16", "communities-32")]
+    [True, True, False]
+    """
+    return roster.scenario.n * len(roster.ids) <= REFINE_AHEAD_MAX_STATES
+
+
 def unforeseen_single_failures(gains, planned) -> list:
     """The ids whose single failure in ``planned`` (:func:`plan_failures`) has no gains
     known to ``gains`` (a :class:`agent.monitor.core.GainSource`) yet: the first monitor
@@ -401,12 +462,6 @@ def precompute_single_failures(roster, gains, stop=lambda: False, log=None,
     return done
 
 
-#: The warm refinement's stop rule (:func:`refined_gains_from`): the MSE stage stops when
-#: its objective fell by less than WARM_PATIENCE_TOL (relative) over the last
-#: WARM_PATIENCE iterations: the same mean rate as the design's default (1e-3 over 20),
-#: judged over a shorter window.
-WARM_PATIENCE = 5
-WARM_PATIENCE_TOL = 2.5e-4
 
 
 def refined_gains_from(roster, init, progress=None):
@@ -422,12 +477,12 @@ def refined_gains_from(roster, init, progress=None):
     reset gain). From there the default stop rule (less than 1e-3 relative over 20
     iterations) cannot fire before 20 iterations: every warm design ended on "no
     decrease" after 8 to 17; the same mean rate judged over 5 iterations
-    (:data:`WARM_PATIENCE`) stops after 6 to 8, with an
+    (:data:`design.reconfigure.WARM_PATIENCE`) stops after 6 to 8, with an
     exact steady MSE within 4e-6 (relative) of the design from the reset gain for each of
     communities-32's 32 single failures (README, "Gains for large networks")."""
     from agent.monitor.core import design_gains_for, with_residual_tests
     from design.errors import SocmonError
-    from design.reconfigure import refined_recovery_gains
+    from design.reconfigure import WARM_PATIENCE, WARM_PATIENCE_TOL, refined_recovery_gains
 
     try:
         res = refined_recovery_gains(roster.scenario, roster.delays, init=init,
@@ -485,6 +540,10 @@ def _serve_background(requests, results) -> None:
             _assess(item, results)
             continue
         generation, roster, G = item
+        if roster is None:                         # stand down (GainWorker.stand_down)
+            continue
+        if not refines_ahead(roster):              # a large network: see refines_ahead
+            continue
 
         def superseded() -> bool:
             nonlocal pending

@@ -284,9 +284,12 @@ def run_monitor(scenario, G, delays, net, monitor_id: int = 1, config: MonitorCo
                     record(kind, **fields)
                 if seat.precompute:
                     precompute_for(core.roster)
+                if seat.stand_down:
+                    worker.stand_down()
+                    precomputing[0] = None
                 seat.lines.clear()
                 seat.records.clear()
-                seat.precompute = False
+                seat.precompute = seat.stand_down = False
                 if state != "act":
                     for line in core.events:     # what a passive monitor's detector saw
                         print(f"monitor {monitor_id}: {line}", file=log, flush=True)

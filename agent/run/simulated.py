@@ -237,8 +237,10 @@ class _GainDesigns:
     def precompute(self, roster, in_force=None):
         """The failures of ``roster`` planned (:func:`agent.monitor.gain_worker.plan_failures`,
         as the monitor's worker does) and their fast gains answered one after the other,
-        ``precompute_s`` apart, then their polished gains, ``polish_s`` apart; a newer
+        ``precompute_s`` apart, then their polished gains where the precompute improves them
+        (:func:`agent.monitor.gain_worker.refines_ahead`), ``polish_s`` apart; a newer
         precompute abandons the rest of an older one."""
+        from agent.monitor.gain_worker import refines_ahead
         from design.roster import carried_gains
 
         self.generation += 1
@@ -248,6 +250,8 @@ class _GainDesigns:
         at = 0.0
         for kind, dt in (("fast", cfg.precompute_s), ("polished", cfg.polish_s)):
             for nxt in planned:
+                if kind == "polished" and not refines_ahead(nxt):
+                    continue
                 at += dt
                 G, info = self._design(nxt, kind,
                                        None if in_force is None
@@ -257,6 +261,11 @@ class _GainDesigns:
                 self.rt.after(at, lambda G=G, info=info, nxt=nxt:
                               generation == self.generation
                               and self.ready.append((nxt, G, info)))
+
+    def stand_down(self):
+        """As :meth:`GainWorker.stand_down`: the precompute's answers still due are
+        dropped."""
+        self.generation += 1
 
     def poll(self):
         out, self.ready = self.ready, []
@@ -713,6 +722,9 @@ class SimRuntime:
             m.seat.precompute = False
             if self.config.precompute:
                 m.designs.precompute(m.core.roster, m.core.G)
+        if m.seat.stand_down:
+            m.seat.stand_down = False
+            m.designs.stand_down()
         if state != "act":
             m.core.events.clear()
             return
