@@ -68,9 +68,10 @@ MAX_OBJECTS = 1 << 14
 #: Error messages (and so logs and statuses that quote them) are cut to this many characters.
 MAX_ERROR_CHARS = 200
 #: A payload of a flat schema up to this size is unpacked without the header walk first:
-#: it builds at most this many objects, and what passes the schema nests 3 deep, so the
-#: walk cannot refuse it. Anything refused is decoded again with the walk, which names the
-#: reason: the result and the reason are the same either way.
+#: it builds at most this many objects, and what passes the schema nests at most
+#: MAX_DEPTH deep (scalars and arrays: 3; a field spec with ``bounded_depth`` bounds its
+#: own values), so the walk cannot refuse it. Anything refused is decoded again with the
+#: walk, which names the reason: the result and the reason are the same either way.
 UNSCANNED_MAX_BYTES = 4096
 _MAX_CONTAINER = 4096
 _ARRAY_KEYS = frozenset({"dtype", "shape", "data"})
@@ -298,13 +299,15 @@ class Schema:
     fields: Mapping
     stamp: str | None = None
     sender: str | None = None
-    #: every field a scalar or a float64 array (set from `fields`): a message that
-    #: passes such a schema nests 3 deep at most (see :data:`UNSCANNED_MAX_BYTES`)
+    #: every field a scalar, a float64 array or of a spec with ``bounded_depth`` (set from
+    #: `fields`): a message that passes such a schema nests at most MAX_DEPTH deep (see
+    #: :data:`UNSCANNED_MAX_BYTES`)
     flat: bool = field(init=False, default=False)
 
     def __post_init__(self):
         object.__setattr__(self, "fields", dict(self.fields))
         object.__setattr__(self, "flat", all(type(spec) in _FLAT_SPECS
+                                             or getattr(spec, "bounded_depth", False)
                                              for spec in self.fields.values()))
         if "v" in self.fields:
             raise ValueError("fields: 'v' is reserved for the version")

@@ -341,3 +341,51 @@ def test_small_flat_messages_decode_alike_with_and_without_the_header_walk(data)
                                               kwargs["now_step"], kwargs["window"],
                                               kwargs["senders"]))
     assert fast == walked
+
+
+def _a_status() -> dict:
+    return {"agent": 2, "step": 40, "active": True, "epoch": 1, "measure": ["n3"],
+            "neighbours": {1: 0.4}, "delays": {1: 2}, "drops": 0, "late": 3,
+            "inputs": {"fresh": 40}, "ages": {1: 2}, "malformed": 0,
+            "malformed_reasons": {}, "impaired": 0, "heard": [1, 3], "overflows": 0,
+            "sensor": {"labels": ["n3"], "last_step": 40, "missed": 0},
+            "ctl": {"accepted": 1, "pending": 0}, "links": {"1": {"delay": 2, "drop": 0.0}},
+            "estimates_from": {"ids": [1], "changes": 1, "received": {"1": 40}},
+            "hop_ms": {"n": 4, "median": 0.5, "p99": 1.0}}
+
+
+@given(st.data())
+@settings(max_examples=300, deadline=None)
+def test_small_statuses_decode_alike_with_and_without_the_header_walk(data):
+    """A status's free-form fields bound their own nesting (``Loose``), so a small status
+    skips the header walk too; whatever it holds (a byte changed, cut or extended, a
+    free-form field nested up to 40 deep), the outcome is the walk's."""
+    from agent.protocol import wire
+    from broker_free_net import codec
+
+    schema = wire.STATUS_SCHEMA
+    status = _a_status()
+    kind = data.draw(st.sampled_from(["flip", "cut", "extend", "nest"]))
+    if kind == "nest":
+        depth = data.draw(st.integers(1, 40))
+        field = data.draw(st.sampled_from(["sensor", "links", "ctl", "hop_ms"]))
+        nested = 0
+        for _ in range(depth):
+            nested = data.draw(st.sampled_from([[nested], {"k": nested}]))
+        status[field] = nested
+    valid = wire.encode_status(status)
+    if kind == "flip":
+        i = data.draw(st.integers(0, len(valid) - 1))
+        payload = valid[:i] + bytes([data.draw(st.integers(0, 255))]) + valid[i + 1:]
+    elif kind == "cut":
+        payload = valid[:data.draw(st.integers(0, len(valid) - 1))]
+    elif kind == "extend":
+        payload = valid + data.draw(st.binary(min_size=1, max_size=8))
+    else:
+        payload = valid
+    assert schema.flat and len(payload) <= codec.UNSCANNED_MAX_BYTES
+    fast = _outcome(lambda: decode(payload, schema))
+    walked = _outcome(lambda: codec._checked(codec._unpack(payload), schema, None, None, None))
+    assert fast == walked
+    if kind == "nest":
+        assert (fast[0] == "accepted") == (depth <= wire.LOOSE_MAX_DEPTH), (depth, fast)

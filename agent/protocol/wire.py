@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from broker_free_net.codec import (
+    MAX_DEPTH,
     Bool,
     Bytes,
     F64Array,
@@ -72,10 +73,15 @@ MAX_STEP = 2**38
 STAMP_WINDOW = 100_000
 #: Agent ids on the wire: 1..MAX_AGENT.
 MAX_AGENT = 100_000
+#: A free-form field's value nests at most this many containers (the codec's MAX_DEPTH
+#: below the message's top map).
+LOOSE_MAX_DEPTH = MAX_DEPTH - 1
 
 
 class StrList:
     """A list of distinct short strings (node labels), at most ``max_len`` of them."""
+
+    bounded_depth = True    # a container of scalars (codec.UNSCANNED_MAX_BYTES)
 
     def __init__(self, max_len: int = 4096, required: bool = True):
         self.max_len = max_len
@@ -96,6 +102,8 @@ class StrList:
 
 class AgentIds:
     """A list of distinct agent ids (ints in 1..MAX_AGENT)."""
+
+    bounded_depth = True    # a container of scalars (codec.UNSCANNED_MAX_BYTES)
 
     required = True
 
@@ -123,6 +131,8 @@ def _agent_key(name, key) -> int:
 class WeightMap:
     """``{"<agent id>": weight}`` with finite weights in [0, 1]; decodes to ``{int: float}``."""
 
+    bounded_depth = True    # a container of scalars (codec.UNSCANNED_MAX_BYTES)
+
     def __init__(self, required: bool = True):
         self.required = required
 
@@ -146,6 +156,8 @@ class WeightMap:
 class IntMap:
     """``{str: int}`` (counters, learned delays); decodes to a dict."""
 
+    bounded_depth = True    # a container of scalars (codec.UNSCANNED_MAX_BYTES)
+
     def __init__(self, agent_keys: bool = False, required: bool = True):
         self.agent_keys = agent_keys
         self.required = required
@@ -163,12 +175,25 @@ class IntMap:
 
 
 class Loose:
-    """Any msgpack value (free-form, for informational status fields)."""
+    """Any msgpack value (free-form, for informational status fields) nested at most
+    :data:`LOOSE_MAX_DEPTH` containers deep (what the codec's header walk allows below the
+    message's top map, checked here for a payload decoded without it)."""
+
+    bounded_depth = True
 
     def __init__(self, required: bool = False):
         self.required = required
 
     def check(self, name, value):
+        if isinstance(value, (dict, list)):
+            level, deepest = [value], 1
+            while level:
+                if deepest > LOOSE_MAX_DEPTH:
+                    raise MalformedMessage("too_deep", "containers nested deeper than "
+                                           f"{LOOSE_MAX_DEPTH}", name)
+                level = [v for c in level for v in (c.values() if isinstance(c, dict) else c)
+                         if isinstance(v, (dict, list))]
+                deepest += 1 if level else 0
         return value
 
 
@@ -177,6 +202,8 @@ class ResidualTests:
     configuration (:meth:`design.residuals.AgentTests.to_wire`). Checks the structure and
     the types, decodes the arrays; the agent checks them against its role
     (:meth:`design.residuals.AgentTests.from_wire`)."""
+
+    bounded_depth = True    # a map of lists of maps of arrays (4 deep)
 
     _TEST = {"from": Int(0, MAX_AGENT), "age": Int(0, MAX_STEP), "whiten": F64Array((None, None)),
              "alpha": Float(0.0, 1.0), "threshold": Float(0.0, 1e300),
