@@ -1012,10 +1012,10 @@ class MonitorCore:
         if held is not None and held[0] is roster and len(held[1]) == len(statuses) \
                 and all(x is y for x, y in zip(held[1], statuses)):
             return held[2]
-        learned = self.learned_delays()
-        above = {k: v for k, v in learned.items()
-                 if k[1] in roster.ids and self.scenario_link(k) and v != roster.delays[
-                     roster.row_of(k[0]), roster.row_of(k[1])]}
+        _, rows, listens, D = self.detector.roster_view()
+        above = {(a, b): v for (a, b), v in self.learned_delays().items()
+                 if a != b and b in rows and listens[rows[a]][rows[b]]
+                 and v != D[rows[a]][rows[b]]}
         self._off_design = (roster, statuses, above)
         return above
 
