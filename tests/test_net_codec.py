@@ -313,6 +313,16 @@ _EST = Schema({"kind": Str(choices=frozenset({"est"})), "agent": Int(1, 99),
               stamp="step", sender="agent")
 
 
+def _mutated(data, valid: bytes, kind: str) -> bytes:
+    """``valid`` with a byte changed (``flip``), cut short (``cut``) or extended."""
+    if kind == "flip":
+        i = data.draw(st.integers(0, len(valid) - 1))
+        return valid[:i] + bytes([data.draw(st.integers(0, 255))]) + valid[i + 1:]
+    if kind == "cut":
+        return valid[:data.draw(st.integers(0, len(valid) - 1))]
+    return valid + data.draw(st.binary(min_size=1, max_size=8))
+
+
 @given(st.data())
 @settings(max_examples=300, deadline=None)
 def test_small_flat_messages_decode_alike_with_and_without_the_header_walk(data):
@@ -324,16 +334,10 @@ def test_small_flat_messages_decode_alike_with_and_without_the_header_walk(data)
     valid = encode({"kind": "est", "agent": 2, "step": 40, "t": 1.5,
                     "x": np.array([1.0, -2.0, 3.0])})
     kind = data.draw(st.sampled_from(["flip", "cut", "extend", "nest"]))
-    if kind == "flip":
-        i = data.draw(st.integers(0, len(valid) - 1))
-        payload = valid[:i] + bytes([data.draw(st.integers(0, 255))]) + valid[i + 1:]
-    elif kind == "cut":
-        payload = valid[:data.draw(st.integers(0, len(valid) - 1))]
-    elif kind == "extend":
-        payload = valid + data.draw(st.binary(min_size=1, max_size=8))
+    if kind == "nest":
+        payload = b"\x91" * data.draw(st.integers(1, 40)) + b"\xc0"
     else:
-        depth = data.draw(st.integers(1, 40))
-        payload = b"\x91" * depth + b"\xc0"
+        payload = _mutated(data, valid, kind)
     assert _EST.flat and len(payload) <= codec.UNSCANNED_MAX_BYTES
     kwargs = {"now_step": 50, "window": 100, "senders": {1, 2, 3}}
     fast = _outcome(lambda: decode(payload, _EST, **kwargs))
@@ -374,15 +378,7 @@ def test_small_statuses_decode_alike_with_and_without_the_header_walk(data):
             nested = data.draw(st.sampled_from([[nested], {"k": nested}]))
         status[field] = nested
     valid = wire.encode_status(status)
-    if kind == "flip":
-        i = data.draw(st.integers(0, len(valid) - 1))
-        payload = valid[:i] + bytes([data.draw(st.integers(0, 255))]) + valid[i + 1:]
-    elif kind == "cut":
-        payload = valid[:data.draw(st.integers(0, len(valid) - 1))]
-    elif kind == "extend":
-        payload = valid + data.draw(st.binary(min_size=1, max_size=8))
-    else:
-        payload = valid
+    payload = valid if kind == "nest" else _mutated(data, valid, kind)
     assert schema.flat and len(payload) <= codec.UNSCANNED_MAX_BYTES
     fast = _outcome(lambda: decode(payload, schema))
     walked = _outcome(lambda: codec._checked(codec._unpack(payload), schema, None, None, None))
