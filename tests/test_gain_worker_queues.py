@@ -89,3 +89,17 @@ def test_the_background_refines_ahead_only_where_that_pays(monkeypatch):
     thread.start()                      # a thread: the loop nices the one it runs in
     thread.join(timeout=60)
     assert not thread.is_alive() and refined == [small]
+
+
+def test_the_background_ends_on_a_close_read_during_a_refinement():
+    """The close sentinel read while a refinement checks for newer work ends the loop (it
+    was taken for "nothing read" and the loop waited for another request, until
+    GainWorker.close gave up on it and terminated the process)."""
+    requests = queue.Queue()
+    for item in [(1, _small(), None), None]:
+        requests.put(item)
+    thread = threading.Thread(target=_serve_background, args=(requests, queue.Queue()),
+                              daemon=True)
+    thread.start()
+    thread.join(timeout=60)
+    assert not thread.is_alive()

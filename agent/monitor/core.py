@@ -954,12 +954,6 @@ class MonitorCore:
                            f"confirmed; re-issued from step {at} ({self.lead} steps ahead)")
         return out
 
-    def scenario_link(self, link) -> bool:
-        """True iff ``(receiver, sender)`` is a link of the configuration in force."""
-        a, b = link
-        i, j = self.roster.row_of(a), self.roster.row_of(b)
-        return i != j and self.roster.scenario.W[i, j] > 0
-
     def check_delays(self, now: float) -> list:
         """The ``delay`` verdict: learned delays above the design and the exact loop with
         them unstable -> gains designed for the learned delays, same roles, new epoch
@@ -1012,7 +1006,7 @@ class MonitorCore:
         if held is not None and held[0] is roster and len(held[1]) == len(statuses) \
                 and all(x is y for x, y in zip(held[1], statuses)):
             return held[2]
-        _, rows, listens, D = self.detector.roster_view()
+        _, rows, listens, D, _ = self.detector.roster_view()
         above = {(a, b): v for (a, b), v in self.learned_delays().items()
                  if a != b and b in rows and listens[rows[a]][rows[b]]
                  and v != D[rows[a]][rows[b]]}

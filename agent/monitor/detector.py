@@ -768,18 +768,17 @@ class FailureDetector:
         return False
 
     def roster_view(self) -> tuple:
-        """``(roster, {id: row}, W > 0, delays)`` of the configuration in force, as Python
-        lists (the verdicts read them for every agent at every tick; a roster is frozen, so
-        they are kept until it is replaced)."""
+        """``(roster, {id: row}, W > 0, delays, {id: its listeners})`` of the configuration
+        in force, as Python lists and tuples (the verdicts read them for every agent at
+        every tick; a roster is frozen, so they are kept until it is replaced)."""
         view = self._view
         if view is None or view[0] is not self.roster:
             r = self.roster
             listens = (np.asarray(r.scenario.W) > 0).tolist()
             rows = {a: i for i, a in enumerate(r.ids)}
-            view = self._view = (r, rows, listens, np.asarray(r.delays).tolist())
-            self._listeners_of = {a: tuple(j for j in r.ids
-                                           if j != a and listens[rows[j]][rows[a]])
-                                  for a in r.ids}
+            listeners = {a: tuple(j for j in r.ids if j != a and listens[rows[j]][rows[a]])
+                         for a in r.ids}
+            view = self._view = (r, rows, listens, np.asarray(r.delays).tolist(), listeners)
         return view
 
     def _listeners(self, agent: int) -> tuple:
@@ -787,8 +786,7 @@ class FailureDetector:
         order: an agent's degree, read at every tick for every agent (looping over the
         whole roster there made each tick's verdicts O(N^2): 1.1 ms a tick at 32 agents
         under load)."""
-        self.roster_view()
-        return self._listeners_of[agent]
+        return self.roster_view()[4][agent]
 
     def _listener_ages(self, agent: int) -> dict:
         """``{listener: age of the freshest estimate of agent it holds}`` (-1: none yet
@@ -810,7 +808,7 @@ class FailureDetector:
         one the receiver learned when larger (an estimate that old is on time), by at
         most ``silent_steps`` (a larger one is the ``delay`` verdict's matter, and a
         listener claiming a huge one must not silence the bound)."""
-        _, rows, _, D = self.roster_view()
+        _, rows, _, D, _ = self.roster_view()
         tau = int(D[rows[receiver]][rows[sender]])
         learned = self.agents[receiver].status.get("delays")
         if isinstance(learned, dict):

@@ -327,9 +327,10 @@ def _serve_precompute(requests, results, idle) -> None:
             fast, first = deque(precompute_queue(item[1], item[2])), {}
 
 
-def precompute_queue(roster, G=None) -> list:
+def precompute_queue(roster, G=None, planned=None) -> list:
     """What the precompute process designs for the configuration in force ``roster``
-    (``G``: its gains, the warm start of each failure's fast gain), in order:
+    (``G``: its gains, the warm start of each failure's fast gain; ``planned``: its
+    :func:`plan_failures`, when the caller has it already), in order:
     ``[(configuration, kind, warm start, a single failure's first gain)]``: the fast gain
     of each planned failure (:func:`plan_failures`: singles first, then pairs), then
     their polish where that pays (:func:`refines_ahead`).
@@ -342,7 +343,7 @@ def precompute_queue(roster, G=None) -> list:
     """
     from design.roster import carried_gains
 
-    planned = plan_failures(roster)
+    planned = plan_failures(roster) if planned is None else planned
     return ([(nxt, "fast", None if G is None else carried_gains(roster, G, nxt), len(a) == 1)
              for a, nxt in planned]
             + [(nxt, "polished", None, False) for _, nxt in planned if refines_ahead(nxt)])
@@ -462,8 +463,6 @@ def precompute_single_failures(roster, gains, stop=lambda: False, log=None,
     return done
 
 
-
-
 def refined_gains_from(roster, init, progress=None):
     """``(G, info)`` of the refined gain of ``roster`` (least steady MSE) as
     :func:`agent.monitor.core.design_gains_for` gives it (kind ``"refined"``), designed
@@ -530,10 +529,11 @@ def _serve_background(requests, results) -> None:
         os.nice(BACKGROUND_NICE)
     except OSError:
         pass
-    pending = None
+    nothing = object()             # no request read ahead (None is the close sentinel)
+    pending = nothing
     while True:
-        item = pending if pending is not None else requests.get()
-        pending = None
+        item = pending if pending is not nothing else requests.get()
+        pending = nothing
         if item is None:
             return
         if item[0] == "assess":

@@ -235,32 +235,28 @@ class _GainDesigns:
         pass                                   # the exact MSE of a fast gain: not needed here
 
     def precompute(self, roster, in_force=None):
-        """The failures of ``roster`` planned (:func:`agent.monitor.gain_worker.plan_failures`,
-        as the monitor's worker does) and their fast gains answered one after the other,
-        ``precompute_s`` apart, then their polished gains where the precompute improves them
-        (:func:`agent.monitor.gain_worker.refines_ahead`), ``polish_s`` apart; a newer
+        """What the monitor's worker designs ahead for ``roster``
+        (:func:`agent.monitor.gain_worker.precompute_queue`: the planned failures' fast
+        gains, then their polish where that pays), answered one after the other, a fast
+        gain ``precompute_s`` after the one before, a polished one ``polish_s``; a newer
         precompute abandons the rest of an older one."""
-        from agent.monitor.gain_worker import refines_ahead
-        from design.roster import carried_gains
+        from agent.monitor.gain_worker import precompute_queue
 
         self.generation += 1
         generation = self.generation
-        planned = [nxt for _, nxt in self.plan(roster)]
+        todo = precompute_queue(roster, in_force, planned=self.plan(roster))
+        warm = {GainSource.key(nxt): start for nxt, kind, start, _ in todo if kind == "fast"}
         cfg = self.rt.config
         at = 0.0
-        for kind, dt in (("fast", cfg.precompute_s), ("polished", cfg.polish_s)):
-            for nxt in planned:
-                if kind == "polished" and not refines_ahead(nxt):
-                    continue
-                at += dt
-                G, info = self._design(nxt, kind,
-                                       None if in_force is None
-                                       else carried_gains(roster, in_force, nxt))
-                if G is None and kind == "polished":
-                    continue
-                self.rt.after(at, lambda G=G, info=info, nxt=nxt:
-                              generation == self.generation
-                              and self.ready.append((nxt, G, info)))
+        for nxt, kind, _, _ in todo:
+            at += cfg.precompute_s if kind == "fast" else cfg.polish_s
+            # a polish starts from the fast gain, designed from the same warm start
+            G, info = self._design(nxt, kind, warm[GainSource.key(nxt)])
+            if G is None and kind == "polished":
+                continue
+            self.rt.after(at, lambda G=G, info=info, nxt=nxt:
+                          generation == self.generation
+                          and self.ready.append((nxt, G, info)))
 
     def stand_down(self):
         """As :meth:`GainWorker.stand_down`: the precompute's answers still due are
