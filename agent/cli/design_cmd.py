@@ -28,9 +28,8 @@ def add_arguments(parser) -> None:
     add_delays_argument(parser, "delay matrix to design for and certify against",
                         metavar="scenario|none|uniform:T")
     parser.add_argument("--objective", choices=("rho", "mse"), default=None,
-                        help="minimise the exact steady MSE or the exact spectral radius "
-                             "(default: mse with --method default, the gain `up` designs; "
-                             "rho with --method ccl or --target)")
+                        help="minimise the exact steady MSE or spectral radius (default: mse "
+                             "with --method default, as `up`; rho with --method ccl or --target)")
     add_seed_argument(parser, help="seed of the extra starts (default 0)")
     parser.add_argument("--solver", type=str.upper, choices=("CLARABEL", "SCS"), default=None,
                         help="conic solver for --method ccl (default CLARABEL)")
@@ -41,10 +40,9 @@ def add_arguments(parser) -> None:
                         help="--method default: number of starts (default 3 for --objective "
                              "rho, 1 for mse)")
     parser.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
-                        help="safety cap: stop and keep the best gain found after this long "
-                             "(default: 60 s for --objective rho, whose radius converges slowly "
-                             "with long delays; none for --objective mse, whose result then "
-                             "does not depend on the machine's speed)")
+                        help="keep the best gain found after this long (default: 60 s for "
+                             "--objective rho, slow with long delays; none for mse, whose "
+                             "result then does not depend on the machine's speed)")
     parser.add_argument("--window", type=int_flag(lo=1), default=None, metavar="N",
                         help="--method default: a stage stops when its objective fell by "
                              "less than --rel-tol over the last N iterations (default 20)")
@@ -54,9 +52,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--target", type=float, default=None, metavar="RHO",
                         help="--method default, --objective rho: stop once rho < RHO")
     parser.add_argument("--no-gaps", action="store_true",
-                        help="--method default: design for the nominal loop alone, without "
-                             "keeping the loop each single failure leaves until the switch "
-                             "(its gap) stable")
+                        help="--method default: design for the nominal loop alone, not also "
+                             "for the loop each single failure leaves until the switch")
     parser.add_argument("--keep-iterating", action="store_true",
                         help="--method ccl: go on after rho < 1 to lower rho")
     parser.add_argument("--out", required=True, metavar="FILE", help="gains file to write (.npz)")

@@ -49,7 +49,7 @@ def run(args) -> int:
         import json
         from pathlib import Path
 
-        from agent.protocol.topics import make_run_keys, run_identities
+        from agent.protocol.topics import key_set_lines, make_run_keys, run_identities
         from broker_free_net.security import InvalidKeys, load_key_set
 
         flag = {"dir": "DIR", "run": "--run", "hosts": "--host", "port_base": "--port-base",
@@ -70,14 +70,7 @@ def run(args) -> int:
         if args.json:
             print_json(manifest)
             return 0
-        agents = [n for n in ks.names if n.startswith("agent-")]
-        print(f"key set of run {ks.run} in {ks.dir}")
-        print(f"  CA sha256 {ks.ca_fingerprint}, certificates valid until {ks.not_after}")
-        print(f"  processes: world, {agents[0]}..{agents[-1]}, monitor, operator, recorder"
-              if agents else f"  processes: {', '.join(ks.names)}")
-        for name, ep in (manifest.get("endpoints") or {}).items():
-            print(f"  {name:>10} listens on {ep}")
-        print(f"  start each process with --keys {ks.dir} (its own credentials are chosen by role)")
+        print("\n".join(key_set_lines(ks, manifest.get("endpoints") or {})))
         return 0
 
     return run_command(body)

@@ -8,9 +8,9 @@ recovery / no stabilising gain for it), 2 for bad input (named in the message).
 from __future__ import annotations
 
 from agent.cli._common import (add_delays_argument, add_gains_argument, add_json_argument,
-                               add_scenario_argument, load_gains_arg, load_scenario_arg,
-                               parse_drop, parse_fail, parse_int, print_json, resolve_delays_arg,
-                               run_command)
+                               add_scenario_argument, add_seed_argument, int_flag,
+                               load_gains_arg, load_scenario_arg, parse_drop, parse_fail,
+                               print_json, resolve_delays_arg, run_command)
 from agent.cli._progress import ProgressBar, ProgressLine
 
 HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops, failures"
@@ -19,11 +19,11 @@ HELP = "Monte-Carlo simulation: mean-squared error over time, with delays, drops
 def add_arguments(parser) -> None:
     add_scenario_argument(parser)
     add_gains_argument(parser)
-    parser.add_argument("--trials", default="20", metavar="T",
+    parser.add_argument("--trials", type=int_flag(lo=1), default=20, metavar="T",
                         help="Monte-Carlo trials (default 20)")
-    parser.add_argument("--steps", default="300", metavar="K", help="time steps (default 300)")
-    parser.add_argument("--seed", default="0", metavar="S",
-                        help="seed of every random number (default 0)")
+    parser.add_argument("--steps", type=int_flag(lo=1), default=300, metavar="K",
+                        help="time steps (default 300)")
+    add_seed_argument(parser, help="seed of every random number (default 0)")
     add_delays_argument(parser, "link delays", metavar="SPEC")
     parser.add_argument("--drop", default="0", metavar="P",
                         help="probability that one message is lost (default 0)")
@@ -50,18 +50,15 @@ def _run(args) -> int:
     from agent.run.simulate import (design_recovery, format_text, run_simulation,
                                     simulate_options, write_figure)
 
-    trials = parse_int(args.trials, "--trials", lo=1)
-    steps = parse_int(args.steps, "--steps", lo=1)
-    seed = parse_int(args.seed, "--seed", lo=0)
-    drop = parse_drop(args.drop)
     plot = figure_path(args.plot) if args.plot else None
     scenario = load_scenario_arg(args.scenario)
     gains = load_gains_arg(args.gains, scenario, force=args.force_gains)
     delays = resolve_delays_arg(scenario, args.delays)
-    fail = parse_fail(args.fail, scenario, steps) if args.fail is not None else None
-    o = simulate_options(scenario, gains, args.gains, trials=trials, steps=steps, seed=seed,
-                         drop=drop, delays=delays, delays_spec=args.delays, fail=fail,
-                         recover=args.recover, time_limit=args.time_limit)
+    fail = parse_fail(args.fail, scenario, args.steps) if args.fail is not None else None
+    o = simulate_options(scenario, gains, args.gains, trials=args.trials, steps=args.steps,
+                         seed=args.seed, drop=parse_drop(args.drop), delays=delays,
+                         delays_spec=args.delays, fail=fail, recover=args.recover,
+                         time_limit=args.time_limit)
     recovery = (None, None)
     if o.recover:
         with ProgressLine("simulate --recover", enabled=not args.json) as line:

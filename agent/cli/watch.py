@@ -27,9 +27,8 @@ def add_arguments(parser) -> None:
     c.add_attach_argument(parser, takes=", and the scenario, gains, delays, seed and step "
                                         "period of the run")
     parser.add_argument("--gains", metavar="FILE",
-                        help="the run's gains file: the predicted steady MSE and the "
-                             "recovery figures need it (default with --attach: the run's; "
-                             "else none is shown)")
+                        help="the run's gains file, for the predicted MSE and recovery figures "
+                             "(default with --attach: the run's; else none shown)")
     c.add_delays_argument(parser, "the run's link delays, for the prediction", attach=True)
     c.add_manifest_argument(parser, "rosters and assignments count only when signed with its "
                                     "control key, and the scenario and gains must be the run's "
@@ -45,16 +44,14 @@ def add_arguments(parser) -> None:
                         help="write the run folder `socmon up` writes (summary.json, mse.csv, "
                              "mse.png, estimates.npz, ...) when the watch ends")
     parser.add_argument("--keep-steps", type=c.int_flag(lo=1), default=100_000, metavar="N",
-                        help="keep the truth and estimates of the newest N steps only (the "
-                             "run folder then covers them; default 100000, about 1.5 kB "
-                             "per step for 14 states and 4 agents)")
+                        help="keep the newest N steps' truth and estimates only (the run "
+                             "folder covers them; default 100000, 1.5 kB a step at n=14, M=4)")
     c.add_json_argument(parser, "JSON lines on stdout: {\"kind\": \"view\", ...} while "
                                 "running, then {\"kind\": \"summary\", ...}")
     parser.add_argument("--interval", type=float, default=None, metavar="S",
                         help="seconds between updates (default 0.25 on a terminal, else 1)")
     parser.add_argument("--timeout", type=float, default=60.0, metavar="S",
-                        help="give up (exit 1) when nothing of the run is heard within S "
-                             "seconds (default 60)")
+                        help="exit 1 if nothing of the run is heard within S s (default 60)")
     c.add_web_arguments(parser, "the watched run")
     add_net_arguments(parser)
 
@@ -65,16 +62,13 @@ def run(args) -> int:
 
 def _watch(args) -> int:
     from agent.cli._common import served_page
-    from agent.run.watch import (NoWorld, live_view_for, summary_json, summary_lines, watch,
-                                 watch_config)
+    from agent.run.watch import (NoWorld, live_view_for, start_line, summary_json,
+                                 summary_lines, watch, watch_config)
 
     config = watch_config(args, attach_run(args))
     with served_page(args, "watch") as page:
         if not args.json:
-            print(f"watch: run {config.net.run} via "
-                  f"{', '.join(config.net.connect) or 'multicast'}; Ctrl-C ends the watch"
-                  + (f" and writes {args.out}" if args.out else ""), file=sys.stderr,
-                  flush=True)
+            print(start_line(config, args.out), file=sys.stderr, flush=True)
         try:
             result = watch(config, live_view_for(sys.stdout, args.json, args.interval), page)
         except NoWorld as exc:

@@ -66,6 +66,7 @@ __all__ = [
     "estimate_subscriptions",
     "identity_name",
     "impair_key",
+    "key_set_lines",
     "make_run_keys",
     "monitor_events_key",
     "open_peer",
@@ -400,6 +401,20 @@ def access_control(run: str, names) -> dict:
     of `names`, every one of them subscribing within ``socmon/<run>/**``
     (:func:`broker_free_net.security.build_access_control`)."""
     return security.build_access_control(run_pattern(run), permissions(run, names))
+
+
+def key_set_lines(ks, endpoints: dict) -> list:
+    """What ``socmon keys`` prints of key set ``ks`` (a
+    :class:`broker_free_net.security.KeySet`) whose manifest lists ``endpoints``."""
+    agents = [n for n in ks.names if n.startswith("agent-")]
+    lines = [f"key set of run {ks.run} in {ks.dir}",
+             f"  CA sha256 {ks.ca_fingerprint}, certificates valid until {ks.not_after}",
+             f"  processes: world, {agents[0]}..{agents[-1]}, monitor, operator, recorder"
+             if agents else f"  processes: {', '.join(ks.names)}"]
+    lines += [f"  {name:>10} listens on {ep}" for name, ep in endpoints.items()]
+    lines.append(f"  start each process with --keys {ks.dir} (its own credentials are chosen "
+                 "by role)")
+    return lines
 
 
 def make_run_keys(dir, run: str, names, **kwargs):

@@ -204,6 +204,13 @@ def live_view_for(stream, as_json: bool = False, interval: float | None = None):
     return LiveView(stream, mode, interval if interval is not None else (0.25 if tty else 1.0))
 
 
+def start_line(config: WatchConfig, out: str | None = None) -> str:
+    """What ``socmon watch`` says on stderr as it starts: the run, where it listens, and
+    how to end it."""
+    return (f"watch: run {config.net.run} via {', '.join(config.net.connect) or 'multicast'}; "
+            "Ctrl-C ends the watch" + (f" and writes {out}" if out else ""))
+
+
 def summary_json(result: WatchResult) -> str:
     """The last line of ``socmon watch --json``: ``{"kind": "summary", ...}``."""
     from agent.run.jsonable import to_jsonable, versioned
@@ -232,4 +239,5 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
     return lines
 
 
-__all__ += ["control_key", "watch_config", "live_view_for", "summary_json", "summary_lines"]
+__all__ += ["control_key", "watch_config", "live_view_for", "start_line", "summary_json",
+            "summary_lines"]
