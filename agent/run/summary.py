@@ -165,7 +165,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     steps, mse = mse_by_step(rec, K)
     # the last quarter of the run's K steps (by position: a watcher that attached late
     # averages the same final steps as the run's own recorder); of the recorded ones
-    tail = -(-steady_window(K) // getattr(c, "record_every", 1))
+    tail = -(-steady_window(K) // c.record_every)
     mse_steady = mean_recorded(mse[-tail:])
     window = [int(steps[-tail:][0]), int(steps[-1])] if steps else None
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
@@ -178,7 +178,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "seed": c.seed,
         "steps": int(steps[-1]) if steps else -1,
         "steps_requested": K,
-        "record_every": getattr(c, "record_every", 1),
+        "record_every": c.record_every,
         "step_ms": c.step_ms,
         "deadline_ms": c.deadline_ms,
         "agents": N,
@@ -963,7 +963,7 @@ def compare_simulator(config, rec, steps_done):
                    record_estimates=True, faults=sim_faults)
     from agent.run.recorder import kept_step
 
-    every = getattr(c, "record_every", 1)
+    every = c.record_every
     if len(steps_done) != sum(kept_step(k, every, K) for k in range(K + 1)):
         return float("inf"), "incomplete run"
     sim_est = np.asarray(res.estimates)[0]
