@@ -206,6 +206,11 @@ def test_socmon_chaos_simulated_reports_every_seed(tmp_path, capsys, live_gains)
     assert sum(report["faults"].values()) >= 2
     assert main(["chaos", "paper-14-live", "--simulated", "0:2", "--faults", "linkdown"]) == 2
     assert "cannot be simulated" in capsys.readouterr().err
+    for flags, says in ((["--rate", "-1"], "--rate: must be in [0, 6.25]"),
+                        (["--rate", "nan"], "got nan"),
+                        (["--duration", "50"], "--duration: must be >= 100")):
+        assert main(["chaos", "paper-14-live", "--simulated", "0:2", *flags]) == 2
+        assert says in capsys.readouterr().err
 
 
 def test_a_foreseen_crash_switches_first_to_the_precomputed_polished_gain(live):

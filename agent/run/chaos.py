@@ -47,7 +47,8 @@ from agent.run.local import Fault
 # the scheduling slack before a verdict is required lives with the rule it serves
 from agent.run.summary import VERDICT_SLACK_S, conviction_bound_s  # noqa: F401
 
-__all__ = ["CHAOS_KINDS", "DEFAULT_KINDS", "Bounds", "draw_schedule", "check_invariants", "Violation"]
+__all__ = ["CHAOS_KINDS", "DEFAULT_KINDS", "Bounds", "draw_schedule", "check_schedule_flags",
+           "check_invariants", "Violation"]
 
 #: The kinds a chaos run draws unless told otherwise (``crash`` is up's scripted kill).
 DEFAULT_KINDS = ("kill", "stop", "hang", "sensor", "monitor", "partition", "delay", "drop")
@@ -78,6 +79,17 @@ class Violation:
 
     def to_dict(self) -> dict:
         return {"invariant": self.invariant, "step": self.step, "evidence": self.evidence}
+
+
+def check_schedule_flags(args) -> None:
+    """``--rate`` and ``--duration`` of ``socmon chaos``, live or simulated: an
+    :class:`agent.run.inputs.InputError` naming the flag when one is out of range."""
+    from agent.run.inputs import InputError
+
+    if not 0 <= args.rate <= 6.25:          # also refuses nan
+        raise InputError(f"--rate: must be in [0, 6.25] faults per 1000 steps, got {args.rate}")
+    if args.duration < 100:
+        raise InputError(f"--duration: must be >= 100 steps, got {args.duration}")
 
 
 def draw_schedule(scenario, seed: int, duration: int, kinds=DEFAULT_KINDS, rate: float = 3.0,
@@ -367,10 +379,7 @@ def live_chaos(args, say) -> tuple:
     from agent.run.setup import run_config
     from agent.run.summary import run_and_summarize, write_run_folder
 
-    if not 0 <= args.rate <= 6.25:
-        raise InputError(f"--rate: must be in [0, 6.25] faults per 1000 steps, got {args.rate}")
-    if args.duration < 100:
-        raise InputError(f"--duration: must be >= 100 steps, got {args.duration}")
+    check_schedule_flags(args)
     kinds = tuple(k.strip() for k in args.faults.split(",") if k.strip())
     bad = [k for k in kinds if k not in CHAOS_KINDS]
     if bad or not kinds:

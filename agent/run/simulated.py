@@ -896,8 +896,10 @@ def simulated_chaos(args, seeds) -> dict:
     from design.errors import ScenarioError
     from design.scenario import resolve_delays
 
+    from agent.run.chaos import check_schedule_flags
     from agent.run.inputs import InputError, gains_for, load_scenario_arg
 
+    check_schedule_flags(args)
     kinds = tuple(k.strip() for k in args.faults.split(",") if k.strip())
     bad = [k for k in kinds if k not in FAULT_KINDS or k == "crash"]
     if bad or not kinds:
