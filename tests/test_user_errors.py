@@ -182,6 +182,10 @@ def test_log_warnings_are_collected_and_bounded(tmp_path):
     ("drop:10:1:5:2", "drop VALUE is a probability in [0, 1]"),
     ("delay:10:1:5:2.5", "delay VALUE is a whole number of steps"),
     ("kill:10", "kill needs an agent"),
+    ("lie:10:1", "lie needs VALUE > 0"),
+    ("bias:10:1:0:0", "bias needs VALUE > 0"),
+    ("delay:10:1:5", "delay needs VALUE > 0"),
+    ("drop:10:1:5:0", "drop needs VALUE > 0"),
 ])
 def test_up_fault_values_are_checked_before_anything_starts(tmp_path, capsys, fault, message):
     """A fault value the impairment could not carry is a usage error, not a crash mid-run."""

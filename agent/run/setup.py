@@ -193,6 +193,12 @@ def testbed_for(args, config, say):
         signal.signal(signal.SIGTERM, old_term)
 
 
+#: The ``--fault`` kinds whose VALUE says how much (0, the default, would inject nothing).
+VALUED = {"delay": "steps of delay", "drop": "the probability of a loss",
+          "lie": "noise std-devs off", "bias": "noise std-devs off",
+          "drift": "noise std-devs each 100 steps", "noise": "times the sensor's noise"}
+
+
 def parse_faults(args, scenario) -> list:
     """``--kill``, ``--stop``, ``--kill-monitor`` checked against the scenario."""
     M = scenario.N + scenario.standby
@@ -268,6 +274,9 @@ def parse_faults(args, scenario) -> list:
             raise InputError(f"--fault: SECONDS and VALUE are numbers, got {spec!r}") from None
         if not (0 <= secs < 3600 and 0 <= value <= 1_000_000):
             raise InputError(f"--fault: SECONDS in [0, 3600) and VALUE >= 0, got {spec!r}")
+        if kind in VALUED and not value > 0:
+            raise InputError(f"--fault: {kind} needs VALUE > 0 ({VALUED[kind]}; "
+                             f"{kind}:STEP:AGENT:SECONDS:VALUE), got {spec!r}")
         if kind == "drop" and not value <= 1:
             raise InputError(f"--fault: drop VALUE is a probability in [0, 1], got {spec!r}")
         if kind == "delay" and value != int(value):
