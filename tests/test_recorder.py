@@ -330,3 +330,27 @@ def test_up_record_every_is_checked(tmp_path, capsys, value):
     assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), "--record-every",
                  value]) == 2
     assert "--record-every" in capsys.readouterr().err
+
+
+def test_watch_says_the_prediction_for_the_configuration_in_force():
+    """After a recovery the watch's last line compares the MSE with the prediction of the
+    configuration in force, as ``up``'s does, not with the first configuration's."""
+    from types import SimpleNamespace
+
+    from agent.run.watch import WatchResult, summary_lines
+
+    config = SimpleNamespace(scenario=SimpleNamespace(name="paper-14-live"),
+                             net=SimpleNamespace(run="r"))
+    summary = {"steps": 1000, "mse_steady": 0.2083, "mse_steady_se": 0.021,
+               "mse_steady_window": [751, 1000], "mse_steady_exact": 0.271,
+               "mse_steady_exact_in_force": 0.2107, "drops": 0, "late": 0, "malformed": 0}
+
+    def first_line(**changes):
+        result = WatchResult(None, {**summary, **changes}, [], np.zeros(0), "world ended")
+        return summary_lines(result, config)[0]
+
+    assert "(predicted 0.2107 for the configuration in force)" in first_line()
+    assert "(predicted n/a: the window spans a switch)" in \
+        first_line(mse_steady_exact_in_force=None)
+    assert "(no --gains: no prediction)" in \
+        first_line(mse_steady_exact=None, mse_steady_exact_in_force=None)

@@ -142,6 +142,10 @@ def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_run, secur
     assert watched["ended"] == "world ended" and watched["steps"] == up["steps"] == 300
     assert watched["mse_steady"] == up["mse_steady"]
     assert watched["mse_steady_exact"] == up["mse_steady_exact"]
+    assert watched["mse_steady_exact_in_force"] == up["mse_steady_exact_in_force"]
+    # the monitors leave with the world: no window without a monitor, as up reads it
+    assert watched.get("no_monitor") == up.get("no_monitor")
+    assert not [w for w in watched.get("warnings", []) if "NO MONITOR" in w]
     # the same conviction (a kill is usually `crash`; on a loaded machine the loop can be
     # seen stalled for the hang timeout before the token goes: `hang`)
     assert [(f["agent"], f["cause"]) for f in watched["failures"]] == \

@@ -439,8 +439,11 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 now = time.monotonic()
                 alive = alive_watch.alive()
                 for ev in alive_watch.drain():
-                    if ev.role == "monitor" and world_gone is None:
-                        recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                    if ev.role == "monitor":
+                        # the monitors leave at the world's end, as the agents do: their
+                        # tokens going then leaves no failure unanswered (as ``up`` reads it)
+                        if world_gone is None and not world_ended:
+                            recorder.on_monitor_liveliness(ev.id, ev.any_alive)
                     elif ev.role == "agent" and not ev.any_alive and world_gone is None \
                             and not world_ended:
                         recorder._event(process=f"agent-{ev.id}", liveliness=False,

@@ -220,17 +220,18 @@ def summary_json(result: WatchResult) -> str:
 
 def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = None) -> list:
     """What ``socmon watch`` prints at the end: how the watch ended and the MSE against its
-    prediction, the failures, and the run folder ``out`` (as the user named it)."""
+    prediction for the configuration in force (as ``up`` prints it), the failures, and the run folder ``out`` (as the user named it)."""
     from agent.run.summary import failure_lines, steady_text
 
     summary = result.summary
-    pred = summary.get("mse_steady_exact")
+    pred = summary.get("mse_steady_exact_in_force")
     how = {"steps": "recorded up to --steps", "world ended": "ended with its world",
            "interrupted": "watched until interrupted"}.get(result.ended, result.ended)
     lines = [f"{config.scenario.name}: run {config.net.run} {how}, last step "
              f"{summary['steps']}: mse_steady {steady_text(summary, 'mse_steady')}"
-             + (f" (predicted {pred:.4g})" if pred is not None else " (no --gains: no "
-                "prediction)")
+             + (" (no --gains: no prediction)" if summary.get("mse_steady_exact") is None
+                else f" (predicted {pred:.4g} for the configuration in force)"
+                if pred is not None else " (predicted n/a: the window spans a switch)")
              + f", drops {summary['drops']}, late {summary['late']}, malformed "
                f"{summary['malformed']}"]
     lines += failure_lines(summary)
