@@ -107,6 +107,26 @@ def test_summary_of_a_watched_recording(fed, tmp_path):
     assert summary["mse_steady_window"] == [3, 3] and summary["mse_steady_se"] is None
 
 
+
+def test_an_interrupted_run_averages_the_last_quarter_of_the_steps_it_ran(tmp_path):
+    """A run of 3,000 steps asked for, interrupted after step 239: its steady MSE covers
+    steps 181-239 (its last 239 // 4 = 59; not 0-239 with the start-up transient)."""
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14")
+    r = Recorder(RUN, n=2, N=1, M=1)
+    for k in range(240):
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, np.zeros(2)))
+        off = 10.0 if k < 100 else 1.0               # a transient, then an error of 1
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, np.full(2, off), epoch=0, t=0.0))
+    config = RunConfig(scenario=s, scenario_arg="paper-14", G=None, gains_path=None,
+                       delays=np.zeros((s.N, s.N), int), delays_spec="none", steps=3000,
+                       seed=None, step_ms=None, deadline_ms=None, out=None)
+    summary, steps, mse = summarize(config, r.recording, None, None)
+    assert summary["steps"] == 239 and summary["steps_requested"] == 3000
+    assert summary["mse_steady_window"] == [181, 239] and summary["mse_steady"] == 1.0
+
+
 def test_live_view_forms():
     r = Recorder(RUN, n=1, N=1, M=1)
     r.feed(topics.truth_key(RUN), wire.encode_truth(0, [2.0]))

@@ -164,8 +164,9 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     K, N, M = c.steps, c.scenario.N, c.M
     steps, mse = mse_by_step(rec, K)
     # the last quarter of the run's K steps (by position: a watcher that attached late
-    # averages the same final steps as the run's own recorder); of the recorded ones
-    tail = -(-steady_window(K) // c.record_every)
+    # averages the same final steps as the run's own recorder), or of the steps run when
+    # it ended early (interrupted: not its start-up transient); of the recorded ones
+    tail = -(-steady_window(min(K, steps[-1]) if steps else K) // c.record_every)
     mse_steady = mean_recorded(mse[-tail:])
     window = [int(steps[-tail:][0]), int(steps[-1])] if steps else None
     last = {a: rec.status.get(a, {}) for a in range(1, M + 1)}
