@@ -194,11 +194,27 @@ def test_a_chaos_run_that_drew_no_fault_says_it_tested_nothing():
 
     report = {"scenario": "s", "seed": 1, "faults": [], "failures": [], "violations": [],
               "error": None, "out": "runs/c", "replay": "socmon chaos s --seed 1"}
-    assert "NO FAULT DRAWN" in live_report_text(report, 0)
+    assert "NO FAULT DRAWN" in live_report_text(report)
     report["faults"] = [{"step": 100, "kind": "stop"}]
     report["no_verdict_due"] = [{"why": "stop of agent 1 for 0.5 s at step 100: no verdict"}]
-    text = live_report_text(report, 0)
+    text = live_report_text(report)
     assert "1 faults" in text and "NO FAULT" not in text and "stop of agent 1" in text
+
+
+def test_a_chaos_run_counts_the_verdicts_given_and_the_roles_moved():
+    """A killed standby that no verdict followed is a failure without one, not a verdict;
+    an epoch that only changed the gains is no reassignment."""
+    from agent.run.chaos_report import live_report_text
+
+    report = {"scenario": "s", "seed": 0, "violations": [], "error": None, "out": "runs/c",
+              "replay": "socmon chaos s", "faults": [{"step": 100, "kind": "kill"}] * 3,
+              "failures": [{"agent": 1, "detected_step": 110}, {"agent": 2, "detected_step": 300},
+                           {"agent": 4, "detected": False, "detected_step": None}],
+              "rosters": [{"ids": [1, 2, 3]}, {"ids": [4, 2, 3]}, {"ids": [4, 2, 3]},
+                          {"ids": [4, 3]}]}
+    head = live_report_text(report).splitlines()[0]
+    assert head == ("s, seed 0: 3 faults; 2 verdicts (1 failures without one), 2 reassignments "
+                    "(and 1 new gains for the same roles), 0 violations")
 
 
 def test_a_failure_line_says_every_node_the_replacement_measures_and_the_links_added():

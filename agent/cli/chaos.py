@@ -62,10 +62,10 @@ def _chaos(args) -> int:
         print(simulated_report_text(report, seeds, args.rate, as_json=args.json))
         return 1 if report["violations"] else 0
     with live_view(live_state_factory(None)):     # verdicts and reassignments, as heard
-        report, status, reassignments = live_chaos(args, say_on_stderr("chaos", args.quiet))
+        report, status = live_chaos(args, say_on_stderr("chaos", args.quiet))
     if not report["faults"]:
         print(NO_FAULT_WARNING, file=sys.stderr)
-    print(live_report_text(report, reassignments, as_json=args.json))
+    print(live_report_text(report, as_json=args.json))
     if report["error"]:
         print(f"socmon chaos: {report['error']}", file=sys.stderr)
     return status

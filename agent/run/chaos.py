@@ -365,7 +365,7 @@ def live_chaos(args, say) -> tuple:
     """``socmon chaos``: a live run under the fault schedule drawn from ``args.seed``,
     checked against the invariants; the run folder gets ``schedule.json``,
     ``invariants.json`` and the timeline besides ``up``'s files. Returns ``(report,
-    status, reassignments)``: status 1 when the run failed or broke an invariant."""
+    status)``: status 1 when the run failed or broke an invariant."""
     import argparse
     import dataclasses
     import json
@@ -402,7 +402,7 @@ def live_chaos(args, say) -> tuple:
     config = dataclasses.replace(config, faults=tuple(schedule))
     write_atomic(config.out / "schedule.json",
                  json.dumps([f.to_dict() for f in schedule], indent=2) + "\n")
-    say(f"{len(schedule)} faults: " + ", ".join(
+    say(f"{len(schedule)} faults" + (": " if schedule else " drawn") + ", ".join(
         f"{f.kind}{' ' + str(f.agent) if f.agent else ''}@{f.step}" for f in schedule))
     s = config.scenario
     rec, summary, steps, mse, predicted = run_and_summarize(config, say)
@@ -424,7 +424,7 @@ def live_chaos(args, say) -> tuple:
     write_atomic(config.out / "invariants.json",
                  json.dumps(to_jsonable(report), indent=2) + "\n")
     write_timeline(config.out, summary, steps, mse, schedule, rec.rosters)
-    return report, 1 if violations or rec.failure else 0, len(rec.rosters) - 1
+    return report, 1 if violations or rec.failure else 0
 
 
 def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:

@@ -50,10 +50,11 @@ def simulated_report_text(report: dict, seeds: range, rate: float,
                      + report_lines(record))
 
 
-def live_report_text(report: dict, reassignments: int, as_json: bool = False) -> str:
+def live_report_text(report: dict, as_json: bool = False) -> str:
     """What ``socmon chaos`` prints of the report of a live run (from
-    :func:`agent.run.chaos.live_chaos`, with its number of ``reassignments``): the
-    report as JSON, or the counts, each violation, the run folder and, after a
+    :func:`agent.run.chaos.live_chaos`): the report as JSON, or the counts (the verdicts
+    given, any failure without one, the reassignments of roles and the new gains for the
+    same roles, from the rosters in force), each violation, the run folder and, after a
     violation or a failure, the command that replays the run.
 
     A schedule that drew no fault tested nothing, and the headline says so (the exit
@@ -62,7 +63,7 @@ def live_report_text(report: dict, reassignments: int, as_json: bool = False) ->
 
     >>> print(live_report_text({"scenario": "paper-14-live", "seed": 0, "faults": [],
     ...     "failures": [], "violations": [], "error": None, "out": "runs/c",
-    ...     "replay": "socmon chaos paper-14-live --seed 0"}, 0))
+    ...     "replay": "socmon chaos paper-14-live --seed 0"}))
     paper-14-live, seed 0: NO FAULT DRAWN (--rate, --duration): the run tested nothing; 0 verdicts, 0 reassignments, 0 violations
     run folder: runs/c
     """
@@ -71,9 +72,16 @@ def live_report_text(report: dict, reassignments: int, as_json: bool = False) ->
     violations = report["violations"]
     drawn = (f"{len(report['faults'])} faults" if report["faults"] else
              "NO FAULT DRAWN (--rate, --duration): the run tested nothing")
-    lines = [f"{report['scenario']}, seed {report['seed']}: {drawn}; "
-             f"{len(report['failures'])} verdicts, {reassignments} reassignments, "
-             f"{len(violations)} violations"]
+    verdicts = sum(f.get("detected_step") is not None for f in report["failures"])
+    unanswered = len(report["failures"]) - verdicts
+    rosters = [r["ids"] for r in report.get("rosters", [])]
+    moved = sum(a != b for a, b in zip(rosters, rosters[1:]))
+    regained = max(0, len(rosters) - 1 - moved)
+    lines = [f"{report['scenario']}, seed {report['seed']}: {drawn}; {verdicts} verdicts"
+             + (f" ({unanswered} failures without one)" if unanswered else "")
+             + f", {moved} reassignments"
+             + (f" (and {regained} new gains for the same roles)" if regained else "")
+             + f", {len(violations)} violations"]
     lines += [f"  {d['why']}" for d in report.get("no_verdict_due", [])]
     lines += [f"  VIOLATION {v['invariant']} at step {v['step']}: {v['evidence']}"
               for v in violations]
