@@ -49,6 +49,12 @@ def test_text_output(gains_file, capsys):
                  "--steps", "20"]) == 0
     text = capsys.readouterr().out
     assert "steady MSE" in text and "exact steady MSE" in text
+    assert main(["simulate", "paper-14", "--gains", gains_file, "--trials", "2",
+                 "--steps", "40", "--fail", "20:1"]) == 0
+    text = capsys.readouterr().out
+    # without recovery the mean covers the agents left: said, as the error can fall
+    assert "failure of agent 1 at step 20 (no recovery): from then on the MSE is the mean " \
+           "over the agents still running" in text
 
 
 def test_diverging_run_exits_1(paper14, tmp_path, capsys):

@@ -110,8 +110,9 @@ def write_figure(path, o: SimulateOptions, report: SimulationReport, plot_mse) -
     out, s = report.record, o.scenario
     events = []
     if o.fail is not None:
-        what = "failure + recovery" if report.result.recovered else "failure"
-        events.append((o.fail[0], f"{what} (agents {', '.join(str(a + 1) for a in o.fail[1])})"))
+        who = _agents(a + 1 for a in o.fail[1])
+        events.append((o.fail[0], f"failure of {who}" + (" + recovery" if report.result.recovered
+                                                         else "; MSE of the agents left")))
     ref = [(out["mse_steady_exact"], "exact steady MSE (Lyapunov)")]
     after = out.get("recovery", {}).get("mse_steady_exact_after_recovery")
     if after is not None and o.drop == 0:
@@ -125,6 +126,12 @@ def write_figure(path, o: SimulateOptions, report: SimulationReport, plot_mse) -
     except OSError as exc:
         raise InputError(f"--plot: cannot write {path!r}: {exc.strerror}") from None
     out["plot"] = str(path)
+
+
+def _agents(ids) -> str:
+    """``agent 1`` or ``agents 1, 2``."""
+    ids = [str(a) for a in ids]
+    return ("agent " if len(ids) == 1 else "agents ") + ", ".join(ids)
 
 
 def _f(x, digits=5) -> str:
@@ -142,8 +149,10 @@ def format_text(d: dict) -> str:
         + (f", drop {d['drop']:g}" if d["drop"] else ""),
     ]
     if d["fail_step"] is not None:
-        lines.append(f"failure of agents {d['failed']} at step {d['fail_step']}"
-                     + (" with recovery" if d["recovered"] else " (no recovery)"))
+        lines.append(f"failure of {_agents(d['failed'])} at step {d['fail_step']}"
+                     + (" with recovery" if d["recovered"] else " (no recovery)")
+                     + ": from then on the MSE is the mean over the agents still running "
+                       "(a failed agent's error is not counted)")
     if "recovery" in d:
         r = d["recovery"]
         for rep in r["replacements"]:
