@@ -69,6 +69,7 @@ def test_diverging_run_exits_1(paper14, tmp_path, capsys):
     (["--fail", "x"], "--fail: expected STEP:AGENTS"),
     (["--fail", "10:"], "--fail: give at least one agent"),
     (["--fail", "10:9"], "--fail: no agent 9"),
+    (["--fail", "10:4"], "--fail: agent 4 is a standby of the scenario"),
     (["--fail", "0:1"], "--fail STEP"),
     (["--fail", "999:1"], "after the last step"),
     (["--fail", "10:1,2,3"], "every agent fails"),
