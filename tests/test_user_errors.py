@@ -242,3 +242,16 @@ def test_simulate_plot_without_suffix_writes_and_names_a_png(paper14_gains, tmp_
                  "--trials", "1", "--plot", str(tmp_path / "mse")]) == 0
     assert f"figure: {tmp_path / 'mse.png'}" in capsys.readouterr().out
     assert (tmp_path / "mse.png").is_file()
+
+
+@pytest.mark.parametrize("argv", [["up", "paper-14-live", "--steps", "-5"],
+                                  ["chaos", "paper-14-live", "--duration", "ten"],
+                                  ["keys", "init"]])
+def test_a_flag_argparse_rejects_is_one_line_naming_it(capsys, argv):
+    """Bad input exits 2 with a one-line message (the README's promise), not the whole
+    usage block before it."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"socmon {argv[0]}")
+    assert ("--steps" in err[0] or "--duration" in err[0] or "DIR" in err[0])
+    assert err[0].endswith(f"--help`)")

@@ -57,13 +57,22 @@ def _version() -> str:
         return "(not installed)"
 
 
+class _CommandParser(argparse.ArgumentParser):
+    """A command's parser: a flag it rejects is one line naming it (the README's promise),
+    with where the usage is, instead of the whole usage block first."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="socmon",
         description="Resilient distributed monitoring of social dynamics by collaborating agents.",
     )
     parser.add_argument("--version", action="version", version=f"socmon {_version()}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND",
+                                parser_class=_CommandParser)
     sub.required = True
     for name, module_name in COMMANDS.items():
         try:
