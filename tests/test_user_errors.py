@@ -255,3 +255,12 @@ def test_a_flag_argparse_rejects_is_one_line_naming_it(capsys, argv):
     assert len(err) == 1 and err[0].startswith(f"socmon {argv[0]}")
     assert ("--steps" in err[0] or "--duration" in err[0] or "DIR" in err[0])
     assert err[0].endswith(f"--help`)")
+
+
+def test_inject_names_a_value_out_of_range_in_its_own_words(capsys):
+    """The impairment's range check, said as the command's words (not the codec's)."""
+    assert main(["inject", "drop", "1", "2", "1.5", "--connect", "tcp/127.0.0.1:9"]) == 2
+    assert capsys.readouterr().err.strip() == "socmon: drop: 1.5 outside [0.0, 1.0]"
+    assert main(["inject", "delay", "1", "2", "--ms", "1e9", "--connect",
+                 "tcp/127.0.0.1:9"]) == 2
+    assert "delay: delay_ms 1000000000.0 outside" in capsys.readouterr().err

@@ -129,7 +129,12 @@ def encode_change(change: Change, signer=None, run: str | None = None) -> bytes:
     try:
         return encode_impairment(change.op, change.src, change.dst, sign=sign, **change.params)
     except MalformedMessage as exc:
-        raise InputError(f"{change.what}: {exc}") from None
+        # "[range] field 'drop': 1.5 outside [0.0, 1.0]" -> "drop: 1.5 outside [0.0, 1.0]"
+        detail = str(exc).split("] ", 1)[-1]
+        if exc.field is not None:
+            detail = detail.split(": ", 1)[-1]
+        named = f"{exc.field} " if exc.field not in (None, change.what) else ""
+        raise InputError(f"{change.what}: {named}{detail}") from None
 
 
 def is_confirmed(change: Change, statuses: dict, alive) -> bool:
