@@ -208,6 +208,12 @@ def test_up_faults_after_the_last_step_are_refused(tmp_path, capsys, flags, mess
     assert not (tmp_path / "run" / "run.json").exists()
 
 
+def test_up_refuses_monitors_without_a_monitor(tmp_path, capsys):
+    assert main(["up", "paper-14-live", "--no-monitor", "--monitors", "3",
+                 "--out", str(tmp_path / "run")]) == 2
+    assert "--monitors: no monitor runs with --no-monitor" in _one_line(capsys.readouterr().err)
+
+
 def test_version_is_printed(capsys):
     from importlib.metadata import version
 

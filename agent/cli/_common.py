@@ -99,7 +99,7 @@ def add_monitor_arguments(parser) -> None:
     starts."""
     parser.add_argument("--no-monitor", action="store_true",
                         help="run without the monitor (a failed agent is then never replaced)")
-    parser.add_argument("--monitors", type=int_flag(lo=1, hi=9), default=2, metavar="N",
+    parser.add_argument("--monitors", type=int_flag(lo=1, hi=9), default=None, metavar="N",
                         help="monitors started (default 2): the first acts, the others stand "
                              "by and take over when it dies or is paused")
     parser.add_argument("--no-precompute", action="store_true",

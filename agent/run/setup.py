@@ -69,6 +69,8 @@ def run_config(args, say, prog="up", design_progress=None):
         raise InputError("--router: not with --secure (the access control of a secured run "
                            "names the process at the other end of each link, which a router "
                            "would hide)")
+    if args.no_monitor and getattr(args, "monitors", None) is not None:
+        raise InputError("--monitors: no monitor runs with --no-monitor (give one or the other)")
     faults = parse_faults(args, scenario) if prog == "up" else ()
     if getattr(args, "netns_prefix", None) is not None:
         from agent.testbed.netns import check_prefix
@@ -119,7 +121,7 @@ def run_config(args, say, prog="up", design_progress=None):
     return RunConfig(scenario=scenario, scenario_arg=scen_arg, G=list(G), gains_path=gains_path,
                      delays=delays, delays_spec=args.delays, steps=args.steps, seed=args.seed,
                      step_ms=step_ms, deadline_ms=deadline_ms, out=out,
-                     monitor=not args.no_monitor, monitors=getattr(args, "monitors", 2),
+                     monitor=not args.no_monitor, monitors=getattr(args, "monitors", None) or 2,
                      precompute=not getattr(args, "no_precompute", False),
                      hang_timeout=args.hang_timeout, hang_timeout_max=args.hang_timeout_max,
                      drop=args.drop, faults=tuple(faults), start_timeout=args.start_timeout,
