@@ -80,6 +80,8 @@ def test_unobservable_scenario_names_the_parent_scc(capsys, tmp_path):
     (["--method", "ccl", "--objective", "mse"], "--objective mse needs --method default"),
     (["--delays", "uniform:-1"], "uniform:T needs a non-negative integer"),
     (["--max-iter", "0"], "--max-iter: must be a positive integer"),
+    (["--target", "1.5"], "--target: a radius in (0, 1]"),
+    (["--target", "0"], "--target: a radius in (0, 1]"),
 ])
 def test_bad_flags_exit_2(capsys, tmp_path, argv, message):
     status, out, err = _run(capsys, "paper-14", *argv, "--out", str(tmp_path / "g.npz"))

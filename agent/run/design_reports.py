@@ -538,8 +538,9 @@ def _design_options(args) -> tuple:
                 raise InputError(f"--rel-tol: must be in [0, 1), got {args.rel_tol}")
             opts["patience_tol"] = args.rel_tol
         if args.target is not None:
-            if objective != "rho" or not 0 < args.target:
-                raise InputError("--target: a positive radius, with --objective rho only")
+            if objective != "rho" or not 0 < args.target <= 1:
+                raise InputError("--target: a radius in (0, 1] (a stabilising gain's), with "
+                                 "--objective rho only")
             opts["target"] = args.target
     if args.max_iter is not None:
         if args.method == "default" and args.max_iter < 1:
