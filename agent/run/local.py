@@ -316,7 +316,7 @@ class LocalRun:
                             () if c.router else [ep[M + 2], *standby_ep[:i - 2]]),
                                        self._wrap("monitor"))
                 self._write_run_json(rec, ep)
-                self.say(f"run {rec.run_id} at {ep[0]} (attach: --attach {c.out}"
+                self.say(f"run {rec.run_id} at {ep[0]} (socmon watch or inject --attach {c.out}"
                          + (f"; SECURED: mutual TLS and access control on every process, keys "
                             f"in {c.out / 'keys'}" if c.secure else "") + "): "
                          f"world + {N} agents + {c.scenario.standby} standby"
