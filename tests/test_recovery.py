@@ -326,7 +326,8 @@ def test_cli_plan_text_and_written_scenario(tmp_path, capsys):
     assert main(["plan", "paper-14", "--fail", "1,2", "--write-scenario", str(out)]) == 0
     text = capsys.readouterr().out
     assert "node 7 -> node 8, measured by standby agent 4" in text
-    assert "4 listens to 3" in text
+    assert "3 -> 4 (agent 4 listens to 3)" in text
+    assert "measure after: agent 4: 8; agent 3: 12, 10" in text
     assert main(["analyze", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["measure"] == [["8"], ["12", "10"]] and d["observable"]

@@ -407,7 +407,7 @@ def plan_report(scenario, failed, add_links: bool = True, write_scenario=None) -
 
 def format_plan(d: dict) -> str:
     """The text of a :func:`plan_report`."""
-    lines = [f"failed agents: {d['failed']}"]
+    lines = [f"failed agents: {', '.join(map(str, d['failed']))}"]
     for a in map(str, d["failed"]):
         cands = d["candidates"].get(a, [])
         line = f"  agent {a}: equivalent nodes {', '.join(cands) if cands else 'none'}"
@@ -425,7 +425,8 @@ def format_plan(d: dict) -> str:
         for e in [r] + r.get("also", []):
             who = f"standby agent {e['by']}" if e["by_standby"] else f"agent {e['by']}"
             lines.append(f"  agent {a}: node {e['from']} -> node {e['to']}, measured by {who}")
-    lines.append(f"agents after: {d['agents_after']} (rows of the new W, in order)")
+    lines.append(f"agents after: {', '.join(map(str, d['agents_after']))} (rows of the new W, "
+                 "in order)")
     lines.append(
         "network after removing the failed agents: "
         + ("strongly connected" if d["network_strongly_connected_removed"]
@@ -433,13 +434,16 @@ def format_plan(d: dict) -> str:
     )
     if d["added_links"]:
         lines.append("links added (fewest that restore strong connectivity): "
-                     + ", ".join(f"{e['to']} listens to {e['from']}" for e in d["added_links"]))
+                     + ", ".join(f"{e['from']} -> {e['to']} (agent {e['to']} listens to "
+                                 f"{e['from']})" for e in d["added_links"]))
     lines.append(f"network strongly connected after: "
                  f"{_yes(d['network_strongly_connected_after'])}")
     lines.append("W after:")
     for row in d["W_after"]:
         lines.append("  " + " ".join(f"{x:6.3f}" for x in row))
-    lines.append(f"measure after: {d['measure_after']}")
+    lines.append("measure after: " + "; ".join(
+        f"agent {a}: {', '.join(nodes) or 'nothing'}"
+        for a, nodes in zip(d["agents_after"], d["measure_after"])))
     if d.get("observability_rank_after") is not None:
         lines.append(
             f"(A, H) after: rank {d['observability_rank_after']} -> observable "
