@@ -1171,6 +1171,9 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
+        ax.text(f["step"], 0.01, f"{f.get('kind', 'fault')}"
+                + (f" {f['agent']}" if f.get("agent") else "") + " ", transform=top,
+                rotation=90, va="bottom", ha="right", fontsize=7, color="0.25")
     labelled = set()        # one legend entry per reason given by the monitor
     for r in summary.get("reissues", []):
         if isinstance(r.get("activate_at"), int):
@@ -1179,7 +1182,7 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
                        label=None if reason in labelled else f"roles re-issued: {reason}")
             labelled.add(reason)
     for i, k in enumerate(gain_changes(summary)):
-        ax.axvline(k, color="tab:green", lw=0.8, ls="--",
+        ax.axvline(k, color="tab:cyan", lw=0.9, ls="-.",
                    label="new gains in force (same roles)" if i == 0 else None)
     if summary.get("diverged_at") is not None:
         ax.axvline(summary["diverged_at"], color="tab:red", lw=1.5,
