@@ -32,6 +32,10 @@ def figure_path(text: str, flag: str = "--plot") -> Path:
     return path
 
 
+#: the curves' line styles, in order (solid, dashed, dash-dot, dotted, dash-dot-dot)
+STYLES = ("-", "--", "-.", ":", (0, (5, 2, 1, 2, 1, 2)))
+
+
 def plot_mse(path, curves, title=None, events=(), band=(10.0, 90.0), reference=()) -> None:
     """Write a log-scale MSE figure to ``path``.
 
@@ -58,7 +62,9 @@ def plot_mse(path, curves, title=None, events=(), band=(10.0, 90.0), reference=(
         lo, hi = res.band(*band)
         finite = np.isfinite(res.mse) & (res.mse > 0)
         ax.fill_between(k[finite], lo[finite], hi[finite], color=c, alpha=0.2, linewidth=0)
-        ax.plot(k[finite], res.mse[finite], color=c, linewidth=1.2, label=label)
+        # a line style each: curves that coincide (the same run before a failure) all show
+        ax.plot(k[finite], res.mse[finite], color=c, linewidth=1.2, label=label,
+                linestyle=STYLES[idx % len(STYLES)])
     for idx, (value, label) in enumerate(reference):
         if value is not None and np.isfinite(value) and value > 0:
             ax.axhline(value, color=colors[idx % len(colors)], linestyle=":", linewidth=1.0,
