@@ -46,8 +46,8 @@ def plot_mse(path, curves, title=None, events=(), band=(10.0, 90.0), reference=(
         trials) per result.
     events : list of (step, label)
         Vertical dashed lines (failure, recovery).
-    reference : list of (value, label)
-        Horizontal dotted lines (e.g. the exact steady MSE).
+    reference : list of (value, label) or (value, label, first step, last step)
+        Horizontal dotted lines (e.g. the exact steady MSE), over the steps given.
     """
     import matplotlib
 
@@ -65,10 +65,14 @@ def plot_mse(path, curves, title=None, events=(), band=(10.0, 90.0), reference=(
         # a line style each: curves that coincide (the same run before a failure) all show
         ax.plot(k[finite], res.mse[finite], color=c, linewidth=1.2, label=label,
                 linestyle=STYLES[idx % len(STYLES)])
-    for idx, (value, label) in enumerate(reference):
+    for idx, (value, label, *span) in enumerate(reference):
         if value is not None and np.isfinite(value) and value > 0:
-            ax.axhline(value, color=colors[idx % len(colors)], linestyle=":", linewidth=1.0,
-                       label=label)
+            style = dict(color=colors[idx % len(colors)], linestyle=":", linewidth=1.0,
+                         label=label)
+            if span:                     # the steps over which the level holds
+                ax.hlines(value, *span, **style)
+            else:
+                ax.axhline(value, **style)
     for step, label in events:
         ax.axvline(step, color="k", linestyle="--", linewidth=0.9)
         ax.annotate(label, xy=(step, 0.0), xycoords=("data", "axes fraction"),

@@ -116,8 +116,8 @@ def write_figure(path, o: SimulateOptions, report: SimulationReport, plot_mse) -
     ref = [(out["mse_steady_exact"], "exact steady MSE (Lyapunov)")]
     after = out.get("recovery", {}).get("mse_steady_exact_after_recovery")
     if after is not None and o.drop == 0:
-        ref = [(report.before.mse, "exact steady MSE before the failure"),
-               (after, "exact steady MSE after recovery")]
+        ref = [(report.before.mse, "exact steady MSE before the failure", 0, o.fail[0]),
+               (after, "exact steady MSE after recovery", o.fail[0], o.steps)]
     try:
         plot_mse(path, [(f"{s.name}, {o.trials} trials", report.result)],
                  title=f"{s.name} (delays: {o.delays_spec})"
