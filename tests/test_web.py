@@ -195,7 +195,7 @@ def test_state_before_and_after_a_kill_and_its_replacement(run):
     assert (st["mse"]["exact"], st["mse"]["exact_source"]) == (0.3, "monitor")
     assert [(g["from"], g["epoch"], g["exact"]) for g in st["segments"]] == [
         (0, 0, 0.25), (50, 1, 0.3)]
-    assert live.progress_words() == "mse 0.01 over the last 100 steps (exact 0.3)"
+    assert live.progress_words() == "mse 0.01 over the last 60 steps (exact 0.3)"
 
     # agent 1 comes back (a status 0.5 s after its verdict): fenced, not convicted
     clock.t += 1.0
@@ -457,7 +457,7 @@ def test_up_without_a_page_gets_its_progress_words_and_lines(run):
     steps(0, 30, (1, 2, 3))
     assert live.tick(r) is False                    # events read, nothing published
     live.refresh(r)
-    assert live.progress_words() == "mse 0.01 over the last 100 steps (exact pending)"
+    assert live.progress_words() == "mse 0.01 over the last 30 steps (exact pending)"
     _event(r, {"kind": "verdict", "agent": 1, "cause": "hang", "step": 29, "evidence": "e"})
     _event(r, {"kind": "reassign", "epoch": 1, "activate_at": 35, "failed": [1],
                "replacements": [{"failed": 1, "by": 4, "from": "7", "to": "8"}],
@@ -472,7 +472,7 @@ def test_up_without_a_page_gets_its_progress_words_and_lines(run):
     steps(30, 40, (2, 3, 4))
     _event(r, {"kind": "gains", "epoch": 1, "gains": "fast", "gains_mse": 0.31})
     live.refresh(r)
-    assert live.progress_words() == "mse 0.01 over the last 100 steps (exact 0.31)"
+    assert live.progress_words() == "mse 0.01 over the last 40 steps (exact 0.31)"
     assert live.news() == []                        # a gains note is not a line
 
 

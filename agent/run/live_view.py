@@ -34,7 +34,8 @@ def _num(x) -> str:
 def format_line(view: dict) -> str:
     """The run in one line."""
     return (f"run {view['run']}  step {view['step']}  mse {_num(view['mse'])}"
-            + (f" (step {view['mse_step']}; {_num(view.get('mse_last100'))} over the last 100)"
+            + (f" (step {view['mse_step']}; {_num(view.get('mse_last100'))} over the last "
+               f"{view.get('mse_last100_steps', 100)})"
                if view["mse_step"] is not None else "")
             + f"  drops {view['drops']}  late {view['late']}  malformed {view['malformed']}"
             + f"  roster {','.join(map(str, view['roster']))} (epoch {view['epoch']})"

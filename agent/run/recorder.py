@@ -341,7 +341,9 @@ class Recorder:
     def view(self) -> dict:
         """A snapshot for a live view: the newest step with an estimate of an agent in
         force and its MSE (mean over those agents, as :func:`agent.run.summary.mse_by_step`)
-        with its mean over the last 100 steps (``mse_last100``), the sums over the agents' last statuses, the verdicts, and one row per agent."""
+        with its mean over the last 100 steps (``mse_last100``, over ``mse_last100_steps``
+        steps: fewer early in a run), the sums over the agents' last statuses, the verdicts,
+        and one row per agent."""
         rec = self.recording
         k = next((k for k in range(self.step, max(-1, self.step - 10_000), -1)
                   if k in rec.truth and any(k in rec.est[a] for a in self.in_force(k))),
@@ -367,6 +369,7 @@ class Recorder:
         verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict"]
         return {"run": rec.run_id, "step": self.step, "mse_step": k, "mse": mse,
                 "mse_last100": float(np.mean(recent)) if recent else None,
+                "mse_last100_steps": len(recent),      # fewer than 100 early in a run
                 "drops": sum(r["drops"] for r in agents.values()),
                 "late": sum(r["late"] for r in agents.values()),
                 "malformed": sum(r["malformed"] for r in agents.values()),

@@ -809,7 +809,8 @@ class LiveState:
         if v is None or v.get("mse_last100") is None:
             return "mse -"
         value, why = self.exact(self.epoch_in_force)
-        return (f"mse {v['mse_last100']:.4g} over the last 100 steps"
+        return (f"mse {v['mse_last100']:.4g} over the last {v.get('mse_last100_steps', 100)} "
+                "steps"
                 + (f" (exact {value:.4g})" if value is not None else
                    " (exact pending)" if why in ("pending", "computing") else ""))
 
