@@ -48,6 +48,7 @@ __all__ = [
     "MessageStats",
     "Schema",
     "Str",
+    "check_context",
     "decode",
     "encode",
     "scan",
@@ -539,16 +540,31 @@ def _checked(obj, schema: Schema, now_step, window, senders) -> dict:
     if obj:
         extra = sorted(map(str, obj))[0]
         raise MalformedMessage("extra", "unknown field", extra)
-    if schema.sender is not None and senders is not None and schema.sender in out:
-        if out[schema.sender] not in senders:
-            raise MalformedMessage("sender", f"unknown sender {out[schema.sender]!r}", schema.sender)
-    if schema.stamp is not None and now_step is not None and window is not None and schema.stamp in out:
-        stamp = out[schema.stamp]
+    return check_context(out, schema, now_step=now_step, window=window, senders=senders)
+
+
+def check_context(msg: dict, schema: Schema, *, now_step: int | None = None,
+                  window: int | None = None, senders=None) -> dict:
+    """The receiver's checks of :func:`decode` (``senders``, ``now_step`` and ``window``)
+    on a message decoded with `schema` already: ``msg``, or MalformedMessage. A payload
+    that several receivers get is decoded once and checked by each.
+
+    >>> s = Schema({"k": Int()}, stamp="k")
+    >>> check_context({"k": 5}, s, now_step=10, window=2)
+    Traceback (most recent call last):
+    ...
+    broker_free_net.codec.MalformedMessage: [stale] field 'k': stamp 5 older than 10 - 2
+    """
+    if schema.sender is not None and senders is not None and schema.sender in msg:
+        if msg[schema.sender] not in senders:
+            raise MalformedMessage("sender", f"unknown sender {msg[schema.sender]!r}", schema.sender)
+    if schema.stamp is not None and now_step is not None and window is not None and schema.stamp in msg:
+        stamp = msg[schema.stamp]
         if stamp < now_step - window:
             raise MalformedMessage("stale", f"stamp {stamp} older than {now_step} - {window}", schema.stamp)
         if stamp > now_step + window:
             raise MalformedMessage("future", f"stamp {stamp} newer than {now_step} + {window}", schema.stamp)
-    return out
+    return msg
 
 
 @dataclass

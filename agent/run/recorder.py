@@ -33,7 +33,7 @@ from design.plausibility import ESTIMATE_MULTIPLE, READING_MULTIPLE
 
 from agent.protocol import topics
 from broker_free_net.keys import InvalidKey
-from broker_free_net.codec import MessageStats, try_decode
+from broker_free_net.codec import MalformedMessage, MessageStats, check_context, try_decode
 
 from agent.protocol import wire
 from agent.shell.memory import TRIM_S, heap_trimmer
@@ -205,8 +205,11 @@ class Recorder:
             self._trim()
             self._trimmed = (time.monotonic(), dropped)
 
-    def feed(self, key: str, payload: bytes) -> None:
-        """One message as received on ``key``; a malformed one is counted and dropped."""
+    def feed(self, key: str, payload: bytes, decoded=None) -> None:
+        """One message as received on ``key``; a malformed one is counted and dropped.
+        ``decoded``: for an estimate another receiver decoded already (the simulated
+        runtime's), a function giving ``(message, None)`` or ``(None, reason)``: checked
+        here as this recorder's own decode would (senders, stamp window)."""
         rec = self.recording
         kind = str(key).split("/")[2] if str(key).count("/") >= 2 else ""
         if key == self._truth_key:
@@ -224,8 +227,8 @@ class Recorder:
                         len(rec.truth) > self.keep_steps + self.keep_steps // 8:
                     self._forget_oldest()
         elif kind == "est":
-            m = try_decode(payload, self._schemas["est"], self.stats, senders=set(rec.est),
-                           **self._window())
+            m = self._decode(payload, self._schemas["est"], decoded, senders=rec.est.keys(),
+                             **self._window())
             if m is not None and self._sender_of(key) != m["agent"]:
                 self.stats.count_dropped("sender")      # agent j's key, agent i's estimate
             elif m is not None and not self._plausible(m, ESTIMATE_MULTIPLE):
@@ -277,6 +280,22 @@ class Recorder:
                 else:
                     self.stats.count_dropped("event")
         self.recording.recorder_malformed = self.stats.total_dropped
+
+    def _decode(self, payload, schema, decoded, **context):
+        """:func:`broker_free_net.codec.try_decode` of ``payload``, or of the message
+        ``decoded()`` gives (see :meth:`feed`) with this recorder's checks; counted."""
+        if decoded is None:
+            return try_decode(payload, schema, self.stats, **context)
+        msg, reason = decoded()
+        try:
+            if msg is None:
+                raise MalformedMessage(reason, "decoded by another receiver")
+            check_context(msg, schema, **context)
+        except MalformedMessage as exc:
+            self.stats.count_dropped(exc.reason)
+            return None
+        self.stats.count_accepted()
+        return msg
 
     def records(self, step: int) -> bool:
         """Whether the states of ``step`` are kept (:func:`kept_step`)."""

@@ -167,13 +167,19 @@ class _Shared:
     def __init__(self, payload: bytes, schema):
         self.payload, self.schema, self.msg, self.reason = payload, schema, None, None
 
-    def decode(self, stats: MessageStats):
+    def decoded(self) -> tuple:
+        """``(message, None)``, or ``(None, reason)`` for a malformed payload; decoded at
+        the first call."""
         if self.schema is not None:
             try:
                 self.msg = decode(self.payload, self.schema)
             except MalformedMessage as exc:
                 self.reason = exc.reason
             self.schema = None
+        return self.msg, self.reason
+
+    def decode(self, stats: MessageStats):
+        self.decoded()
         if self.msg is None:
             stats.count_dropped(self.reason)
         else:
@@ -380,9 +386,11 @@ class SimRuntime:
         self.rec.monitor_seen = True
         self._roster_at = 0.0
 
-    def _record(self, src: str, key: str, payload: bytes) -> None:
-        """The recorder (``up``'s) hears ``payload`` on ``key``, as on the wire."""
-        self._send(src, "recorder", lambda: self.recorder.feed(key, payload))
+    def _record(self, src: str, key: str, payload: bytes, shared=None) -> None:
+        """The recorder (``up``'s) hears ``payload`` on ``key``, as on the wire (the
+        message decoded once with the other receivers', when ``shared``)."""
+        decoded = None if shared is None else shared.decoded
+        self._send(src, "recorder", lambda: self.recorder.feed(key, payload, decoded))
 
     # -- the event queue -------------------------------------------------------------
     # an event is (time, sequence number, function, its arguments)
@@ -512,8 +520,8 @@ class SimRuntime:
         crash_at = self._crash_at.get(a)
         for step, x, epoch in core.poll(self.now):
             payload = wire.encode_est(a, step, x, epoch, self.now)
-            self._record(name, self._keys["est", a], payload)
             shared = _Shared(payload, self._schemas["est"])
+            self._record(name, self._keys["est", a], payload, shared)
             for b in self.agents:
                 if b != a:
                     self._send(name, self._names[b],
@@ -731,9 +739,10 @@ class SimRuntime:
             self._monitor_event(m, kind, fields)
             if kind == "reassign" and self.config.precompute:
                 m.designs.precompute(m.core.roster, m.core.G)
-        roster = m.core.roster_message
-        if roster is not None and self.now >= m.roster_at:
-            self._roster_out(m, roster)
+        if self.now >= m.roster_at:
+            roster = m.core.roster_message
+            if roster is not None:
+                self._roster_out(m, roster)
 
     def _monitor_fault(self, f) -> None:
         """``monitor``: the acting monitor killed and started again at once (as ``up``
