@@ -374,3 +374,26 @@ def test_watch_says_the_prediction_for_the_configuration_in_force():
         first_line(mse_steady_exact_in_force=None)
     assert "(no --gains: no prediction)" in \
         first_line(mse_steady_exact=None, mse_steady_exact_in_force=None)
+
+
+def test_an_interrupted_run_ends_at_the_last_step_every_agent_published():
+    """Stopped mid-step, the truth of step 224 came and no estimate of it: the record ends
+    at 223 (the recorder's last complete step), with no divergence to report."""
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14")
+    r = Recorder(RUN, n=2, N=2, M=2)
+    for k in range(225):
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, np.zeros(2)))
+        for a in (1, 2):
+            if k < 224 - (a == 2):          # agent 2 is a step behind agent 1
+                r.feed(topics.est_key(RUN, a), wire.encode_est(a, k, np.ones(2), epoch=0, t=0))
+    rec = r.recording
+    rec.interrupted, rec.complete_step = True, r.last_complete_step({1, 2})
+    assert rec.complete_step == 222
+    config = RunConfig(scenario=s, scenario_arg="paper-14", G=None, gains_path=None,
+                       delays=np.zeros((s.N, s.N), int), delays_spec="none", steps=1500,
+                       seed=None, step_ms=None, deadline_ms=None, out=None)
+    summary, steps, mse = summarize(config, rec, None, None)
+    assert steps[-1] == 222 and summary["steps"] == 222 and summary["steps_requested"] == 1500
+    assert summary["diverged_at"] is None and np.isfinite(mse).all()

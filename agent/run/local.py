@@ -471,6 +471,8 @@ class LocalRun:
                     for ev in alive_watch.drain():
                         if ev.role == "monitor" and world_end is None and c.monitor:
                             recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                    recorder.alive = {int(i) for r, i in alive_watch.alive()
+                                      if r == "agent" and i.isdigit()}
                     # said from the clock's start on (before it no step is missed:
                     # summary._no_monitor_windows), also for a lapse that began before it
                     absent = rec.no_monitor_since is not None and world_end is None
@@ -481,9 +483,7 @@ class LocalRun:
                                  if absent else
                                  f"a monitor is alive again at step {recorder.step}")
                     if live is not None:
-                        live.tick(recorder, None if live.board is None else
-                                  {int(i) for r, i in alive_watch.alive()
-                                   if r == "agent" and i.isdigit()})
+                        live.tick(recorder, None if live.board is None else recorder.alive)
                         for line in live.news():     # verdicts, reassignments, as heard
                             self.say(f"step {recorder.step}: {line}")
                     now = time.monotonic()
@@ -551,6 +551,9 @@ class LocalRun:
         except KeyboardInterrupt:
             rec.interrupted = True
             rec.failure = "interrupted"
+            # stopped mid-step, as a watch is: the truth of the newest steps came, not
+            # every estimate (a step without one is no divergence)
+            rec.complete_step = recorder.last_complete_step(recorder.alive)
         except RunFailed as exc:
             rec.failure = str(exc)
         finally:

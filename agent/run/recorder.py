@@ -63,6 +63,9 @@ class Recording:
     wall: float = 0.0
     failure: str | None = None
     interrupted: bool = False
+    #: an interrupted run's record ends here: the newest step every agent still
+    #: publishing had recorded (:meth:`Recorder.last_complete_step`), None otherwise
+    complete_step: int | None = None
     children: object = None                            # agent.run.launcher.Children of `up`
     monitors_alive: set = field(default_factory=set)   # monitor ids whose token is up
     monitor_seen: bool = False                         # a monitor's token was ever heard

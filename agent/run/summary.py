@@ -162,6 +162,8 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
 
     c = config
     K, N, M = c.steps, c.scenario.N, c.M
+    if rec.complete_step is not None:      # interrupted: the steps every agent published
+        K = min(K, rec.complete_step)
     steps, mse = mse_by_step(rec, K)
     # the last quarter of the run's K steps (by position: a watcher that attached late
     # averages the same final steps as the run's own recorder), or of the steps run when
@@ -178,7 +180,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "ports": rec.ports,
         "seed": c.seed,
         "steps": int(steps[-1]) if steps else -1,
-        "steps_requested": K,
+        "steps_requested": c.steps,
         "record_every": c.record_every,
         "step_ms": c.step_ms,
         "deadline_ms": c.deadline_ms,
