@@ -27,7 +27,7 @@ _WHERE = {
     "decode_impairment": "impair", "encode_impairment": "impair",
     "InvalidKey": "keys",
     "Inbox": "peer", "LivelinessEvent": "peer", "LivelinessWatch": "peer", "Peer": "peer",
-    "Received": "peer",
+    "Received": "peer", "SessionError": "peer",
 }
 
 
@@ -56,6 +56,7 @@ __all__ = [
     "NetConfig",
     "Peer",
     "Received",
+    "SessionError",
     "Schema",
     "add_net_arguments",
     "apply_impairment_message",

@@ -33,6 +33,7 @@ __all__ = [
     "add_net_arguments",
     "build_zenoh_config",
     "net_config_from_args",
+    "zenoh_message",
 ]
 
 #: Default link lease. A peer that stops answering keep-alives (hung, killed,
@@ -79,6 +80,8 @@ _PROCESS_MODES = _MODES
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # <protocol>/<address>[?<metadata>][#<config>]
 _ENDPOINT_RE = re.compile(r"^[a-z][a-z0-9+\-]*/\S+$")
+#: the port of an endpoint's address (before zenoh's ``?metadata`` and ``#config``)
+_PORT_RE = re.compile(r":(\d+)(?:[?#].*)?$")
 
 
 class InvalidNetConfig(ValueError):
@@ -106,10 +109,14 @@ def _check_endpoints(name: str, value) -> tuple[str, ...]:
     for ep in endpoints:
         if not isinstance(ep, str) or not _ENDPOINT_RE.match(ep):
             raise InvalidNetConfig(name, f"invalid endpoint {ep!r}, expected e.g. 'tcp/127.0.0.1:7447'")
+        port = _PORT_RE.search(ep)
+        if port is not None and int(port.group(1)) > 65535:
+            raise InvalidNetConfig(name, f"invalid endpoint {ep!r}: port {int(port.group(1))} "
+                                         "is not in 0..65535")
     return endpoints
 
 
-def _zenoh_message(exc: Exception) -> str:
+def zenoh_message(exc: Exception) -> str:
     """One line out of a zenoh error (its json5 parser reports over several lines)."""
     text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))  # locations in zenoh's sources
     serde = re.search(r'msg: "(.*?)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
@@ -183,14 +190,14 @@ def _base_config(zenoh_config: str | None, fragment: dict | None) -> zenoh.Confi
         try:
             conf = _load_config_file(zenoh_config)
         except zenoh.ZError as exc:
-            raise InvalidNetConfig("zenoh_config", f"cannot load {zenoh_config!r}: {_zenoh_message(exc)}") from None
+            raise InvalidNetConfig("zenoh_config", f"cannot load {zenoh_config!r}: {zenoh_message(exc)}") from None
     else:
         conf = zenoh.Config()
     for key, value in _flatten(fragment or {}):
         try:
             conf.insert_json5(key, json.dumps(value))
         except zenoh.ZError as exc:
-            raise InvalidNetConfig("keys", f"cannot apply {key}: {_zenoh_message(exc)}") from None
+            raise InvalidNetConfig("keys", f"cannot apply {key}: {zenoh_message(exc)}") from None
     return conf
 
 

@@ -28,10 +28,11 @@ import zenoh.ext
 
 from . import keys
 from .codec import MAX_PAYLOAD_BYTES
-from .config import NetConfig, build_zenoh_config
+from .config import NetConfig, build_zenoh_config, zenoh_message
 from .linger import LingerGuard
 
-__all__ = ["Inbox", "KeySetInbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received"]
+__all__ = ["Inbox", "KeySetInbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received",
+           "SessionError"]
 
 DEFAULT_INBOX_SIZE = 4096
 #: Payload bytes an inbox holds at most (the oldest items are dropped beyond it).
@@ -40,6 +41,18 @@ _log = logging.getLogger(__name__)
 #: zenoh priorities a publisher may be declared with (highest first)
 _PRIORITIES = ("REAL_TIME", "INTERACTIVE_HIGH", "INTERACTIVE_LOW", "DATA_HIGH", "DATA",
                "DATA_LOW", "BACKGROUND")
+
+
+class SessionError(zenoh.ZError):
+    """A zenoh session could not be opened: zenoh's reason, with the endpoints it was
+    asked to listen on and connect to (a secured process, or a client of one router,
+    gives up on its connect endpoints after a timeout; a listen port may be taken)."""
+
+    def __init__(self, net, reason: str):
+        where = "; ".join(f"{what} {', '.join(eps)}" for what, eps
+                          in (("listen on", net.listen), ("connect to", net.connect)) if eps)
+        super().__init__(f"cannot open the zenoh session ({where or 'scouting only'}): "
+                         f"{reason}")
 
 
 class Received(NamedTuple):
@@ -373,8 +386,9 @@ class Peer:
 
     Raises
     ------
-    zenoh.ZError
-        If the session cannot be opened (e.g. the listen port is taken).
+    SessionError
+        (a ``zenoh.ZError``) If the session cannot be opened (e.g. the listen port is
+        taken, or a secured process reached none of its connect endpoints in time).
         Unreachable ``connect`` endpoints are not an error: zenoh keeps
         retrying them, so processes may start in any order.
 
@@ -402,7 +416,10 @@ class Peer:
         self._watch: LivelinessWatch | None = None
         self._closed = False
         self._activity = threading.Event()
-        self._session = zenoh.open(build_zenoh_config(net))
+        try:
+            self._session = zenoh.open(build_zenoh_config(net))
+        except zenoh.ZError as exc:
+            raise SessionError(net, zenoh_message(exc)) from None
         # zenoh's links linger 10 s on close: a peer's host cut off would put this
         # process's receive threads to sleep until it returns (see linger.py)
         self._linger = LingerGuard()

@@ -148,7 +148,7 @@ def zenoh_setting(text: str) -> list:
     """
     import zenoh
 
-    from broker_free_net.config import _zenoh_message
+    from broker_free_net.config import zenoh_message
 
     key, sep, value = text.partition("=")
     if not sep or not key or not value:
@@ -156,7 +156,7 @@ def zenoh_setting(text: str) -> list:
     try:
         zenoh.Config().insert_json5(key, value)
     except Exception as exc:
-        raise argparse.ArgumentTypeError(f"{text!r}: zenoh refused it: {_zenoh_message(exc)}") from None
+        raise argparse.ArgumentTypeError(f"{text!r}: zenoh refused it: {zenoh_message(exc)}") from None
     return [key, value]
 
 

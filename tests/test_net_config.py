@@ -26,6 +26,8 @@ def get(conf, key):
         ({"run": 3}, "run"),
         ({"listen": "tcp/127.0.0.1:1"}, "listen"),
         ({"listen": ["127.0.0.1:7447"]}, "listen"),
+        ({"listen": ["tcp/127.0.0.1:99999"]}, "listen"),
+        ({"connect": ["tls/10.0.0.5:70000#iface=eth0"]}, "connect"),
         ({"connect": [None]}, "connect"),
         ({"connect": 5}, "connect"),
         ({"multicast": "yes"}, "multicast"),

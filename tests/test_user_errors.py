@@ -270,3 +270,26 @@ def test_inject_names_a_value_out_of_range_in_its_own_words(capsys):
     assert main(["inject", "delay", "1", "2", "--ms", "1e9", "--connect",
                  "tcp/127.0.0.1:9"]) == 2
     assert "delay: delay_ms 1000000000.0 outside" in capsys.readouterr().err
+
+
+def test_a_session_that_cannot_open_is_one_line_and_exit_1(capsys):
+    """A secured process that reached none of its connect endpoints in time (zenoh's
+    error, with the endpoints): one line, status 1, no traceback."""
+    from broker_free_net.config import NetConfig
+    from broker_free_net.peer import SessionError
+
+    from agent.cli._common import run_command
+
+    net = NetConfig(connect=("tls/127.0.0.1:37599",), listen=("tls/127.0.0.1:0",))
+
+    def body():
+        raise SessionError(net, "Unable to connect to any of [Single(tls/127.0.0.1:37599)]. "
+                                "Timeout!")
+
+    assert run_command(body) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == ("socmon: cannot open the zenoh session (listen on tls/127.0.0.1:0; "
+                   "connect to tls/127.0.0.1:37599): Unable to connect to any of "
+                   "[Single(tls/127.0.0.1:37599)]. Timeout!")
+    with pytest.raises(ValueError):             # anything else is not swallowed
+        run_command(lambda: int("x"))

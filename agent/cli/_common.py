@@ -436,6 +436,14 @@ def run_command(body):
     except RunFolderError as exc:      # a full disk: one line, the files written stay whole
         print(f"socmon: run folder: {exc}", file=sys.stderr)
         return EXIT_FOLDER
+    except Exception as exc:
+        # a zenoh session that could not be opened (an endpoint not reached in time, a
+        # port taken): one line; the transport is loaded only by the commands that open one
+        peer = sys.modules.get("broker_free_net.peer")
+        if peer is None or not isinstance(exc, peer.SessionError):
+            raise
+        print(f"socmon: {exc}", file=sys.stderr)
+        return 1
 
 
 def add_attach_argument(parser, takes: str = "") -> None:
