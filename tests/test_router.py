@@ -201,6 +201,8 @@ def test_up_through_a_router_equals_the_simulator(tmp_path):
     assert set(summary["exit_status"].values()) == {0}
     run = json.loads((tmp_path / "r" / "run.json").read_text())
     assert run["connect"] == run["processes"]["router"]["endpoint"]
+    # the start line names the endpoint a joining process connects to: the router's
+    assert f"run {run['run']} at {run['connect']} (" in stderr
     assert all("endpoint" not in p for name, p in run["processes"].items() if name != "router")
     for name, p in run["processes"].items():      # every other process is its client
         if name != "router":

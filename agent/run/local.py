@@ -316,7 +316,8 @@ class LocalRun:
                             () if c.router else [ep[M + 2], *standby_ep[:i - 2]]),
                                        self._wrap("monitor"))
                 self._write_run_json(rec, ep)
-                self.say(f"run {rec.run_id} at {ep[0]} (socmon watch or inject --attach {c.out}"
+                self.say(f"run {rec.run_id} at {self._entry(ep)} (socmon watch or inject "
+                         f"--attach {c.out}"
                          + (f"; SECURED: mutual TLS and access control on every process, keys "
                             f"in {c.out / 'keys'}" if c.secure else "") + "): "
                          f"world + {N} agents + {c.scenario.standby} standby"
@@ -567,6 +568,12 @@ class LocalRun:
         rec.wall = time.monotonic() - t_begin
         return rec
 
+    def _entry(self, ep) -> str:
+        """The endpoint a process joining the run connects to: the router's (the last)
+        under ``--router`` (every other process is its client and listens on nothing),
+        else the world's."""
+        return ep[-1] if self.config.router else ep[0]
+
     def _write_run_json(self, rec, ep):
         from agent.run.folder import write_run_json
 
@@ -582,7 +589,7 @@ class LocalRun:
         if c.testbed is not None:         # attach with `ip netns exec NETNS socmon ...`
             for name in procs:
                 procs[name]["netns"] = c.testbed.namespace(host_of(name))
-        write_run_json(c.out, run=rec.run_id, connect=ep[-1] if c.router else ep[0],
+        write_run_json(c.out, run=rec.run_id, connect=self._entry(ep),
                        processes=procs, scenario=c.scenario.name, scenario_arg=c.scenario_arg,
                        keys=c.out / "keys" if c.secure else None,
                        operator_key=c.out / "operator.key", control_key=c.out / "control.key",
