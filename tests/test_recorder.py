@@ -397,3 +397,33 @@ def test_an_interrupted_run_ends_at_the_last_step_every_agent_published():
     summary, steps, mse = summarize(config, rec, None, None)
     assert steps[-1] == 222 and summary["steps"] == 222 and summary["steps_requested"] == 1500
     assert summary["diverged_at"] is None and np.isfinite(mse).all()
+
+
+@pytest.mark.parametrize("dead, recovered", [(4, None), (2, False)])
+def test_the_death_of_a_standby_alone_loses_no_role(dead, recovered):
+    """A standby killed, no verdict, no roles moved: nothing to recover (the key stays
+    unset, the line says it held no role); an agent in force killed so: not recovered."""
+    from design.scenario import load_scenario
+
+    from agent.run.summary import failure_lines
+
+    s = load_scenario("paper-14")
+    r = Recorder(RUN, n=s.n, N=s.N, M=s.N + s.standby)
+    for k in range(40):
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, np.zeros(s.n)))
+        for a in (1, 2, 3):
+            if a != dead or k < 20:
+                r.feed(topics.est_key(RUN, a), wire.encode_est(a, k, np.ones(s.n), 0, 0.0))
+    rec = r.recording
+    rec.events.append({"process": f"agent-{dead}", "exit_status": -9, "step": 20, "t": 1.0})
+    G = [np.zeros((s.n, len(m))) for m in s.measure]
+    config = RunConfig(scenario=s, scenario_arg="paper-14", G=G, gains_path=None,
+                       delays=np.zeros((s.N, s.N), int), delays_spec="none", steps=39,
+                       seed=0, step_ms=20.0, deadline_ms=None, out=None)
+    summary, steps, mse = summarize(config, rec, 0.9, 1.0)
+    assert summary.get("recovered") is recovered
+    [f] = summary["failures"]
+    assert (f["agent"], f["detected"], f["role"]) == (dead, False,
+                                                      "standby" if dead == 4 else "active")
+    line = failure_lines(summary)[0]
+    assert line.endswith("a standby, it held no role" if dead == 4 else "not recovered")

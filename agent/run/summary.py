@@ -323,8 +323,9 @@ def failure_lines(summary) -> list:
     for f in summary.get("failures", []):
         if f.get("detected") is False:
             lines.append(f"  failure: agent {f['agent']} died at step {f['died_step']} and was "
-                         f"never convicted ({f['why']}): not recovered"
-                         + (" (a standby)" if f.get("role") == "standby" else ""))
+                         f"never convicted ({f['why']}): "
+                         + ("a standby, it held no role" if f.get("role") == "standby"
+                            else "not recovered"))
             continue
         rep = f.get("replacement") or {}
         measures = rep.get("measures") or [rep.get("node")]
@@ -802,8 +803,8 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                 f"not recovered: the roles are in force from step {at}, but the steady MSE "
                 f"after them, {measured:.4g}, is not within {RECOVERED_FACTOR:g}x of their "
                 f"exact prediction {exact if exact is not None else float('nan'):.4g}")
-    elif failures:
-        out["recovered"] = False
+    elif any(f["agent"] in rosters[-1][1] for f in failures):
+        out["recovered"] = False          # an agent with a role failed, and no roles moved
     for a, b in absent:
         out.setdefault("warnings", []).append(
             f"NO MONITOR ALIVE from step {a} " + ("to the end of the run" if b == math.inf
