@@ -126,6 +126,19 @@ def test_every_host_of_a_32_agent_mesh_reaches_every_other(prefix):
     assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]
 
 
+@pytest.mark.netns
+def test_a_prefix_in_use_is_refused_before_anything_is_written(prefix, tmp_path, capsys):
+    """Namespaces of the prefix exist: ``up`` says so before it designs a gain or makes
+    the run folder, so that the same command runs once they are deleted."""
+    from agent.cli.main import main
+
+    subprocess.run(["ip", "netns", "add", f"{prefix}-a1"], check=True)
+    assert main(["up", "paper-14-live", "--netns", "--netns-prefix", prefix,
+                 "--out", str(tmp_path / "run")]) == 1
+    assert f"--netns: namespaces named {prefix}-* exist already" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 # -- whole runs -------------------------------------------------------------------------------
 def _up(tmp_path, gains, prefix, *flags, steps):
     code, out, err = _socmon("up", "paper-14-live", "--steps", str(steps), "--gains",

@@ -81,6 +81,14 @@ def run_config(args, say, prog="up", design_progress=None):
             check_prefix(args.netns_prefix)
         except ValueError as exc:
             raise InputError(f"--netns-prefix: {exc}") from None
+    if getattr(args, "netns", False):
+        # what would stop the testbed, said before a gain is designed or a file written
+        from agent.testbed.netns import prefix_taken, unavailable_reason
+
+        why = unavailable_reason() or (prefix_taken(args.netns_prefix)
+                                       if args.netns_prefix is not None else None)
+        if why is not None:
+            raise InputError(f"--netns: {why}", status=1)
     run_id, listen = check_run_endpoint(getattr(args, "run", None),
                                         getattr(args, "listen", None),
                                         getattr(args, "secure", False))

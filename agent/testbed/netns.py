@@ -46,7 +46,7 @@ import shutil
 import subprocess
 
 __all__ = ["SUBNET", "Testbed", "TestbedError", "check_prefix", "default_prefix", "host_names",
-           "host_of", "list_namespaces", "remove_testbed", "unavailable_reason"]
+           "host_of", "list_namespaces", "prefix_taken", "remove_testbed", "unavailable_reason"]
 
 #: Addresses of the hosts (the switch has none): .1 for the first host, .2 for the next...
 SUBNET = ipaddress.ip_network("10.200.0.0/24")
@@ -112,6 +112,15 @@ def check_prefix(prefix: str) -> str:
         raise ValueError(f"prefix: expected 1-12 lower-case letters and digits starting "
                          f"with a letter, got {prefix!r}")
     return prefix
+
+
+def prefix_taken(prefix: str) -> str | None:
+    """Why a testbed of ``prefix`` cannot be made now (namespaces of that prefix exist),
+    or None."""
+    if any(n.startswith(prefix + "-") for n in list_namespaces()):
+        return (f"namespaces named {prefix}-* exist already (another run, or one that "
+                "died: delete them with `ip netns delete NAME`)")
+    return None
 
 
 def default_prefix() -> str:
@@ -248,9 +257,9 @@ class Testbed:
     # -- life ----------------------------------------------------------------------------
     def create(self) -> "Testbed":
         """Make the switch, the hosts, their links and addresses; undo all on any error."""
-        if any(n.startswith(self.prefix + "-") for n in list_namespaces()):
-            raise TestbedError(f"namespaces named {self.prefix}-* exist already (another run, "
-                               f"or one that died: delete them with `ip netns delete NAME`)")
+        taken = prefix_taken(self.prefix)
+        if taken is not None:
+            raise TestbedError(taken)
         try:
             self._add_ns(self.switch)
             sw = ("-n", self.switch)
