@@ -427,3 +427,18 @@ def test_the_death_of_a_standby_alone_loses_no_role(dead, recovered):
                                                       "standby" if dead == 4 else "active")
     line = failure_lines(summary)[0]
     assert line.endswith("a standby, it held no role" if dead == 4 else "not recovered")
+
+
+def test_a_watch_of_a_run_whose_clock_never_started_says_so_and_exits_1():
+    from types import SimpleNamespace
+
+    from agent.run.watch import WatchResult, exit_status, summary_lines
+
+    config = SimpleNamespace(scenario=SimpleNamespace(name="paper-14-live"),
+                             net=SimpleNamespace(run="r"))
+    never = WatchResult(None, {"steps": -1}, [], np.zeros(0), "world ended")
+    assert exit_status(never) == 1
+    assert "before its clock started: no step recorded" in summary_lines(never, config)[0]
+    ran = WatchResult(None, {"steps": 150}, [], np.zeros(0), "world ended")
+    assert exit_status(ran) == 0
+    assert exit_status(WatchResult(None, {"steps": -1}, [], np.zeros(0), "interrupted")) == 130

@@ -62,8 +62,8 @@ def run(args) -> int:
 
 def _watch(args) -> int:
     from agent.cli._common import served_page
-    from agent.run.watch import (NoWorld, live_view_for, start_line, summary_json,
-                                 summary_lines, watch, watch_config)
+    from agent.run.watch import (NoWorld, exit_status, live_view_for, start_line,
+                                 summary_json, summary_lines, watch, watch_config)
 
     config = watch_config(args, attach_run(args))
     with served_page(args, "watch") as page:
@@ -77,4 +77,4 @@ def _watch(args) -> int:
         print(summary_json(result), flush=True)
     else:
         print("\n".join(summary_lines(result, config, args.out)))
-    return 130 if result.ended == "interrupted" else 0
+    return exit_status(result)

@@ -211,6 +211,14 @@ def start_line(config: WatchConfig, out: str | None = None) -> str:
             "Ctrl-C ends the watch" + (f" and writes {out}" if out else ""))
 
 
+def exit_status(result: WatchResult) -> int:
+    """``socmon watch``'s exit status: 130 interrupted, 1 when the run's clock never
+    started (no step recorded: its world gave up waiting for a process), else 0."""
+    if result.ended == "interrupted":
+        return 130
+    return 1 if result.summary.get("steps", -1) < 0 else 0
+
+
 def summary_json(result: WatchResult) -> str:
     """The last line of ``socmon watch --json``: ``{"kind": "summary", ...}``."""
     from agent.run.jsonable import to_jsonable, versioned
@@ -227,6 +235,10 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
     pred = summary.get("mse_steady_exact_in_force")
     how = {"steps": "recorded up to --steps", "world ended": "ended with its world",
            "interrupted": "watched until interrupted"}.get(result.ended, result.ended)
+    if summary.get("steps", -1) < 0:
+        return [f"{config.scenario.name}: run {config.net.run} {how} before its clock "
+                "started: no step recorded (the world gave up waiting for a process: see "
+                "its log)"] + ([f"run folder: {out}"] if out else [])
     lines = [f"{config.scenario.name}: run {config.net.run} {how}, last step "
              f"{summary['steps']}: mse_steady {steady_text(summary, 'mse_steady')}"
              + (" (no --gains: no prediction)" if summary.get("mse_steady_exact") is None
@@ -240,5 +252,5 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
     return lines
 
 
-__all__ += ["control_key", "watch_config", "live_view_for", "start_line", "summary_json",
-            "summary_lines"]
+__all__ += ["control_key", "watch_config", "live_view_for", "start_line", "exit_status",
+            "summary_json", "summary_lines"]
