@@ -156,8 +156,9 @@ def _chaos(tmp_path, seed, faults, duration=900, rate=4.0):
 def test_fixed_chaos_seeds_keep_every_invariant(tmp_path, seed, faults):
     report = _chaos(tmp_path, seed, faults)
     assert report["violations"] == [] and report["faults"]
-    for name in ("schedule.json", "timeline.json", "timeline.png", "invariants.json"):
-        assert (tmp_path / "chaos" / name).is_file()
+    for name in ("schedule.json", "timeline.json", "timeline.png", "invariants.json",
+                 "summary.json", "mse.png", "estimates.npz", "assignments.json"):
+        assert (tmp_path / "chaos" / name).is_file()     # up's files and its own
 
 
 @pytest.mark.multiprocess

@@ -407,7 +407,7 @@ def live_chaos(args, say) -> tuple:
     s = config.scenario
     rec, summary, steps, mse, predicted = run_and_summarize(config, say)
     violations = [] if rec.failure else check_invariants(config, rec, summary, steps, mse)
-    write_run_folder(config.out, summary, steps, mse, predicted, assigns=rec.assigns)
+    write_run_folder(config.out, summary, steps, mse, predicted, recording=rec, n=s.n)
     report = {
         "schema_version": SCHEMA_VERSION,
         "scenario": s.name, "seed": args.seed, "duration": args.duration,

@@ -41,11 +41,14 @@ RUN_JSON = "run.json"
 RUN_JSON_VERSION = 1
 
 
+#: The zenoh configuration file ``up`` writes in the run folder for its children and its
+#: recorder (:func:`agent.run.local._write_mesh_config`).
+MESH_CONFIG = "zenoh-mesh.json5"
 #: What a run (``up``, ``watch --out``, ``chaos``) writes in its folder.
 RUN_ENTRIES = ("run.json", "summary.json", "events.jsonl", "mse.json", "mse.csv", "mse.png",
                "estimates.npz", "assignments.json", "gains.npz", "manifest.json",
                "control.key", "operator.key", "keys", "logs", "schedule.json",
-               "invariants.json", "timeline.json", "timeline.png")
+               "invariants.json", "timeline.json", "timeline.png", MESH_CONFIG)
 
 
 class InvalidRunFolder(ValueError):

@@ -33,6 +33,7 @@ from broker_free_net.impair import encode_impairment
 
 from broker_free_net.ports import listen_port
 
+from agent.run.folder import MESH_CONFIG
 from agent.run.launcher import Children
 from agent.testbed.netns import host_names, host_of
 from agent.run.recorder import Recorder, Recording
@@ -644,7 +645,7 @@ def _wait_listening(children, name, timeout):
 def _connect_to(endpoints) -> list:
     """``--connect`` flags for ``endpoints``: each child of a run connects to every child
     started before it (the world, the agents of smaller ids, the monitors before it), and
-    finds no link by gossip (:data:`MESH_CONFIG`). zenoh opens and retries the links it
+    finds no link by gossip (:data:`agent.run.folder.MESH_CONFIG`). zenoh opens and retries the links it
     is told to make, one per pair, and opens one again when it closes; a link found by
     gossip that lapsed (one end paused or starved past the lease) was seen never to come
     back while both ends kept their other links: gossip told neither end of the other
@@ -653,14 +654,11 @@ def _connect_to(endpoints) -> list:
     return [flag for e in endpoints for flag in ("--connect", e)]
 
 
-#: The zenoh configuration file ``up`` writes in the run folder for its children and its
-#: recorder: gossip tells who is on the mesh, but nobody connects on its word (every link
-#: is a configured one, :func:`_connect_to`; a watcher or an operator joining later still
-#: connects by gossip, its own configuration).
-MESH_CONFIG = "zenoh-mesh.json5"
-
-
 def _write_mesh_config(folder: Path) -> Path:
+    """The zenoh configuration file of ``up``'s children and its recorder
+    (:data:`agent.run.folder.MESH_CONFIG`): gossip tells who is on the mesh, but nobody
+    connects on its word (every link is a configured one, :func:`_connect_to`; a watcher
+    or an operator joining later still connects by gossip, its own configuration)."""
     path = folder / MESH_CONFIG
     path.write_text('{ scouting: { gossip: { autoconnect: { peer: [], router: [] } } } }\n')
     return path

@@ -332,7 +332,6 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
         CHECK_TOL,
         compare_simulator,
         run_and_summarize,
-        save_estimates,
         write_run_folder,
     )
 
@@ -354,10 +353,8 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
             problems.append(f"--check-simulator: the run differs from the simulator's replay "
                             f"by {diff:.3g} (relative; at most {CHECK_TOL:g} allowed): {how}")
     try:
-        write_run_folder(config.out, summary, steps_done, mse, predicted, assigns=rec.assigns)
-        active = [a for a in range(1, config.M + 1) if rec.est[a]]
-        save_estimates(config.out / "estimates.npz", steps_done, rec.truth, rec.est, active,
-                       config.scenario.n)
+        write_run_folder(config.out, summary, steps_done, mse, predicted, recording=rec,
+                         n=config.scenario.n)
     except RunFolderError as exc:   # a full disk: the summary still goes to stdout
         problems.append(f"run folder: {exc}")
         status = status or EXIT_FOLDER

@@ -1001,7 +1001,7 @@ def _write(path, data, written=None) -> None:
         written.append(Path(path).name)
 
 
-def save_estimates(path, steps_done, truth, est, agents, n):
+def save_estimates(path, steps_done, truth, est, agents, n, written=None):
     """truth (K+1, n) and estimates (K+1, agents, n), NaN where nothing was received;
     written atomically (:class:`agent.run.folder.RunFolderError` if it cannot be)."""
     import numpy as np
@@ -1016,7 +1016,7 @@ def save_estimates(path, steps_done, truth, est, agents, n):
     buf = io.BytesIO()
     np.savez(buf, step=np.array(steps_done, dtype=int), truth=X, estimates=E,
              agents=np.array(agents, dtype=int))
-    _write(path, buf.getvalue())
+    _write(path, buf.getvalue(), written)
 
 
 def pyplot():
@@ -1100,9 +1100,11 @@ def gain_changes(summary) -> list:
             if r.get("activate_at") not in failed_at]
 
 
-def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
-    """The run folder's summary, MSE per step, assignments heard and ``mse.png``; every
-    file written atomically (:func:`agent.run.folder.write_atomic`), the summary first.
+def write_run_folder(out, summary, steps_done, mse, predicted, recording=None, n=None):
+    """The run folder's summary, MSE per step, ``mse.png`` and, of ``recording`` (with
+    ``n`` states), the assignments heard and ``estimates.npz``: every run's folder (``up``,
+    ``watch --out``, ``chaos``) holds the same files. Every file is written atomically
+    (:func:`agent.run.folder.write_atomic`), the summary first.
     Returns the names written; a file that cannot be written (a full disk) raises
     :class:`agent.run.folder.RunFolderError` naming it and those written whole before it."""
     import json
@@ -1116,10 +1118,13 @@ def write_run_folder(out, summary, steps_done, mse, predicted, assigns=None):
         f"{k},{float(m)!r}\r\n" for k, m in zip(steps_done, mse)), written)
     _write(out / "mse.json", json.dumps(to_jsonable(
         {"step": steps_done, "mse": list(mse)})) + "\n", written)
-    if assigns is not None:
+    if recording is not None:
         _write(out / "assignments.json", json.dumps(to_jsonable(
-            [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(assigns.items())]))
+            [{"agent": a, "epoch": e, **m} for (a, e), m in sorted(recording.assigns.items())]))
             + "\n", written)
+        agents = [a for a in sorted(recording.est) if recording.est[a]]
+        save_estimates(out / "estimates.npz", steps_done, recording.truth, recording.est,
+                       agents, n, written)
     plt = pyplot()
     if plt is None:
         return written

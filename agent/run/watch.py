@@ -64,7 +64,7 @@ def watch(config: WatchConfig, view, page=None) -> WatchResult:
     with the same views (``--web``). Raises :class:`NoWorld` if nothing was heard."""
     from agent.run.folder import write_atomic
     from agent.run.local import RunConfig
-    from agent.run.summary import predicted_mse, save_estimates, summarize, write_run_folder
+    from agent.run.summary import predicted_mse, summarize, write_run_folder
 
     c = config
     s = c.scenario
@@ -121,9 +121,7 @@ def watch(config: WatchConfig, view, page=None) -> WatchResult:
     summary, steps, mse = summarize(run_config, rec, rho, predicted)
     summary.update(watched=True, ended=ended, connect=list(c.net.connect))
     if c.out is not None:
-        write_run_folder(c.out, summary, steps, mse, predicted, assigns=rec.assigns)
-        active = [a for a in range(1, M + 1) if rec.est[a]]
-        save_estimates(c.out / "estimates.npz", steps, rec.truth, rec.est, active, s.n)
+        write_run_folder(c.out, summary, steps, mse, predicted, recording=rec, n=s.n)
         summary["out"] = str(c.out)
     return WatchResult(rec, summary, steps, mse, ended)
 
