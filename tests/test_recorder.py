@@ -170,6 +170,14 @@ def test_attach_errors_are_one_line_exit_2(tmp_path, capsys):
     assert len(err) == 3 and all("--attach" in e and "has no run.json" in e for e in err)
     assert main(["watch", "paper-14", "--run", "r"]) == 2
     assert "--connect" in capsys.readouterr().err
+    # a run that has ended (its summary written): said at once, not after a timeout
+    write_run_json(tmp_path, run="r", connect="tcp/127.0.0.1:9", processes={},
+                   scenario="paper-14", scenario_arg="paper-14")
+    (tmp_path / "summary.json").write_text("{}")
+    assert main(["inject", "clear-all", "--attach", str(tmp_path)]) == 2
+    assert main(["watch", "--attach", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("has ended (its summary.json is written)" in e for e in err)
 
 
 def test_up_run_and_listen_checked():

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
+from pathlib import Path
 
 from agent.protocol.timing import DEFAULT as TIMING
 from agent.run.jsonable import to_jsonable, versioned  # noqa: F401 - re-exported for the commands
@@ -465,6 +466,9 @@ def attach_run(args):
         info = read_run_info(args.attach)
     except InvalidRunFolder as exc:
         raise CommandError(f"--attach: {exc}") from None
+    if (Path(args.attach) / "summary.json").exists():    # written as the run ends
+        raise CommandError(f"--attach: the run in {args.attach!r} has ended (its summary.json "
+                           "is written): no process of it is left to reach")
     if args.run is None:
         args.run = info.run
     if not args.connect:
