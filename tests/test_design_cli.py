@@ -181,3 +181,22 @@ def test_a_radius_design_worse_than_no_correction_is_warned(capsys, tmp_path):
 
 def g_meta_objective(path):
     return load_gains(path, load_scenario("paper-14")).meta["objective"]
+
+
+def test_the_design_text_says_its_certificate_is_for_the_delays_given():
+    """A gain certified for 3-step links whose delay-free loop is unstable: the text says
+    the certificate holds for those delays exactly and flags the delay-free radius."""
+    from agent.run.design_reports import format_design
+
+    record = {"scenario": "s", "method": "default", "objective": "mse",
+              "delays": [[0, 3, 3], [3, 0, 3], [3, 3, 0]], "rho_exact": 0.963,
+              "stable": True, "rho_delay_free": 1.042, "mse_steady_exact": 5.7,
+              "detectability": {"rank": 24, "order": 24, "observable": True},
+              "iterations": 161, "seconds": 1.4, "status": "converged", "written": "g.npz"}
+    lines = format_design(record).splitlines()
+    assert "for the delay matrix given (at most 3 steps on a link; the certificate is for " \
+           "these delays exactly)" in lines[0]
+    assert lines[2].endswith("1.042000  UNSTABLE: run this gain with the delays it was "
+                             "designed for (`socmon certify --taus` checks others)")
+    record["rho_delay_free"] = 0.9
+    assert format_design(record).splitlines()[2].endswith("0.900000")

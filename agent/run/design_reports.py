@@ -614,12 +614,16 @@ def format_design(record: dict) -> str:
     """The text of a :func:`design_report`."""
     delays = record["delays"]
     taubar = max((max(r) for r in delays), default=0)
+    free = record["rho_delay_free"]
     lines = [
         f"design {record['scenario']}: method {record['method']}, objective "
-        f"{record['objective']}, delays up to {taubar} steps",
+        f"{record['objective']}, for the delay matrix given (at most {taubar} steps on a "
+        "link; the certificate is for these delays exactly)",
         f"  rho (exact, delays as designed for) = {record['rho_exact']:.6f}  "
         f"{'stable' if record['stable'] else 'NOT stable'}",
-        f"  rho (delay-free loop)              = {record['rho_delay_free']:.6f}",
+        f"  rho (delay-free loop)              = {free:.6f}"
+        + ("" if free < 1 or not taubar else "  UNSTABLE: run this gain with the delays it "
+           "was designed for (`socmon certify --taus` checks others)"),
     ]
     if record["mse_steady_exact"] is not None:
         lines.append(f"  steady MSE (exact)                 = {record['mse_steady_exact']:.6g}")
