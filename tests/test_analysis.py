@@ -433,3 +433,48 @@ def test_cli_analyze_exits_1_on_an_undetectable_scenario(tmp_path, capsys):
     assert "not detectable" in cap.err
     path.write_text('[social]\nA = [[0.9, 0.0], [0.0, 0.5]]\n[agents]\nmeasure = [["2"]]\n')
     assert main(["analyze", str(path), "--json"]) == 0
+
+
+UNMEASURED_PARENT = """name = "unobs"
+
+[social]
+A = [
+  [0.5, 0.3, 0,   0,   0,   0,   0.2, 0  ],
+  [0.4, 0.5, 0,   0,   0,   0,   0,   0  ],
+  [0,   0,   0.6, 0.2, 0,   0,   0,   0.2],
+  [0,   0,   0.5, 0.4, 0,   0,   0,   0  ],
+  [0,   0,   0,   0,   0.7, 0.3, 0.1, 0  ],
+  [0,   0,   0,   0,   0.2, 0.6, 0,   0  ],
+  [0,   0,   0,   0,   0,   0,   0.5, 0.4],
+  [0,   0,   0,   0,   0,   0,   0.3, 0.6],
+]
+labels = ["a","b","c","d","e","f","g","h"]
+process_noise = 0.05
+
+[agents]
+measure = [["a"], ["c"], ["g"]]
+measurement_noise = 0.05
+standby = 1
+
+[network]
+weights = [[0.5, 0.5, 0.0],
+           [0.0, 0.6, 0.4],
+           [0.3, 0.0, 0.7]]
+delays = [[0, 2, 0],
+          [0, 0, 1],
+          [3, 0, 0]]
+"""
+
+
+def test_analyze_and_design_agree_on_a_parent_scc_without_sensor(tmp_path, capsys):
+    """{e, f} is a parent SCC nobody measures, its modes decay: detectable. analyze says
+    so, and that design refuses such a network (it does, naming the SCC)."""
+    path = tmp_path / "s.toml"
+    path.write_text(UNMEASURED_PARENT)
+    assert main(["analyze", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "parent SCCs without sensor: {e, f}" in text
+    assert "stabilising gains exist; but the states of a parent SCC without sensor are " \
+           "then estimated open loop, and `socmon design` refuses such a network" in text
+    assert main(["design", str(path), "--out", str(tmp_path / "g.npz")]) == 2
+    assert "parent SCC {e, f} has no sensor" in capsys.readouterr().err

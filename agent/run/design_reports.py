@@ -249,8 +249,12 @@ def format_analysis(d: dict) -> str:
     if not d["distributed_observable"]:
         top = max((m["abs"] for m in d["distributed_unobservable_modes"]), default=0.0)
         lines.append(
-            f"  not observable but detectable: the unobservable modes (|lambda| <= {top:.4g}) "
-            "decay by themselves, so stabilising gains exist and the estimation works"
+            (f"  not observable but detectable: the unobservable modes (|lambda| <= {top:.4g}) "
+             "decay by themselves, so stabilising gains exist"
+             + ("; but the states of a parent SCC without sensor are then estimated open "
+                "loop, and `socmon design` refuses such a network (the paper's condition: "
+                "let an agent measure a node of each parent SCC)"
+                if d["unmeasured_parent_sccs"] else " and the estimation works"))
             if d["distributed_detectable"] else
             "  NOT DETECTABLE: an unobservable mode does not decay (|lambda| = "
             f"{top:.4g} >= 1): no gain keeps the estimation error bounded (exit 1)")
