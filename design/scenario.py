@@ -815,8 +815,9 @@ def _parse_measure(agents, labels, problems):
     index = {lab: i for i, lab in enumerate(labels)} if labels is not None else None
     out = []
     for a, group in enumerate(measure, start=1):
+        where = _agent_field(a)
         if not isinstance(group, list) or not group:
-            problems.append(f"agents.measure[{a}]: agent {a} must measure a non-empty list of labels")
+            problems.append(f"{where}: agent {a} must measure a non-empty list of labels")
             out.append(())
             continue
         idx, unknown = [], []
@@ -828,13 +829,39 @@ def _parse_measure(agents, labels, problems):
             else:
                 idx.append(index[str(lab)])
         for lab in unknown[:3]:
-            problems.append(f"agents.measure[{a}]: unknown node label {lab!r}")
+            problems.append(f"{where}: unknown node label {lab!r}")
         if len(unknown) > 3:
-            problems.append(f"agents.measure[{a}]: and {len(unknown) - 3} more unknown labels")
-        if len(set(idx)) != len(idx):
-            problems.append(f"agents.measure[{a}]: agent {a} lists a node twice")
+            problems.append(f"{where}: and {len(unknown) - 3} more unknown labels")
+        twice = sorted({str(lab) for lab in group if [str(x) for x in group].count(str(lab)) > 1})
+        if twice:
+            problems.append(f"{where}: agent {a} lists {', '.join(map(repr, twice))} twice")
         out.append(tuple(idx))
     return out
+
+
+def _shape_words(raw) -> str:
+    """What a value meant as a matrix is, in words.
+
+    >>> _shape_words([[0, 1], [2]]), _shape_words([[0, 1, 2]] * 3), _shape_words(5)
+    ('rows of lengths 2, 1', '3 x 3', 'a int')
+    """
+    if not isinstance(raw, list):
+        return f"a {type(raw).__name__}"
+    if not all(isinstance(r, list) for r in raw):
+        return "a list whose rows are not all lists"
+    lengths = {len(r) for r in raw}
+    if len(lengths) > 1:
+        return "rows of lengths " + ", ".join(str(len(r)) for r in raw[:8])
+    return f"{len(raw)} x {lengths.pop() if lengths else 0}"
+
+
+def _agent_field(a: int) -> str:
+    """The field of agent ``a``'s sensors (1-based id; the list's index is a - 1).
+
+    >>> _agent_field(2)
+    'agents.measure[1] (agent 2)'
+    """
+    return f"agents.measure[{a - 1}] (agent {a})"
 
 
 def _parse_weights(network, N, problems):
@@ -925,7 +952,8 @@ def _parse_delays(network, W, problems):
             or len(raw) != N
             or any(len(r) != N for r in raw)
         ):
-            problems.append(f"network.delays: must be a {N} x {N} matrix of integers")
+            problems.append(f"network.delays: must be a {N} x {N} matrix of integers, got "
+                            + _shape_words(raw))
             return np.zeros((N, N), dtype=int)
         if not all(_is_int(x) for r in raw for x in r):
             bad = [x for r in raw for x in r if not _is_int(x)]
@@ -992,8 +1020,8 @@ def _check_measure_indices(measure, n):
     problems = []
     for a, m in enumerate(measure, start=1):
         if not m:
-            problems.append(f"agents.measure[{a}]: agent {a} measures nothing")
+            problems.append(f"{_agent_field(a)}: agent {a} measures nothing")
         for j in m:
             if not 0 <= int(j) < n:
-                problems.append(f"agents.measure[{a}]: node index {j} out of range")
+                problems.append(f"{_agent_field(a)}: node index {j} out of range")
     return problems
