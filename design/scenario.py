@@ -65,14 +65,20 @@ def scenario_schema() -> dict:
 _SCHEMA = scenario_schema()
 
 
-def starter_scenario_toml() -> str:
-    """The commented starter scenario that ``socmon init`` writes (6 individuals, 2 agents).
+def starter_scenario_toml(path: str = "scenario.toml") -> str:
+    """The commented starter scenario that ``socmon init`` writes (6 individuals, 2
+    agents), its commands naming the file at ``path``.
 
     >>> s = scenario_from_dict(tomllib.loads(starter_scenario_toml()))
     >>> s.n, s.N, s.standby
     (6, 2, 1)
+    >>> "socmon analyze 'my net.toml'" in starter_scenario_toml("my net.toml")
+    True
     """
-    return (importlib.resources.files("design") / "scenario_starter.toml").read_text()
+    import shlex
+
+    text = (importlib.resources.files("design") / "scenario_starter.toml").read_text()
+    return text.replace("scenario.toml", shlex.quote(str(path)))
 
 
 def _table_keys(table: str) -> set:

@@ -30,7 +30,7 @@ def _init(args) -> int:
     from agent.cli._common import CommandError
 
     path = Path(args.path)
-    text = starter_scenario_toml()
+    text = starter_scenario_toml(args.path)
     targets = [(path, "PATH")]
     if args.schema:
         schema_path = Path(args.schema)
