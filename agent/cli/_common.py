@@ -374,16 +374,14 @@ def parse_int_list(text, flag: str, lo: int = 0, hi: int | None = None, *,
 def parse_agent_list(text: str, scenario, flag: str = "--fail") -> list:
     """``"1,2"`` -> ``[0, 1]`` (0-based rows), checking each id names an active agent (a
     standby's failure is ``up``'s and ``chaos``'s: here it would change no estimate)."""
-    N, M = scenario.N, scenario.N + scenario.standby
-    ids = parse_int_list(text, flag, lo=1, unique=True, item="agent",
+    N = scenario.N
+    ids = parse_int_list(text, flag, lo=1, hi=N + scenario.standby, unique=True, item="agent",
                          what="agent ids are positive integers",
                          out_of_range=f"no agent {{value}} (agents are 1..{N})")
     for a in ids:
-        if N < a <= M:
+        if a > N:
             raise CommandError(f"{flag}: agent {a} is a standby of the scenario, which "
                                f"estimates nothing here: fail active agents (1..{N})")
-        if a > M:
-            raise CommandError(f"{flag}: no agent {a} (agents are 1..{N})")
     return [a - 1 for a in ids]
 
 

@@ -36,7 +36,7 @@ def run(args) -> int:
 
         import zenoh
 
-        from broker_free_net.config import InvalidNetConfig, net_config_from_args
+        from broker_free_net.config import InvalidNetConfig, net_config_from_args, zenoh_message
         from broker_free_net.router import DEFAULT_ROUTER_LISTEN, serve_router
 
         if args.keys is not None:
@@ -66,7 +66,7 @@ def run(args) -> int:
             raise CommandError(f"--{exc.field.replace('_', '-')}: "
                                f"{str(exc).removeprefix(exc.field + ': ')}") from None
         except zenoh.ZError as exc:  # e.g. the port is taken
-            raise CommandError(f"cannot start the router: {' '.join(str(exc).split())}",
+            raise CommandError(f"cannot start the router: {zenoh_message(exc)}",
                                status=1) from None
         return 0
 

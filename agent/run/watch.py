@@ -226,7 +226,8 @@ def summary_json(result: WatchResult) -> str:
 
 def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = None) -> list:
     """What ``socmon watch`` prints at the end: how the watch ended and the MSE against its
-    prediction for the configuration in force (as ``up`` prints it), the failures, and the run folder ``out`` (as the user named it)."""
+    prediction for the configuration in force (as ``up`` prints it), the failures, and the
+    run folder ``out`` (as the user named it)."""
     from agent.run.summary import failure_lines, steady_text
 
     summary = result.summary
