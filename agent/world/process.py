@@ -135,7 +135,7 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 if msg is None:
                     continue
                 heard[msg["agent"]] = set(msg["heard"])
-                ready[msg["agent"]] = set(msg["heard"]) >= (expected - {msg["agent"]})
+                ready[msg["agent"]] = heard[msg["agent"]] >= (expected - {msg["agent"]})
                 last_step[msg["agent"]] = msg["step"]
 
         def monitor_missing():
@@ -164,6 +164,10 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
             read_statuses(timeout=0.05)
         print(f"world: {len(expected)} agents ready; clock starts, step {step_s * 1e3:g} ms",
               file=log)
+        # the statuses serve the start and the end only: while the clock runs, N agents'
+        # statuses (5 a second each) would cost this loop a decode each
+        status_in.close()
+        status_in.drain()
         t0 = time.monotonic()
         warned = False
         worst_lag = 0.0
@@ -192,7 +196,7 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 left = due - time.monotonic()
                 if left <= 0:
                     break
-                read_statuses(timeout=min(left, 0.05))
+                time.sleep(min(left, 0.05))
             if not math.isfinite(float(np.abs(world.x).max())):
                 print(f"world: the state overflowed float64 at step {world.step}", file=log)
                 publish_end("overflow")
@@ -201,7 +205,9 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
             publish_end("stopped")
             return 0
         publish_end("steps")
-        # wait (bounded) until the live agents have used the last readings
+        # wait (bounded) until the live agents have used the last readings (each publishes
+        # a status 5 times a second)
+        status_in = peer.subscribe(topics.any_agent_pattern(run, "status"))
         deadline = time.monotonic() + end_timeout
         while time.monotonic() < deadline and not stop.flag:
             alive = {int(i) for role, i in watch.alive() if role == "agent" and i.isdigit()}
