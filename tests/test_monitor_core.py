@@ -390,6 +390,27 @@ def test_the_silent_bound_counts_from_the_links_delay(paper14):
 
 
 @pytest.mark.slow
+def test_the_links_off_design_follow_each_agents_newest_status(core, paper14):
+    """The links whose learned delay is off the design, kept per agent and read again only
+    when its status is replaced, equal the map read from every status at every tick: a
+    link reported off design, then back on it, then left out of the status."""
+    rng = np.random.default_rng(3)
+    D = np.asarray(core.roster.delays)
+    rows = {a: i for i, a in enumerate(core.roster.ids)}
+    W = np.asarray(core.roster.scenario.W)
+    for k in range(40):
+        for a in rng.choice([1, 2, 3], size=int(rng.integers(0, 4)), replace=False):
+            a = int(a)
+            delays = {b + 1: int(rng.choice([D[rows[a], rows[b + 1]], 4, 9]))
+                      for b in paper14.neighbours[a - 1] if rng.random() < 0.8}
+            core.on_status({**_status(a, k), "delays": delays}, 0.01 * k)
+        naive = {(a, int(b)): int(t) for a in core.roster.ids
+                 for b, t in core.agents[a].status.get("delays", {}).items()
+                 if a != int(b) and W[rows[a], rows[int(b)]] > 0
+                 and int(t) != D[rows[a], rows[int(b)]]}
+        assert core._delays_off_design() == naive
+
+
 def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
     """The agents learn 9-step delays on every link: the delay-free gains are not
     stable with them (exact radius), so the monitor assigns gains designed for them,
