@@ -14,7 +14,10 @@ neighbour estimates not there by the deadline (missed: dropped, or late) at each
 the receiving agent; median of the agents' medians, worst p99), CPU per agent (ms of CPU a
 step, mean over agents, and % of one core) and the router's CPU (% of one core), both from
 the clock's start to the process's exit (the start-up, read from /proc when the world's
-clock starts, is left out), and the links
+clock starts, is left out), the world's, the monitors' and the recorder's (``up``
+itself) CPU the same way, each process's peak resident memory (VmHWM, read twice a
+second), the machine's 1-minute load average at the run's start and the highest over its
+steps (the run's own processes count in it), and the links
 the transport holds: (P-1)P/2 for P processes in the mesh (N agents, world, recorder), P
 through the router.
 
@@ -80,12 +83,58 @@ def _cpu_s(pid: int):
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _peak_rss_mib(pid: int):
+    """The peak resident memory (VmHWM) of a live process in MiB, None once it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+class RunSampler:
+    """Beside a run, twice a second: each process's peak resident memory (VmHWM, the last
+    value read before it exited) and the machine's 1-minute load average (the highest seen
+    over the steps: the run's own processes count in it)."""
+
+    def __init__(self):
+        import threading
+
+        self.pids, self.peak_mib, self.load_max = {}, {}, None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def _loop(self):
+        while not self._stop.wait(0.5):
+            for name, pid in list(self.pids.items()):
+                mib = _peak_rss_mib(pid)
+                if mib is not None:
+                    self.peak_mib[name] = mib
+            if self.pids:
+                load = os.getloadavg()[0]
+                self.load_max = load if self.load_max is None else max(self.load_max, load)
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        return False
+
+
 def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=False,
            extra=()) -> dict:
     """``socmon up``'s summary (the code of the tree ``root``), with
-    ``cpu_at_clock_start``: the CPU each agent and the router had spent when the world's
-    clock started (start-up: imports, session, gains), read from /proc, so that the CPU of
-    the steps alone can be told apart."""
+    ``cpu_at_clock_start``: the CPU each process (and ``up`` itself, the recorder) had
+    spent when the world's clock started (start-up: imports, session, gains, the
+    monitor's precompute until then), read from /proc, so that the CPU of the steps alone
+    can be told apart; ``cpu_s["recorder"]``: ``up``'s CPU at its end; ``peak_mib``: each
+    process's peak resident memory; ``load_max``: the highest 1-minute load average
+    over the steps."""
     argv = ["up", scenario, "--steps", str(steps), "--step-ms", str(step_ms), "--gains",
             str(gains), "--out", str(out), "--delays", "none", "--json",
             "--quiet", "--start-timeout", "300", *([] if monitor else ["--no-monitor"]),
@@ -95,23 +144,37 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
                              *(["--router"] if router else [])], cwd=root, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
-    at_start, clock_start = {}, None
+    at_start, clock_start, recorder_cpu = {}, None, None
+    sampler = RunSampler()
     try:
         deadline = time.monotonic() + 900
         world_log = out / "logs" / "world.log"
-        while proc.poll() is None and time.monotonic() < deadline:
-            try:
-                started = "clock starts" in world_log.read_text()
-                pids = json.loads((out / "run.json").read_text())["processes"]
-            except (OSError, ValueError, KeyError):
-                started = False
-            if started:
-                at_start = {name: _cpu_s(p["pid"]) for name, p in pids.items()
-                            if name.startswith("agent-") or name == "router"}
-                clock_start = time.time()
-                break
-            time.sleep(0.05)
-        stdout, stderr = proc.communicate(timeout=900 + steps * step_ms / 1000 * 5)
+        with sampler:
+            sampler.pids["recorder"] = proc.pid
+            while proc.poll() is None and time.monotonic() < deadline:
+                try:
+                    started = "clock starts" in world_log.read_text()
+                    pids = json.loads((out / "run.json").read_text())["processes"]
+                except (OSError, ValueError, KeyError):
+                    started = False
+                if started:
+                    at_start = {name: _cpu_s(p["pid"]) for name, p in pids.items()
+                                if p.get("pid")}
+                    at_start["recorder"] = _cpu_s(proc.pid)
+                    sampler.pids.update({name: p["pid"] for name, p in pids.items()
+                                         if p.get("pid")})
+                    clock_start = time.time()
+                    break
+                time.sleep(0.05)
+            # up's own CPU just before it exits (it writes the folder last): read while it
+            # lives, as the children's come from its summary
+            while proc.poll() is None and time.monotonic() < deadline + steps * step_ms / 1e3:
+                cpu = _cpu_s(proc.pid)
+                recorder_cpu = cpu if cpu is not None else recorder_cpu
+                if clock_start is not None and time.time() > clock_start + steps * step_ms / 1e3:
+                    break
+                time.sleep(0.1)
+            stdout, stderr = proc.communicate(timeout=900 + steps * step_ms / 1000 * 5)
         # the steps: from the world's clock start to the run's last step (its span at the
         # period; what follows is the run folder being written)
         steps_window = (None if clock_start is None
@@ -126,7 +189,10 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
         raise RuntimeError(f"up exited with {proc.returncode} and no summary: "
                            f"{' '.join(stderr.split())[-400:]}") from None
     summary["cpu_at_clock_start"] = at_start
+    summary["cpu_s"]["recorder"] = recorder_cpu
     summary["steps_window"] = steps_window
+    summary["peak_mib"] = sampler.peak_mib
+    summary["load_max"] = sampler.load_max
     return summary
 
 
@@ -204,11 +270,31 @@ def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
         else None,
         "router_cpu_percent": (100.0 * stepping["router"] / span
                                if "router" in stepping else None),
+        # the other processes, % of one core over the steps
+        "world_cpu_percent": _percent(stepping, "world", span),
+        "monitor_cpu_percent": _percent(stepping, "monitor", span),
+        "monitor2_cpu_percent": _percent(stepping, "monitor.2", span),
+        "recorder_cpu_percent": _percent(stepping, "recorder", span),
+        "peak_mib": _memory(summary.get("peak_mib", {})),
+        "load_max": summary.get("load_max"),
         "wall_s": summary["wall_s"],
         # estimates each agent received a step (its subscriptions: in-neighbours only, or
         # every agent before them), mean over agents
         "received_per_step": _received_per_step(summary, steps),
     }
+
+
+def _percent(stepping: dict, name: str, span: float):
+    return 100.0 * stepping[name] / span if name in stepping else None
+
+
+def _memory(peak: dict) -> dict:
+    """Peak resident memory (MiB): the agents' mean and largest, and each other process."""
+    agents = [v for k, v in peak.items() if k.startswith("agent-")]
+    out = {k: v for k, v in peak.items() if not k.startswith("agent-")}
+    if agents:
+        out["agent_mean"], out["agent_max"] = statistics.mean(agents), max(agents)
+    return out
 
 
 def _received_per_step(summary: dict, steps: int):
@@ -232,13 +318,32 @@ def _share(row: dict, N: int) -> float:
     return row["drops"] / max(1, N * row["steps"])
 
 
+def _others(row: dict) -> str:
+    """World / monitor(s) / recorder CPU, % of one core over the steps."""
+    mon = fmt(row.get("monitor_cpu_percent"), ".0f")
+    if row.get("monitor2_cpu_percent") is not None:
+        mon += "+" + fmt(row["monitor2_cpu_percent"], ".0f")
+    return (f"{fmt(row.get('world_cpu_percent'), '.0f')} / {mon} / "
+            f"{fmt(row.get('recorder_cpu_percent'), '.0f')}")
+
+
+def _mib(row: dict) -> str:
+    """Peak resident memory: agent mean (largest) / router / monitor / recorder, MiB."""
+    m = row.get("peak_mib") or {}
+    return (f"{fmt(m.get('agent_mean'), '.0f')} ({fmt(m.get('agent_max'), '.0f')}) / "
+            f"{fmt(m.get('router'), '.0f')} / {fmt(m.get('monitor'), '.0f')} / "
+            f"{fmt(m.get('recorder'), '.0f')}")
+
+
 def print_table(results: list, periods: list) -> None:
     """The README's table: one row per N and transport."""
     cols = " | ".join(f"{p:g} ms" for p in periods)
     print(f"| N | transport | links | steps/s sustained | estimates missed at {cols} | "
-          f"hop median / p99 (ms) | agent CPU ms/step (% core) | router CPU (% core) |")
+          f"hop median / p99 (ms) | agent CPU ms/step (% core) | router CPU (% core) | "
+          f"world / monitors / recorder CPU (% core) | peak MiB: agent mean (max) / router "
+          f"/ monitor / recorder | load (1-min, start / max) |")
     print("| --- | --- | --- | --- | " + " | ".join("---" for _ in periods)
-          + " | --- | --- | --- |")
+          + " | --- | --- | --- | --- | --- | --- |")
     steps = max(x["steps"] for r in results for x in r["runs"])
     for r in results:
         if not r["runs"]:
@@ -261,10 +366,14 @@ def print_table(results: list, periods: list) -> None:
               f"{fmt(best['hop_median_ms'], '.2f')} / {fmt(best['hop_p99_ms'], '.1f')} | "
               f"{fmt(best['cpu_ms_per_step'], '.2f')} "
               f"({fmt(best['cpu_percent_per_agent'], '.0f')}) | "
-              f"{fmt(best['router_cpu_percent'], '.0f')} |")
-    print("(hop and CPU at the sustained period, else at the slowest tried; '-': not run "
-          "(a faster period was sustained) or failed; 'to step S': the run was recorded only "
-          "to step S of the requested ones, see the README)")
+              f"{fmt(best['router_cpu_percent'], '.0f')} | {_others(best)} | {_mib(best)} | "
+              f"{fmt(best.get('load_average'), '.1f')} / {fmt(best.get('load_max'), '.1f')} |")
+    print("(hop, CPU, memory and load at the sustained period, else at the slowest tried; "
+          "'-': not run (a faster period was sustained) or failed; 'to step S': the run was "
+          "recorded only to step S of the requested ones, see the README. CPU: from /proc, "
+          "the process's CPU at its end minus at the world's clock start, over the steps' "
+          "span; memory: VmHWM read twice a second; load: the 1-minute load average at the "
+          "run's start and the highest over its steps, the run's own processes included)")
 
 
 def main(argv=None) -> int:
@@ -353,7 +462,9 @@ def main(argv=None) -> int:
                       f"({fmt(row['cpu_percent_per_agent'], '.0f')} %)  router "
                       f"{fmt(row['router_cpu_percent'], '.0f')} %  wall {row['wall_s']:.0f} s"
                       f"  received {fmt(row['received_per_step'], '.1f')}/step"
-                      f"  load {load:.1f}" + (
+                      f"  world / monitors / recorder {_others(row)} %"
+                      f"  peak MiB {_mib(row)}"
+                      f"  load {load:.1f} (max {fmt(row['load_max'], '.1f')})" + (
                           f"  raw zenoh RTT {fmt(row['raw_rtt_median_ms'], '.2f')} / "
                           f"{fmt(row['raw_rtt_p99_ms'], '.1f')} ms, hop median / RTT median "
                           f"{_ratio(row['hop_median_ms'], row['raw_rtt_median_ms'])}"
