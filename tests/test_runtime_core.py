@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from agent.protocol import wire
+from broker_free_net.codec import decode
 from design import noise
 from agent.node.core import AssignmentError
 from tests.runtime_harness import Mesh, reference
@@ -47,6 +48,25 @@ def test_standby_agent_has_no_role_and_follows_the_clock(paper14, gains14):
     standby = mesh.agents[paper14.N + 1]
     assert not standby.active and standby.step == 5
     assert not any(a == paper14.N + 1 for a, _ in mesh.estimates)
+
+
+def test_the_status_carries_the_agents_heard_until_the_clock_starts(paper14, gains14):
+    """The start handshake's list of agents heard is in the status before the clock
+    starts (the world waits for it), and out of it afterwards (every monitor reads every
+    status), as the schema allows."""
+    mesh = Mesh(paper14, gains14)
+    core = mesh.agents[1]
+    core.note_heard(2)
+    core.note_heard(3)
+    before = core.status()
+    assert before["heard"] == [2, 3] and core.step < 0
+    _run(mesh, 2)
+    after = core.status()
+    assert core.step >= 0 and "heard" not in after
+    for status in (before, after):
+        payload = wire.encode_status({**status, "malformed": 0, "malformed_reasons": {},
+                                      "overflows": 0})
+        assert decode(payload, wire.STATUS_SCHEMA)["agent"] == 1
 
 
 def test_lost_estimates_count_drops_and_use_the_freshest_propagated(paper14, gains14):

@@ -974,7 +974,9 @@ class AgentCore:
                        "missed": self.sensor_missed, "future": self.sensor_future},
             "implausible": dict(self.implausible),
             **self._residual_status(),
-            "heard": sorted(self.heard),
+            # the start handshake's: once the clock runs, N ids in every status (read by
+            # every monitor) would serve nobody
+            **({"heard": sorted(self.heard)} if self.step < 0 else {}),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
                       for (src, dst), p in self.impair.links().items() if not p.is_identity},
             "ctl": {"accepted": self.ctl_accepted, "rejected": self.ctl_rejected,

@@ -328,7 +328,8 @@ STATUS_SCHEMA = Schema({
     "malformed_reasons": IntMap(),
     "impaired": Int(0),
     "sensor": Loose(required=True),
-    "heard": AgentIds(),
+    # the agents whose status it heard: the start handshake, sent until the clock starts
+    "heard": AgentIds(required=False),
     "ctl": Loose(required=True),
     "links": Loose(required=True),
     "overflows": Int(0),

@@ -134,8 +134,9 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 msg = try_decode(it.payload, wire.STATUS_SCHEMA, stats)
                 if msg is None:
                     continue
-                heard[msg["agent"]] = set(msg["heard"])
-                ready[msg["agent"]] = heard[msg["agent"]] >= (expected - {msg["agent"]})
+                if "heard" in msg:            # (sent until the agent's clock starts)
+                    heard[msg["agent"]] = set(msg["heard"])
+                    ready[msg["agent"]] = heard[msg["agent"]] >= (expected - {msg["agent"]})
                 last_step[msg["agent"]] = msg["step"]
 
         def monitor_missing():
