@@ -411,6 +411,24 @@ def test_the_links_off_design_follow_each_agents_newest_status(core, paper14):
         assert core._delays_off_design() == naive
 
 
+def test_the_head_start_covers_the_subscriptions_the_agents_report(core):
+    """An assignment's activate_at leaves the agents the time they report for a new
+    link's subscription (declared, and the publisher's cache replayed into it), rounded
+    up to steps plus one; a report that is not a number counts for nothing, and a huge
+    one is capped at twice the hang timeout."""
+    assert core.subscription_steps() == 0 and core.head_start() == core.lead == 10
+    core.agents[2].status = {**_status(2, 5), "estimates_from": {
+        "declare_ms_max": 3.0, "ready_ms_max": 301.0}}           # 15.05 steps of 20 ms
+    core.agents[3].status = {**_status(3, 5), "estimates_from": {
+        "declare_ms_max": "junk", "ready_ms_max": float("nan")}}
+    assert core.subscription_steps() == 17 and core.head_start() == 17
+    out = core._assign_all(core.roster, core.G, {"kind": "refined"}, 0.5, {}, "test")
+    (roster,) = [m for m in out if isinstance(m, RosterUpdate)]
+    assert roster.activate_at == max(core.current_step(0.5), 0) + 17
+    core.agents[3].status = {**_status(3, 5), "estimates_from": {"ready_ms_max": 1e12}}
+    assert core.subscription_steps() == core._lead_cap() == 100
+
+
 def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
     """The agents learn 9-step delays on every link: the delay-free gains are not
     stable with them (exact radius), so the monitor assigns gains designed for them,

@@ -138,6 +138,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         est_changes = [0]
         est_received = {}                     # sender -> estimates received from it
         est_replayed = {}      # sender -> newest stamp its cache may replay (no hop time)
+        # a new link's subscription until the first estimate its publisher's cache
+        # replays is in (the declaration and the history query's round trip): what an
+        # assignment's head start must cover (MonitorCore.subscription_steps)
+        est_awaited = {}                      # sender -> when its subscription was made
+        est_ready_ms = deque(maxlen=64)
         # sensor readings: every node's in one message a step, from the start, active or
         # not: a role that adds a node never waits for a new subscription to reach the
         # world (on a loaded 2-core machine that took longer than the assignment's head
@@ -184,7 +189,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 "ids": "*" if est_from is None else sorted(est_from),
                 "changes": est_changes[0],
                 "received": {str(a): c for a, c in sorted(est_received.items())},
-                "declare_ms_max": max(est_declare_ms, default=0.0)}
+                "declare_ms_max": max(est_declare_ms, default=0.0),
+                "ready_ms_max": max(est_ready_ms, default=0.0)}
             if hops:
                 ordered = sorted(hops)
                 st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
@@ -229,11 +235,14 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             wanted = estimate_sources(core) if NEIGHBOUR_ONLY else None
             if wanted == est_from:
                 return
-            t0 = time.perf_counter()
+            t0, asked = time.perf_counter(), time.monotonic()
             added, _ = est_in.follow(topics.estimate_subscriptions(run, wanted, core.history))
             for j in wanted or ():
                 if topics.est_key(run, j) in added:
                     est_replayed[j] = core.step + 1
+                    est_awaited[j] = asked
+            for j in set(est_awaited) - set(wanted or ()):
+                del est_awaited[j]          # left before its first estimate
             est_declare_ms.append(1e3 * (time.perf_counter() - t0))
             est_changes[0] += 1
             est_from = wanted
@@ -255,6 +264,13 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 bad("key")
                 return
             est_received[sender] = est_received.get(sender, 0) + 1
+            if est_awaited:
+                since = est_awaited.pop(sender, None)
+                if since is not None and msg["step"] <= est_replayed.get(sender, -1):
+                    # one its publisher's cache replayed: the route is in place (a first
+                    # estimate sent after the subscription times the publisher, not the
+                    # route: a standby publishes nothing until its role's step)
+                    est_ready_ms.append(1e3 * max(0.0, item.arrival - since))
             if msg["agent"] != me and msg["step"] > est_replayed.get(sender, -1):
                 # publish -> in this agent's inbox (the transport's share, as the raw
                 # round trip measures it; not the time the estimate waited to be used)
