@@ -55,7 +55,7 @@ BACKGROUND_NICE = 10
 PAIRS_UP_TO = 4
 #: the precompute improves the foreseen failures' fast gains (polish, refinement) when the
 #: configuration's estimator has at most this many states (n x agents; :func:`refines_ahead`)
-REFINE_AHEAD_MAX_STATES = 1024
+REFINE_AHEAD_MAX_STATES = 256
 
 
 class GainWorker:
@@ -404,19 +404,21 @@ def refines_ahead(roster) -> bool:
     refined design slow (paper-14-live: the fast gain's MSE 1.6-2.4x the refined one's,
     its polish 0.1-0.5 s of CPU, the refined design seconds to minutes). A large
     network's fast gain is the gains in force carried over, near the refined level
-    already (communities-32's single failures: 2 % above the polished MSE), and
-    improving it costs a network's worth of designs: a polish 4.7 s of CPU each at
-    communities-32 (communities-16: 0.5 s), a refinement about as much, 300 s for the 32
-    failures, run beside the 32 agents on two cores (the refinement niced even to 19),
+    already (communities-32's single failures: 2 % above the polished MSE;
+    communities-16's 2.3 %), and improving it costs a network's worth of designs: a
+    polish 4.7 s of CPU each at communities-32 (communities-16: 0.4-0.5 s, and its
+    refinement 0.9-1.0 s), 300 s for the 32 failures (22 s for the 16), run beside the
+    agents on two cores in the run's first seconds (the refinement niced even to 19),
     and their estimates came late: 2.9-3.0 % of them with the monitor, 0.4-1.2 % with
     neither pass (``scripts/bench_scale.py --sizes 32 --step-ms 20 --transports router
-    --monitor``).
+    --monitor``). 256 states keeps the small networks, where the gap is wide or the
+    designs cost hundredths of a second (sampson-like, 72 states: 1.4 % for 0.03 s).
 
     >>> from design.roster import Roster
     >>> from design.scenario import load_scenario
     >>> [refines_ahead(Roster.initial(load_scenario(s)))
     ...  for s in ("paper-14-live", "communities-16", "communities-32")]
-    [True, True, False]
+    [True, False, False]
     """
     return roster.scenario.n * len(roster.ids) <= REFINE_AHEAD_MAX_STATES
 
