@@ -88,6 +88,10 @@ class Timing:
     #: A world this far behind its schedule (it was paused or starved) re-bases its clock
     #: and goes on one step a period, instead of publishing every missed step at once.
     world_rebase_s: float = 0.5
+    #: A recorder takes a monitor's token that went for its absence once the world's token
+    #: stayed in its view this long after it: when its own links lapse (it was paused or
+    #: cut off) every token goes from its view within a few tens of ms, the world's too.
+    recorder_token_settle_s: float = 0.3
     #: A scripted crash waits this long after its last put so that the transport sends it.
     crash_flush_s: float = 0.3
     #: The world waits this long for every agent's first status before the clock starts.

@@ -36,7 +36,7 @@ from broker_free_net.ports import listen_port
 from agent.run.folder import MESH_CONFIG
 from agent.run.launcher import Children
 from agent.testbed.netns import host_names, host_of
-from agent.run.recorder import Recorder, Recording
+from agent.run.recorder import MonitorTokens, Recorder, Recording
 from agent.protocol.timing import DEFAULT as TIMING
 from agent.run.fault_kinds import (FAULT_KINDS, PROCESS_FAULTS, SCRIPTED_FAULTS,  # noqa: F401
                                    WRONG_KINDS)
@@ -304,6 +304,7 @@ class LocalRun:
                                   "recorder", 0) as peer:
                 recorder.subscribe(peer)
                 alive_watch = peer.watch_liveliness()
+                tokens = MonitorTokens(recorder)
                 impair_key = topics.impair_key(rec.run_id)
                 peer.publisher(impair_key, block=True)
                 children.start("world", argv["world"], self._wrap("world"))
@@ -472,7 +473,9 @@ class LocalRun:
                                      f"at step {k_now}; the run goes on")
                     for ev in alive_watch.drain():
                         if ev.role == "monitor" and world_end is None and c.monitor:
-                            recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                            tokens.on_token(ev.id, ev.any_alive)
+                    if world_end is None:
+                        tokens.settle(("world", "0") in alive_watch.alive())
                     recorder.alive = {int(i) for r, i in alive_watch.alive()
                                       if r == "agent" and i.isdigit()}
                     # said from the clock's start on (before it no step is missed:

@@ -73,6 +73,57 @@ class Recording:
     world_silent: dict | None = None                   # {step, seconds}: agents left it
 
 
+class MonitorTokens:
+    """The monitors' liveliness tokens as a live recorder takes them (``up``, ``watch``):
+    a token that went is handed to :meth:`Recorder.on_monitor_liveliness` (with the step
+    it went at) once the world's token stayed in the recorder's view
+    ``Timing.recorder_token_settle_s`` after it. Gone together with the world's, it is
+    the recorder's own view that lapsed (its links' leases ran out while it was paused or
+    cut off, and every token left its view at once): no monitor's absence, and no "NO
+    MONITOR ALIVE" window in the record; the lapse is an event of the recorder's.
+
+    >>> r = Recorder("demo", n=1, N=1, M=1)
+    >>> t = [0.0]
+    >>> tokens = MonitorTokens(r, clock=lambda: t[0])
+    >>> _ = r.on_monitor_liveliness("1", True)
+    >>> tokens.on_token("1", False); tokens.settle(world_in_view=False)
+    >>> r.recording.no_monitor_since is None, r.recording.events[-1]["view_lost"]
+    (True, True)
+    >>> tokens.on_token("1", False); t[0] = 0.5; tokens.settle(world_in_view=True)
+    >>> r.recording.no_monitor_since
+    -1
+    """
+
+    def __init__(self, recorder: "Recorder", settle_s: float | None = None,
+                 clock=time.monotonic):
+        self.recorder, self.clock = recorder, clock
+        self.settle_s = TIMING.recorder_token_settle_s if settle_s is None else settle_s
+        self._went: list = []                 # [(ident, step, when)] not handed on yet
+
+    def on_token(self, ident: str, alive: bool) -> None:
+        """A monitor's token event as the liveliness watch gives it."""
+        if alive:
+            self._went = [w for w in self._went if w[0] != ident]
+            self.recorder.on_monitor_liveliness(ident, True)
+        else:
+            self._went.append((ident, self.recorder.step, self.clock()))
+
+    def settle(self, world_in_view: bool) -> None:
+        """Hand on the tokens gone ``settle_s`` ago while the world's stays in view; drop
+        those gone with it (an event says the recorder's view lapsed)."""
+        if not self._went:
+            return
+        if not world_in_view:
+            self.recorder._event(process="recorder", view_lost=True, step=self._went[0][1],
+                                 monitors=sorted({w[0] for w in self._went}))
+            self._went = []
+            return
+        now = self.clock()
+        while self._went and now - self._went[0][2] >= self.settle_s:
+            ident, step, _ = self._went.pop(0)
+            self.recorder.on_monitor_liveliness(ident, False, step=step)
+
+
 def kept_step(step: int, record_every: int, last_step: int | None) -> bool:
     """Whether a recorder keeping every ``record_every``-th step and the run's last
     (``up --record-every``) keeps the states of ``step``.
@@ -149,10 +200,13 @@ class Recorder:
         return self.scale is None or self.scale.plausible(m["x"], m["step"], multiple)
 
     # -- liveliness ----------------------------------------------------------------------
-    def on_monitor_liveliness(self, ident: str, alive: bool) -> str | None:
-        """A monitor's token came (``alive``) or went; returns ``"none"`` when the last
-        monitor token went (from then on a failure is neither detected nor recovered),
-        ``"back"`` when one returned after that, else None; both are events.
+    def on_monitor_liveliness(self, ident: str, alive: bool,
+                              step: int | None = None) -> str | None:
+        """A monitor's token came (``alive``) or went (at ``step``, default the newest);
+        returns ``"none"`` when the last monitor token went (from then on a failure is
+        neither detected nor recovered), ``"back"`` when one returned after that, else
+        None; both are events. A live recorder feeds them through
+        :class:`MonitorTokens`, which tells a monitor's absence from its own lapse.
 
         >>> r = Recorder("demo", n=1, N=1, M=1)
         >>> r.on_monitor_liveliness("1", True), r.on_monitor_liveliness("1", False)
@@ -165,8 +219,8 @@ class Recorder:
         (rec.monitors_alive.add if alive else rec.monitors_alive.discard)(ident)
         rec.monitor_seen |= alive
         if was and not rec.monitors_alive:
-            rec.no_monitor_since = self.step
-            self._event(process="monitor", monitors_alive=0, step=self.step)
+            rec.no_monitor_since = self.step if step is None else step
+            self._event(process="monitor", monitors_alive=0, step=rec.no_monitor_since)
             return "none"
         if alive and not was and rec.no_monitor_since is not None:
             self._event(process="monitor", monitors_alive=len(rec.monitors_alive),
@@ -453,6 +507,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
             end_in = peer.subscribe(topics.end_key(rec.run_id), maxlen=16)
             world_ended = False
             alive_watch = peer.watch_liveliness()
+            tokens = MonitorTokens(recorder)
             world_seen = False
             world_gone = None
             heard, last_heard = 0, time.monotonic()    # estimates, and when the last came
@@ -468,11 +523,12 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                         # the monitors leave at the world's end, as the agents do: their
                         # tokens going then leaves no failure unanswered (as ``up`` reads it)
                         if world_gone is None and not world_ended:
-                            recorder.on_monitor_liveliness(ev.id, ev.any_alive)
+                            tokens.on_token(ev.id, ev.any_alive)
                     elif ev.role == "agent" and not ev.any_alive and world_gone is None \
                             and not world_ended:
                         recorder._event(process=f"agent-{ev.id}", liveliness=False,
                                         step=recorder.step)
+                tokens.settle(("world", "0") in alive_watch.alive())
                 if ("world", "0") in alive:
                     world_seen, world_gone = True, None
                 elif world_seen and world_gone is None:
