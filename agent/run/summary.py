@@ -119,19 +119,51 @@ def diverged_at(steps, mse, predictions) -> int | None:
     return None
 
 
+def record_gaps(steps, record_every: int, last_step: int) -> list:
+    """``[[first, last], ...]``: the runs of kept steps (:func:`agent.run.recorder.kept_step`)
+    between the first and the last recorded one (:func:`mse_by_step`) that the record
+    lacks: the recorder did not receive their truth or any estimate of them (it was
+    paused or cut off while the processes ran them), or no agent in force published one.
+
+    >>> record_gaps([0, 1, 2, 6, 7, 9], 1, 9)
+    [[3, 5], [8, 8]]
+    >>> record_gaps([0, 10, 30, 35], 10, 35)
+    [[20, 20]]
+    """
+    from agent.run.recorder import kept_step
+
+    if not len(steps):
+        return []
+    held, gaps = set(steps), []
+    for k in range(int(steps[0]), int(steps[-1]) + 1):
+        if kept_step(k, record_every, last_step) and k not in held:
+            if gaps and gaps[-1][2] == "open":
+                gaps[-1][1] = k
+            else:
+                gaps.append([k, k, "open"])
+        elif k in held and gaps:
+            gaps[-1][2] = "closed"
+    return [[a, b] for a, b, _ in gaps]
+
+
 def mse_by_step(rec, K, rosters=None):
     """``(steps, mse)``: mean over the agents in force at each step (``rosters``, default
-    :func:`rosters_in_force` of the recording)."""
-    steps = sorted(k for k in rec.truth if k <= K)
+    :func:`rosters_in_force` of the recording), over the steps whose truth and an estimate
+    of an agent in force were recorded (a step without either is a gap of the record,
+    :func:`record_gaps`, not an error of the estimates)."""
     if rosters is None:
         rosters = rosters_in_force(rec.rosters, rec.est_epoch, rec.assigns)[0]
 
     def in_force(k):
         return [ids for at, ids, _ in rosters if at <= k][-1]
 
-    mse = [mse_of_step([rec.est[a][k] for a in in_force(k) if k in rec.est[a]], rec.truth[k])
-           for k in steps]
-    return steps, np.array([float("nan") if m is None else m for m in mse])
+    steps, mse = [], []
+    for k in sorted(k for k in rec.truth if k <= K):
+        m = mse_of_step([rec.est[a][k] for a in in_force(k) if k in rec.est[a]], rec.truth[k])
+        if m is not None:
+            steps.append(k)
+            mse.append(m)
+    return steps, np.array(mse, dtype=float)
 
 
 def run_and_summarize(config, say=lambda text: None) -> tuple:
@@ -254,6 +286,15 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
                         + ("late" if faulty else "late or dropped")
                         + " (the machine is too loaded for this step period, or links are "
                           "impaired)")
+    gaps = summary["record_gaps"] = record_gaps(steps, c.record_every, K)
+    if gaps:
+        warnings.append(
+            "the record misses steps "
+            + ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in gaps[:5])
+            + (" ..." if len(gaps) > 5 else "")
+            + ": the recorder did not receive their truth or any estimate of them (it was "
+            "paused or cut off while the processes ran them), or no agent in force "
+            "published one; the MSE and its figures leave them out")
     summary["warnings"] = summary.get("warnings", []) + warnings
     logged = log_warnings(c.out / "logs") if c.out is not None else []
     summary["warnings"] = list(dict.fromkeys(list(c.scenario.warnings) + logged
@@ -968,8 +1009,10 @@ def compare_simulator(config, rec, steps_done):
     from agent.run.recorder import kept_step
 
     every = c.record_every
-    if len(steps_done) != sum(kept_step(k, every, K) for k in range(K + 1)):
+    if not len(steps_done) or steps_done[-1] < K:
         return float("inf"), "incomplete run"
+    # steps the processes ran and the recorder missed (record_gaps) are not compared
+    missing = sum(kept_step(k, every, K) for k in range(K + 1)) - len(steps_done)
     sim_est = np.asarray(res.estimates)[0]
     worst, compared, first = 0.0, 0, None
     for k in steps_done:
@@ -983,7 +1026,8 @@ def compare_simulator(config, rec, steps_done):
                     first = (k, a)
     where = "" if first is None else (f"; the first above {CHECK_TOL:g}: agent {first[1]} "
                                       f"at step {first[0]}")
-    return worst, f"estimates ({compared} compared{where})"
+    unrecorded = f"; {missing} steps not recorded" if missing else ""
+    return worst, f"estimates ({compared} compared{unrecorded}{where})"
 
 
 def _write(path, data, written=None) -> None:
