@@ -260,3 +260,32 @@ def test_a_terminated_run_removes_its_testbed_and_its_processes(tmp_path, live_g
         _kill_long_up(proc, marker)
     assert _processes_with(marker) == []
     assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]
+
+
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.scale
+def test_thirty_two_agents_on_hosts_of_their_own_recover_a_crash_through_the_router(
+        tmp_path, prefix):
+    """communities-32 with every process on a namespace host of its own (36 hosts, the
+    router's included) at 80 ms steps: agent 5 killed at step 150 is convicted and
+    replaced, nobody else is convicted, the run recovers and each agent that was never a
+    standby heard only its sources (docs/transport.md, "32 agents on namespace hosts").
+    Behind the ``scale`` marker: 36 processes on two cores take about a minute to start."""
+    from tests.test_recovery_multiprocess import _heard_only_their_sources
+
+    code, out, err = _socmon("up", "communities-32", "--steps", "400", "--step-ms", "80",
+                             "--kill", "150:5", "--netns", "--netns-prefix", prefix,
+                             "--router", "--start-timeout", "600",
+                             "--out", str(tmp_path / "run"), "--json", timeout=1500)
+    assert code == 0, err
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")], \
+        "socmon up left namespaces behind"
+    s = json.loads(out)
+    assert [(f["agent"], f["cause"]) for f in s["failures"]] == [(5, "crash")], s["failures"]
+    assert s["recovered"] is True and s["diverged_at"] is None
+    assert 5 not in s["rosters"][-1]["ids"]
+    procs = json.loads((tmp_path / "run" / "run.json").read_text())["processes"]
+    assert procs["router"]["netns"] == f"{prefix}-rtr"
+    assert len({p["netns"] for p in procs.values() if "netns" in p}) >= 34
+    _heard_only_their_sources(s, tmp_path / "run", "communities-32")
