@@ -74,31 +74,22 @@ def scenario_for(N: int, folder: Path) -> str:
     return str(path)
 
 
-def _cpu_s(pid: int):
-    """CPU seconds (user + system) of a live process so far, None once it is gone."""
+def _cpu_s(pid: int, tree: bool = False):
+    """CPU seconds (user + system) of a live process so far, None once it is gone. With
+    ``tree``, also of its children it has reaped and its live descendants (a monitor's
+    gain workers): what ``wait4`` gives once the whole tree is reaped, so that the
+    difference with it covers the steps alone."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
         return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _cpu_tree_s(pid: int):
-    """CPU seconds of a live process, its children it has reaped and its live descendants
-    (a monitor's gain workers): what ``wait4`` gives once the whole tree is reaped, so
-    that the difference covers the steps alone. None once the process is gone."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    total = sum(int(f) for f in fields[11:15]) / os.sysconf("SC_CLK_TCK")
-    for task in Path(f"/proc/{pid}/task").glob("*/children"):
+    total = sum(int(f) for f in fields[11:15 if tree else 13]) / os.sysconf("SC_CLK_TCK")
+    for task in Path(f"/proc/{pid}/task").glob("*/children") if tree else ():
         try:
             children = task.read_text().split()
         except OSError:
             continue
-        for child in children:
-            total += _cpu_tree_s(int(child)) or 0.0
+        total += sum(_cpu_s(int(child), tree=True) or 0.0 for child in children)
     return total
 
 
@@ -177,7 +168,7 @@ def run_up(scenario, gains, steps, step_ms, out, router, root=ROOT, monitor=Fals
                 except (OSError, ValueError, KeyError):
                     started = False
                 if started:
-                    at_start = {name: _cpu_tree_s(p["pid"]) for name, p in pids.items()
+                    at_start = {name: _cpu_s(p["pid"], tree=True) for name, p in pids.items()
                                 if p.get("pid")}
                     at_start["recorder"] = _cpu_s(proc.pid)
                     sampler.pids.update({name: p["pid"] for name, p in pids.items()
