@@ -474,10 +474,10 @@ class LocalRun:
                     for ev in alive_watch.drain():
                         if ev.role == "monitor" and world_end is None and c.monitor:
                             tokens.on_token(ev.id, ev.any_alive)
+                    in_view = alive_watch.alive()
                     if world_end is None:
-                        tokens.settle(("world", "0") in alive_watch.alive())
-                    recorder.alive = {int(i) for r, i in alive_watch.alive()
-                                      if r == "agent" and i.isdigit()}
+                        tokens.settle(("world", "0") in in_view)
+                    recorder.alive = {int(i) for r, i in in_view if r == "agent" and i.isdigit()}
                     # said from the clock's start on (before it no step is missed:
                     # summary._no_monitor_windows), also for a lapse that began before it
                     absent = rec.no_monitor_since is not None and world_end is None

@@ -528,7 +528,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                             and not world_ended:
                         recorder._event(process=f"agent-{ev.id}", liveliness=False,
                                         step=recorder.step)
-                tokens.settle(("world", "0") in alive_watch.alive())
+                tokens.settle(("world", "0") in alive_watch.alive())   # (after the drain)
                 if ("world", "0") in alive:
                     world_seen, world_gone = True, None
                 elif world_seen and world_gone is None:

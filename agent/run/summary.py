@@ -134,16 +134,18 @@ def record_gaps(steps, record_every: int, last_step: int) -> list:
 
     if not len(steps):
         return []
-    held, gaps = set(steps), []
+    held, gaps, in_gap = set(steps), [], False
     for k in range(int(steps[0]), int(steps[-1]) + 1):
-        if kept_step(k, record_every, last_step) and k not in held:
-            if gaps and gaps[-1][2] == "open":
-                gaps[-1][1] = k
-            else:
-                gaps.append([k, k, "open"])
-        elif k in held and gaps:
-            gaps[-1][2] = "closed"
-    return [[a, b] for a, b, _ in gaps]
+        if not kept_step(k, record_every, last_step):
+            continue
+        if k in held:
+            in_gap = False
+        elif in_gap:
+            gaps[-1][1] = k
+        else:
+            gaps.append([k, k])
+            in_gap = True
+    return gaps
 
 
 def mse_by_step(rec, K, rosters=None):
