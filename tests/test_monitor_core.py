@@ -389,7 +389,6 @@ def test_the_silent_bound_counts_from_the_links_delay(paper14):
     assert run(95) == [(2, "silent")]
 
 
-@pytest.mark.slow
 def test_the_links_off_design_follow_each_agents_newest_status(core, paper14):
     """The links whose learned delay is off the design, kept per agent and read again only
     when its status is replaced, equal the map read from every status at every tick: a
@@ -429,6 +428,7 @@ def test_the_head_start_covers_the_subscriptions_the_agents_report(core):
     assert core.subscription_steps() == core._lead_cap() == 100
 
 
+@pytest.mark.slow
 def test_learned_delays_beyond_the_certified_bound_get_new_gains(core, paper14):
     """The agents learn 9-step delays on every link: the delay-free gains are not
     stable with them (exact radius), so the monitor assigns gains designed for them,

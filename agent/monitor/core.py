@@ -555,9 +555,6 @@ class MonitorCore:
     def newest_step(self, exclude=None) -> int:
         return self.detector.newest_step(exclude)
 
-    def learned_delays(self) -> dict:
-        return self.detector.learned_delays()
-
     def reject(self, reason: str, agent, detail: str) -> None:
         self.detector.reject(reason, agent, detail)
 
@@ -1017,11 +1014,9 @@ class MonitorCore:
             if got is not None and got[0] is status:
                 continue
             row = rows[a]
-            links = {}
-            for b, tau in status.get("delays", {}).items():
-                b, tau = int(b), int(tau)
-                if a != b and b in rows and listens[row][rows[b]] and tau != D[row][rows[b]]:
-                    links[(a, b)] = tau
+            links = {(a, b): tau for b, tau in self.detector.learned_delays(a).items()
+                     if a != b and b in rows and listens[row][rows[b]]
+                     and tau != D[row][rows[b]]}
             per[a] = (status, links)
             changed = changed or bool(links) or bool(got and got[1])
         if changed:

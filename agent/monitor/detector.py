@@ -817,13 +817,9 @@ class FailureDetector:
                 tau = max(tau, min(got, tau + self.config.silent_steps))
         return tau
 
-    def learned_delays(self) -> dict:
-        """``{(receiver, sender): tau}`` from the statuses of the agents in force."""
-        out = {}
-        for a in self.roster.ids:
-            for b, tau in self.agents[a].status.get("delays", {}).items():
-                out[(a, int(b))] = int(tau)
-        return out
+    def learned_delays(self, agent: int) -> dict:
+        """``{sender: tau}``: the delays ``agent``'s last status says it learned."""
+        return {int(b): int(tau) for b, tau in self.agents[agent].status.get("delays", {}).items()}
 
     def healthy_standby(self, agent: int, now: float) -> bool:
         """What probation asks of a convicted agent at ``now``: nothing in
