@@ -65,7 +65,9 @@ def _heard_only_their_sources(s, run, scenario="paper-14-live"):
     """Neighbour-only subscriptions (agent.node.subscriptions): an agent that was never a
     standby received estimates only from the in-neighbours of its roles and the failed
     agents their new links continued; each live agent ends subscribed to exactly its
-    last role's in-neighbours."""
+    last role's in-neighbours; and, switch by switch (:func:`_spans_follow_the_roles`),
+    each set it subscribed was its role's and pending role's sources, and it heard only
+    that set."""
     from agent.node.process import NEIGHBOUR_ONLY
     from design.scenario import load_scenario
 
@@ -89,6 +91,42 @@ def _heard_only_their_sources(s, run, scenario="paper-14-live"):
         if role["active"] and not role["dead"]:
             assert set(got[a]["ids"]) <= last[int(a)] | set(sources[int(a)]), (a, got[a])
             assert last[int(a)] <= set(got[a]["ids"]), (a, got[a], last[int(a)])
+    _spans_follow_the_roles(got, sc, json.loads((run / "assignments.json").read_text()))
+
+
+def _spans_follow_the_roles(got, sc, assignments):
+    """Each agent's subscription spans (its status's ``estimates_from.spans``): each set
+    is the sources of the role in force when it was made and of the pending one (with the
+    agent a pending role takes over), a standby's is every agent; the estimates that
+    arrived under a set came from it, or from the next set's new sources while that one
+    was being declared. The first span is the run's start (no change was lost)."""
+    roles = {(i + 1, 0): {"neighbours": {str(j + 1): 1 for j in sc.neighbours[i]}}
+             for i in range(sc.N)}          # the standbys (N + 1 on) start with none
+    roles.update({(a["agent"], a["epoch"]): a for a in assignments if a.get("kind") == "assign"})
+
+    def role_sources(role):
+        return {int(j) for j in role["neighbours"]} | {int(f) for f in
+                                                      role.get("continues", {}).values()}
+
+    checked = 0
+    for a, e in got.items():
+        spans = e["spans"]
+        assert spans[0]["epoch"] == 0, (a, spans)
+        for g, span in enumerate(spans):
+            if span["ids"] == "*":
+                continue
+            want = role_sources(roles[int(a), span["epoch"]])
+            if span["pending"] is not None:
+                pending = roles[int(a), span["pending"]]
+                want |= role_sources(pending) | ({pending["take_over"]}
+                                                 if pending.get("take_over") else set())
+            assert set(span["ids"]) == want - {int(a)}, (a, g, span, want)
+            nxt = spans[g + 1]["ids"] if g + 1 < len(spans) else []
+            heard = {int(j) for j in span["received"]}
+            if nxt != "*":
+                assert heard <= set(span["ids"]) | set(nxt), (a, g, spans)
+            checked += 1
+    assert checked > len(got), got          # the switches' spans, not only the starts
 
 
 def test_the_standby_killed_then_an_agent_replays_in_the_simulator(tmp_path):

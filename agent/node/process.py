@@ -62,6 +62,9 @@ WORLD_BACK_STEPS = 10
 #: fixed before its history had come (core._Neighbour.since, 42acba9); neither is shown to
 #: be what CI met, and neither CI failure was reproduced here (docs/transport.md).
 NEIGHBOUR_ONLY = True
+#: Changes of the estimate subscriptions a status reports (the newest ones), each with whose
+#: estimates arrived under it
+EST_SPANS = 16
 
 __all__ = ["run_agent"]
 
@@ -135,6 +138,18 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             topics.estimate_subscriptions(run, est_from, core.history), include_local=False,
             max_payload=est_max, max_bytes=_inbox_bytes(est_max))
         est_declare_ms = deque(maxlen=64)     # how long the last changes of them took
+        # the subscriptions' spans: each set subscribed, under which role, and whose
+        # estimates arrived under it (by arrival time: one queued before a change counts
+        # under the span before), so that a run shows an agent heard only its sources
+        # before and after each switch
+        est_spans = deque(maxlen=EST_SPANS)
+
+        def new_span(ids, since):
+            est_spans.append({"since": since, "ids": "*" if ids is None else sorted(ids),
+                              "epoch": core.epoch, "pending": getattr(core.pending, "epoch", None),
+                              "received": {}})
+
+        new_span(est_from, 0.0)
         est_changes = [0]
         est_received = {}                     # sender -> estimates received from it
         est_replayed = {}      # sender -> newest stamp its cache may replay (no hop time)
@@ -190,7 +205,10 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 "changes": est_changes[0],
                 "received": {str(a): c for a, c in sorted(est_received.items())},
                 "declare_ms_max": max(est_declare_ms, default=0.0),
-                "ready_ms_max": max(est_ready_ms, default=0.0)}
+                "ready_ms_max": max(est_ready_ms, default=0.0),
+                "spans": [{**{k: v for k, v in span.items() if k != "since"},
+                           "received": {str(a): c for a, c in sorted(span["received"].items())}}
+                          for span in est_spans]}
             if hops:
                 ordered = sorted(hops)
                 st["hop_ms"] = {"n": len(ordered), "median": 1e3 * statistics.median(ordered),
@@ -246,6 +264,7 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
             est_declare_ms.append(1e3 * (time.perf_counter() - t0))
             est_changes[0] += 1
             est_from = wanted
+            new_span(wanted, time.monotonic())
             say(f"agent {me}: estimates from "
                 + ("every agent" if wanted is None else f"agents {sorted(wanted)}")
                 + f" (epoch {core.epoch}{', one pending' if core.pending else ''}; "
@@ -264,6 +283,11 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
                 bad("key")
                 return
             est_received[sender] = est_received.get(sender, 0) + 1
+            for span in reversed(est_spans):
+                if item.arrival >= span["since"]:
+                    break
+            counts = span["received"]
+            counts[sender] = counts.get(sender, 0) + 1
             if est_awaited:
                 since = est_awaited.pop(sender, None)
                 if since is not None and msg["step"] <= est_replayed.get(sender, -1):
