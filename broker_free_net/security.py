@@ -13,7 +13,8 @@ socmon's table is :func:`agent.protocol.topics.permissions`.
 
 Layout of a key directory made by :func:`make_run_keys`::
 
-    DIR/keys.json            manifest: run, names, CA fingerprint, validity
+    DIR/keys.json            manifest: run, names, CA fingerprint, validity, and what the
+                             caller records of what the keys are for (``about``)
     DIR/ca.pem               the run's CA certificate (its private key is never written)
     DIR/<name>/cert.pem      certificate of <name>, CN = <name>, signed by the CA
     DIR/<name>/key.pem       its private key (PKCS#8, mode 0600)
@@ -29,7 +30,7 @@ import datetime as _dt
 import json
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 __all__ = [
@@ -58,6 +59,8 @@ KEY_NAME = "key.pem"
 #: Validity of the certificates of a run (keys are made per run).
 DEFAULT_VALID_DAYS = 30
 MANIFEST_VERSION = 1
+#: The manifest's own keys; any other key of a manifest is the caller's ``about``.
+_MANIFEST_KEYS = ("version", "run", "names", "ca_sha256", "not_after", "hosts", "endpoints")
 
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 #: A process name (certificate CN, ACL subject, directory name in a key set).
@@ -211,6 +214,9 @@ class KeySet:
         SHA-256 of the CA certificate (hex), to compare key sets across machines.
     not_after : str
         Expiry of the certificates (ISO 8601, UTC).
+    about : dict
+        What the caller recorded of what the keys are for (e.g. socmon's scenario);
+        empty for a key set made without it.
     """
 
     dir: Path
@@ -218,6 +224,7 @@ class KeySet:
     names: tuple[str, ...]
     ca_fingerprint: str
     not_after: str
+    about: dict = field(default_factory=dict)
 
     @property
     def ca(self) -> Path:
@@ -282,7 +289,8 @@ def _write_private(path: Path, data: bytes) -> None:
 
 def make_run_keys(dir, run: str, permissions, *, scope: str, hosts=("127.0.0.1",),
                   port_base: int | None = None,
-                  valid_days: int = DEFAULT_VALID_DAYS, now: _dt.datetime | None = None) -> KeySet:
+                  valid_days: int = DEFAULT_VALID_DAYS, now: _dt.datetime | None = None,
+                  about: dict | None = None) -> KeySet:
     """Make a run's CA, one certificate and key per process, and each process's zenoh config.
 
     Parameters
@@ -309,6 +317,10 @@ def make_run_keys(dir, run: str, permissions, *, scope: str, hosts=("127.0.0.1",
         starts a process. If None, the endpoints come from flags.
     valid_days : int
         Validity of the certificates.
+    about : dict or None
+        The caller's record of what the keys are for (str keys, JSON values), written
+        into the manifest beside its own keys (which it may not shadow) and read back as
+        :attr:`KeySet.about`; the transport does not interpret it.
 
     Returns
     -------
@@ -346,6 +358,7 @@ def make_run_keys(dir, run: str, permissions, *, scope: str, hosts=("127.0.0.1",
             sans.append(x509.IPAddress(ipaddress.ip_address(h)))
         except ValueError:
             sans.append(x509.DNSName(h))
+    about = _check_about(about)
     if port_base is not None:
         if isinstance(port_base, bool) or not isinstance(port_base, int) or not 1 <= port_base <= 65535 - len(names):
             raise InvalidKeys("port_base", f"expected an int in 1..{65535 - len(names)}, got {port_base!r}")
@@ -424,10 +437,26 @@ def make_run_keys(dir, run: str, permissions, *, scope: str, hosts=("127.0.0.1",
         "not_after": not_after.isoformat(timespec="seconds"),
         "hosts": list(hosts),
         "endpoints": endpoints,
+        **about,
     }
     (dir / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
     return KeySet(dir=dir, run=run, names=names, ca_fingerprint=fingerprint,
-                  not_after=manifest["not_after"])
+                  not_after=manifest["not_after"], about=about)
+
+
+def _check_about(about) -> dict:
+    if about is None:
+        return {}
+    if not isinstance(about, dict):
+        raise InvalidKeys("about", f"expected a dict, got {type(about).__name__}")
+    for k in about:
+        if not isinstance(k, str) or k in _MANIFEST_KEYS:
+            raise InvalidKeys("about", f"{k!r} is not a key of its own (the manifest's: "
+                                       f"{', '.join(_MANIFEST_KEYS)})")
+    try:
+        return json.loads(json.dumps(about))
+    except (TypeError, ValueError) as exc:
+        raise InvalidKeys("about", f"not JSON: {exc}") from None
 
 
 def load_key_set(dir) -> KeySet:
@@ -458,7 +487,8 @@ def load_key_set(dir) -> KeySet:
     if not (dir / CA_NAME).is_file():
         raise InvalidKeys("keys", f"{str(dir)!r} has no {CA_NAME}")
     return KeySet(dir=dir.resolve(), run=run, names=names, ca_fingerprint=str(manifest.get("ca_sha256", "")),
-                  not_after=str(manifest.get("not_after", "")))
+                  not_after=str(manifest.get("not_after", "")),
+                  about={k: v for k, v in manifest.items() if k not in _MANIFEST_KEYS})
 
 
 def _strip_comments(text: str) -> str:

@@ -235,3 +235,49 @@ def test_keys_cli(tmp_path, capsys):
     assert err.startswith("socmon: DIR:") and err.count("\n") == 1
     assert main(["keys", "show", str(tmp_path / "none")]) == 2
     assert capsys.readouterr().err.startswith("socmon: DIR: no such directory")
+
+
+def _agent_options(argv):
+    import argparse
+
+    from agent.cli import _common
+    from agent.cli.agent_cmd import add_arguments
+    from agent.run.agent_options import agent_options
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return agent_options(parser.parse_args(argv), net_config_arg=_common.net_config_arg,
+                         parse_int=_common.parse_int)
+
+
+def test_a_key_set_records_its_scenario_and_refuses_another(tmp_path, capsys):
+    """Keys made for paper-14 start paper-14's agents, not paper-14-live's (same agents,
+    another A): the error names both scenarios."""
+    from agent.cli.main import main
+    from agent.run.inputs import InputError
+
+    keys = tmp_path / "k"
+    assert main(["keys", "init", str(keys), "--scenario", "paper-14", "--run", "demo", "--json"]) == 0
+    manifest = json.loads(capsys.readouterr().out)
+    assert manifest["scenario"] == "paper-14" and manifest["agents"] == 3
+    assert main(["keys", "show", str(keys)]) == 0
+    assert "made for scenario paper-14 (digest " in capsys.readouterr().out
+    # the standby agent (id 4): no gain to design before the keys are read
+    options = _agent_options(["paper-14", "--id", "4", "--keys", str(keys)])
+    assert options.net.keys == str(keys.resolve())
+    assert capsys.readouterr().err == ""
+    with pytest.raises(InputError, match=r"^--keys: .* was made for scenario paper-14 \(digest "
+                                         r".*\), not for scenario paper-14-live \(digest "):
+        _agent_options(["paper-14-live", "--id", "4", "--keys", str(keys)])
+
+
+def test_a_key_set_without_its_scenario_is_used_with_a_warning(tmp_path, capsys):
+    """A key set made before key sets recorded their scenario still starts a process, and
+    stderr says it was not checked."""
+    ks = make_run_keys(tmp_path / "k", "demo", run_identities(4))
+    assert load_key_set(ks.dir).about == {}
+    options = _agent_options(["paper-14-live", "--id", "4", "--keys", str(ks.dir)])
+    assert options.net.keys == str(ks.dir)
+    err = capsys.readouterr().err
+    assert err.startswith("warning: --keys: ") and "scenario paper-14-live" in err
+    assert "socmon keys init" in err and err.count("\n") == 1

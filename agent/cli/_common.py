@@ -16,6 +16,7 @@ from agent.run.inputs import (  # noqa: F401 - re-exported for the commands
     EXIT_BAD_INPUT,
     EXIT_NEGATIVE,
     EXIT_OK,
+    check_keys_arg,
     check_run_flags,
     gains_for,
     gains_scenario_mismatch,

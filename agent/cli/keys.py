@@ -3,7 +3,8 @@
 ``socmon keys init DIR --scenario S --run R`` makes a CA, a certificate and key for every
 process of the run (world, agent-1..agent-M with M = N + standby, monitor, operator,
 recorder) and each process's zenoh config (TLS with mutual authentication, access control
-with default deny). Processes then take ``--keys DIR``. Make a new DIR for every run: the
+with default deny), and records scenario S (name, digest, agents). Processes then take
+``--keys DIR`` and refuse it with another scenario. Make a new DIR for every run: the
 CA's private key is not kept, so a key set cannot be extended or reused by mistake.
 
 Examples::
@@ -27,7 +28,8 @@ def add_arguments(parser) -> None:
                        description="Make a new key set for one run (see docs/security.md).")
     p.add_argument("dir", metavar="DIR", help="directory to create (must not exist or be empty)")
     p.add_argument("--scenario", required=True,
-                   help="scenario TOML file or built-in name: fixes the agents 1..N+standby")
+                   help="scenario TOML file or built-in name: fixes the agents 1..N+standby "
+                        "and is recorded (the processes refuse the keys for another)")
     p.add_argument("--run", default="default", help="run id the keys are for (default 'default')")
     p.add_argument("--host", action="append", metavar="ADDR",
                    help="address of a machine of the run, written into the certificates "
@@ -58,7 +60,7 @@ def run(args) -> int:
             if args.action == "init":
                 scenario = load_scenario_arg(args.scenario)
                 ks = make_run_keys(args.dir, args.run, run_identities(scenario.N + scenario.standby),
-                                   hosts=tuple(args.host or ("127.0.0.1",)), port_base=args.port_base,
+                                   scenario, hosts=tuple(args.host or ("127.0.0.1",)), port_base=args.port_base,
                                    valid_days=args.valid_days)
             else:
                 ks = load_key_set(args.dir)

@@ -33,7 +33,8 @@ def run(args) -> int:
     def body():
 
         from agent.world.process import run_world
-        from agent.cli._common import check_run_flags, load_scenario_arg, net_config_arg, parse_int_list
+        from agent.cli._common import (check_keys_arg, check_run_flags, load_scenario_arg,
+                                       net_config_arg, parse_int_list)
 
         check_run_flags(args)
         scenario = load_scenario_arg(args.scenario)
@@ -54,6 +55,7 @@ def run(args) -> int:
                                   what="expected comma-separated agent ids",
                                   out_of_range="no agent {value} (agents are 1..{hi})")
         net = net_config_arg(args, identity="world")
+        check_keys_arg(net.keys, scenario)
         return run_world(scenario, net, seed=args.seed, steps=args.steps, step_ms=args.step_ms,
                          wait_agents=wait, start_timeout=args.start_timeout,
                          wait_monitor=args.wait_monitor)

@@ -66,7 +66,9 @@ __all__ = [
     "estimate_subscriptions",
     "identity_name",
     "impair_key",
+    "key_set_about",
     "key_set_lines",
+    "key_set_mismatch",
     "make_run_keys",
     "monitor_events_key",
     "open_peer",
@@ -411,14 +413,64 @@ def key_set_lines(ks, endpoints: dict) -> list:
              f"  CA sha256 {ks.ca_fingerprint}, certificates valid until {ks.not_after}",
              f"  processes: world, {agents[0]}..{agents[-1]}, monitor, operator, recorder"
              if agents else f"  processes: {', '.join(ks.names)}"]
+    if "scenario_digest" in ks.about:
+        a = ks.about
+        lines.append(f"  made for scenario {a.get('scenario')} (digest {a.get('scenario_digest')}, "
+                     f"{a.get('agents')} agents, {a.get('standby')} standby)")
+    else:
+        lines.append("  made for no recorded scenario (a key set made before key sets "
+                     "recorded theirs)")
     lines += [f"  {name:>10} listens on {ep}" for name, ep in endpoints.items()]
     lines.append(f"  start each process with --keys {ks.dir} (its own credentials are chosen "
                  "by role)")
     return lines
 
 
-def make_run_keys(dir, run: str, names, **kwargs):
+def make_run_keys(dir, run: str, names, scenario=None, **kwargs):
     """:func:`broker_free_net.security.make_run_keys` with the run's rights table: a CA, a
     certificate and a zenoh config (TLS, mTLS, :func:`access_control`) per process of `names`
-    (e.g. :func:`run_identities` ``(M)``); keyword arguments are passed on."""
+    (e.g. :func:`run_identities` ``(M)``), recording `scenario` when given
+    (:func:`key_set_about`); keyword arguments are passed on."""
+    if scenario is not None:
+        kwargs["about"] = key_set_about(scenario)
     return security.make_run_keys(dir, run, permissions(run, names), scope=run_pattern(run), **kwargs)
+
+
+def key_set_about(scenario) -> dict:
+    """What a key set records of the scenario it is made for: its name, its digest (what
+    determines the estimator) and its agents, active and standby (whose certificates it
+    holds).
+
+    >>> from design.scenario import load_scenario
+    >>> about = key_set_about(load_scenario("paper-14"))
+    >>> about["scenario"], about["agents"], about["standby"]
+    ('paper-14', 3, 1)
+    """
+    return {"scenario": scenario.name, "scenario_digest": scenario.digest(),
+            "agents": int(scenario.N), "standby": int(scenario.standby)}
+
+
+def key_set_mismatch(ks, scenario) -> str | None:
+    """Why key set ``ks`` (a :class:`broker_free_net.security.KeySet`) was not made for
+    ``scenario``, or None when it was; ``""`` when the key set does not say (made before
+    key sets recorded their scenario).
+
+    >>> import tempfile, pathlib
+    >>> from design.scenario import load_scenario
+    >>> d = pathlib.Path(tempfile.mkdtemp()) / "k"
+    >>> ks = make_run_keys(d, "demo", run_identities(4), load_scenario("paper-14"))
+    >>> key_set_mismatch(ks, load_scenario("paper-14")) is None
+    True
+    >>> print(key_set_mismatch(ks, load_scenario("paper-14-live")))  # doctest: +ELLIPSIS
+    made for scenario paper-14 (digest ..., 3 agents, 1 standby), not for scenario paper-14-live (digest ..., 3 agents, 1 standby)
+    """
+    a = ks.about
+    if "scenario_digest" not in a:
+        return ""
+    mine = key_set_about(scenario)
+    if all(a.get(k) == mine[k] for k in ("scenario_digest", "agents", "standby")):
+        return None
+    return (f"made for scenario {a.get('scenario')} (digest {a.get('scenario_digest')}, "
+            f"{a.get('agents')} agents, {a.get('standby')} standby), not for scenario "
+            f"{mine['scenario']} (digest {mine['scenario_digest']}, {mine['agents']} agents, "
+            f"{mine['standby']} standby)")

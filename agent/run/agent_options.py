@@ -18,7 +18,8 @@ from dataclasses import dataclass
 from design.errors import ScenarioError
 from design.scenario import resolve_delays
 
-from agent.run.inputs import InputError, check_run_flags, gains_for, load_scenario_arg
+from agent.run.inputs import (InputError, check_keys_arg, check_run_flags, gains_for,
+                              load_scenario_arg)
 
 __all__ = ["AgentOptions", "agent_options", "manifest_verifiers", "check_agent_id",
            "parse_lie", "parse_sensor_fault", "start_agent"]
@@ -69,6 +70,7 @@ def agent_options(args, *, net_config_arg, parse_int) -> AgentOptions:
     if not deadline_ms > 0:
         raise InputError(f"--deadline-ms: must be > 0, got {deadline_ms}")
     net = net_config_arg(args, identity=identity_name("agent", args.id))
+    check_keys_arg(net.keys, scenario)
     if not 0 <= args.drop < 1:
         raise InputError(f"--drop: must be a probability in [0, 1), got {args.drop}")
     if args.crash_at is not None and args.crash_at < 1:

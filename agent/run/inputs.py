@@ -69,6 +69,29 @@ def gains_scenario_mismatch(meta: dict, scenario) -> str | None:
             f"not for scenario {scenario.name} (digest {scenario.digest()})")
 
 
+def check_keys_arg(keys, scenario) -> None:
+    """InputError naming ``--keys`` unless the key set in directory ``keys`` (None: no
+    keys, nothing to check) was made for ``scenario``; a key set made before key sets
+    recorded their scenario is used with a warning on stderr."""
+    if keys is None:
+        return
+    from agent.protocol.topics import key_set_mismatch
+    from broker_free_net.security import InvalidKeys, load_key_set
+
+    try:
+        ks = load_key_set(keys)
+    except InvalidKeys as exc:
+        raise InputError(f"--keys: {str(exc).removeprefix('keys: ')}") from None
+    problem = key_set_mismatch(ks, scenario)
+    if problem:
+        raise InputError(f"--keys: {ks.dir} was {problem} (make a key set for this scenario "
+                         "with socmon keys init)")
+    if problem == "":
+        print(f"warning: --keys: {ks.dir} does not record the scenario it was made for (made "
+              f"before key sets recorded theirs): not checked against scenario "
+              f"{scenario.name}; make a new key set with socmon keys init", file=sys.stderr)
+
+
 def timing_arg(step_s: float | None = None, lead_steps: int | None = None, **fields):
     """The run's :class:`agent.protocol.timing.Timing` from flag values; InputError naming the flag
     and the broken relation otherwise (``fields``: Timing field -> value, None = default).

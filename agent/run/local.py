@@ -261,7 +261,7 @@ class LocalRun:
         if c.secure:
             from agent.protocol.topics import make_run_keys, run_identities
 
-            make_run_keys(c.out / "keys", rec.run_id, run_identities(M))
+            make_run_keys(c.out / "keys", rec.run_id, run_identities(M), c.scenario)
             net_extra = {"keys": str((c.out / "keys").resolve()), "identity": "recorder"}
         operator = ControlSigner.generate()     # the operator's (impairments): this run's
         for name, key in (("control.key", signer), ("operator.key", operator)):

@@ -23,7 +23,8 @@ from design.scenario import resolve_delays
 from agent.monitor.core import MonitorConfig
 from agent.protocol.manifest import ManifestMismatch, check_manifest
 from agent.protocol.timing import DEFAULT as TIMING
-from agent.run.inputs import InputError, load_gains_arg, load_scenario_arg, timing_arg
+from agent.run.inputs import (InputError, check_keys_arg, load_gains_arg, load_scenario_arg,
+                              timing_arg)
 
 __all__ = ["RunFlags", "run_flags", "MonitorOptions", "monitor_options", "start_warnings",
            "start_monitor"]
@@ -136,6 +137,7 @@ def monitor_options(args, info=None, *, net_config_arg, load_signer) -> MonitorO
     if args.lead_steps < 1:
         raise InputError(f"--lead-steps: must be >= 1, got {args.lead_steps}")
     net = net_config_arg(args, identity="monitor")
+    check_keys_arg(net.keys, scenario)
     step_ms = args.step_ms if args.step_ms is not None else scenario.step_ms
     if not (math.isfinite(step_ms) and step_ms > 0):
         raise InputError(f"--step-ms: must be > 0, got {step_ms}")

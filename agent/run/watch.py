@@ -155,7 +155,7 @@ def watch_config(args, info=None) -> WatchConfig:
     from design.errors import ScenarioError
     from design.scenario import resolve_delays
 
-    from agent.run.inputs import InputError, load_gains_arg, load_scenario_arg
+    from agent.run.inputs import InputError, check_keys_arg, load_gains_arg, load_scenario_arg
 
     scenario_arg = args.scenario or (info.scenario_arg if info else None)
     if scenario_arg is None:
@@ -178,6 +178,7 @@ def watch_config(args, info=None) -> WatchConfig:
         net = net_config_from_args(args, identity="recorder")
     except InvalidNetConfig as exc:
         raise InputError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+    check_keys_arg(net.keys, scenario)
     if not net.connect and not net.multicast:
         raise InputError("--connect: give the endpoint of a process of the run "
                          "(or --attach RUN_DIR, or --multicast on a LAN)")
