@@ -39,6 +39,17 @@ def test_the_simulated_runtime_equals_the_design_simulator(live, faults):
         assert 0.3 * exact < r.summary["mse_steady_after_recovery"] < 3 * exact
 
 
+def test_a_lie_replays_in_the_simulator(live):
+    """Agent 2 publishes its estimates 3 noise std-devs off from step 100 (one receiver
+    each in paper-14-live: an alert at most, no reassignment): the run equals the
+    simulator's replay, the liar's published estimates against the simulator's own
+    estimate plus the same lie."""
+    r = _run(live, [Fault(100, "lie", 2, 0.0, 3.0)], steps=300)
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    assert r.summary["failures"] == []
+
+
 def test_the_clock_starts_once_the_monitor_foresees_every_single_failure(live):
     """Designs slow (2 s a precomputed gain): the world waits for monitor 1 as ``up``'s
     does, so a crash at the first step is answered with precomputed gains."""
