@@ -58,7 +58,8 @@ Faults and residuals
 (``bias``: a constant offset; ``drift``: a growing one; ``noise``: the sensor noise
 scaled) or what it publishes (``lie``: its estimate plus an offset, its own state staying
 honest). Offsets are in measurement-noise std-devs ``sqrt(r)``, on every measured node
-(readings) or every state component (a lie). ``residuals`` (a
+(readings) or every state component (a lie). A fault of a standby acts only while it
+holds a role, as a live standby's. ``residuals`` (a
 :class:`design.residuals.ResidualTest`, or True for the default one of the run's gains
 and delays) makes the simulator form, per agent and step, its innovation and the
 discrepancy with each in-neighbour's propagated estimate, and the windowed statistics of
@@ -138,7 +139,9 @@ class Fault:
         ``size * sqrt(r)`` on every state component, its own estimate staying honest.
     agent : int
         0-based row of the agent in the initial scenario (it keeps its id after a
-        recovery).
+        recovery), or ``N + j`` for its standby ``j`` (id ``N + j + 1``), which goes wrong
+        only while it holds a role (as a live standby: it computes and publishes nothing
+        before), from the later of ``start`` and the first step it computes in one.
     start : int >= 1
     size : float
     ramp : int >= 1
@@ -198,16 +201,18 @@ def apply_sensor_faults(faults, k: int, zeta, sigma: float):
     return zeta
 
 
-def _check_faults(faults, N, steps, n=None, measure=None):
+def _check_faults(faults, N, steps, n=None, measure=None, standby=0):
     out = {}
+    M = N + standby
     for f in faults:
         if not isinstance(f, Fault):
             raise SimulationError(f"faults: expected Fault entries, got {type(f).__name__}")
         if f.kind not in FAULT_KINDS:
             raise SimulationError(f"faults: kind must be one of {FAULT_KINDS}, got {f.kind!r}")
         _check_int(f.agent, "fault agent row", 0)
-        if f.agent >= N:
-            raise SimulationError(f"faults: no agent row {f.agent} (rows are 0..{N - 1})")
+        if f.agent >= M:
+            raise SimulationError(f"faults: no agent row {f.agent} (rows are 0..{N - 1}"
+                                  + (f", standbys {N}..{M - 1}" if standby else "") + ")")
         _check_int(f.start, "fault start", 1)
         _check_int(f.ramp, "fault ramp", 1)
         if isinstance(f.size, bool) or not isinstance(f.size, (int, float, np.floating)) \
@@ -215,6 +220,9 @@ def _check_faults(faults, N, steps, n=None, measure=None):
             raise SimulationError(f"faults: size must be a finite number, got {f.size!r}")
         if f.kind == "noise" and f.size < 0:
             raise SimulationError(f"faults: a noise factor must be >= 0, got {f.size!r}")
+        if f.direction is not None and f.agent >= N and f.kind in ("bias", "drift"):
+            raise SimulationError(f"faults: a {f.kind} fault of standby row {f.agent} takes "
+                                  "no direction (the nodes it measures come with its role)")
         if f.direction is not None:
             want = {"lie": n, "noise": 0}.get(f.kind, len(measure[f.agent]) if measure else 0)
             d = np.asarray(f.direction, dtype=float)
@@ -535,7 +543,7 @@ def simulate(scenario, G, steps: int, trials: int, seed: int, delays=None, drop:
     if recover is not None and fail is None:
         raise SimulationError("recover: a recovery needs a failure (fail=...)")
     faults = tuple(faults or ())
-    fault_of = _check_faults(faults, N, steps, n, scenario.measure)
+    fault_of = _check_faults(faults, N, steps, n, scenario.measure, scenario.standby)
     if residuals is not None and residuals is not False:
         if drop or fail is not None:
             raise SimulationError("residuals: need drop=0 and no failure (the thresholds "

@@ -413,6 +413,22 @@ def test_residuals_and_faults_leave_a_healthy_run_unchanged(live):
     assert a.residual_stats is None and b.residual_stats.shape == (4, 61, 6)
 
 
+def test_a_standby_fault_acts_only_once_it_holds_a_role(live):
+    """A lie or a bias of standby 4 (row 3) changes nothing while it holds no role; a
+    row beyond the standbys, or a shaped sensor fault of a standby (its nodes come with
+    its role), is refused."""
+    s, G = live
+    a = simulate(s, G, steps=40, trials=2, seed=2)
+    b = simulate(s, G, steps=40, trials=2, seed=2, faults=[Fault("lie", 3, 5, 4.0),
+                                                           Fault("bias", 3, 5, 4.0)])
+    assert np.array_equal(a.mse_trials, b.mse_trials)
+    with pytest.raises(SimulationError, match=r"no agent row 4 \(rows are 0..2, standbys 3..3\)"):
+        simulate(s, G, steps=10, trials=1, seed=0, faults=[Fault("lie", 4, 3, 1.0)])
+    with pytest.raises(SimulationError, match="standby row 3 takes no direction"):
+        simulate(s, G, steps=10, trials=1, seed=0, faults=[Fault("bias", 3, 3, 1.0,
+                                                                 direction=(1.0,))])
+
+
 def test_simulator_refuses_residuals_it_cannot_test(live):
     s, G = live
     with pytest.raises(SimulationError, match="residuals: need drop=0"):

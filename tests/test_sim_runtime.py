@@ -50,6 +50,34 @@ def test_a_lie_replays_in_the_simulator(live):
     assert r.summary["failures"] == []
 
 
+def test_a_standby_lies_only_once_it_holds_a_role_as_in_the_simulator(live):
+    """Standby 4 is scripted to lie from step 100 but holds no role until agent 1's crash
+    at step 150 is answered: the run up to its first step in a role is the honest run's,
+    from that step it publishes its estimates 3 noise std-devs off, the simulator
+    replays it the same (it refused a standby's fault before), and the summary's fault
+    says that the standby lies only once it holds a role."""
+    import math
+
+    lie = Fault(100, "lie", 4, 0.0, 3.0)
+    honest = _run(live, [Fault(150, "crash", 1)], steps=300)
+    r = _run(live, [lie, Fault(150, "crash", 1)], steps=300)
+    diff, how = compare_simulator(r.config, r.recording, r.steps)
+    assert diff <= 1e-12, how
+    at = r.summary["rosters"][1]["activate_at"]
+    assert r.summary["rosters"][1]["ids"] == [4, 2, 3] and at > lie.step
+    est, base = r.recording.est, honest.recording.est
+    for a in (2, 3):
+        assert all(np.array_equal(est[a][k], base[a][k]) for k in range(at + 1))
+    assert min(est[4]) == at - 1 and np.array_equal(est[4][at - 1], base[4][at - 1])
+    s, _ = live
+    offset = 3.0 * math.sqrt(s.measurement_noise)
+    assert np.allclose(est[4][at] - base[4][at], offset)
+    (recorded,) = [f for f in r.summary["faults"] if f["kind"] == "lie"]
+    assert recorded["note"].startswith("agent 4 is a standby (no role at the start): it "
+                                       "lies only once it holds a role")
+    assert all("note" not in f for f in honest.summary["faults"])
+
+
 def test_the_clock_starts_once_the_monitor_foresees_every_single_failure(live):
     """Designs slow (2 s a precomputed gain): the world waits for monitor 1 as ``up``'s
     does, so a crash at the first step is answered with precomputed gains."""

@@ -194,6 +194,23 @@ def test_up_fault_values_are_checked_before_anything_starts(tmp_path, capsys, fa
     assert not (tmp_path / "run" / "run.json").exists()
 
 
+def test_up_says_that_a_standby_lies_only_once_it_holds_a_role(tmp_path, capsys, live_gains):
+    """``--fault lie`` aimed at standby 4 of paper-14-live is accepted with a note naming it
+    (a lie of an agent with a role at the start, none)."""
+    from agent.cli.main import build_parser
+    from agent.run.setup import run_config
+
+    args = build_parser().parse_args(["up", "paper-14-live", "--gains", str(live_gains),
+                                      "--out", str(tmp_path / "run"), "--fault",
+                                      "lie:150:4:0:3", "--fault", "bias:150:2:0:3"])
+    config = run_config(args, lambda text: None)
+    assert [(f.kind, f.agent) for f in config.faults] == [("bias", 2), ("lie", 4)]
+    assert capsys.readouterr().err == (
+        "up: note: agent 4 is a standby (no role at the start): it lies only once it holds "
+        "a role, from the later of step 150 and the first step it computes in one (never, "
+        "if it takes none)\n")
+
+
 @pytest.mark.parametrize("flags, message", [
     (["--kill", "100:1"], "--kill: step 100 is after the run's last step (50, --steps)"),
     (["--stop", "51:2:1"], "--stop: step 51 is after the run's last step (50"),

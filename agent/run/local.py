@@ -38,8 +38,8 @@ from agent.run.launcher import Children
 from agent.testbed.netns import host_names, host_of
 from agent.run.recorder import MonitorTokens, Recorder, Recording
 from agent.protocol.timing import DEFAULT as TIMING
-from agent.run.fault_kinds import (FAULT_KINDS, PROCESS_FAULTS, SCRIPTED_FAULTS,  # noqa: F401
-                                   WRONG_KINDS)
+from agent.run.fault_kinds import (FAULT_KINDS, PROCESS_FAULTS, ROLE_FAULTS,  # noqa: F401
+                                   SCRIPTED_FAULTS, WRONG_KINDS)
 
 __all__ = ["Fault", "RunConfig", "Recording", "LocalRun", "RunFailed", "FAULT_KINDS",
            "PROCESS_FAULTS", "live_view"]
@@ -87,6 +87,24 @@ class Fault:
             "noise": "agent {a}'s sensor noise {v:g} times its model (scripted)",
         }.get(self.kind, self.kind + " agent {a}").format(a=self.agent, v=self.value)
         return what + (f" for {self.seconds:g} s" if self.seconds else "")
+
+    def standby_note(self, agents: int) -> str | None:
+        """What to tell of a lie or a sensor fault aimed at a standby of a run whose agents
+        1..``agents`` hold the roles at the start (it acts only once the standby holds
+        one); None for any other fault.
+
+        >>> print(Fault(150, "lie", 4, 0.0, 3.0).standby_note(3))
+        agent 4 is a standby (no role at the start): it lies only once it holds a role, from the later of step 150 and the first step it computes in one (never, if it takes none)
+        >>> Fault(150, "lie", 3, 0.0, 3.0).standby_note(3) is None
+        True
+        """
+        if self.kind not in ROLE_FAULTS or self.agent <= agents:
+            return None
+        what = "it lies" if self.kind == "lie" else \
+            f"its sensor fault ({self.kind}) acts"
+        return (f"agent {self.agent} is a standby (no role at the start): {what} only once "
+                f"it holds a role, from the later of step {self.step} and the first step it "
+                "computes in one (never, if it takes none)")
 
 
 @dataclass(frozen=True, eq=False)

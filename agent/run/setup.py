@@ -72,6 +72,10 @@ def run_config(args, say, prog="up", design_progress=None):
     if args.no_monitor and getattr(args, "monitors", None) is not None:
         raise InputError("--monitors: no monitor runs with --no-monitor (give one or the other)")
     faults = parse_faults(args, scenario) if prog == "up" else ()
+    for f in faults:
+        note = f.standby_note(scenario.N)
+        if note:
+            print(f"{prog}: note: {note}", file=sys.stderr, flush=True)
     if getattr(args, "netns_prefix", None) is not None:
         from agent.testbed.netns import check_prefix
 

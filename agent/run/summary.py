@@ -250,7 +250,8 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
         "orphans": [ch.name for ch in children if ch.returncode is None],
         "monitor": c.monitor,
         "world_silent": rec.world_silent,
-        "faults": [f.to_dict() for f in c.faults],
+        "faults": [dict(f.to_dict(), **({"note": note} if note else {}))
+                   for f in c.faults for note in [f.standby_note(c.scenario.N)]],
         "events": rec.events,
         "final_roles": final_roles(last, rec.events, steps[-1] if steps else -1),
     }
@@ -945,7 +946,7 @@ def compare_simulator(config, rec, steps_done):
     # a crash scheduled after the run's last step never happened
     kills = {f.agent: f.step for f in c.faults if f.kind == "crash" and f.step <= K}
     # what an agent was scripted to do wrong (a lie, a sensor fault) the simulator does
-    # alike, for an agent of the initial configuration
+    # alike, a standby's once it holds a role
     from design.simulate import FAULT_KINDS as SIMULATED
     from design.simulate import Fault as SimFault
 
@@ -953,8 +954,6 @@ def compare_simulator(config, rec, steps_done):
     if any(f.kind != "crash" and f not in scripted for f in c.faults):
         return float("inf"), ("the simulator replays scripted crashes (--kill), lies and "
                               "sensor faults only")
-    if any(f.agent > c.scenario.N for f in scripted):
-        return float("inf"), "the simulator scripts faults of the initial agents only"
     sim_faults = [SimFault(f.kind, f.agent - 1, f.step, f.value) for f in scripted]
     if kills:
         # a standby killed before it took a role never computed: nothing to replay
