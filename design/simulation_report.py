@@ -6,7 +6,8 @@ designed for, warm started from them; :func:`simulation_record` turns a
 :class:`~design.simulate.SimulationResult` into a JSON-ready record: the MSE, its 10-90
 percentile band across trials and, when the run simulates exactly the loop
 :func:`~design.closed_loop.exact_performance` solves (no failure, no drops), that loop's
-exact steady MSE and spectral radius.
+exact steady MSE and spectral radius; when it runs that loop until a failure (no drops),
+its exact steady MSE as the level before the failure.
 
 >>> import numpy as np
 >>> from design.scenario import scenario_from_dict
@@ -62,7 +63,10 @@ def simulation_record(scenario, G, result, delays, *, gains_file=None, delays_sp
     The record is :meth:`~design.simulate.SimulationResult.to_dict` with ``mse_p10`` and
     ``mse_p90``, ``scenario``, ``gains_file``, ``delays``, ``delays_spec``,
     ``mse_steady_exact`` and ``rho_exact`` (None unless the run is the exact loop),
-    ``unstable`` (its exact radius is >= 1) and, given ``recovery_info``, ``recovery``.
+    ``mse_steady_exact_before_failure`` (the exact loop's steady MSE when the run is that
+    loop until a failure; None without a failure or with drops), ``unstable`` (its
+    exact radius is >= 1) and, given ``recovery_info``, ``recovery`` (with the level
+    after the recovery, ``mse_steady_exact_after_recovery``).
     """
     out = result.to_dict()
     lo, hi = result.band()
@@ -72,8 +76,11 @@ def simulation_record(scenario, G, result, delays, *, gains_file=None, delays_sp
     out["delays"] = delays.tolist()
     out["delays_spec"] = delays_spec
     exact = result.fail_step is None and result.drop == 0   # the loop certify sees
-    before = exact_performance(scenario, G, delays) if exact or result.recovered else None
+    until_failure = result.fail_step is not None and result.drop == 0   # that loop, then not
+    before = exact_performance(scenario, G, delays) \
+        if exact or until_failure or result.recovered else None
     out["mse_steady_exact"] = before.mse if exact else None
+    out["mse_steady_exact_before_failure"] = before.mse if until_failure else None
     out["rho_exact"] = before.rho if exact else None
     out["unstable"] = out["rho_exact"] is not None and not out["rho_exact"] < 1
     if recovery_info is not None:

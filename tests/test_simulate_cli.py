@@ -57,6 +57,40 @@ def test_text_output(gains_file, capsys):
            "over the agents still running" in text
 
 
+def test_a_failure_reports_the_exact_level_before_it_as_its_figure_draws_it(
+        gains_file, paper14, tmp_path, capsys):
+    """With ``--fail`` the run is not one loop: ``mse_steady_exact`` stays null, and the
+    exact steady MSE of the loop before the failure is in the JSON and the text under a
+    name that says so, the same level the figure draws up to the failure step."""
+    from design.closed_loop import exact_performance
+    from design.gains import load_gains
+
+    assert main(["simulate", "paper-14", "--gains", gains_file, "--trials", "2",
+                 "--steps", "40", "--fail", "20:1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    exact = exact_performance(paper14, load_gains(gains_file).G, paper14.delays).mse
+    assert out["mse_steady_exact"] is None
+    assert out["mse_steady_exact_before_failure"] == pytest.approx(exact, rel=1e-12)
+    assert f"  exact steady MSE before the failure (Lyapunov): {exact:.5g}" in format_text(out)
+
+    from agent.run.simulate import run_simulation, simulate_options, write_figure
+
+    o = simulate_options(paper14, load_gains(gains_file), gains_file, trials=2, steps=40,
+                         seed=0, drop=0.0, delays=paper14.delays, delays_spec="scenario",
+                         fail=(20, [0]))
+    report = run_simulation(o)
+    drawn = {}
+    write_figure(tmp_path / "f.png", o, report,
+                 lambda path, curves, **kw: drawn.update(kw))
+    assert drawn["reference"] == [(report.record["mse_steady_exact_before_failure"],
+                                   "exact steady MSE before the failure", 0, 20)]
+    # with drops the run is not the exact loop before the failure either: no level
+    o = simulate_options(paper14, load_gains(gains_file), gains_file, trials=2, steps=40,
+                         seed=0, drop=0.1, delays=paper14.delays, delays_spec="scenario",
+                         fail=(20, [0]))
+    assert run_simulation(o).record["mse_steady_exact_before_failure"] is None
+
+
 def test_diverging_run_exits_1(paper14, tmp_path, capsys):
     path = tmp_path / "zero.npz"
     save_gains(path, [np.zeros((14, 1))] * 3, {"method": "zero"})
@@ -119,3 +153,6 @@ def test_recover_designs_gains_for_the_new_configuration(gains_file, capsys):
     text = format_text(out)
     exact = out["recovery"]["mse_steady_exact_after_recovery"]
     assert exact > 0 and f"exact steady MSE after recovery (Lyapunov): {exact:.5g}" in text
+    before = out["mse_steady_exact_before_failure"]
+    assert before > 0 and out["mse_steady_exact"] is None
+    assert f"exact steady MSE before the failure (Lyapunov): {before:.5g}" in text

@@ -114,10 +114,12 @@ def write_figure(path, o: SimulateOptions, report: SimulationReport, plot_mse) -
         events.append((o.fail[0], f"failure of {who}" + (" + recovery" if report.result.recovered
                                                          else "; MSE of the agents left")))
     ref = [(out["mse_steady_exact"], "exact steady MSE (Lyapunov)")]
-    after = out.get("recovery", {}).get("mse_steady_exact_after_recovery")
-    if after is not None and o.drop == 0:
-        ref = [(report.before.mse, "exact steady MSE before the failure", 0, o.fail[0]),
-               (after, "exact steady MSE after recovery", o.fail[0], o.steps)]
+    if out["mse_steady_exact_before_failure"] is not None:
+        ref = [(out["mse_steady_exact_before_failure"], "exact steady MSE before the failure",
+                0, o.fail[0])]
+        after = out.get("recovery", {}).get("mse_steady_exact_after_recovery")
+        if after is not None:
+            ref.append((after, "exact steady MSE after recovery", o.fail[0], o.steps))
     try:
         plot_mse(path, [(f"{s.name}, {o.trials} trials", report.result)],
                  title=f"{s.name} (delays: {o.delays_spec})"
@@ -153,6 +155,9 @@ def format_text(d: dict) -> str:
                      + (" with recovery" if d["recovered"] else " (no recovery)")
                      + ": from then on the MSE is the mean over the agents still running "
                        "(a failed agent's error is not counted)")
+        if d.get("mse_steady_exact_before_failure") is not None:
+            lines.append("  exact steady MSE before the failure (Lyapunov): "
+                         f"{_f(d['mse_steady_exact_before_failure'])}")
     if "recovery" in d:
         r = d["recovery"]
         for rep in r["replacements"]:
