@@ -88,6 +88,21 @@ def test_bad_flags_exit_2(capsys, tmp_path, argv, message):
     assert status == 2 and message in err
 
 
+def test_an_existing_gains_file_is_refused_unless_overwrite(capsys, tmp_path):
+    """As ``up --out`` refuses an earlier run's folder: an existing ``--out`` file is a
+    usage error before any design, left as it was; ``--overwrite`` replaces it."""
+    path = tmp_path / "g.npz"
+    path.write_bytes(b"an earlier design")
+    argv = ("paper-14", "--delays", "none", "--max-iter", "5", "--no-gaps", "--out", str(path))
+    status, out, err = _run(capsys, *argv)
+    assert status == 2 and err == (f"socmon: --out: {str(path)!r} exists: choose another "
+                                   "file, or --overwrite to replace it\n")
+    assert path.read_bytes() == b"an earlier design"
+    status, out, err = _run(capsys, *argv, "--overwrite")
+    assert status == 0, err
+    assert len(load_gains(path, load_scenario("paper-14")).G) == 3
+
+
 def test_missing_out_folder_exit_2(capsys, tmp_path):
     status, out, err = _run(capsys, "paper-14", "--out", str(tmp_path / "no" / "g.npz"))
     assert status == 2 and "does not exist" in err

@@ -203,6 +203,7 @@ def test_analyze_design_and_certify_speak_of_the_gaps(tmp_path, capsys):
     assert "gaps" not in json.loads(capsys.readouterr().out)
     # without the gap terms: a diverging gap is a warning
     assert main(["design", "paper-14-live", "--delays", "uniform:3", "--target", "0.95",
-                 "--starts", "2", "--max-iter", "60", "--out", str(out), "--no-gaps"]) == 0
+                 "--starts", "2", "--max-iter", "60", "--out", str(out), "--no-gaps",
+                 "--overwrite"]) == 0
     err = capsys.readouterr().err
     assert "if agent 3 fails, the others run a loop of exact radius" in err

@@ -3,7 +3,9 @@
 The flags checked together, the design, the file written and the text:
 :mod:`agent.run.design_reports`. Exit status: 0 a stabilising gain was written; 1 no
 stabilising gain was found (no file unless ``--force``) or the conic solver failed; 2 bad
-input, or the pair is not observable (the message names the parent SCC without a sensor).
+input (an existing ``--out`` file without ``--overwrite`` included, refused before the
+design), or the pair is not observable (the message names the parent SCC without a
+sensor).
 """
 
 from __future__ import annotations
@@ -56,7 +58,10 @@ def add_arguments(parser) -> None:
                              "for the loop each single failure leaves until the switch")
     parser.add_argument("--keep-iterating", action="store_true",
                         help="--method ccl: go on after rho < 1 to lower rho")
-    parser.add_argument("--out", required=True, metavar="FILE", help="gains file to write (.npz)")
+    parser.add_argument("--out", required=True, metavar="FILE",
+                        help="gains file to write (.npz); an existing file is refused")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing --out file")
     add_json_argument(parser)
     parser.add_argument("--force", action="store_true",
                         help="write the gains file even when the design is not stabilising")

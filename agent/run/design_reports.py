@@ -487,7 +487,8 @@ class DesignRequest:
 
 def design_request(scenario, args) -> DesignRequest:
     """The :class:`DesignRequest` of ``socmon design``'s flags ``args`` for ``scenario``;
-    InputError naming the flag that is wrong or does not go with ``--method``/``--objective``."""
+    InputError naming the flag that is wrong or does not go with ``--method``/``--objective``
+    (an existing ``--out`` file without ``--overwrite`` included, before any design)."""
     try:
         D = resolve_delays(scenario, args.delays)
     except ScenarioError as exc:
@@ -497,6 +498,9 @@ def design_request(scenario, args) -> DesignRequest:
         raise InputError(f"--out: folder {str(out.parent)!r} does not exist")
     if out.is_dir():
         raise InputError(f"--out: {str(out)!r} is a folder, give a file name")
+    if (out.exists() or out.is_symlink()) and not args.overwrite:
+        raise InputError(f"--out: {str(out)!r} exists: choose another file, or --overwrite "
+                         "to replace it")
     objective, opts = _design_options(args)
     return DesignRequest(scenario, D, out, args.method, objective, args.seed, opts,
                          bool(args.force))
