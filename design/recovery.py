@@ -424,13 +424,15 @@ def plan_recovery(scenario, failed, add_links: bool = True, numerical: bool = Tr
                 {"re": float(np.real(v)), "im": float(np.imag(v)), "abs": float(abs(v))}
                 for v in distributed.unobservable_modes
             ],
+            # a singular W' only adds modes at 0 (they die in one step): said, not avoided
+            "rank_W_after": int(np.linalg.matrix_rank(new.W)),
         }
     else:
         num = {"observable_after": False, "observability_rank_after": None,
                "detectable_after": None, "distributed_observable_after": False,
                "distributed_rank_after": None, "distributed_order_after": None,
                "distributed_detectable_after": None,
-               "distributed_unobservable_modes_after": None}
+               "distributed_unobservable_modes_after": None, "rank_W_after": None}
     return RecoveryPlan(**{**plan.__dict__, "scenario_after": new, "numerical": num})
 
 

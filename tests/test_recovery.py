@@ -333,6 +333,34 @@ def test_cli_plan_text_and_written_scenario(tmp_path, capsys):
     assert d["measure"] == [["8"], ["12", "10"]] and d["observable"]
 
 
+def test_a_singular_w_after_is_said_and_costs_no_stability(paper14, capsys):
+    """Agents 1 and 2 failing on paper-14 leave agents 4 and 3 with the rows (0.5, 0.5):
+    W after is singular. The modes it adds to W (x) A are at 0 (the pair stays
+    detectable), a gain designed for the configuration is certified stable by the exact
+    radius, and plan says what the singular W means beside "recoverable: yes"; with a
+    full-rank W after (agent 1 alone failing) it says nothing of it."""
+    from design.closed_loop import closed_loop_for
+    from design.gain_design import design_gains
+
+    assert main(["plan", "paper-14", "--fail", "1,2", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["W_after"] == [[0.5, 0.5], [0.5, 0.5]] and d["rank_W_after"] == 1
+    assert d["distributed_detectable_after"] is True
+    assert max(m["abs"] for m in d["distributed_unobservable_modes_after"]) < 1e-12
+    new = plan_recovery(paper14, [0, 1]).scenario_after
+    G = design_gains(new, exact_mse=False, starts=1, max_iter=30, gaps=False).G
+    assert closed_loop_for(new, G, new.delays).spectral_radius() < 1
+    assert main(["plan", "paper-14", "--fail", "1,2"]) == 0
+    text = capsys.readouterr().out
+    assert "  W after is singular (rank 1 of 2): W (x) A gets modes at 0, which vanish in " \
+           "one step" in text and "no stability is lost" in text
+    assert text.rstrip().endswith("recoverable: yes")
+    assert main(["plan", "paper-14", "--fail", "1", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["rank_W_after"] == 3
+    assert main(["plan", "paper-14", "--fail", "1"]) == 0
+    assert "singular" not in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("fail, message", [
     ("5", "--fail: no agent 5 (agents are 1..3)"),
     ("0", "--fail: no agent 0"),

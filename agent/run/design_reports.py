@@ -455,6 +455,7 @@ def format_plan(d: dict) -> str:
             f"{d['distributed_rank_after']} of {d['distributed_order_after']}, detectable "
             f"{_yes(d['distributed_detectable_after'])}"
         )
+        lines += _plan_pair_notes(d)
     if d["unmeasured_parent_sccs_after"]:
         lines.append("parent SCCs left without sensor: " + _sets(d["unmeasured_parent_sccs_after"]))
     if d.get("no_new_links"):
@@ -467,6 +468,28 @@ def format_plan(d: dict) -> str:
     if "scenario_written" in d:
         lines.append(f"recovered scenario written to {d['scenario_written']}")
     return "\n".join(lines)
+
+
+def _plan_pair_notes(d: dict) -> list:
+    """What the rank of a plan's distributed pair means: modes that decay by themselves
+    (or one that does not), and a singular W after, which costs no stability."""
+    lines = []
+    modes = d.get("distributed_unobservable_modes_after") or []
+    top = max((m["abs"] for m in modes), default=0.0)
+    if d["distributed_observable_after"] is False and d["distributed_detectable_after"]:
+        lines.append(f"  not observable but detectable: the unobservable modes (|lambda| <= "
+                     f"{top:.4g}) decay by themselves, so stabilising gains exist")
+    elif d["distributed_detectable_after"] is False:
+        lines.append(f"  NOT DETECTABLE: an unobservable mode does not decay (|lambda| = "
+                     f"{top:.4g} >= 1): no gain keeps the estimation error bounded (exit 1)")
+    rank, N = d.get("rank_W_after"), len(d["agents_after"])
+    if rank is not None and rank < N:
+        lines.append(f"  W after is singular (rank {rank} of {N}): W (x) A gets modes at 0, "
+                     "which vanish in one step; the estimator never inverts W and the "
+                     "certificate, the exact radius of the loop as it runs, includes them: "
+                     "no stability is lost (the paper's Lemma 3 takes w_ii > 0 to make W "
+                     "full rank; it need not)")
+    return lines
 
 
 # -- socmon design --------------------------------------------------------------------
