@@ -289,6 +289,22 @@ def test_inject_names_a_value_out_of_range_in_its_own_words(capsys):
     assert "delay: delay_ms 1000000000.0 outside" in capsys.readouterr().err
 
 
+def test_inject_that_reaches_no_run_says_so_not_that_the_agent_is_dead(capsys):
+    """No process listens at the endpoint: inject sees no agent at all, and says the run
+    was not reached (not "agent 1 not alive"), and that it published nothing."""
+    import socket
+
+    with socket.socket() as s:              # a free port: nothing of any run listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert main(["inject", "delay", "1", "2", "--steps", "3", "--connect",
+                 f"tcp/127.0.0.1:{port}", "--timeout", "0.5", "--run", "nobody"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("socmon: no agent of run 'nobody' seen within 0.5 s through "
+                          f"tcp/127.0.0.1:{port}"), err
+    assert err.endswith("(nothing was published)") and "not alive" not in err
+
+
 def test_a_session_that_cannot_open_is_one_line_and_exit_1(capsys):
     """A secured process that reached none of its connect endpoints in time (zenoh's
     error, with the endpoints): one line, status 1, no traceback."""

@@ -232,6 +232,14 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
                     f"agent {dst} is not alive in run {net.run!r}; the agents alive are "
                     f"{', '.join(map(str, sorted(alive)))}", status=1)
             if now > deadline:
+                if not alive:
+                    # no agent's token came at all: the run is not reached, which is not
+                    # the same as its agent being dead
+                    raise InputError(
+                        f"no agent of run {net.run!r} seen within {timeout:g} s through "
+                        f"{', '.join(net.connect) or 'multicast'}: is the run up, and are "
+                        "the endpoint and --run right?"
+                        + ("" if next_put else " (nothing was published)"), status=1)
                 who = f"agent {dst}" if dst is not None else "the agents"
                 state = "not alive" if dst is not None and dst not in alive else \
                     "did not confirm"
