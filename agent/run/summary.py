@@ -669,6 +669,39 @@ def specs_in_force(rosters, assigns, scenario, G0, epoch=None):
     return rosters[-1][1], specs
 
 
+def answered_by(agent: int, first: dict, reassigns: list, epoch_in_force) -> tuple:
+    """``(reassignment, replacements)`` that answered the failure of ``agent`` as run.
+
+    ``first`` is the monitor's first reassignment for it (an ``events.jsonl`` record). When
+    its epoch never came into force (another failure was planned on top of it before its
+    activation: ``epoch_in_force`` is later), the answer is the last reassignment up to
+    that epoch, and each node ``first`` gave is followed to whoever measures it there
+    (the agent it went to failed too and handed it on).
+
+    >>> first = {"epoch": 1, "failed": [2], "replacements": [
+    ...     {"failed": 2, "by": 1, "from": "c2a", "to": "c2b"}]}
+    >>> later = {"epoch": 2, "failed": [1], "replacements": [
+    ...     {"failed": 1, "by": 3, "from": "c1a", "to": "c1b"},
+    ...     {"failed": 1, "by": 4, "from": "c2b", "to": "c2a"}]}
+    >>> r, rep = answered_by(2, first, [first, later], 2)
+    >>> r["epoch"], [(x["by"], x["to"]) for x in rep]
+    (2, [(4, 'c2a')])
+    >>> answered_by(2, first, [first, later], 1)[0]["epoch"]
+    1
+    """
+    rep = [x for x in first.get("replacements", []) if x["failed"] == agent]
+    if epoch_in_force is None or epoch_in_force <= first["epoch"]:
+        return first, rep
+    answer = first
+    for later in sorted((r for r in reassigns
+                         if first["epoch"] < r.get("epoch", -1) <= epoch_in_force),
+                        key=lambda r: r["epoch"]):
+        moved = {(x["failed"], x["from"]): x for x in later.get("replacements", [])}
+        rep = [moved.get((x["by"], x["to"]), x) for x in rep]
+        answer = later
+    return answer, rep
+
+
 def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     """``failures``, ``recovered``, MSE after recovery (live and exact) for the summary."""
     import json
@@ -748,11 +781,11 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         if r is not None:
             # the roles in force: this epoch's roster, or the re-issue that replaced it
             took = next(((at, ep) for at, _, ep in rosters[1:] if ep >= r["epoch"]), None)
+            r, rep = answered_by(v["agent"], r, reassigns, took[1] if took else None)
             entry.update(epoch=took[1] if took else r["epoch"],
                          activate_at=took[0] if took else None,
                          activate_at_sent=r["activate_at"], precomputed=r.get("precomputed"),
                          gains=r.get("gains"))
-            rep = [x for x in r["replacements"] if x["failed"] == v["agent"]]
             entry["replacement"] = ({"agent": rep[0]["by"], "node": rep[0]["to"]} if rep
                                     else None)
             if rep:
