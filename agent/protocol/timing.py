@@ -178,11 +178,17 @@ class Timing:
             out.append(f"crash_flush_s: {t.crash_flush_s:g} s must be below hang_timeout_s = "
                        f"{t.hang_timeout_s:g} s (a scripted crash must not look like a hang "
                        "first)")
-        if step_s is not None and lead_steps is not None \
-                and lead_steps * step_s + t.status_s >= t.confirm_timeout_s:
-            out.append(f"confirm_timeout_s: {t.confirm_timeout_s:g} s must exceed lead_steps x "
-                       f"step_s + status_s = {lead_steps * step_s + t.status_s:g} s (a "
-                       "replacement confirms by a status once its role is in force)")
+        if step_s is not None and step_s + t.status_s >= t.confirm_timeout_s:
+            # an agent confirms an assignment by the status that shows it pending (sent
+            # at once), whatever the head start; one that has not confirmed and shows no
+            # new step for confirm_timeout_s is taken for failed, so a healthy agent must
+            # show a new step within it
+            out.append(f"step_s: the step period ({step_s:g} s, --step-ms or the scenario's "
+                       f"runtime.step_ms) plus status_s = {step_s + t.status_s:g} s must stay "
+                       f"below confirm_timeout_s = {t.confirm_timeout_s:g} s (an agent that "
+                       "has not confirmed its assignment and shows no new step for that "
+                       "long is taken for failed): the longest period is "
+                       f"{1e3 * (t.confirm_timeout_s - t.status_s):g} ms")
         return out
 
     def validate(self, step_s: float | None = None, lead_steps: int | None = None) -> "Timing":
