@@ -108,7 +108,6 @@ def _spans_follow_the_roles(got, sc, assignments):
         return {int(j) for j in role["neighbours"]} | {int(f) for f in
                                                       role.get("continues", {}).values()}
 
-    checked = 0
     for a, e in got.items():
         spans = e["spans"]
         assert spans[0]["epoch"] == 0, (a, spans)
@@ -125,8 +124,8 @@ def _spans_follow_the_roles(got, sc, assignments):
             heard = {int(j) for j in span["received"]}
             if nxt != "*":
                 assert heard <= set(span["ids"]) | set(nxt), (a, g, spans)
-            checked += 1
-    assert checked > len(got), got          # the switches' spans, not only the starts
+    # a switch was seen: some agent changed its subscriptions
+    assert any(len(e["spans"]) > 1 for e in got.values()), got
 
 
 def test_the_standby_killed_then_an_agent_replays_in_the_simulator(tmp_path):
