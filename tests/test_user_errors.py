@@ -280,6 +280,17 @@ def test_a_flag_argparse_rejects_is_one_line_naming_it(capsys, argv):
     assert err[0].endswith(f"--help`)")
 
 
+@pytest.mark.parametrize("argv", [["up", "communities-16", "--stepz", "10"],
+                                  ["analyze", "communities-16", "--bogus"]])
+def test_an_unknown_flag_of_a_command_is_the_commands_error(capsys, argv):
+    """A flag the command does not know is said by the command's parser, one line, as its
+    other errors are; not the top level's usage."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == (f"socmon {argv[0]}: error: unrecognized arguments: {' '.join(argv[2:])} "
+                   f"(see `socmon {argv[0]} --help`)\n")
+
+
 def test_inject_names_a_value_out_of_range_in_its_own_words(capsys):
     """The impairment's range check, said as the command's words (not the codec's)."""
     assert main(["inject", "drop", "1", "2", "1.5", "--connect", "tcp/127.0.0.1:9"]) == 2

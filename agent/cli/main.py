@@ -64,6 +64,15 @@ class _CommandParser(argparse.ArgumentParser):
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
 
+    def parse_known_args(self, args=None, namespace=None):
+        """Every argument after the command is the command's: one it does not know is
+        its error (``socmon up: error: unrecognized arguments: --stepz``), not the top
+        level's usage."""
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
