@@ -64,27 +64,55 @@ def test_values_that_are_not_positive_finite_numbers_are_refused(value):
 
 
 def test_a_flag_that_breaks_a_relation_is_named_by_its_flag():
-    with pytest.raises(CommandError, match=r"^--hang-timeout: 0.3 s must exceed 2 x status_s"):
+    with pytest.raises(CommandError, match=r"^--hang-timeout: 0.3 s must exceed pause_guard_s"):
         timing_arg(hang_timeout_s=0.3)
     assert timing_arg(hang_timeout_s=2.0).hang_timeout_s == 2.0
     assert timing_arg(hang_timeout_s=None) == DEFAULT
 
 
-def test_up_refuses_a_hang_timeout_below_twice_the_status_period(capsys):
+@pytest.mark.parametrize("fields, message", [
+    # below 2 x status_s, pause_guard_s and crash_flush_s: the highest of the three alone
+    ({"hang_timeout_s": 0.1}, "--hang-timeout: 0.1 s must exceed pause_guard_s = 0.5 s (a "
+     "monitor paused longer than a hang would convict on stale clocks)"),
+    ({"hang_timeout_s": 0.45}, "--hang-timeout: 0.45 s must exceed pause_guard_s = 0.5 s ("),
+    ({"hang_timeout_s": 100.0, "hang_timeout_max_s": 5.0},
+     "--hang-timeout: 100 s must be below rejoin_s = 5 s ("),
+    ({"hang_timeout_s": 1.0, "hang_timeout_max_s": 0.5},
+     "--hang-timeout-max: 0.5 s must be at least --hang-timeout = 1 s (the adaptive timeout"),
+    ({"start_timeout_s": 1.0}, "--start-timeout: 1 s must exceed monitor_prepare_s = 20 s ("),
+])
+def test_a_flag_is_refused_with_the_one_bound_it_can_meet(fields, message):
+    """The flag and the tightest bound it breaks, first and alone: not every internal
+    setting it is below, nor a relation of the runtime's own settings named first."""
+    with pytest.raises(CommandError) as info:
+        timing_arg(**fields)
+    text = str(info.value)
+    assert text.startswith(message) and ";" not in text, text
+
+
+def test_bounds_are_the_relations_seen_from_one_field():
+    bounds = {(op, bound, other) for op, bound, other, _, _ in DEFAULT.bounds("hang_timeout_s")}
+    assert bounds == {(">", 0.4, "status_s"), ("<=", 5.0, "hang_timeout_max_s"),
+                      (">", 0.5, "pause_guard_s"), ("<", 5.0, "rejoin_s"),
+                      (">", 0.3, "crash_flush_s")}
+
+
+def test_up_refuses_a_hang_timeout_below_the_pause_guard(capsys):
     from agent.cli.main import main
 
     assert main(["up", "paper-14-live", "--steps", "5", "--hang-timeout", "0.3"]) == 2
     err = capsys.readouterr().err
-    assert "--hang-timeout: 0.3 s must exceed 2 x status_s = 0.4 s" in err
+    assert err == ("socmon: --hang-timeout: 0.3 s must exceed pause_guard_s = 0.5 s (a "
+                   "monitor paused longer than a hang would convict on stale clocks)\n")
 
 
-def test_monitor_refuses_a_hang_timeout_below_twice_the_status_period(capsys, live_gains):
+def test_monitor_refuses_a_hang_timeout_below_the_pause_guard(capsys, live_gains):
     from agent.cli.main import main
 
     assert main(["monitor", "paper-14-live", "--run", "t", "--gains", str(live_gains),
                  "--hang-timeout", "0.3"]) == 2
     err = capsys.readouterr().err
-    assert "--hang-timeout: 0.3 s must exceed 2 x status_s = 0.4 s" in err
+    assert "--hang-timeout: 0.3 s must exceed pause_guard_s = 0.5 s" in err
 
 
 def test_the_monitor_reads_its_lease_from_its_transport_flags(live_gains):

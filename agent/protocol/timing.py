@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import operator
 from dataclasses import dataclass
 
 __all__ = ["Timing", "TimingError", "DEFAULT"]
@@ -38,7 +39,8 @@ class TimingError(ValueError):
 class Timing:
     """The runtime's periods and timeouts (seconds unless the name says otherwise).
 
-    Each field's comment is its rationale; :meth:`problems` lists the relations.
+    Each field's comment is its rationale; :data:`RELATIONS` lists the relations between
+    them, :meth:`problems` says which are broken.
     """
 
     #: An agent's status period: the heartbeat of its loop (a liveliness token proves the
@@ -126,58 +128,12 @@ class Timing:
                 out.append(f"{f.name}: must be a finite number > 0, got {v!r}")
         if out:
             return out
+        for a, op, factor, b, why in RELATIONS:
+            va, vb = getattr(self, a), factor * getattr(self, b)
+            if not HOLDS[op](va, vb):
+                times = f"{factor:g} x " if factor != 1 else ""
+                out.append(f"{a}: {va:g} s {WORDS[op]} {times}{b} = {vb:g} s ({why})")
         t = self
-        if t.hang_timeout_s <= 2 * t.status_s:
-            out.append(f"hang_timeout_s: {t.hang_timeout_s:g} s must exceed 2 x status_s = "
-                       f"{2 * t.status_s:g} s (the monitor tells a stuck sensor from a hung "
-                       "loop by a status younger than hang_timeout_s / 2)")
-        if t.prestart_status_s > t.status_s:
-            out.append(f"prestart_status_s: {t.prestart_status_s:g} s must not exceed status_s "
-                       f"= {t.status_s:g} s (the start handshake is the faster heartbeat)")
-        if t.hang_timeout_max_s < t.hang_timeout_s:
-            out.append(f"hang_timeout_max_s: {t.hang_timeout_max_s:g} s must be at least "
-                       f"hang_timeout_s = {t.hang_timeout_s:g} s (the adaptive timeout starts "
-                       "there and only grows)")
-        if t.pause_guard_s >= t.hang_timeout_s:
-            out.append(f"pause_guard_s: {t.pause_guard_s:g} s must be below hang_timeout_s = "
-                       f"{t.hang_timeout_s:g} s (a monitor paused longer than a hang would "
-                       "convict on stale clocks)")
-        if t.resend_s >= t.confirm_timeout_s:
-            out.append(f"resend_s: {t.resend_s:g} s must be below confirm_timeout_s = "
-                       f"{t.confirm_timeout_s:g} s (an assignment is re-sent before its "
-                       "addressee is given up)")
-        if t.rejoin_s <= t.hang_timeout_s:
-            out.append(f"rejoin_s: {t.rejoin_s:g} s must exceed hang_timeout_s = "
-                       f"{t.hang_timeout_s:g} s (an agent may not rejoin before a verdict "
-                       "about it could be reached again)")
-        if t.monitor_prepare_s >= t.start_timeout_s:
-            out.append(f"monitor_prepare_s: {t.monitor_prepare_s:g} s must be below "
-                       f"start_timeout_s = {t.start_timeout_s:g} s (a world waiting for the "
-                       "monitor would give up first)")
-        if t.agent_world_gone_s <= t.world_grace_s:
-            out.append(f"agent_world_gone_s: {t.agent_world_gone_s:g} s must exceed "
-                       f"world_grace_s = {t.world_grace_s:g} s (the hard bound follows the "
-                       "grace period)")
-        if t.monitor_world_gone_s <= t.agent_world_gone_s:
-            out.append(f"monitor_world_gone_s: {t.monitor_world_gone_s:g} s must exceed "
-                       f"agent_world_gone_s = {t.agent_world_gone_s:g} s (the monitor outlasts "
-                       "the agents' own wait for a world that left)")
-        if t.world_silent_s <= t.agent_world_gone_s:
-            out.append(f"world_silent_s: {t.world_silent_s:g} s must exceed agent_world_gone_s "
-                       f"= {t.agent_world_gone_s:g} s (a world that went silent is waited "
-                       "for longer than one that ended)")
-        if t.monitor_world_silent_s <= t.world_silent_s:
-            out.append(f"monitor_world_silent_s: {t.monitor_world_silent_s:g} s must exceed "
-                       f"world_silent_s = {t.world_silent_s:g} s (the monitor outlasts the "
-                       "agents' wait for a silent world)")
-        if t.step_ahead_s <= 2 * t.status_s:
-            out.append(f"step_ahead_s: {t.step_ahead_s:g} s must exceed 2 x status_s = "
-                       f"{2 * t.status_s:g} s (two honest agents' statuses are up to a status "
-                       "period apart)")
-        if t.crash_flush_s >= t.hang_timeout_s:
-            out.append(f"crash_flush_s: {t.crash_flush_s:g} s must be below hang_timeout_s = "
-                       f"{t.hang_timeout_s:g} s (a scripted crash must not look like a hang "
-                       "first)")
         if step_s is not None and step_s + t.status_s >= t.confirm_timeout_s:
             # an agent confirms an assignment by the status that shows it pending (sent
             # at once), whatever the head start; one that has not confirmed and shows no
@@ -191,6 +147,24 @@ class Timing:
                        f"{1e3 * (t.confirm_timeout_s - t.status_s):g} ms")
         return out
 
+    def bounds(self, field: str) -> list:
+        """Each relation of :data:`RELATIONS` that involves ``field``, seen from it: ``(op,
+        bound, other, named, why)``, ``field op bound`` where ``bound`` is ``named`` (e.g.
+        ``2 x status_s``) at the other field's value.
+
+        >>> [b[:4] for b in Timing().bounds("start_timeout_s")]
+        [('>', 20.0, 'monitor_prepare_s', 'monitor_prepare_s')]
+        """
+        out = []
+        for a, op, factor, b, why in RELATIONS:
+            if a == field:
+                named = f"{factor:g} x {b}" if factor != 1 else b
+                out.append((op, factor * getattr(self, b), b, named, why))
+            elif b == field:
+                named = f"{a} / {factor:g}" if factor != 1 else a
+                out.append((_FLIP[op], getattr(self, a) / factor, a, named, why))
+        return out
+
     def validate(self, step_s: float | None = None, lead_steps: int | None = None) -> "Timing":
         """``self`` if consistent; else :class:`TimingError` naming every broken relation."""
         problems = self.problems(step_s, lead_steps)
@@ -202,6 +176,40 @@ class Timing:
         """A copy with ``changes`` (not validated: call :meth:`validate`)."""
         return dataclasses.replace(self, **changes)
 
+
+#: The relations between the fields, each ``(a, op, factor, b, why)``: ``a op factor x b``
+#: must hold, for the reason ``why``.
+RELATIONS = (
+    ("hang_timeout_s", ">", 2, "status_s", "the monitor tells a stuck sensor from a hung "
+     "loop by a status younger than hang_timeout_s / 2"),
+    ("prestart_status_s", "<=", 1, "status_s", "the start handshake is the faster heartbeat"),
+    ("hang_timeout_max_s", ">=", 1, "hang_timeout_s", "the adaptive timeout starts there and "
+     "only grows"),
+    ("pause_guard_s", "<", 1, "hang_timeout_s", "a monitor paused longer than a hang would "
+     "convict on stale clocks"),
+    ("resend_s", "<", 1, "confirm_timeout_s", "an assignment is re-sent before its addressee "
+     "is given up"),
+    ("rejoin_s", ">", 1, "hang_timeout_s", "an agent may not rejoin before a verdict about it "
+     "could be reached again"),
+    ("monitor_prepare_s", "<", 1, "start_timeout_s", "a world waiting for the monitor would "
+     "give up first"),
+    ("agent_world_gone_s", ">", 1, "world_grace_s", "the hard bound follows the grace period"),
+    ("monitor_world_gone_s", ">", 1, "agent_world_gone_s", "the monitor outlasts the agents' "
+     "own wait for a world that left"),
+    ("world_silent_s", ">", 1, "agent_world_gone_s", "a world that went silent is waited for "
+     "longer than one that ended"),
+    ("monitor_world_silent_s", ">", 1, "world_silent_s", "the monitor outlasts the agents' "
+     "wait for a silent world"),
+    ("step_ahead_s", ">", 2, "status_s", "two honest agents' statuses are up to a status "
+     "period apart"),
+    ("crash_flush_s", "<", 1, "hang_timeout_s", "a scripted crash must not look like a hang "
+     "first"),
+)
+#: How a relation's operator reads, and what it checks.
+WORDS = {">": "must exceed", ">=": "must be at least", "<": "must be below",
+          "<=": "must not exceed"}
+HOLDS = {">": operator.gt, ">=": operator.ge, "<": operator.lt, "<=": operator.le}
+_FLIP = {">": "<", ">=": "<=", "<": ">", "<=": ">="}
 
 #: The runtime's defaults (consistent: checked by the test suite).
 DEFAULT = Timing()

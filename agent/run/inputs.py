@@ -93,28 +93,71 @@ def check_keys_arg(keys, scenario) -> None:
 
 
 def timing_arg(step_s: float | None = None, lead_steps: int | None = None, **fields):
-    """The run's :class:`agent.protocol.timing.Timing` from flag values; InputError naming the flag
-    and the broken relation otherwise (``fields``: Timing field -> value, None = default).
+    """The run's :class:`agent.protocol.timing.Timing` from flag values; InputError otherwise,
+    naming each flag with the bound it breaks (``fields``: Timing field -> value, None =
+    default): the tightest of the runtime's own settings, and only then a bound set by
+    another flag; a broken relation that involves no flag is said as it is.
 
     >>> timing_arg(hang_timeout_s=2.0).hang_timeout_s
     2.0
-    >>> timing_arg(hang_timeout_s=0.4)  # doctest: +ELLIPSIS
+    >>> timing_arg(hang_timeout_s=0.1)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    agent.run.inputs.InputError: --hang-timeout: 0.4 s must exceed 2 x status_s = 0.4 s (...); pause_guard_s: 0.5 s must be below hang_timeout_s = 0.4 s (...)
+    agent.run.inputs.InputError: --hang-timeout: 0.1 s must exceed pause_guard_s = 0.5 s (a monitor paused ...)
     """
+    import re
+
     from agent.protocol.timing import DEFAULT
 
     timing = DEFAULT.replace(**{k: v for k, v in fields.items() if v is not None})
     problems = timing.problems(step_s=step_s, lead_steps=lead_steps)
-    if problems:
-        lines = []
-        for line in problems:
-            field, _, reason = line.partition(": ")
-            flag = _TIMING_FLAGS.get(field)
-            lines.append(f"{flag}: {reason}" if flag and field in fields else line)
+    if not problems:
+        return timing
+    # a flag changed from its default is the one named first (the user's to act on)
+    flags = {f: _TIMING_FLAGS[f] for f in sorted(
+        (f for f in fields if f in _TIMING_FLAGS),
+        key=lambda f: getattr(timing, f) == getattr(DEFAULT, f))}
+    if "must be a finite number" in problems[0]:    # no relation is checked then
+        lines = [f"{flags[f]}: {reason}" if f in flags else line
+                 for line in problems for f, _, reason in [line.partition(": ")]]
         raise InputError("; ".join(lines))
-    return timing
+    others = [line for line in problems if not any(
+        re.search(rf"\b{f}\b", line.split(" (")[0]) for f in flags)]
+    raise InputError("; ".join(_flag_bounds(timing, flags) + others))
+
+
+def _flag_bounds(timing, flags: dict) -> list:
+    """For each flag (Timing field -> flag) whose value breaks a bound set by the runtime's
+    own settings: the tightest one; when there is none, each relation broken between two
+    flags, once."""
+    from agent.protocol.timing import HOLDS, WORDS
+
+    def tightest(broken):
+        lower = [b for b in broken if b[0] in (">", ">=")]
+        if lower:
+            return max(lower, key=lambda b: (b[1], b[0] == ">"))
+        return min(broken, key=lambda b: (b[1], b[0] != "<"))
+
+    lines = []
+    for field, flag in flags.items():
+        value = getattr(timing, field)
+        broken = [b for b in timing.bounds(field)
+                  if b[2] not in flags and not HOLDS[b[0]](value, b[1])]
+        if broken:
+            op, bound, _, named, why = tightest(broken)
+            lines.append(f"{flag}: {value:g} s {WORDS[op]} {named} = {bound:g} s ({why})")
+    if lines:
+        return lines
+    said = set()
+    for field, flag in flags.items():
+        value = getattr(timing, field)
+        for op, bound, other, _, why in timing.bounds(field):
+            pair = frozenset((field, other))
+            if other in flags and pair not in said and not HOLDS[op](value, bound):
+                said.add(pair)
+                lines.append(f"{flag}: {value:g} s {WORDS[op]} {flags[other]} = {bound:g} s "
+                             f"({why})")
+    return lines
 
 
 #: Timing fields set by a flag of some command (the rest are the runtime's constants).
