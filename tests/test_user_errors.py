@@ -225,6 +225,47 @@ def test_up_faults_after_the_last_step_are_refused(tmp_path, capsys, flags, mess
     assert not (tmp_path / "run" / "run.json").exists()
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--fault", "kill:50:1", "--kill", "50:1"],
+     "--fault: agent 1 is killed twice (--kill 50:1 and --fault kill:50:1)"),
+    (["--fault", "kill:50:1", "--fault", "kill:60:1"], "--fault: agent 1 is killed twice"),
+    (["--kill", "50:1", "--kill", "60:1,2"], "--kill: agent 1 is killed twice"),
+    (["--stop", "50:1:0"], "--stop: stop needs SECONDS > 0 (how long the agent is stopped)"),
+    (["--fault", "stop:50:1"], "--fault: stop needs SECONDS > 0 (how long the agent is stopped)"),
+    (["--stop", "50:1:3600"], "--stop: stop needs SECONDS below 3600"),
+    (["--fault", "stop:50:1:3600"], "--fault: stop needs SECONDS below 3600"),
+    (["--fault", "partition:50:1"], "--fault: partition needs SECONDS > 0"),
+    (["--fault", "sensor:50:1:0"], "--fault: sensor needs SECONDS > 0"),
+    (["--fault", "hang:50:1:5"], "--fault: hang acts at its step and takes no SECONDS"),
+    (["--fault", "kill:50:1:0:3"], "--fault: kill takes no VALUE"),
+])
+def test_up_holds_every_fault_to_the_same_checks_whatever_its_flag(tmp_path, capsys, flags,
+                                                                    message):
+    """``--fault KIND`` and the dedicated flags (--kill, --stop, --kill-monitor) meet one
+    set of checks: an agent killed twice, a fault that lasts 0 s, a SECONDS or a VALUE
+    that would be ignored are refused from either."""
+    assert main(["up", "paper-14-live", "--steps", "100", "--out", str(tmp_path / "run"),
+                 *flags]) == 2
+    assert message in _one_line(capsys.readouterr().err)
+    assert not (tmp_path / "run" / "run.json").exists()
+
+
+def test_up_reads_a_fault_alike_from_its_own_flag_and_from_fault():
+    from agent.cli.main import build_parser
+    from agent.run.local import Fault
+    from agent.run.setup import parse_faults
+    from design.scenario import load_scenario
+
+    live = load_scenario("paper-14-live")
+    parse = build_parser().parse_args
+    dedicated = parse(["up", "paper-14-live", "--kill", "50:1", "--stop", "60:2:1.5",
+                       "--kill-monitor", "70"])
+    general = parse(["up", "paper-14-live", "--fault", "monitor:70", "--fault",
+                     "stop:60:2:1.5", "--kill", "50:1"])
+    expected = [Fault(50, "crash", 1), Fault(60, "stop", 2, 1.5), Fault(70, "monitor")]
+    assert parse_faults(dedicated, live) == parse_faults(general, live) == expected
+
+
 def test_up_refuses_monitors_without_a_monitor(tmp_path, capsys):
     assert main(["up", "paper-14-live", "--no-monitor", "--monitors", "3",
                  "--out", str(tmp_path / "run")]) == 2

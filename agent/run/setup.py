@@ -2,11 +2,10 @@
 
 :func:`run_config` turns the flags of ``socmon up`` (and ``chaos``) into a
 :class:`agent.run.local.RunConfig`, every problem an :class:`agent.run.inputs.InputError`
-naming the flag; :func:`parse_faults` reads the scheduled faults; :func:`testbed_for`
-makes and removes the network namespaces of ``--netns``; :func:`live_run` sets a run up,
-runs it, checks it and writes its folder; :func:`exit_status` says how a finished run
-ends.
-"""
+naming the flag; :func:`parse_faults` reads the scheduled faults and :func:`check_faults`
+holds them to one set of checks; :func:`testbed_for` makes and removes the network
+namespaces of ``--netns``; :func:`live_run` sets a run up, runs it, checks it and writes
+its folder; :func:`exit_status` says how a finished run ends."""
 
 from __future__ import annotations
 
@@ -211,14 +210,22 @@ def testbed_for(args, config, say):
 VALUED = {"delay": "steps of delay", "drop": "the probability of a loss",
           "lie": "noise std-devs off", "bias": "noise std-devs off",
           "drift": "noise std-devs each 100 steps", "noise": "times the sensor's noise"}
+#: The kinds that last SECONDS and are then undone (0 would inject nothing); the others
+#: act at their step and take no SECONDS.
+LASTING = {"stop": "how long the agent is stopped", "sensor": "how long its readings stop",
+           "partition": "how long its links are cut", "delay": "how long its links are delayed",
+           "drop": "how long its links drop", "linkdown": "how long the link is down",
+           "worldstop": "how long the process is stopped",
+           "monitorstop": "how long the process is stopped"}
+#: A fault's SECONDS is below this (an hour: longer is no fault of a run but its end).
+MAX_FAULT_S = 3600.0
 
 
 def parse_faults(args, scenario) -> list:
-    """``--kill``, ``--stop``, ``--kill-monitor`` checked against the scenario."""
+    """The faults of ``--kill``, ``--stop``, ``--kill-monitor`` and ``--fault``: each read
+    by its own flag's syntax, then all held to the same checks (:func:`check_faults`)."""
     M = scenario.N + scenario.standby
-    from agent.run.local import Fault
-
-    out = {"kill": {}, "stop": {}, "any": False}
+    from agent.run.local import FAULT_KINDS, PROCESS_FAULTS, Fault
 
     def agent_id(text, flag):
         if not (text.isascii() and text.isdigit()) or not 1 <= int(text) <= M:
@@ -230,16 +237,14 @@ def parse_faults(args, scenario) -> list:
             raise InputError(f"{flag}: {text!r} is not a step >= 1")
         return int(text)
 
+    read = []                    # (fault, the flag that asked for it, its value)
     for spec in args.kill:
         parts = spec.split(":")
         if len(parts) != 2:
             raise InputError(f"--kill: expected STEP:AGENTS (e.g. 300:1,2), got {spec!r}")
         k = step(parts[0], "--kill")
-        for a in parts[1].split(","):
-            a = agent_id(a.strip(), "--kill")
-            if a in out["kill"]:
-                raise InputError(f"--kill: agent {a} is killed twice")
-            out["kill"][a] = k
+        read += [(Fault(k, "crash", agent_id(a.strip(), "--kill")), "--kill", spec)
+                 for a in parts[1].split(",")]
     for spec in args.stop:
         parts = spec.split(":")
         if len(parts) != 3:
@@ -247,18 +252,12 @@ def parse_faults(args, scenario) -> list:
         try:
             secs = float(parts[2])
         except ValueError:
-            secs = -1.0
-        if not 0 < secs < 3600:
-            raise InputError(f"--stop: SECONDS must be in (0, 3600), got {parts[2]!r}")
-        out["stop"][agent_id(parts[1], "--stop")] = (step(parts[0], "--stop"), secs)
-    if args.kill_monitor is not None and args.kill_monitor < 1:
-        raise InputError(f"--kill-monitor: must be a step >= 1, got {args.kill_monitor}")
-    faults = [Fault(k, "crash", a) for a, k in out["kill"].items()]
-    faults += [Fault(k, "stop", a, secs) for a, (k, secs) in out["stop"].items()]
+            raise InputError(f"--stop: SECONDS is a number, got {spec!r}") from None
+        read.append((Fault(step(parts[0], "--stop"), "stop", agent_id(parts[1], "--stop"),
+                           secs), "--stop", spec))
     if args.kill_monitor is not None:
-        faults.append(Fault(args.kill_monitor, "monitor"))
-    from agent.run.local import FAULT_KINDS, PROCESS_FAULTS
-
+        read.append((Fault(args.kill_monitor, "monitor"), "--kill-monitor",
+                     str(args.kill_monitor)))
     for spec in getattr(args, "fault", []):
         parts = spec.split(":")
         kind = parts[0]
@@ -273,42 +272,63 @@ def parse_faults(args, scenario) -> list:
                 raise InputError(f"--fault: {kind} acts on the {proc} and takes no agent, "
                                    f"got {spec!r}")
             a = 0
+        elif len(parts) > 2:
+            a = agent_id(parts[2], "--fault")
         else:
-            a = agent_id(parts[2], "--fault") if len(parts) > 2 else 0
-        if kind not in PROCESS_FAULTS and not a:
             raise InputError(f"--fault: {kind} needs an agent, got {spec!r}")
-
-        if kind == "linkdown" and not getattr(args, "netns", False):
-            raise InputError(f"--fault: linkdown brings a host's link down and needs "
-                               f"--netns, got {spec!r}")
         try:
             secs = float(parts[3]) if len(parts) > 3 else 0.0
             value = float(parts[4]) if len(parts) > 4 else 0.0
         except ValueError:
             raise InputError(f"--fault: SECONDS and VALUE are numbers, got {spec!r}") from None
-        if not (0 <= secs < 3600 and 0 <= value <= 1_000_000):
-            raise InputError(f"--fault: SECONDS in [0, 3600) and VALUE >= 0, got {spec!r}")
-        if kind in VALUED and not value > 0:
-            raise InputError(f"--fault: {kind} needs VALUE > 0 ({VALUED[kind]}; "
-                             f"{kind}:STEP:AGENT:SECONDS:VALUE), got {spec!r}")
-        if kind == "drop" and not value <= 1:
-            raise InputError(f"--fault: drop VALUE is a probability in [0, 1], got {spec!r}")
-        if kind == "delay" and value != int(value):
-            raise InputError(f"--fault: delay VALUE is a whole number of steps, got {spec!r}")
-        if kind in ("worldstop", "monitorstop") and not secs > 0:
-            raise InputError(f"--fault: {kind} needs SECONDS > 0 (how long the process is "
-                               f"stopped), got {spec!r}")
-        if kind == "linkdown" and not secs > 0:
-            raise InputError(f"--fault: linkdown needs SECONDS > 0 (how long the link is "
-                               f"down), got {spec!r}")
-        faults.append(Fault(k, kind, a, secs, value))
-    flags = {"crash": "--kill", "stop": "--stop", "monitor": "--kill-monitor"}
-    for f in faults:
+        read.append((Fault(k, kind, a, secs, value), "--fault", spec))
+    return check_faults(read, args)
+
+
+def check_faults(read, args) -> list:
+    """The faults of ``read`` (``(fault, flag, value)``, in the order given) sorted by step,
+    every one held to the same checks whatever flag asked for it, the first broken one an
+    :class:`InputError` naming that flag and its value: within the run's steps; SECONDS in
+    (0, :data:`MAX_FAULT_S`) for the kinds that last (:data:`LASTING`), none for the others;
+    a VALUE for the kinds that take one (:data:`VALUED`), none for the others; linkdown
+    only with ``--netns``; no agent killed twice."""
+    killed = {}                  # agent -> (flag, value) that kills it
+    for f, flag, spec in read:
+        kind, secs, value = f.kind, f.seconds, f.value
+        if f.step < 1:
+            raise InputError(f"{flag}: step {f.step} is not a step >= 1")
         if f.step > args.steps:
-            raise InputError(f"{flags.get(f.kind, '--fault')}: step {f.step} is after the "
-                               f"run's last step ({args.steps}, --steps): the fault would "
-                               "never happen")
-    return sorted(faults)
+            raise InputError(f"{flag}: step {f.step} is after the run's last step "
+                               f"({args.steps}, --steps): the fault would never happen")
+        if kind in LASTING and not secs > 0:
+            raise InputError(f"{flag}: {kind} needs SECONDS > 0 ({LASTING[kind]}), "
+                               f"got {spec!r}")
+        if kind in LASTING and not secs < MAX_FAULT_S:
+            raise InputError(f"{flag}: {kind} needs SECONDS below {MAX_FAULT_S:g}, "
+                               f"got {spec!r}")
+        if kind not in LASTING and secs != 0:
+            raise InputError(f"{flag}: {kind} acts at its step and takes no SECONDS (those "
+                               f"of {', '.join(LASTING)} do), got {spec!r}")
+        if kind in VALUED and not 0 < value <= 1_000_000:
+            raise InputError(f"{flag}: {kind} needs VALUE > 0 ({VALUED[kind]}; "
+                               f"{kind}:STEP:AGENT:SECONDS:VALUE), got {spec!r}")
+        if kind not in VALUED and value != 0:
+            raise InputError(f"{flag}: {kind} takes no VALUE (those of "
+                               f"{', '.join(VALUED)} do), got {spec!r}")
+        if kind == "drop" and not value <= 1:
+            raise InputError(f"{flag}: drop VALUE is a probability in [0, 1], got {spec!r}")
+        if kind == "delay" and value != int(value):
+            raise InputError(f"{flag}: delay VALUE is a whole number of steps, got {spec!r}")
+        if kind == "linkdown" and not getattr(args, "netns", False):
+            raise InputError(f"{flag}: linkdown brings a host's link down and needs "
+                               f"--netns, got {spec!r}")
+        if kind in ("crash", "kill"):
+            if f.agent in killed:
+                first = " ".join(killed[f.agent])
+                raise InputError(f"{flag}: agent {f.agent} is killed twice ({first} and "
+                                   f"{flag} {spec})")
+            killed[f.agent] = (flag, spec)
+    return sorted(f for f, _, _ in read)
 
 
 @dataclass
