@@ -272,6 +272,25 @@ def test_up_refuses_monitors_without_a_monitor(tmp_path, capsys):
     assert "--monitors: no monitor runs with --no-monitor" in _one_line(capsys.readouterr().err)
 
 
+@pytest.mark.parametrize("flags", [["--kill-monitor", "50"], ["--fault", "monitor:50"],
+                                   ["--fault", "monitorstop:50::2"],
+                                   ["--fault", "monitorsgone:50"]])
+def test_up_refuses_a_monitor_fault_without_a_monitor(tmp_path, capsys, flags):
+    """A fault of the monitor in a run with none would be said and recorded, never done."""
+    assert main(["up", "paper-14-live", "--no-monitor", "--steps", "100",
+                 "--out", str(tmp_path / "run"), *flags]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith(f"socmon: {flags[0]}: no monitor runs with --no-monitor (give one "
+                          f"or the other), got {flags[1]!r}"), err
+    assert not (tmp_path / "run" / "run.json").exists()
+
+
+def test_monitor_faults_are_the_process_faults_on_a_monitor():
+    from agent.run.fault_kinds import MONITOR_FAULTS, PROCESS_FAULTS
+
+    assert set(MONITOR_FAULTS) == {k for k in PROCESS_FAULTS if k.startswith("monitor")}
+
+
 def test_version_is_printed(capsys):
     from importlib.metadata import version
 

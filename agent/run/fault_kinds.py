@@ -2,7 +2,8 @@
 ``up``, ``chaos`` and the simulated runtime; pure (no transport), so that
 :mod:`agent.run.simulated` reads them without loading zenoh."""
 
-__all__ = ["FAULT_KINDS", "SCRIPTED_FAULTS", "WRONG_KINDS", "PROCESS_FAULTS", "ROLE_FAULTS"]
+__all__ = ["FAULT_KINDS", "SCRIPTED_FAULTS", "WRONG_KINDS", "PROCESS_FAULTS", "MONITOR_FAULTS",
+           "ROLE_FAULTS"]
 
 #: crash: the agent SIGKILLs itself after publishing step STEP-1 (reproducible);
 #: kill: SIGKILL from outside at STEP; stop: SIGSTOP for ``seconds`` then SIGCONT;
@@ -27,6 +28,8 @@ SCRIPTED_FAULTS = ("crash", "lie", "bias", "drift", "noise")
 WRONG_KINDS = ("lie", "bias")
 #: The kinds that act on a process other than an agent (no AGENT in ``--fault``).
 PROCESS_FAULTS = ("monitor", "worldstop", "monitorstop", "monitorsgone")
+#: The kinds that act on the monitors (none runs with ``--no-monitor``).
+MONITOR_FAULTS = ("monitor", "monitorstop", "monitorsgone")
 #: The kinds that change only what an agent computes or publishes: a standby computes
 #: and publishes nothing before it holds a role, so they act on it only once it holds one
 #: (the live agent and the simulator alike).

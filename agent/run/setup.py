@@ -291,7 +291,9 @@ def check_faults(read, args) -> list:
     :class:`InputError` naming that flag and its value: within the run's steps; SECONDS in
     (0, :data:`MAX_FAULT_S`) for the kinds that last (:data:`LASTING`), none for the others;
     a VALUE for the kinds that take one (:data:`VALUED`), none for the others; linkdown
-    only with ``--netns``; no agent killed twice."""
+    only with ``--netns``; none on a monitor with ``--no-monitor``; no agent killed twice."""
+    from agent.run.fault_kinds import MONITOR_FAULTS
+
     killed = {}                  # agent -> (flag, value) that kills it
     for f, flag, spec in read:
         kind, secs, value = f.kind, f.seconds, f.value
@@ -319,6 +321,9 @@ def check_faults(read, args) -> list:
             raise InputError(f"{flag}: drop VALUE is a probability in [0, 1], got {spec!r}")
         if kind == "delay" and value != int(value):
             raise InputError(f"{flag}: delay VALUE is a whole number of steps, got {spec!r}")
+        if kind in MONITOR_FAULTS and getattr(args, "no_monitor", False):
+            raise InputError(f"{flag}: no monitor runs with --no-monitor (give one or the "
+                               f"other), got {spec!r}")
         if kind == "linkdown" and not getattr(args, "netns", False):
             raise InputError(f"{flag}: linkdown brings a host's link down and needs "
                                f"--netns, got {spec!r}")
