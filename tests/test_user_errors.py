@@ -291,6 +291,77 @@ def test_monitor_faults_are_the_process_faults_on_a_monitor():
     assert set(MONITOR_FAULTS) == {k for k in PROCESS_FAULTS if k.startswith("monitor")}
 
 
+#: one spec of every kind a run injects, as up takes it
+ONE_OF_EACH = {"crash": ["--kill", "50:1"], "kill": ["--fault", "kill:50:1"],
+               "stop": ["--stop", "50:1:2"], "hang": ["--fault", "hang:50:1"],
+               "sensor": ["--fault", "sensor:50:1:2"], "monitor": ["--kill-monitor", "50"],
+               "partition": ["--fault", "partition:50:1:2"],
+               "delay": ["--fault", "delay:50:1:2:1"], "drop": ["--fault", "drop:50:1:2:0.5"],
+               "linkdown": ["--netns", "--fault", "linkdown:50:1:2"],
+               "worldstop": ["--fault", "worldstop:50::2"],
+               "monitorstop": ["--fault", "monitorstop:50::2"],
+               "monitorsgone": ["--fault", "monitorsgone:50"],
+               "lie": ["--fault", "lie:50:1:0:3"], "bias": ["--fault", "bias:50:1:0:3"],
+               "drift": ["--fault", "drift:50:1:0:1"], "noise": ["--fault", "noise:50:1:0:2"]}
+
+
+def test_one_of_each_covers_every_kind_and_replayed_ones_are_the_simulators():
+    from agent.run.fault_kinds import FAULT_KINDS, REPLAYED_FAULTS, SCRIPTED_FAULTS
+    from design.simulate import FAULT_KINDS as SIMULATED
+
+    assert set(ONE_OF_EACH) == set(FAULT_KINDS)
+    assert set(REPLAYED_FAULTS) == {"crash", *SIMULATED} == set(SCRIPTED_FAULTS)
+
+
+@pytest.mark.parametrize("kind", sorted(ONE_OF_EACH))
+def test_check_simulator_refuses_at_the_start_what_the_simulator_does_not_replay(kind):
+    """Each kind against --check-simulator: the replayed ones (a scripted crash, a lie, a
+    sensor fault) accepted, every other refused before the run, naming its flag."""
+    from agent.cli.main import build_parser
+    from agent.run.fault_kinds import REPLAYED_FAULTS
+    from agent.run.inputs import InputError
+    from agent.run.setup import parse_faults
+    from design.scenario import load_scenario
+
+    flags = ONE_OF_EACH[kind]
+    args = build_parser().parse_args(["up", "paper-14-live", "--steps", "100",
+                                      "--check-simulator", *flags])
+    live = load_scenario("paper-14-live")
+    if kind in REPLAYED_FAULTS:
+        assert [f.kind for f in parse_faults(args, live)] == [kind]
+        return
+    with pytest.raises(InputError) as info:
+        parse_faults(args, live)
+    given = " ".join(flags[-2:]) if flags[-2].startswith("--") else flags[-1]
+    assert str(info.value).startswith(f"--check-simulator: the simulator does not replay "
+                                      f"{given} ("), str(info.value)
+    assert str(info.value).endswith("only (give one or the other)")
+
+
+def test_check_simulator_with_the_monitor_killed_is_refused_before_anything_starts(
+        tmp_path, capsys):
+    assert main(["up", "communities-16", "--check-simulator", "--kill-monitor", "50",
+                 "--steps", "100", "--out", str(tmp_path / "run")]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith("socmon: --check-simulator: the simulator does not replay "
+                          "--kill-monitor 50 (monitor killed (SIGKILL), started again)")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_that_cannot_be_replayed_is_not_compared_rather_than_differing_by_inf():
+    """What only the run can tell (a reassignment without a scripted crash): said as not
+    compared, not as a difference of inf; a real difference still says by how much."""
+    from agent.run.setup import simulator_problem
+
+    why = "a reassignment without a scripted crash cannot be replayed"
+    assert simulator_problem(float("inf"), why) == (
+        f"--check-simulator: the run was not compared with the simulator's replay: {why}")
+    assert simulator_problem(1e-15, "estimates (100 compared)") is None
+    assert simulator_problem(0.25, "estimates (100 compared; the first above 1e-09: agent 1 "
+                                   "at step 105)").startswith(
+        "--check-simulator: the run differs from the simulator's replay by 0.25 (relative")
+
+
 def test_version_is_printed(capsys):
     from importlib.metadata import version
 

@@ -3,7 +3,7 @@
 :mod:`agent.run.simulated` reads them without loading zenoh."""
 
 __all__ = ["FAULT_KINDS", "SCRIPTED_FAULTS", "WRONG_KINDS", "PROCESS_FAULTS", "MONITOR_FAULTS",
-           "ROLE_FAULTS"]
+           "ROLE_FAULTS", "REPLAYED_FAULTS", "REPLAYED_WORDS"]
 
 #: crash: the agent SIGKILLs itself after publishing step STEP-1 (reproducible);
 #: kill: SIGKILL from outside at STEP; stop: SIGSTOP for ``seconds`` then SIGCONT;
@@ -34,3 +34,9 @@ MONITOR_FAULTS = ("monitor", "monitorstop", "monitorsgone")
 #: and publishes nothing before it holds a role, so they act on it only once it holds one
 #: (the live agent and the simulator alike).
 ROLE_FAULTS = ("lie", "bias", "drift", "noise")
+#: The kinds ``--check-simulator`` replays (:mod:`design.simulate`): a scripted crash at
+#: its step, a lie and the sensor faults (its ``FAULT_KINDS``); the others act on timing,
+#: processes or links, which the simulator does not model.
+REPLAYED_FAULTS = ("crash", "lie", "bias", "drift", "noise")
+#: ... said to the user.
+REPLAYED_WORDS = "scripted crashes (--kill), lies and sensor faults (lie, bias, drift, noise)"

@@ -5,7 +5,8 @@
 naming the flag; :func:`parse_faults` reads the scheduled faults and :func:`check_faults`
 holds them to one set of checks; :func:`testbed_for` makes and removes the network
 namespaces of ``--netns``; :func:`live_run` sets a run up, runs it, checks it and writes
-its folder; :func:`exit_status` says how a finished run ends."""
+its folder; :func:`simulator_problem` says what ``--check-simulator`` found;
+:func:`exit_status` says how a finished run ends."""
 
 from __future__ import annotations
 
@@ -291,8 +292,9 @@ def check_faults(read, args) -> list:
     :class:`InputError` naming that flag and its value: within the run's steps; SECONDS in
     (0, :data:`MAX_FAULT_S`) for the kinds that last (:data:`LASTING`), none for the others;
     a VALUE for the kinds that take one (:data:`VALUED`), none for the others; linkdown
-    only with ``--netns``; none on a monitor with ``--no-monitor``; no agent killed twice."""
-    from agent.run.fault_kinds import MONITOR_FAULTS
+    only with ``--netns``; none on a monitor with ``--no-monitor``; only those the simulator
+    replays with ``--check-simulator``; no agent killed twice."""
+    from agent.run.fault_kinds import MONITOR_FAULTS, REPLAYED_FAULTS, REPLAYED_WORDS
 
     killed = {}                  # agent -> (flag, value) that kills it
     for f, flag, spec in read:
@@ -327,6 +329,10 @@ def check_faults(read, args) -> list:
         if kind == "linkdown" and not getattr(args, "netns", False):
             raise InputError(f"{flag}: linkdown brings a host's link down and needs "
                                f"--netns, got {spec!r}")
+        if getattr(args, "check_simulator", False) and kind not in REPLAYED_FAULTS:
+            raise InputError(f"--check-simulator: the simulator does not replay {flag} "
+                               f"{spec} ({f.describe()}); it replays {REPLAYED_WORDS} only "
+                               "(give one or the other)")
         if kind in ("crash", "kill"):
             if f.agent in killed:
                 first = " ".join(killed[f.agent])
@@ -357,12 +363,7 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
     import dataclasses
 
     from agent.run.folder import EXIT_FOLDER, RunFolderError
-    from agent.run.summary import (
-        CHECK_TOL,
-        compare_simulator,
-        run_and_summarize,
-        write_run_folder,
-    )
+    from agent.run.summary import compare_simulator, run_and_summarize, write_run_folder
 
     config = run_config(args, say, design_progress=design_progress)
     if on_designed is not None:
@@ -377,10 +378,10 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
         diff, how = compare_simulator(config, rec, steps_done)
         summary["max_rel_diff_vs_simulator"] = diff
         summary["simulator_compared"] = how
-        if not diff <= CHECK_TOL:
+        problem = simulator_problem(diff, how)
+        if problem:
             status = status or 1
-            problems.append(f"--check-simulator: the run differs from the simulator's replay "
-                            f"by {diff:.3g} (relative; at most {CHECK_TOL:g} allowed): {how}")
+            problems.append(problem)
     try:
         write_run_folder(config.out, summary, steps_done, mse, predicted, recording=rec,
                          n=config.scenario.n)
@@ -389,6 +390,28 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
         status = status or EXIT_FOLDER
     summary["out"] = str(config.out)
     return FinishedRun(config, rec, summary, status, problems)
+
+
+def simulator_problem(diff: float, how: str) -> str | None:
+    """What ``--check-simulator`` says of a finished run compared by
+    :func:`agent.run.summary.compare_simulator` (``diff, how``): None when it equals the
+    simulator's replay; that it was not compared when the run could not be replayed (what
+    only the run could tell, e.g. a reassignment without a scripted crash); else by how much
+    it differs.
+
+    >>> simulator_problem(1e-15, "estimates (201 compared)") is None
+    True
+    >>> simulator_problem(float("inf"), "incomplete run")
+    "--check-simulator: the run was not compared with the simulator's replay: incomplete run"
+    """
+    from agent.run.summary import CHECK_TOL, was_compared
+
+    if not was_compared(how):
+        return f"--check-simulator: the run was not compared with the simulator's replay: {how}"
+    if not diff <= CHECK_TOL:
+        return (f"--check-simulator: the run differs from the simulator's replay by "
+                f"{diff:.3g} (relative; at most {CHECK_TOL:g} allowed): {how}")
+    return None
 
 
 def exit_status(rec, summary: dict) -> int:

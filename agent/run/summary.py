@@ -18,7 +18,7 @@ import numpy as np
 from design.metrics import (batch_means_se, mean_recorded, mse_of_step, steady_mse,
                             steady_window)
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "was_compared",
            "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
            "conviction_bound_s", "no_verdict_due"]
 
@@ -958,6 +958,16 @@ def _undetected(deaths, convicted, absent, rosters, last_step=None) -> list:
     return out
 
 
+def was_compared(how: str) -> bool:
+    """Whether :func:`compare_simulator` compared estimates (its ``what was compared``),
+    rather than saying why the run could not be replayed (its difference then infinite).
+
+    >>> was_compared("estimates (201 compared)"), was_compared("incomplete run")
+    (True, False)
+    """
+    return how.startswith("estimates")
+
+
 def compare_simulator(config, rec, steps_done):
     """Largest difference to ``design.simulate`` (trial 0, same seed, delays and drops).
 
@@ -968,7 +978,8 @@ def compare_simulator(config, rec, steps_done):
     chain of configurations in force (:func:`rosters_in_force`: the step the agents
     switched, the roles and gains of their assignments; where they did not switch
     together, :func:`configurations_run`, agent by agent).
-    Returns ``(difference, what was compared)``.
+    Returns ``(difference, what was compared)``; ``(inf, why not)`` when the run cannot be
+    replayed (:func:`was_compared` tells them apart).
     """
     from design.roster import link_delay_table, roster_from_specs
     from design.simulate import Recovery, simulate
@@ -983,10 +994,13 @@ def compare_simulator(config, rec, steps_done):
     from design.simulate import FAULT_KINDS as SIMULATED
     from design.simulate import Fault as SimFault
 
+    from agent.run.fault_kinds import REPLAYED_FAULTS, REPLAYED_WORDS
+
     scripted = [f for f in c.faults if f.kind in SIMULATED]
-    if any(f.kind != "crash" and f not in scripted for f in c.faults):
-        return float("inf"), ("the simulator replays scripted crashes (--kill), lies and "
-                              "sensor faults only")
+    not_replayed = sorted({f.kind for f in c.faults if f.kind not in REPLAYED_FAULTS})
+    if not_replayed:       # up refuses them with --check-simulator: a run of its own API
+        return float("inf"), (f"the simulator replays {REPLAYED_WORDS} only, not "
+                              f"{', '.join(not_replayed)}")
     sim_faults = [SimFault(f.kind, f.agent - 1, f.step, f.value) for f in scripted]
     if kills:
         # a standby killed before it took a role never computed: nothing to replay
