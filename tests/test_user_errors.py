@@ -362,6 +362,22 @@ def test_a_run_that_cannot_be_replayed_is_not_compared_rather_than_differing_by_
         "--check-simulator: the run differs from the simulator's replay by 0.25 (relative")
 
 
+@pytest.mark.parametrize("command", ["watch", "monitor"])
+def test_attach_to_a_run_of_another_scenario_names_both_scenarios(tmp_path, capsys, command):
+    """SCENARIO given beside --attach of a run of another one: said as such, not as the
+    run's gains not fitting a scenario the user did not give them for."""
+    from agent.run.folder import write_run_json
+
+    write_run_json(tmp_path, run="demo", connect="tcp/127.0.0.1:9", processes={},
+                   scenario="communities-16", scenario_arg="communities-16",
+                   gains=tmp_path / "gains.npz")
+    assert main([command, "communities-32", "--attach", str(tmp_path)]) == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err == (f"socmon: SCENARIO: the run in {str(tmp_path)!r} (--attach) is of scenario "
+                   "communities-16, not communities-32 (leave SCENARIO out to take the "
+                   "run's)\n")
+
+
 def test_version_is_printed(capsys):
     from importlib.metadata import version
 

@@ -42,6 +42,24 @@ def load_scenario_arg(spec):
     return scenario
 
 
+def check_run_scenario(scenario, info) -> None:
+    """InputError when ``scenario`` (SCENARIO as given) is not the scenario of the run of
+    ``--attach`` (``info``, a :class:`agent.run.folder.RunInfo`): the run's own files (its
+    gains, its manifest) would be read for another scenario and refused in their words."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            same = load_scenario(info.scenario_arg).digest() == scenario.digest()
+    except (ScenarioError, OSError):         # the run's scenario file is gone: by name
+        same = info.scenario == scenario.name
+    if not same:
+        theirs = info.scenario if info.scenario != scenario.name else \
+            f"{info.scenario_arg} (another of the same name)"
+        raise InputError(f"SCENARIO: the run in {str(info.folder)!r} (--attach) is of "
+                         f"scenario {theirs}, not {scenario.name} (leave SCENARIO out to "
+                         "take the run's)")
+
+
 def load_gains_arg(path, scenario, force: bool = False, flag: str = "--gains"):
     """Load the gains file of ``flag`` for ``scenario``; InputError (exit 2) naming the flag
     when it cannot be read, does not fit, or was designed for another scenario (its meta's

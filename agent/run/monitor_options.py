@@ -23,8 +23,8 @@ from design.scenario import resolve_delays
 from agent.monitor.core import MonitorConfig
 from agent.protocol.manifest import ManifestMismatch, check_manifest
 from agent.protocol.timing import DEFAULT as TIMING
-from agent.run.inputs import (InputError, check_keys_arg, load_gains_arg, load_scenario_arg,
-                              timing_arg)
+from agent.run.inputs import (InputError, check_keys_arg, check_run_scenario, load_gains_arg,
+                              load_scenario_arg, timing_arg)
 
 __all__ = ["RunFlags", "run_flags", "MonitorOptions", "monitor_options", "start_warnings",
            "start_monitor"]
@@ -119,6 +119,8 @@ def monitor_options(args, info=None, *, net_config_arg, load_signer) -> MonitorO
         raise InputError("--gains: give the gains file the agents run (or --attach "
                          "RUN_DIR)")
     scenario = load_scenario_arg(flags.scenario)
+    if info is not None and args.scenario:
+        check_run_scenario(scenario, info)
     if flags.manifest:
         try:
             check_manifest(flags.manifest, scenario, flags.gains, flags.seed, flags.delays)

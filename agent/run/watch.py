@@ -155,12 +155,20 @@ def watch_config(args, info=None) -> WatchConfig:
     from design.errors import ScenarioError
     from design.scenario import resolve_delays
 
-    from agent.run.inputs import InputError, check_keys_arg, load_gains_arg, load_scenario_arg
+    from agent.run.inputs import (
+        InputError,
+        check_keys_arg,
+        check_run_scenario,
+        load_gains_arg,
+        load_scenario_arg,
+    )
 
     scenario_arg = args.scenario or (info.scenario_arg if info else None)
     if scenario_arg is None:
         raise InputError("SCENARIO: give the run's scenario (or --attach RUN_DIR)")
     scenario = load_scenario_arg(scenario_arg)
+    if info is not None and args.scenario:
+        check_run_scenario(scenario, info)
     delays_spec = args.delays or (info.delays if info and info.delays else "scenario")
     try:
         delays = resolve_delays(scenario, delays_spec)
