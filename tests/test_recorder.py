@@ -450,3 +450,32 @@ def test_a_watch_of_a_run_whose_clock_never_started_says_so_and_exits_1():
     ran = WatchResult(None, {"steps": 150}, [], np.zeros(0), "world ended")
     assert exit_status(ran) == 0
     assert exit_status(WatchResult(None, {"steps": -1}, [], np.zeros(0), "interrupted")) == 130
+
+
+def test_a_watch_whose_steps_are_behind_the_run_says_so_and_exits_2(monkeypatch):
+    """``watch --steps 50`` joining a run at step 126: nothing of steps 0..50 is left to
+    hear; said as such (exit 2), not as a world that gave up before its clock started."""
+    from types import SimpleNamespace
+
+    from agent.run import watch as watch_module
+    from agent.run.inputs import InputError
+    from agent.run.watch import WatchConfig, steps_behind_text, watch
+    from design.scenario import load_scenario
+
+    assert steps_behind_text(50, 126) == (
+        "--steps: 50 is behind the run (at step 126 when the watch joined): give a later "
+        "step, or leave --steps out to watch until the world ends")
+
+    def joined_at_126(net, recorder, *, steps, **_):
+        recorder.recording.truth[126] = np.zeros(14)
+        return "behind"
+
+    monkeypatch.setattr(watch_module, "watch_run", joined_at_126)
+    scenario = load_scenario("paper-14-live")
+    config = WatchConfig(scenario=scenario, scenario_arg="paper-14-live",
+                         net=SimpleNamespace(run="r", connect=("tcp/127.0.0.1:9",)),
+                         delays=np.zeros((3, 3), dtype=int), delays_spec="scenario", steps=50)
+    view = SimpleNamespace(show=lambda v: None, close=lambda: None)
+    with pytest.raises(InputError) as info:
+        watch(config, view)
+    assert str(info.value) == steps_behind_text(50, 126) and info.value.status == 2

@@ -478,13 +478,15 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     Ends when step ``steps`` is recorded for the truth and every agent in force (with
     ``steps``); when the world's liveliness token goes, then once the agents' tokens go
     or no estimate came for ``grace`` seconds; on SIGTERM or Ctrl-C (``"interrupted"``);
-    or when no truth was heard within ``timeout`` seconds (``"no world"``). ``on_view`` gets
+    when no truth was heard within ``timeout`` seconds (``"no world"``); or, with
+    ``steps``, when the first step of the truth heard is already past it (``"behind"``:
+    nothing of steps 0..``steps`` is left to record). ``on_view`` gets
     :meth:`Recorder.view` every ``interval`` seconds and once at the end.
 
     Returns
     -------
     str
-        ``"steps"``, ``"world ended"``, ``"interrupted"`` or ``"no world"``.
+        ``"steps"``, ``"world ended"``, ``"interrupted"``, ``"no world"`` or ``"behind"``.
     """
     import os
     import signal
@@ -511,6 +513,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
             world_seen = False
             world_gone = None
             heard, last_heard = 0, time.monotonic()    # estimates, and when the last came
+            first_heard = None                         # the first step of the truth heard
             next_view = 0.0
             while True:
                 peer.wait(timeout=0.05)
@@ -537,6 +540,11 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                     on_view(recorder.view())
                     next_view = now + interval
                 k = recorder.step
+                if steps is not None and rec.truth and first_heard is None:
+                    first_heard = min(rec.truth)
+                if steps is not None and first_heard is not None and first_heard > steps:
+                    why = "behind"          # joined after step `steps`: none of it to record
+                    break
                 agents_alive = {int(i) for r, i in alive if r == "agent" and i.isdigit()}
                 recorder.alive = agents_alive
                 in_force = [a for a in recorder.in_force(k) if a in agents_alive]

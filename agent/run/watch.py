@@ -93,9 +93,13 @@ def watch(config: WatchConfig, view, page=None) -> WatchResult:
         view.close()
         if live is not None:
             live.finish(recorder, {"steps": "recorded up to --steps", "world ended":
-                                   "the world ended", "no world": "no world heard"}
-                        .get(ended, ended))
+                                   "the world ended", "no world": "no world heard",
+                                   "behind": "--steps behind the run"}.get(ended, ended))
     rec = recorder.recording
+    if ended == "behind":
+        from agent.run.inputs import InputError
+
+        raise InputError(steps_behind_text(c.steps, min(rec.truth)))
     if ended == "no world":
         raise NoWorld(f"nothing of run {c.net.run!r} heard within {c.timeout:g} s "
                       f"(connected to {', '.join(c.net.connect) or 'multicast'}): is the "
@@ -218,6 +222,17 @@ def start_line(config: WatchConfig, out: str | None = None) -> str:
             "Ctrl-C ends the watch" + (f" and writes {out}" if out else ""))
 
 
+def steps_behind_text(steps: int, step: int) -> str:
+    """What ``socmon watch --steps STEPS`` says when it joined the run at ``step``, already
+    past STEPS (nothing of the steps it asked for is left to hear).
+
+    >>> steps_behind_text(50, 126)
+    '--steps: 50 is behind the run (at step 126 when the watch joined): give a later step, or leave --steps out to watch until the world ends'
+    """
+    return (f"--steps: {steps} is behind the run (at step {step} when the watch joined): "
+            "give a later step, or leave --steps out to watch until the world ends")
+
+
 def exit_status(result: WatchResult) -> int:
     """``socmon watch``'s exit status: 130 interrupted, 1 when the run's clock never
     started (no step recorded: its world gave up waiting for a process), else 0."""
@@ -260,5 +275,5 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
     return lines
 
 
-__all__ += ["control_key", "watch_config", "live_view_for", "start_line", "exit_status",
-            "summary_json", "summary_lines"]
+__all__ += ["control_key", "watch_config", "live_view_for", "start_line", "steps_behind_text",
+            "exit_status", "summary_json", "summary_lines"]
