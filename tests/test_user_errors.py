@@ -378,6 +378,34 @@ def test_attach_to_a_run_of_another_scenario_names_both_scenarios(tmp_path, caps
                    "run's)\n")
 
 
+def test_a_difference_after_an_injection_says_the_simulator_does_not_replay_it():
+    """Impairments set during the run (by ``socmon inject``: an agent's status shows its
+    links changed) are said with the difference; the run's own delays are not an
+    injection."""
+    from agent.run.setup import simulator_problem
+    from agent.run.summary import links_impaired
+    from design.scenario import load_scenario
+
+    live = load_scenario("paper-14-live")
+    how = "estimates (2501 compared; the first above 1e-09: agent 2 at step 105)"
+    events = [{"process": "agent-2", "links": {"3": {"drop": 0.5}}, "step": 100},
+              {"process": "agent-2", "links": {}, "step": 160},
+              {"process": "monitor", "signal": "SIGKILL", "step": 50}]
+    impaired = links_impaired(events, live, np.zeros((3, 3), dtype=int))
+    assert impaired == [(100, 2)]
+    assert simulator_problem(0.253, how, impaired) == (
+        f"--check-simulator: the run differs from the simulator's replay by 0.253 (relative; "
+        f"at most 1e-09 allowed): {how}; link impairments were set during the run (the "
+        "links into agent 2 at step 100: socmon inject, or anyone with the operator key), "
+        "and the simulator does not replay them")
+    assert "link impairments" not in simulator_problem(0.253, how, [])
+    # a delayed run's own links (its delays, in force from the start) are no injection
+    delays = np.ones((3, 3), dtype=int)
+    own = {"process": "agent-1", "links": {str(b): {"delay_steps": 1} for b in (2, 3, 4)},
+           "step": -1}
+    assert links_impaired([own], live, delays) == []
+
+
 def test_version_is_printed(capsys):
     from importlib.metadata import version
 

@@ -363,7 +363,12 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
     import dataclasses
 
     from agent.run.folder import EXIT_FOLDER, RunFolderError
-    from agent.run.summary import compare_simulator, run_and_summarize, write_run_folder
+    from agent.run.summary import (
+        compare_simulator,
+        links_impaired,
+        run_and_summarize,
+        write_run_folder,
+    )
 
     config = run_config(args, say, design_progress=design_progress)
     if on_designed is not None:
@@ -378,7 +383,8 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
         diff, how = compare_simulator(config, rec, steps_done)
         summary["max_rel_diff_vs_simulator"] = diff
         summary["simulator_compared"] = how
-        problem = simulator_problem(diff, how)
+        problem = simulator_problem(diff, how, links_impaired(
+            summary.get("events", []), config.scenario, config.delays))
         if problem:
             status = status or 1
             problems.append(problem)
@@ -392,12 +398,14 @@ def live_run(args, say, design_progress=None, on_designed=None) -> FinishedRun:
     return FinishedRun(config, rec, summary, status, problems)
 
 
-def simulator_problem(diff: float, how: str) -> str | None:
+def simulator_problem(diff: float, how: str, impaired=()) -> str | None:
     """What ``--check-simulator`` says of a finished run compared by
     :func:`agent.run.summary.compare_simulator` (``diff, how``): None when it equals the
     simulator's replay; that it was not compared when the run could not be replayed (what
     only the run could tell, e.g. a reassignment without a scripted crash); else by how much
-    it differs.
+    it differs, and, when links were impaired during the run (``impaired``: ``(step,
+    agent)``, :func:`agent.run.summary.links_impaired`), that the simulator does not
+    replay that.
 
     >>> simulator_problem(1e-15, "estimates (201 compared)") is None
     True
@@ -408,10 +416,17 @@ def simulator_problem(diff: float, how: str) -> str | None:
 
     if not was_compared(how):
         return f"--check-simulator: the run was not compared with the simulator's replay: {how}"
-    if not diff <= CHECK_TOL:
-        return (f"--check-simulator: the run differs from the simulator's replay by "
-                f"{diff:.3g} (relative; at most {CHECK_TOL:g} allowed): {how}")
-    return None
+    if diff <= CHECK_TOL:
+        return None
+    text = (f"--check-simulator: the run differs from the simulator's replay by {diff:.3g} "
+            f"(relative; at most {CHECK_TOL:g} allowed): {how}")
+    if impaired:
+        step, agent = impaired[0]
+        more = f", {len(impaired)} changes in all" if len(impaired) > 1 else ""
+        text += (f"; link impairments were set during the run (the links into agent {agent} "
+                 f"at step {step}{more}: socmon inject, or anyone with the operator key), "
+                 "and the simulator does not replay them")
+    return text
 
 
 def exit_status(rec, summary: dict) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 from design.metrics import (batch_means_se, mean_recorded, mse_of_step, steady_mse,
                             steady_window)
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "was_compared",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "was_compared", "links_impaired",
            "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
            "conviction_bound_s", "no_verdict_due"]
 
@@ -966,6 +966,35 @@ def was_compared(how: str) -> bool:
     (True, False)
     """
     return how.startswith("estimates")
+
+
+def links_impaired(events, scenario, delays) -> list:
+    """``(step, agent)`` of each impairment the recorder heard on the links into an agent
+    (its status's ``links`` other than the run's own delays), in order: a link fault of the
+    run, or one ``socmon inject`` (or anyone with the operator key) set during it. The
+    simulator replays none of them.
+
+    >>> from design.scenario import load_scenario
+    >>> s = load_scenario("paper-14-live")
+    >>> links_impaired([{"process": "agent-2", "links": {}, "step": -1},
+    ...                 {"process": "agent-2", "links": {"1": {"drop": 0.5}}, "step": 120}],
+    ...                s, np.zeros((3, 3), dtype=int))
+    [(120, 2)]
+    """
+    from design.roster import link_delay_table
+
+    table = link_delay_table(scenario, delays)
+    out = []
+    for e in events:
+        process = e.get("process", "")
+        if "links" not in e or not process.startswith("agent-"):
+            continue
+        i = int(process.removeprefix("agent-")) - 1
+        own = {str(b + 1): {"delay_steps": int(d)} for b, d in enumerate(table[i])
+               if b != i and d > 0}
+        if e["links"] != own:
+            out.append((e.get("step"), i + 1))
+    return out
 
 
 def compare_simulator(config, rec, steps_done):
