@@ -178,6 +178,36 @@ def test_log_warnings_are_collected_and_bounded(tmp_path):
     assert log_warnings(tmp_path / "absent") == []
 
 
+def test_period_not_sustained_counts_each_missed_estimate_once():
+    """An estimate that missed its step is a drop, and a late one too when it comes after:
+    the share is of the drops (which hold the late ones), never above 100 %."""
+    from agent.run.summary import period_warning
+
+    # at 0.01 ms steps: nearly every input held, most of them then arriving late
+    last = {1: {"inputs": {"fresh": 40, "held": 1560, "lost": 0, "none": 0},
+                "drops": 1560, "late": 20},
+            2: {"inputs": {"fresh": 9, "held": 1550, "lost": 0, "none": 0},
+                "drops": 1550, "late": 46},
+            3: {}}                                  # an agent never heard from
+    assert period_warning(last, faulty=False) == (
+        "period not sustained: 3110 of 3159 neighbour estimates (98.4 %) were late or "
+        "dropped (the machine is too loaded for this step period, or links are impaired)")
+    assert period_warning(last, faulty=True).startswith(
+        "period not sustained: 66 of 3159 neighbour estimates (2.1 %) were late (")
+    quiet = {1: {"inputs": {"fresh": 1000}, "drops": 10, "late": 10}}
+    assert period_warning(quiet, faulty=False) is None
+
+
+def test_a_step_period_no_agent_can_keep_is_warned_of_at_the_start():
+    from agent.run.setup import step_period_warning
+
+    assert step_period_warning(20.0) is None and step_period_warning(1.0) is None
+    assert step_period_warning(0.01) == (
+        "--step-ms 0.01: below 1 ms, less than an agent's own CPU time a step in a live run "
+        "(0.7-1.1 ms measured, docs/runtime.md): the period will not be sustained, and most "
+        "neighbour estimates will be late or dropped")
+
+
 @pytest.mark.parametrize("fault, message", [
     ("drop:10:1:5:2", "drop VALUE is a probability in [0, 1]"),
     ("delay:10:1:5:2.5", "delay VALUE is a whole number of steps"),

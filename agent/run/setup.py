@@ -56,6 +56,9 @@ def run_config(args, say, prog="up", design_progress=None):
     step_ms = args.step_ms if args.step_ms is not None else scenario.step_ms
     if not step_ms > 0:
         raise InputError(f"--step-ms: must be > 0, got {step_ms}")
+    slow = step_period_warning(step_ms)
+    if slow:
+        print(f"{prog}: warning: {slow}", file=sys.stderr, flush=True)
     deadline_ms = args.deadline_ms if args.deadline_ms is not None else (
         30000.0 if getattr(args, "check_simulator", False) else step_ms)
     if not deadline_ms > 0:
@@ -140,6 +143,22 @@ def run_config(args, say, prog="up", design_progress=None):
                      secure=getattr(args, "secure", False), run_id=run_id, listen=listen,
                      router=getattr(args, "router", False),
                      record_every=getattr(args, "record_every", 1))
+
+
+#: Below this step period (ms) no agent keeps the pace: its own CPU time a step in a live
+#: run is 0.7-1.1 ms (docs/runtime.md, the agent's step at 4 and 10 ms).
+MIN_SUSTAINED_STEP_MS = 1.0
+
+
+def step_period_warning(step_ms: float) -> str | None:
+    """The warning for a step period below :data:`MIN_SUSTAINED_STEP_MS`, or None: the run
+    goes on at the machine's pace (no hard limit)."""
+    if step_ms >= MIN_SUSTAINED_STEP_MS:
+        return None
+    return (f"--step-ms {step_ms:g}: below {MIN_SUSTAINED_STEP_MS:g} ms, less than an agent's "
+            "own CPU time a step in a live run (0.7-1.1 ms measured, docs/runtime.md): the "
+            "period will not be sustained, and most neighbour estimates will be late or "
+            "dropped")
 
 
 def check_run_endpoint(run_id, listen, secure) -> tuple:

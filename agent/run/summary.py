@@ -18,7 +18,7 @@ import numpy as np
 from design.metrics import (batch_means_se, mean_recorded, mse_of_step, steady_mse,
                             steady_window)
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "was_compared", "links_impaired",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "period_warning", "was_compared", "links_impaired",
            "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
            "conviction_bound_s", "no_verdict_due"]
 
@@ -278,17 +278,9 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     if summary["diverged_at"] is not None:
         warnings.append(f"the estimates DIVERGED: the MSE at step {summary['diverged_at']} "
                         f"is above {DIVERGED_FACTOR:g}x every exact prediction (or not finite)")
-    needed = sum(sum((s.get("inputs") or {}).values()) for s in last.values())
-    # a failed agent's missing estimates are drops too: with faults, only the late ones
-    # (arrived after the step that needed them) say the period was not sustained
-    faulty = bool(summary.get("failures") or c.faults)
-    missed = summary["late"] + (0 if faulty else summary["drops"])
-    if needed and missed > 0.01 * needed:
-        warnings.append(f"period not sustained: {missed} of {needed} neighbour estimates "
-                        f"({100 * missed / needed:.1f} %) were "
-                        + ("late" if faulty else "late or dropped")
-                        + " (the machine is too loaded for this step period, or links are "
-                          "impaired)")
+    late = period_warning(last, faulty=bool(summary.get("failures") or c.faults))
+    if late:
+        warnings.append(late)
     gaps = summary["record_gaps"] = record_gaps(steps, c.record_every, K)
     if gaps:
         warnings.append(
@@ -340,6 +332,28 @@ def final_roles(last_status, events, last_step) -> dict:
                        "epoch": st.get("epoch"), "measure": st.get("measure"),
                        "dead": a in dead, "fenced": a in fenced and a not in dead}
     return out
+
+
+def period_warning(last_statuses: dict, faulty: bool) -> str | None:
+    """The warning that the step period was not sustained, from the agents' last statuses
+    (agent -> status), or None: more than 1 % of the neighbour estimates their steps used
+    (``inputs``) missed the step that needed them. An agent counts such an estimate in
+    ``drops`` when it computes without it, and again in ``late`` when it comes after, so
+    ``drops`` holds the late ones; with faults (``faulty``: a failed agent's missing
+    estimates are drops too) only the late ones count.
+
+    >>> period_warning({1: {"inputs": {"fresh": 90, "held": 10}, "drops": 6, "late": 4}},
+    ...                faulty=False)
+    'period not sustained: 6 of 100 neighbour estimates (6.0 %) were late or dropped (the machine is too loaded for this step period, or links are impaired)'
+    """
+    statuses = [s for s in last_statuses.values() if s]
+    needed = sum(sum((s.get("inputs") or {}).values()) for s in statuses)
+    missed = sum(s.get("late" if faulty else "drops", 0) for s in statuses)
+    if not needed or not missed > 0.01 * needed:
+        return None
+    return (f"period not sustained: {missed} of {needed} neighbour estimates "
+            f"({100 * missed / needed:.1f} %) were " + ("late" if faulty else "late or dropped")
+            + " (the machine is too loaded for this step period, or links are impaired)")
 
 
 def headline_lines(summary: dict, scenario) -> list:
