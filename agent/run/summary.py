@@ -1207,22 +1207,83 @@ def running_mean(values, window: int) -> np.ndarray:
         return np.where(n > 0, (total[hi] - total[lo]) / np.maximum(n, 1), np.nan)
 
 
+#: characters of ``mse.png``'s title that fit over its axes (9.5 in wide figure, the
+#: legend beside the axes, 10 pt: about 7 px a character on about 560 px); a title is
+#: centred over the axes, so a longer one starts left of the figure and is cut off
+TITLE_CHARS = 80
+
+
+def id_ranges(ids) -> str:
+    """Agent ids, sorted, runs of consecutive ids as ranges.
+
+    >>> id_ranges([6, 1, 2, 3, 4, 8, 9, 10, 11, 12])
+    '1-4, 6, 8-12'
+    >>> id_ranges([4, 2])
+    '2, 4'
+    """
+    runs = []
+    for a in sorted(set(ids)):
+        if runs and a == runs[-1][1] + 1:
+            runs[-1][1] = a
+        else:
+            runs.append([a, a])
+    return ", ".join(f"{lo}" if lo == hi else f"{lo}-{hi}" if hi > lo + 1 else f"{lo}, {hi}"
+                     for lo, hi in runs)
+
+
+def roster_words(ids, first=None) -> str:
+    """Agents ``ids`` in few words: the first roster as a count ("16 agents", when they
+    are 1 to N) or ranges; a later one against the ``first`` ("all but 5", "all but 1,
+    plus 4") or as ranges, whichever is shorter.
+
+    >>> roster_words(range(1, 17)), roster_words([1, 2, 4])
+    ('16 agents', 'agents 1, 2, 4')
+    >>> roster_words([1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16], range(1, 17))
+    'all but 5'
+    >>> roster_words([4, 2, 3], [1, 2, 3])
+    '2-4'
+    """
+    ids = sorted(set(ids))
+    if first is None:
+        return (f"{len(ids)} agents" if ids == list(range(1, len(ids) + 1))
+                else f"agents {id_ranges(ids)}")
+    first = sorted(set(first))
+    gone, new = [a for a in first if a not in ids], [a for a in ids if a not in first]
+    but = (f"all but {id_ranges(gone)}" if gone else "all") + (f", plus {id_ranges(new)}"
+                                                                if new else "")
+    return min((but, id_ranges(ids)), key=len)      # a tie: "all but"
+
+
 def plot_title(summary) -> str:
-    """``mse.png``'s title: the scenario, the seed and the agents in force, first and last.
+    """``mse.png``'s title: the scenario, the seed, the agents at the start and, after
+    the failures, from the step the last roles took effect (a change of gains for the
+    same roles is no reassignment: the figure marks it). At most :data:`TITLE_CHARS`
+    characters beside the scenario's name, whatever the number of agents.
 
     >>> plot_title({"scenario": "p", "seed": 0, "rosters": [{"activate_at": 0, "ids": [1, 2]},
     ...             {"activate_at": 173, "ids": [4, 2]}]})
-    'p, seed 0: agents 1, 2; from step 173: 4, 2 (1 reassignment)'
+    'p, seed 0: 2 agents; from step 173: 2, 4 (1 reassignment)'
+    >>> plot_title({"scenario": "c", "seed": 0, "rosters": [
+    ...     {"activate_at": 0, "ids": list(range(1, 17))},
+    ...     {"activate_at": 161, "ids": [a for a in range(1, 17) if a != 5]},
+    ...     {"activate_at": 184, "ids": [a for a in range(1, 17) if a != 5]}]})
+    'c, seed 0: 16 agents; from step 161: all but 5 (1 reassignment)'
     """
     rosters = summary.get("rosters") or []
-    names = lambda ids: ", ".join(map(str, ids))            # noqa: E731
+    head = f"{summary['scenario']}, seed {summary['seed']}: "
     if not rosters:
-        return f"{summary['scenario']}, seed {summary['seed']}: {summary.get('agents')} agents"
-    title = f"{summary['scenario']}, seed {summary['seed']}: agents {names(rosters[0]['ids'])}"
-    if len(rosters) > 1:
-        n = len(rosters) - 1
-        title += (f"; from step {rosters[-1]['activate_at']}: {names(rosters[-1]['ids'])} "
-                  f"({n} reassignment{'s' if n > 1 else ''})")
+        return head + f"{summary.get('agents')} agents"
+    first, last = rosters[0]["ids"], rosters[-1]["ids"]
+    changes = [i for i in range(1, len(rosters))
+               if sorted(rosters[i]["ids"]) != sorted(rosters[i - 1]["ids"])]
+    if not changes:
+        return head + roster_words(first)
+    n = len(changes)
+    tail = f" ({n} reassignment{'s' if n > 1 else ''})"
+    since = f"; from step {rosters[changes[-1]]['activate_at']}: "
+    title = head + roster_words(first) + since + roster_words(last, first) + tail
+    if len(title) - len(summary["scenario"]) > TITLE_CHARS:        # ids too scattered
+        title = head + f"{len(set(first))} agents" + since + f"{len(set(last))} agents" + tail
     return title
 
 
