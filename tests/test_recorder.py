@@ -353,6 +353,27 @@ def test_a_recorder_keeping_every_kth_step_keeps_every_epoch():
         Recorder(RUN, n=2, N=1, M=1, record_every=0)
 
 
+def test_the_mean_of_the_last_100_steps_says_the_steps_and_the_samples_it_covers():
+    """``up --record-every 5`` at step 300: 20 kept steps over the last 100; the progress
+    line said "over the last 20 steps"."""
+    from agent.run.live_view import over_last
+
+    r = Recorder(RUN, n=2, N=1, M=1, record_every=5, last_step=300)
+    for k in range(301):
+        x = np.array([k, -k], float)
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, x))
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, x + [1, 1], epoch=0, t=0.0))
+    view = r.view()
+    assert (view["mse_step"], view["mse_last100_steps"], view["mse_last100_samples"]) == \
+        (300, 100, 20)
+    assert over_last(view) == "over the last 100 steps (20 samples)"
+    r = Recorder(RUN, n=2, N=1, M=1)
+    for k in range(12):
+        r.feed(topics.truth_key(RUN), wire.encode_truth(k, np.zeros(2)))
+        r.feed(topics.est_key(RUN, 1), wire.encode_est(1, k, np.ones(2), epoch=0, t=0.0))
+    assert over_last(r.view()) == "over the last 12 steps"
+
+
 @pytest.mark.parametrize("value", ["0", "-2", "x"])
 def test_up_record_every_is_checked(tmp_path, capsys, value):
     assert main(["up", "paper-14-live", "--out", str(tmp_path / "run"), "--record-every",

@@ -12,7 +12,7 @@ Examples
 ...         "agents": {1: {"step": 11, "active": True, "epoch": 0, "mse": 0.4, "drops": 1,
 ...                        "late": 0, "malformed": 0}}}
 >>> print(format_line(view))
-run demo  step 12  mse 0.5 (step 11; - over the last 100)  drops 1  late 0  malformed 0  roster 1,2 (epoch 0)
+run demo  step 12  mse 0.5 (step 11; - over the last 100 steps)  drops 1  late 0  malformed 0  roster 1,2 (epoch 0)
 >>> out = io.StringIO(); LiveView(out, "json", interval=0).show(view); out.getvalue()[:51]
 '{"schema_version": 1, "kind": "view", "run": "demo"'
 """
@@ -24,19 +24,33 @@ import time
 
 from agent.run.jsonable import to_jsonable, versioned
 
-__all__ = ["LiveView", "format_line", "format_lines"]
+__all__ = ["LiveView", "format_line", "format_lines", "over_last"]
 
 
 def _num(x) -> str:
     return "-" if x is None else f"{x:.4g}"
 
 
+def over_last(view: dict) -> str:
+    """The steps the view's ``mse_last100`` covers and, when fewer, the samples it is
+    the mean of (``up --record-every 5`` keeps every 5th step's states).
+
+    >>> over_last({"mse_last100_steps": 100, "mse_last100_samples": 20})
+    'over the last 100 steps (20 samples)'
+    >>> over_last({"mse_last100_steps": 31, "mse_last100_samples": 31})
+    'over the last 31 steps'
+    """
+    steps = view.get("mse_last100_steps", 100)
+    samples = view.get("mse_last100_samples", steps)
+    return f"over the last {steps} steps" + (f" ({samples} samples)" if samples != steps
+                                             else "")
+
+
 def format_line(view: dict) -> str:
     """The run in one line."""
     return (f"run {view['run']}  step {view['step']}  mse {_num(view['mse'])}"
-            + (f" (step {view['mse_step']}; {_num(view.get('mse_last100'))} over the last "
-               f"{view.get('mse_last100_steps', 100)})"
-               if view["mse_step"] is not None else "")
+            + (f" (step {view['mse_step']}; {_num(view.get('mse_last100'))} "
+               f"{over_last(view)})" if view["mse_step"] is not None else "")
             + f"  drops {view['drops']}  late {view['late']}  malformed {view['malformed']}"
             + f"  roster {','.join(map(str, view['roster']))} (epoch {view['epoch']})"
             + "".join(f"  FAILED agent {f['agent']} ({f['cause']}, step {f['step']})"

@@ -418,7 +418,8 @@ class Recorder:
         """A snapshot for a live view: the newest step with an estimate of an agent in
         force and its MSE (mean over those agents, as :func:`agent.run.summary.mse_by_step`)
         with its mean over the last 100 steps (``mse_last100``, over ``mse_last100_steps``
-        steps: fewer early in a run), the sums over the agents' last statuses, the verdicts,
+        steps, fewer early in a run: of ``mse_last100_samples`` of them, fewer under
+        ``record_every`` or where no agent in force estimated), the sums over the agents' last statuses, the verdicts,
         and one row per agent."""
         rec = self.recording
         k = next((k for k in range(self.step, max(-1, self.step - 10_000), -1)
@@ -429,7 +430,9 @@ class Recorder:
                                rec.truth[k])
 
         mse = mse_at(k) if k is not None else None
-        recent = [] if k is None else [m for m in (mse_at(j) for j in range(max(0, k - 99), k + 1)
+        first = 0 if k is None else max(0, k - 99)
+        # every step's, or every kept step's under --record-every
+        recent = [] if k is None else [m for m in (mse_at(j) for j in range(first, k + 1)
                                                    if j in rec.truth) if m is not None]
         agents = {}
         for a in range(1, self.M + 1):
@@ -445,7 +448,8 @@ class Recorder:
         verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict"]
         return {"run": rec.run_id, "step": self.step, "mse_step": k, "mse": mse,
                 "mse_last100": float(np.mean(recent)) if recent else None,
-                "mse_last100_steps": len(recent),      # fewer than 100 early in a run
+                "mse_last100_steps": 0 if k is None else k - first + 1,  # fewer early on
+                "mse_last100_samples": len(recent),
                 "drops": sum(r["drops"] for r in agents.values()),
                 "late": sum(r["late"] for r in agents.values()),
                 "malformed": sum(r["malformed"] for r in agents.values()),

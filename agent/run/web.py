@@ -797,7 +797,8 @@ class LiveState:
 
     def progress_words(self) -> str:
         """``mse M over the last 100 steps (exact E)`` for ``up``'s progress line, from the
-        newest tick's view; the exact MSE is the configuration in force's, when known.
+        newest tick's view (:func:`agent.run.live_view.over_last`); the exact MSE is the
+        configuration in force's, when known.
 
         >>> from design.scenario import load_scenario
         >>> live = LiveState(load_scenario("paper-14"), [[0] * 3] * 3)
@@ -805,12 +806,13 @@ class LiveState:
         >>> live.progress_words()
         'mse 0.29 over the last 100 steps (exact 0.27)'
         """
+        from agent.run.live_view import over_last
+
         v = self.view
         if v is None or v.get("mse_last100") is None:
             return "mse -"
         value, why = self.exact(self.epoch_in_force)
-        return (f"mse {v['mse_last100']:.4g} over the last {v.get('mse_last100_steps', 100)} "
-                "steps"
+        return (f"mse {v['mse_last100']:.4g} {over_last(v)}"
                 + (f" (exact {value:.4g})" if value is not None else
                    " (exact pending)" if why in ("pending", "computing") else ""))
 
