@@ -1302,6 +1302,66 @@ def gain_changes(summary) -> list:
             if r.get("activate_at") not in failed_at]
 
 
+def _clusters(items, near: int) -> list:
+    """``(step, ...)`` tuples in groups of steps within ``near`` of the group's first, in
+    order of step."""
+    groups = []
+    for item in sorted(items, key=lambda it: it[0]):
+        if groups and item[0] - groups[-1][0][0] <= near:
+            groups[-1].append(item)
+        else:
+            groups.append([item])
+    return groups
+
+
+def _grouped(pairs) -> dict:
+    """``{key: [values]}`` of ``(key, value)`` pairs, keys in their first order."""
+    out = {}
+    for key, value in pairs:
+        out.setdefault(key, []).append(value)
+    return out
+
+
+def event_labels(summary, near: int = 0) -> dict:
+    """The words ``mse.png`` writes beside its event lines: ``{"faults": ..., "detected":
+    ..., "reassigned": ...}``, each a list of ``(first step, last step, text)``. Events of
+    one kind within ``near`` steps of one another share one label: two labels at one
+    step printed over one another ("crash 3" on "crash 11" read "crash 31").
+
+    >>> failures = [{"agent": a, "cause": "crash", "detected_step": 201, "activate_at": 210,
+    ...              "replacement": {"agent": r}} for a, r in ((3, 2), (11, 1))]
+    >>> faults = [{"step": 200, "kind": "crash", "agent": a} for a in (3, 11)]
+    >>> for kind, labels in event_labels({"faults": faults, "failures": failures}).items():
+    ...     print(kind, labels)
+    faults [(200, 200, 'crash 3, 11')]
+    detected [(201, 201, 'agents 3, 11: crash')]
+    reassigned [(210, 210, 'agent 2 for 3, agent 1 for 11')]
+    """
+    def label(groups, words):
+        return [(g[0][0], g[-1][0], words(g)) for g in groups]
+
+    def agents(ids):
+        return f"agent{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))}"
+
+    faults = [(f["step"], f.get("kind", "fault"), f.get("agent"))
+              for f in summary.get("faults", [])]
+    failures = [f for f in summary.get("failures", []) if f.get("detected") is not False]
+    detected = [(f["detected_step"], f["cause"], f["agent"]) for f in failures]
+    reassigned = [(f["activate_at"], (f.get("replacement") or {}).get("agent"), f["agent"])
+                  for f in failures if f.get("activate_at") is not None
+                  and (f.get("replacement") or {}).get("agent") is not None]
+    return {
+        "faults": label(_clusters(faults, near), lambda g: "; ".join(
+            kind + "".join(f"{', ' if i else ' '}{a}" for i, a in enumerate(filter(None, ids)))
+            for kind, ids in _grouped((kind, a) for _, kind, a in g).items())),
+        "detected": label(_clusters(detected, near), lambda g: "; ".join(
+            f"{agents(ids)}: {cause}" for cause, ids in
+            _grouped((cause, a) for _, cause, a in g).items())),
+        "reassigned": label(_clusters(reassigned, near), lambda g: ", ".join(
+            f"agent {rep} for {a}" for _, rep, a in g)),
+    }
+
+
 def write_run_folder(out, summary, steps_done, mse, predicted, recording=None, n=None):
     """The run folder's summary, MSE per step, ``mse.png`` and, of ``recording`` (with
     ``n`` states), the assignments heard and ``estimates.npz``: every run's folder (``up``,
@@ -1362,27 +1422,32 @@ def write_run_folder(out, summary, steps_done, mse, predicted, recording=None, n
                       label="exact steady MSE of the configuration in force"
                       if i == 1 else None)
     top = ax.get_xaxis_transform()          # x in steps, y in axes fraction: labels on top
-    for i, f in enumerate(summary.get("failures", [])):
+    detected = reassigned = False
+    for f in summary.get("failures", []):
         if f.get("detected") is False:
             ax.axvline(f["died_step"], color="tab:red", lw=1.5, ls=":",
                        label=f"agent {f['agent']} died, never convicted ({f['why']})")
             continue
         ax.axvline(f["detected_step"], color="tab:red", lw=0.8, ls="--",
-                   label="detected" if i == 0 else None)
-        ax.text(f["detected_step"], 0.99, f" agent {f['agent']}: {f['cause']}", transform=top,
-                rotation=90, va="top", ha="right", fontsize=7, color="tab:red")
+                   label=None if detected else "detected")
+        detected = True
         if f.get("activate_at") is not None:
             ax.axvline(f["activate_at"], color="tab:green", lw=0.8,
-                       label="reassigned" if i == 0 else None)
-            rep = (f.get("replacement") or {}).get("agent")
-            if rep is not None:
-                ax.text(f["activate_at"], 0.01, f" agent {rep} for {f['agent']}", transform=top,
-                        rotation=90, va="bottom", ha="left", fontsize=7, color="tab:green")
+                       label=None if reassigned else "reassigned")
+            reassigned = True
     for i, f in enumerate(summary.get("faults", [])):
         ax.axvline(f["step"], color="k", lw=0.7, alpha=0.7,
                    label="fault scheduled" if i == 0 else None)
-        ax.text(f["step"], 0.01, f"{f.get('kind', 'fault')}"
-                + (f" {f['agent']}" if f.get("agent") else "") + " ", transform=top,
+    # a label a text line high (7 pt) apart at the least: nearer events share one
+    labels = event_labels(summary, near=last_step // 50)
+    for first, _, text in labels["detected"]:
+        ax.text(first, 0.99, f" {text}", transform=top,
+                rotation=90, va="top", ha="right", fontsize=7, color="tab:red")
+    for _, last, text in labels["reassigned"]:
+        ax.text(last, 0.01, f" {text}", transform=top,
+                rotation=90, va="bottom", ha="left", fontsize=7, color="tab:green")
+    for first, _, text in labels["faults"]:
+        ax.text(first, 0.01, f"{text} ", transform=top,
                 rotation=90, va="bottom", ha="right", fontsize=7, color="0.25")
     labelled = set()        # one legend entry per reason given by the monitor
     for r in summary.get("reissues", []):
