@@ -112,6 +112,12 @@ class Timing:
     monitor_reach_s: float = 10.0
     #: After its last step the world waits this long for the agents' last estimates.
     end_timeout_s: float = 5.0
+    #: After the world ended, ``up`` waits this long for the last estimates of the agents
+    #: in force (one may be paused or cut off), then stops the processes.
+    up_end_s: float = 5.0
+    #: At the end ``up`` asks the monitors, then the other processes, to stop (SIGTERM)
+    #: and waits this long for each group to exit before it goes on.
+    up_exit_s: float = 5.0
 
     def problems(self, step_s: float | None = None, lead_steps: int | None = None) -> list:
         """Every broken relation, one line each naming the field (empty when consistent).

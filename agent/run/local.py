@@ -455,6 +455,7 @@ class LocalRun:
 
                 world_end = None
                 next_progress, disk_warned = time.monotonic() + 1.0, False
+                end_of_run = EndOfRun(K)
                 silence_said = False
                 start_deadline = time.monotonic() + c.start_timeout + 30.0
                 while True:
@@ -526,7 +527,7 @@ class LocalRun:
                     active = [a for a in range(1, M + 1) if f"agent-{a}" in running
                               and a in in_force and rec.status.get(a, {}).get("active", a <= N)]
                     done = K in rec.truth and all(K in rec.est[a] for a in active)
-                    if done or (world_end is not None and now - world_end > 5.0):
+                    if done or (world_end is not None and now - world_end > TIMING.up_end_s):
                         break
                     if now >= next_progress and recorder.step >= 0:
                         next_progress = now + 1.0
@@ -544,13 +545,20 @@ class LocalRun:
                             self.say(f"WARNING: the disk of {str(c.out)!r} is full at step "
                                      f"{k_now}: the processes' logs lose lines and the run "
                                      "folder may not be written at the end; the run goes on")
-                        st = rec.status.values()
-                        if live is not None:
-                            live.refresh(recorder)
-                        self.say(f"step {k_now}/{K}  "
-                                 + (f"{live.progress_words()}  " if live is not None else "")
-                                 + f"drops {sum(s['drops'] for s in st)}  "
-                                 f"late {sum(s['late'] for s in st)}")
+                        def progress():
+                            st = rec.status.values()
+                            if live is not None:
+                                live.refresh(recorder)
+                            return (f"step {k_now}/{K}  "
+                                    + (f"{live.progress_words()}  " if live is not None
+                                       else "")
+                                    + f"drops {sum(s['drops'] for s in st)}  "
+                                    f"late {sum(s['late'] for s in st)}")
+
+                        for line in end_of_run.lines(k_now, progress, lambda: end_wait_words(
+                                K, K in rec.truth, [a for a in active if K not in rec.est[a]],
+                                world_end is None)):
+                            self.say(line)
                 for _, f in list(undo):           # faults still in force end with the run
                     if f.kind != "monitor":
                         end(f, recorder.step)
@@ -561,13 +569,18 @@ class LocalRun:
                 # convicted at the last step, before the world's token was seen going)
                 last = [ch.name for ch in children.running() if ch.name != "router"]
                 watchers = [name for name in last if name.startswith("monitor")]
+                exit_said = False
                 for group in (watchers, [name for name in last if name not in watchers]):
                     for sig in (signal.SIGCONT, signal.SIGTERM):
                         for name in group:
                             _signal(children, name, sig)
-                    deadline = time.monotonic() + 5.0
-                    while ({ch.name for ch in children.running()} & set(group)
-                           and time.monotonic() < deadline):
+                    begun = time.monotonic()
+                    while ((left := {ch.name for ch in children.running()} & set(group))
+                           and time.monotonic() < begun + TIMING.up_exit_s):
+                        if not exit_said and time.monotonic() > begun + 1.0:
+                            exit_said = True
+                            self.say(f"waiting up to {TIMING.up_exit_s:g} s for "
+                                     f"{', '.join(sorted(left))} to exit (asked to stop)")
                         peer.wait(timeout=0.1)
                         drain()
                 drain()
@@ -617,6 +630,65 @@ class LocalRun:
                        operator_key=c.out / "operator.key", control_key=c.out / "control.key",
                        manifest=c.out / "manifest.json", gains=c.gains_path, seed=c.seed,
                        delays=c.delays_spec, steps=c.steps, step_ms=c.step_ms)
+
+
+class EndOfRun:
+    """Which progress lines a live run of ``steps`` steps says around its end: every
+    line before its last step; the line of the last step once (it was said every second
+    while ``up`` waited, about ten times); then, if ``up`` still waits a tick later, once
+    what for.
+
+    >>> end = EndOfRun(600)
+    >>> end.lines(590, lambda: "step 590/600", lambda: "agent 3")
+    ['step 590/600']
+    >>> end.lines(600, lambda: "step 600/600", lambda: "agent 3")
+    ['step 600/600']
+    >>> end.lines(600, lambda: "step 600/600", lambda: "agent 3")
+    ['waiting for agent 3']
+    >>> end.lines(600, lambda: "step 600/600", lambda: "agent 3")
+    []
+    """
+
+    def __init__(self, steps: int):
+        self.steps = steps
+        self.said_last = self.said_waiting = False
+
+    def lines(self, step: int, progress, waiting) -> list:
+        """The lines to say at a progress tick at ``step``: ``progress()`` is the
+        progress line, ``waiting()`` what the run waits for once its last step is past."""
+        if step < self.steps:
+            return [progress()]
+        if not self.said_last:
+            self.said_last = True
+            return [progress()]
+        if not self.said_waiting:
+            self.said_waiting = True
+            return [f"waiting for {waiting()}"]
+        return []
+
+
+def end_wait_words(K: int, has_truth: bool, missing, world_running: bool) -> str:
+    """What ``up`` waits for once its last step ``K`` has come: the world's step ``K``
+    (``has_truth`` False), the estimates of step ``K`` of the agents in force ``missing``,
+    the world's end; and how long at most.
+
+    >>> end_wait_words(600, True, [3, 7], True)  # doctest: +NORMALIZE_WHITESPACE
+    "the estimates of step 600 of agents 3, 7 and the world to end (it waits up to 5 s
+    for the agents' last statuses); at most 10 s, then up stops the processes"
+    >>> end_wait_words(600, True, [3], False)
+    'the estimate of step 600 of agent 3; at most 5 s, then up stops the processes'
+    """
+    parts = [] if has_truth else [f"the world's step {K}"]
+    if missing:
+        many = len(missing) > 1
+        parts.append(f"the estimate{'s' if many else ''} of step {K} of "
+                     f"agent{'s' if many else ''} {', '.join(map(str, missing))}")
+    if world_running:
+        parts.append(f"the world to end (it waits up to {TIMING.end_timeout_s:g} s for the "
+                     "agents' last statuses)")
+    most = TIMING.up_end_s + (TIMING.end_timeout_s if world_running else 0.0)
+    return (" and ".join(parts or ["the processes' last words"])
+            + f"; at most {most:g} s, then up stops the processes")
 
 
 def _world_silent_for(recorder) -> float:
