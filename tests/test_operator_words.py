@@ -289,3 +289,13 @@ def test_a_steady_mse_is_printed_with_its_standard_error_and_its_window():
                    "(predicted 0.2712)"
     assert steady_text({"m": 1.0, "m_se": None, "m_window": [3, 3]}, "m") == \
         "1 over steps 3-3 (too few for a standard error)"
+    # refined gains late in the run: the window since the roles, its prediction theirs
+    summary.update({"mse_steady_after_recovery_window": [320, 350],
+                    "after_recovery_gains": [
+                        {"epoch": 1, "from": 320, "steps": 26, "mse_steady_exact": 0.28},
+                        {"epoch": 2, "from": 346, "steps": 5, "mse_steady_exact": 0.2712}],
+                    "mse_steady_exact_over_after_recovery_window": 0.2786})
+    (line,) = failure_lines(summary)
+    assert line == f"  after recovery: mse_steady 0.2983 ± {se:.2g} over steps 320-350 " \
+                   "(predicted 0.2786 over it: the gains of epoch 1, then of epoch 2 from " \
+                   "step 346)"

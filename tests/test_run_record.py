@@ -126,6 +126,59 @@ def test_recovered_needs_the_roles_in_force_and_the_error_near_its_prediction(af
         assert any("not recovered" in w for w in out["warnings"])
 
 
+def _same_roles_new_gains(scales, switches, last):
+    """paper-14-live's roles throughout, with gains ``scale * I`` from each switch on."""
+    from design.closed_loop import closed_loop_for
+    from design.roster import Roster, role_specs
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    rosters, assigns, exact = [(0, (1, 2, 3), 0)], {}, []
+    for epoch, (scale, at) in enumerate(zip(scales, switches), start=1):
+        G = [scale * np.eye(s.n)[:, list(m)] for m in s.measure]
+        for a, sp in role_specs(Roster.initial(s), G).items():
+            assigns[(a, epoch)] = {"measure": list(sp.measure), "neighbours": sp.neighbours,
+                                   "self_weight": sp.self_weight, "gain": sp.gain}
+        rosters.append((at, (1, 2, 3), epoch))
+        exact.append(closed_loop_for(s, G, s.delays).mse_steady(s.process_noise,
+                                                                 s.measurement_noise))
+    est = {a: _epochs({at: e for at, _, e in rosters[1:]}, last=last) for a in (1, 2, 3)}
+    G0 = [0.5 * np.eye(s.n)[:, list(m)] for m in s.measure]
+    return s, rosters, assigns, est, exact, G0
+
+
+def test_refined_gains_late_in_a_run_do_not_shrink_the_window_after_recovery():
+    """Roles in force from step 224, refined gains (same roles, a new epoch) from 346, the
+    run ends at 350: the window after recovery was step 350 alone ("too few for a
+    standard error"). It is the last quarter since the roles, and its prediction the mean
+    of the two gains' exact levels over its steps."""
+    s, rosters, assigns, est, (fast, refined), G0 = _same_roles_new_gains(
+        (0.5, 0.4), (224, 346), 350)
+    steps = list(range(351))
+    mse = [fast if k < 346 else refined for k in steps]
+    out = _failures(None, _recording(rosters, est, assigns), s, s.delays, steps, mse, G0)
+    assert out["mse_steady_after_recovery_window"] == [320, 350]
+    assert out["mse_steady_after_recovery_se"] is not None
+    assert [(g["epoch"], g["from"], g["steps"]) for g in out["after_recovery_gains"]] == [
+        (1, 320, 26), (2, 346, 5)]
+    mean = (26 * fast + 5 * refined) / 31
+    assert out["mse_steady_exact_over_after_recovery_window"] == pytest.approx(mean)
+    assert out["mse_steady_after_recovery"] == pytest.approx(mean)
+    assert out["mse_steady_exact_after_recovery"] == pytest.approx(refined)
+    assert out["recovered"] is True
+
+
+def test_refined_gains_with_room_after_them_have_the_window_to_themselves():
+    s, rosters, assigns, est, (fast, refined), G0 = _same_roles_new_gains(
+        (0.5, 0.4), (224, 346), 699)
+    steps = list(range(700))
+    mse = [fast if k < 346 else refined for k in steps]
+    out = _failures(None, _recording(rosters, est, assigns), s, s.delays, steps, mse, G0)
+    assert out["mse_steady_after_recovery_window"] == [612, 699]      # 354 // 4 = 88
+    assert "after_recovery_gains" not in out
+    assert out["mse_steady_after_recovery"] == pytest.approx(refined)
+
+
 def test_a_roster_that_would_activate_after_the_run_ended_is_simply_not_in_force():
     rosters = [(0, (1, 2, 3), 0), (192, (1, 4, 3), 1), (457, (1, 4, 3), 2)]
     est = {1: _epochs({192: 1}, last=450), 3: _epochs({192: 1}, last=450),

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from design.metrics import (batch_means_se, mean_recorded, mse_of_step, steady_mse,
-                            steady_window)
+from design.metrics import (BATCHES, batch_means_se, mean_recorded, mse_of_step,
+                            steady_mse, steady_window)
 
 __all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "period_warning", "was_compared", "links_impaired",
            "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
@@ -405,9 +405,15 @@ def failure_lines(summary) -> list:
                      "readings")
     if "mse_steady_after_recovery" in summary:
         after = summary.get("mse_steady_exact_after_recovery")
+        gains = summary.get("after_recovery_gains")
+        if gains:             # the window spans a change of gains for the same roles
+            after = summary.get("mse_steady_exact_over_after_recovery_window")
         lines.append(f"  after recovery: mse_steady "
                      f"{steady_text(summary, 'mse_steady_after_recovery')}"
-                     f" (predicted {after if after is not None else float('nan'):.4g})")
+                     f" (predicted {after if after is not None else float('nan'):.4g}"
+                     + (" over it: the gains of epoch " + ", then of epoch ".join(
+                         f"{g['epoch']}" + (f" from step {g['from']}" if i else "")
+                         for i, g in enumerate(gains)) if gains else "") + ")")
     return lines
 
 
@@ -716,6 +722,36 @@ def answered_by(agent: int, first: dict, reassigns: list, epoch_in_force) -> tup
     return answer, rep
 
 
+#: Fewest steps of the after-recovery window under the final gains alone: enough for a
+#: batch-means standard error (``2 * BATCHES``). A later change of gains for the same
+#: roles (refined gains, gains for learned delays) that leaves fewer is measured over
+#: the steps since those roles took effect instead (:func:`after_recovery_from`).
+MIN_AFTER_STEPS = 2 * BATCHES
+
+
+def after_recovery_from(steps_done, rosters) -> int:
+    """The step from which ``mse_steady_after_recovery`` is measured (its window is the
+    last quarter of the steps from there): the step the last configuration in force took
+    effect; but when it only changed the gains of the roles before it and leaves a window
+    of fewer than :data:`MIN_AFTER_STEPS` steps, the step those roles took effect.
+    ``rosters``: ``[(activate_at, ids, epoch)]`` in force, more than one.
+
+    Roles in force from step 224, refined gains from 346 in a run of 350 steps: the
+    window was step 350 alone; it is now 319-350 (a quarter of 224-350).
+
+    >>> rosters = [(0, (1, 2, 3), 0), (224, (1, 2, 4), 1), (346, (1, 2, 4), 2)]
+    >>> after_recovery_from(range(351), rosters), after_recovery_from(range(700), rosters)
+    (224, 346)
+    """
+    at = rosters[-1][0]
+    if steady_window(sum(1 for k in steps_done if k >= at)) >= MIN_AFTER_STEPS:
+        return at
+    i = len(rosters) - 1
+    while i > 1 and sorted(rosters[i - 1][1]) == sorted(rosters[-1][1]):
+        i -= 1
+    return rosters[i][0]
+
+
 def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     """``failures``, ``recovered``, MSE after recovery (live and exact) for the summary."""
     import json
@@ -848,9 +884,10 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         # due after the run's end) are not counted
         ids, specs = specs_in_force(rosters, assigns, scenario, G0, epoch=rosters[-1][2])
         recovered = all(a in specs for a in ids) and steps_done and steps_done[-1] >= at
-        after = [m for k, m in zip(steps_done, mse) if k >= at]
+        since = after_recovery_from(steps_done, rosters)
+        after = [m for k, m in zip(steps_done, mse) if k >= since]
         out["mse_steady_after_recovery"] = steady_mse(after) if after else float("nan")
-        after_window = [k for k in steps_done if k >= at][-steady_window(len(after)):] \
+        after_window = [k for k in steps_done if k >= since][-steady_window(len(after)):] \
             if after else []
         out["mse_steady_after_recovery_se"] = batch_means_se(
             after[-steady_window(len(after)):]) if after else None
@@ -884,8 +921,33 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                     *roster_from_specs(scenario, table, ids_r, specs_r)).mse_or_inf
             except Exception:          # noqa: BLE001 - a level not drawn, nothing else
                 r["mse_steady_exact"] = None
+        # a window that spans a change of gains: its prediction is the mean of the exact
+        # levels of the gains in force over its steps
+        spans = [(a, ep) for a, _, ep in rosters if after_window and a <= after_window[-1]]
+        spans = [(max(a, after_window[0]), ep) for i, (a, ep) in enumerate(spans)
+                 if i + 1 == len(spans) or spans[i + 1][0] > after_window[0]]
+        if len(spans) > 1:
+            levels = {r["epoch"]: r.get("mse_steady_exact") for r in out["rosters"]}
+            gains = []
+            for i, (a, ep) in enumerate(spans):
+                if levels.get(ep) is None:
+                    try:
+                        levels[ep] = exact_performance(*roster_from_specs(
+                            scenario, table, *specs_in_force(rosters, assigns, scenario, G0,
+                                                             epoch=ep))).mse_or_inf
+                    except Exception:  # noqa: BLE001 - no prediction over the window
+                        levels[ep] = None
+                end = spans[i + 1][0] if i + 1 < len(spans) else after_window[-1] + 1
+                gains.append({"epoch": ep, "from": a, "steps": sum(
+                    1 for k in after_window if a <= k < end), "mse_steady_exact": levels[ep]})
+            out["after_recovery_gains"] = gains
+            known = [g for g in gains if g["mse_steady_exact"] is not None]
+            out["mse_steady_exact_over_after_recovery_window"] = float(sum(
+                g["steps"] * g["mse_steady_exact"] for g in gains) / len(after_window)) \
+                if len(known) == len(gains) else None
         # recovered: the roles in force, and the error after them near its exact level
-        exact = out.get("mse_steady_exact_after_recovery")
+        exact = out.get("mse_steady_exact_over_after_recovery_window")
+        exact = out.get("mse_steady_exact_after_recovery") if exact is None else exact
         measured = out["mse_steady_after_recovery"]
         out["recovered"] = bool(recovered) and exact is not None and math.isfinite(exact) \
             and math.isfinite(measured) and measured <= RECOVERED_FACTOR * exact
