@@ -282,8 +282,8 @@ def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
                                if "router" in stepping else None),
         # the other processes, % of one core over the steps
         "world_cpu_percent": _percent(stepping, "world", span),
-        "monitor_cpu_percent": _percent(stepping, "monitor", span),
-        "monitor2_cpu_percent": _percent(stepping, "monitor.2", span),
+        "monitor_cpu_percent": _percent(stepping, "monitor-1", span),
+        "monitor2_cpu_percent": _percent(stepping, "monitor-2", span),
         "recorder_cpu_percent": _percent(stepping, "recorder", span),
         "peak_mib": _memory(summary.get("peak_mib", {})),
         "load_max": summary.get("load_max"),

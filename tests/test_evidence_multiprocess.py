@@ -107,7 +107,7 @@ def test_forged_statuses_and_rosters_are_refused_and_a_later_crash_recovers(tmp_
     assert all(int(v["epoch"] or 0) < 64 for v in s["final_roles"].values())
     reasons = {(e["reason"], e["agent"]) for e in s["evidence_refused"]}
     assert {("sender", 2), ("epoch", 1), ("signature", 0)} <= reasons, reasons
-    log = (tmp_path / "run" / "logs" / "monitor.2.log").read_text()
+    log = (tmp_path / "run" / "logs" / "monitor-2.log").read_text()
     assert "evidence refused (signature)" in log
 
 

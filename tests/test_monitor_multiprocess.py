@@ -112,7 +112,7 @@ def test_a_killed_monitor_is_started_again_and_carries_on(tmp_path, live_gains,
     standby answers the crash, see test_world_pause_multiprocess.)"""
     s = _up(tmp_path, live_gains, "--kill", "100:1", "--kill-monitor", str(kill_monitor_at),
             "--monitors", "1", steps=450)
-    log = (tmp_path / "run" / "logs" / "monitor-2.log").read_text()
+    log = (tmp_path / "run" / "logs" / "monitor-1.restart-1.log").read_text()
     assert any(f"adopted the configuration in force: ids {ids}" in log
                for ids in ("[2, 3, 4]", "[4, 2, 3]")) == adopts, log
     assert s["recovered"] and s["rosters"][-1]["ids"] == [4, 2, 3]

@@ -160,7 +160,7 @@ def test_a_run_across_namespaces_equals_the_simulator(tmp_path, live_gains, pref
     assert s["max_rel_diff_vs_simulator"] <= 1e-9 and s["malformed"] == 0
     assert s["simulator_compared"].startswith("estimates")
     procs = json.loads((tmp_path / "run" / "run.json").read_text())["processes"]
-    names = netns.host_names(4)
+    names = [n if n != "monitor" else "monitor-1" for n in netns.host_names(4)]
     assert [procs[n]["endpoint"].split(":")[0] for n in names] == \
         [f"tcp/10.200.0.{i}" for i in range(1, 8)]
     assert len({procs[n]["netns"] for n in names}) == 7

@@ -125,3 +125,15 @@ def test_a_log_on_a_full_disk_loses_lines_not_the_process():
     assert full.lost == len("a line\n")
     with pytest.raises(BrokenPipeError):
         print("x", file=LossyStream(Closed()))
+
+
+def test_monitor_logs_say_which_monitor_and_which_life():
+    """``logs/monitor.log`` was monitor 1, ``monitor.2.log`` monitor 2 and
+    ``monitor-2.log`` monitor 1 started again."""
+    from agent.run.folder import monitor_name
+
+    names = [monitor_name(1), monitor_name(2), monitor_name(1, restarts=1),
+             monitor_name(1, restarts=2)]
+    assert names == ["monitor-1", "monitor-2", "monitor-1.restart-1", "monitor-1.restart-2"]
+    assert sorted(names) == ["monitor-1", "monitor-1.restart-1", "monitor-1.restart-2",
+                             "monitor-2"]           # a listing of logs/ reads in order

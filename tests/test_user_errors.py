@@ -166,9 +166,14 @@ def test_log_warnings_are_collected_and_bounded(tmp_path):
     (tmp_path / "world.log").write_text(
         "world: 4 agents ready\n"
         "world: warning: rho(A) = 1.0857 > 1: float64 loses an O(1) error from step 427\n")
-    (tmp_path / "monitor.log").write_text("monitor: no warning: here\n")
+    (tmp_path / "monitor-2.log").write_text("monitor 2: no warning: here\n")
+    # a monitor's warning names its log: which monitor, which life (it was not collected)
+    (tmp_path / "monitor-1.restart-1.log").write_text(
+        "monitor 1: warning: cannot write events.jsonl: disk full\n")
     assert log_warnings(tmp_path) == [
+        "monitor-1.restart-1: cannot write events.jsonl: disk full",
         "world: rho(A) = 1.0857 > 1: float64 loses an O(1) error from step 427"]
+    (tmp_path / "monitor-1.restart-1.log").unlink()
     (tmp_path / "agent-1.log").write_text(
         "".join(f"agent-1: warning: late {i}\n" for i in range(MAX_LOG_WARNINGS + 3)))
     found = log_warnings(tmp_path)

@@ -121,7 +121,7 @@ def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_run, secur
     assert info["run"] == "attachme" and info["connect"] == listen
     assert info["operator_key"] == str((up_dir / "operator.key").resolve())
     assert info["keys"] == (str((up_dir / "keys").resolve()) if secure else None)
-    assert set(info["processes"]) >= {"recorder", "world", "agent-1", "monitor"}
+    assert set(info["processes"]) >= {"recorder", "world", "agent-1", "monitor-1"}
     assert all("pid" in p for n, p in info["processes"].items() if n != "recorder")
     children.start("watch", ["watch", "--attach", str(up_dir), "--out", str(watch_dir),
                              "--json"])

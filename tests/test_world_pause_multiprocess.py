@@ -55,7 +55,7 @@ def test_a_world_paused_past_the_lease_is_waited_for_and_the_run_completes(tmp_p
     assert summary["failures"] == []
     logs = tmp_path / "logs"
     assert "the clock is re-based" in (logs / "world.log").read_text()
-    monitor = (logs / "monitor.log").read_text()
+    monitor = (logs / "monitor-1.log").read_text()
     assert "without its end" in monitor and "the world is back" in monitor
     assert "verdict:" not in monitor
     for a in (1, 2, 3, 4):
@@ -76,7 +76,7 @@ def test_a_paused_monitor_stays_and_recovers_a_crash_after_it(tmp_path, live_gai
     assert [(f["agent"], f["cause"]) for f in failures] == [(1, "crash")], \
         (failures, monitor_story(tmp_path))
     assert failures[0]["replacement"]["agent"] == 4 and summary["recovered"] is True
-    monitor = (tmp_path / "logs" / "monitor.log").read_text()
+    monitor = (tmp_path / "logs" / "monitor-1.log").read_text()
     assert "monitor paused" in monitor and "exiting" not in monitor.split("verdict")[0]
 
 

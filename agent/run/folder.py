@@ -35,7 +35,7 @@ from pathlib import Path
 
 __all__ = ["RUN_JSON", "RUN_ENTRIES", "RunInfo", "InvalidRunFolder", "RunFolderError",
            "EXIT_FOLDER", "write_run_json", "read_run_info", "prepare_run_folder",
-           "write_atomic"]
+           "write_atomic", "monitor_name"]
 
 RUN_JSON = "run.json"
 RUN_JSON_VERSION = 1
@@ -49,6 +49,18 @@ RUN_ENTRIES = ("run.json", "summary.json", "events.jsonl", "mse.json", "mse.csv"
                "estimates.npz", "assignments.json", "gains.npz", "manifest.json",
                "control.key", "operator.key", "keys", "logs", "schedule.json",
                "invariants.json", "timeline.json", "timeline.png", MESH_CONFIG)
+
+
+def monitor_name(monitor_id: int, restarts: int = 0) -> str:
+    """A monitor's process name, which names its log (``logs/<name>.log``), its row of
+    ``exit_status`` and ``cpu_s`` and its events: ``monitor-1`` the first, ``monitor-2``
+    and on the standbys (``--monitors``), ``monitor-1.restart-1`` monitor 1 started
+    again after ``--kill-monitor``.
+
+    >>> monitor_name(1), monitor_name(2), monitor_name(1, restarts=1)
+    ('monitor-1', 'monitor-2', 'monitor-1.restart-1')
+    """
+    return f"monitor-{monitor_id}" + (f".restart-{restarts}" if restarts else "")
 
 
 class InvalidRunFolder(ValueError):

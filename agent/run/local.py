@@ -33,7 +33,7 @@ from broker_free_net.impair import encode_impairment
 
 from broker_free_net.ports import listen_port
 
-from agent.run.folder import MESH_CONFIG
+from agent.run.folder import MESH_CONFIG, monitor_name
 from agent.run.launcher import Children
 from agent.testbed.netns import host_names, host_of
 from agent.run.recorder import MonitorTokens, Recorder, Recording
@@ -329,9 +329,9 @@ class LocalRun:
                 for a in range(1, M + 1):
                     children.start(f"agent-{a}", argv[f"agent-{a}"], self._wrap(f"agent-{a}"))
                 if c.monitor:
-                    children.start("monitor", argv["monitor"], self._wrap("monitor"))
+                    children.start(monitor_name(1), argv["monitor"], self._wrap("monitor"))
                     for i, sep in enumerate(standby_ep, start=2):
-                        children.start(f"monitor.{i}", _standby_monitor(
+                        children.start(monitor_name(i), _standby_monitor(
                             argv["monitor"], i, sep,
                             () if c.router else [ep[M + 2], *standby_ep[:i - 2]]),
                                        self._wrap("monitor"))
@@ -381,8 +381,7 @@ class LocalRun:
                         event(process=name, signal="SIGSTOP", step=k_now)
                         undo.append((now + f.seconds, f))
                     elif f.kind in ("worldstop", "monitorstop"):
-                        proc = "world" if f.kind == "worldstop" else (
-                            "monitor" if not restarts else f"monitor-{restarts + 1}")
+                        proc = "world" if f.kind == "worldstop" else monitor_name(1, restarts)
                         _signal(children, proc, signal.SIGSTOP)
                         event(process=proc, signal="SIGSTOP", step=k_now)
                         undo.append((now + f.seconds, f))
@@ -392,9 +391,8 @@ class LocalRun:
                                 _signal(children, ch.name, signal.SIGKILL)
                                 event(process=ch.name, signal="SIGKILL", step=k_now)
                     elif f.kind == "monitor" and c.monitor:
-                        _signal(children, "monitor" if not restarts else
-                                f"monitor-{restarts + 1}", signal.SIGKILL)
-                        event(process="monitor", signal="SIGKILL", step=k_now)
+                        _signal(children, monitor_name(1, restarts), signal.SIGKILL)
+                        event(process=monitor_name(1, restarts), signal="SIGKILL", step=k_now)
                         undo.append((now, f))        # start it again at once
                     elif f.kind in ("partition", "delay", "drop"):
                         if f.kind == "partition":
@@ -419,21 +417,20 @@ class LocalRun:
                         _signal(children, name, signal.SIGCONT)
                         event(process=name, signal="SIGCONT", step=k_now)
                     elif f.kind in ("worldstop", "monitorstop"):
-                        proc = "world" if f.kind == "worldstop" else (
-                            "monitor" if not restarts else f"monitor-{restarts + 1}")
+                        proc = "world" if f.kind == "worldstop" else monitor_name(1, restarts)
                         _signal(children, proc, signal.SIGCONT)
                         event(process=proc, signal="SIGCONT", step=k_now)
                     elif f.kind == "monitor":
-                        old = "monitor" if not restarts else f"monitor-{restarts + 1}"
+                        old = monitor_name(1, restarts)
                         if not _wait_exit(children, old, 10.0):
                             raise RunFailed(f"{old} did not exit within 10 s of SIGKILL; "
                                             "not starting a second monitor beside it")
                         restarts += 1
                         # in a run in progress: joins at once (no wait for its precompute)
-                        children.start(f"monitor-{restarts + 1}",
+                        children.start(monitor_name(1, restarts),
                                        argv["monitor"] + ["--prepare-s", "0"],
                                        self._wrap("monitor"))
-                        event(process=f"monitor-{restarts + 1}", started=True, step=k_now)
+                        event(process=monitor_name(1, restarts), started=True, step=k_now)
                     elif f.kind == "sensor":
                         impair(0, f.agent, partition=False)
                         event(process=name, impair="sensor restored", step=k_now)
@@ -613,7 +610,8 @@ class LocalRun:
         from agent.run.folder import write_run_json
 
         c = self.config
-        names = host_names(c.M, c.router)
+        names = [monitor_name(1) if n == "monitor" else n       # the monitor's host: its
+                 for n in host_names(c.M, c.router)]             # first process's endpoint
         procs = {name: {"endpoint": ep[i]} for i, name in enumerate(names)
                  if not c.router or name == "router"}     # clients do not listen
         for name, child in rec.children.children.items():

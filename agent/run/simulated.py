@@ -79,6 +79,7 @@ from agent.monitor.core import (
 )
 from agent.protocol.timing import DEFAULT as TIMING
 from agent.run.fault_kinds import SCRIPTED_FAULTS, WRONG_KINDS
+from agent.run.folder import monitor_name
 
 __all__ = ["SimConfig", "SimRuntime", "SimResult", "FAULT_KINDS", "run_schedules",
            "report_lines"]
@@ -368,7 +369,7 @@ class SimRuntime:
         self._planned = None                   # monitor 1's single failures, at the start
         self.monitors_alive: set = set()       # ids whose token is up
         self._token_gone: set = set()          # agents whose token is down
-        self._restarts = 0
+        self._restarts = {}          # monitor id -> times started again (its name says it)
         self.stats = MessageStats()
         self._schemas = {"est": wire.est_schema(scenario.n), "ctl": wire.ctl_schema(scenario.n),
                          "roster": wire.roster_schema(),
@@ -757,7 +758,7 @@ class SimRuntime:
             m = self.monitors[monitor_id]
             if f.kind == "monitorstop":
                 self.paused_until[m.name] = self.now + f.seconds
-                self.rec.events.append({"process": "monitor", "signal": "SIGSTOP",
+                self.rec.events.append({"process": self._life(m), "signal": "SIGSTOP",
                                         "step": f.step, "t": self.now})
                 if f.seconds > self.config.lease_s:
                     self.after(self.config.lease_s,
@@ -765,20 +766,25 @@ class SimRuntime:
                 self.after(f.seconds, lambda m=m: self._monitor_resume(m))
                 continue
             self.dead.add(m.name)
-            self.rec.events.append({"process": "monitor", "signal": "SIGKILL",
+            self.rec.events.append({"process": self._life(m), "signal": "SIGKILL",
                                     "step": f.step, "t": self.now})
             self._monitor_token(monitor_id, False)
             if f.kind == "monitor":
-                self._restarts += 1
-                self.rec.events.append({"process": f"monitor-{self._restarts + 1}",
+                self._restarts[monitor_id] = self._restarts.get(monitor_id, 0) + 1
+                self.rec.events.append({"process": monitor_name(monitor_id,
+                                                                self._restarts[monitor_id]),
                                         "started": True, "step": f.step, "t": self.now})
                 self.after(self.config.restart_s,
                            lambda i=monitor_id: self._start_monitor(i, self.config.listen_s))
 
+    def _life(self, m) -> str:
+        """The process name of monitor ``m``'s current life, as a live run names it."""
+        return monitor_name(m.id, self._restarts.get(m.id, 0))
+
     def _monitor_resume(self, m) -> None:
         if m.name in self.dead or self.monitors.get(m.id) is not m:
             return
-        self.rec.events.append({"process": "monitor", "signal": "SIGCONT",
+        self.rec.events.append({"process": self._life(m), "signal": "SIGCONT",
                                 "step": self.world.step, "t": self.now})
         self._monitor_token(m.id, True)
         for handle in self._backlog.pop(m.name, []):

@@ -445,8 +445,10 @@ MAX_LOG_WARNINGS = 20
 
 def log_warnings(logs_dir) -> list:
     """The warnings the run's processes printed (``NAME: warning: TEXT`` lines of
-    ``logs_dir/*.log``) as ``"NAME: TEXT"``, in file order, at most
-    :data:`MAX_LOG_WARNINGS` (then one line saying how many more).
+    ``logs_dir/*.log``) as ``"LOG: TEXT"``, LOG the log's name, which says the process
+    (``monitor-1.restart-1``: a monitor prints ``monitor 1: warning: ...`` in each of its
+    lives), in file order, at most :data:`MAX_LOG_WARNINGS` (then one line saying how many
+    more).
 
     >>> import pathlib, tempfile
     >>> d = pathlib.Path(tempfile.mkdtemp())
@@ -457,7 +459,7 @@ def log_warnings(logs_dir) -> list:
     import re
     from pathlib import Path
 
-    pattern = re.compile(r"^([\w.-]+): warning: (.*\S)")
+    pattern = re.compile(r"^[\w.-]+(?: \d+)?: warning: (.*\S)")
     found, more = [], 0
     for path in sorted(Path(logs_dir).glob("*.log")):
         try:
@@ -467,7 +469,7 @@ def log_warnings(logs_dir) -> list:
                     if m is None:
                         continue
                     if len(found) < MAX_LOG_WARNINGS:
-                        found.append(f"{m.group(1)}: {m.group(2)}")
+                        found.append(f"{path.stem}: {m.group(1)}")
                     else:
                         more += 1
         except OSError:

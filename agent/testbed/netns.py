@@ -31,8 +31,8 @@ Examples
 --------
 >>> host_names(3)
 ['recorder', 'world', 'agent-1', 'agent-2', 'agent-3', 'monitor']
->>> host_of("monitor-2")
-'monitor'
+>>> host_of("monitor-2"), host_of("monitor-1.restart-1")
+('monitor', 'monitor')
 """
 
 from __future__ import annotations
@@ -98,7 +98,8 @@ def host_names(M: int, router: bool = False) -> list:
 
 
 def host_of(process: str) -> str:
-    """The host a process runs on: a restarted monitor (``monitor-2``) on the monitor's."""
+    """The host a process runs on: every monitor (``monitor-2``, a restarted
+    ``monitor-1.restart-1``) on the monitors' host."""
     return "monitor" if process.startswith("monitor") else process
 
 
