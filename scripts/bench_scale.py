@@ -282,8 +282,9 @@ def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
                                if "router" in stepping else None),
         # the other processes, % of one core over the steps
         "world_cpu_percent": _percent(stepping, "world", span),
-        "monitor_cpu_percent": _percent(stepping, "monitor-1", span),
-        "monitor2_cpu_percent": _percent(stepping, "monitor-2", span),
+        # (trees before a8f0963 named them monitor and monitor.2: a --baseline may be one)
+        "monitor_cpu_percent": _percent(stepping, "monitor-1", span, "monitor"),
+        "monitor2_cpu_percent": _percent(stepping, "monitor-2", span, "monitor.2"),
         "recorder_cpu_percent": _percent(stepping, "recorder", span),
         "peak_mib": _memory(summary.get("peak_mib", {})),
         "load_max": summary.get("load_max"),
@@ -294,7 +295,8 @@ def describe(summary: dict, N: int, steps: int, step_ms: float) -> dict:
     }
 
 
-def _percent(stepping: dict, name: str, span: float):
+def _percent(stepping: dict, name: str, span: float, old_name: str = ""):
+    name = name if name in stepping else old_name
     return 100.0 * stepping[name] / span if name in stepping else None
 
 
@@ -341,7 +343,7 @@ def _mib(row: dict) -> str:
     """Peak resident memory: agent mean (largest) / router / monitor / recorder, MiB."""
     m = row.get("peak_mib") or {}
     return (f"{fmt(m.get('agent_mean'), '.0f')} ({fmt(m.get('agent_max'), '.0f')}) / "
-            f"{fmt(m.get('router'), '.0f')} / {fmt(m.get('monitor'), '.0f')} / "
+            f"{fmt(m.get('router'), '.0f')} / {fmt(m.get('monitor-1', m.get('monitor')), '.0f')} / "
             f"{fmt(m.get('recorder'), '.0f')}")
 
 
