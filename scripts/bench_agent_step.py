@@ -100,7 +100,21 @@ def main(argv=None) -> int:
     from design.gain_design import design_gains
     from design.scenario import load_scenario
 
-    sc = load_scenario(args.scenario)
+    try:
+        sc = load_scenario(args.scenario)
+    except Exception as exc:            # noqa: BLE001 - said as the flag's error
+        parser.error(f"--scenario: {exc}")
+    if not 1 <= args.agent <= sc.N:
+        parser.error(f"--agent: {args.agent} holds no role at the start of {args.scenario} "
+                     f"(agents 1..{sc.N})")
+    try:
+        periods = [float(x) for x in args.step_ms.split(",")]
+    except ValueError:
+        parser.error(f"--step-ms: comma-separated numbers of ms, got {args.step_ms!r}")
+    if not all(0 <= p < 10_000 for p in periods):
+        parser.error(f"--step-ms: each in [0, 10000) ms, got {args.step_ms!r}")
+    if args.steps < 2:
+        parser.error(f"--steps: at least 2, got {args.steps}")
     t = time.process_time()
     gains = design_gains(sc, "none", target=0.97, exact_mse=False).G
     print(f"machine: {os.cpu_count()} cores, load average "
@@ -110,7 +124,7 @@ def main(argv=None) -> int:
           f"us a step")
     print(f"| sleep between steps | {' | '.join(PARTS)} | total |")
     print("| --- |" + " --- |" * (len(PARTS) + 1))
-    for step_ms in (float(s) for s in args.step_ms.split(",")):
+    for step_ms in periods:
         us = measure(args.scenario, args.agent, args.steps, step_ms, not args.no_residuals,
                      gains)
         print(f"| {step_ms:g} ms | " + " | ".join(f"{us[p]:.1f}" for p in PARTS)

@@ -237,7 +237,7 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
                     # the same as its agent being dead
                     raise InputError(
                         f"no agent of run {net.run!r} seen within {timeout:g} s through "
-                        f"{', '.join(net.connect) or 'multicast'}: is the run up, and are "
+                        f"{', '.join(net.connect or ()) or 'multicast'}: is the run up, and are "
                         "the endpoint and --run right?"
                         + ("" if next_put else " (nothing was published)"), status=1)
                 who = f"agent {dst}" if dst is not None else "the agents"
