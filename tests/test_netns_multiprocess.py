@@ -227,10 +227,44 @@ def test_a_host_cut_off_is_replaced_and_fenced_when_its_link_returns(tmp_path, l
     assert s["exit_status"]["agent-2"] == 0 and s["orphans"] == []
 
 
+@pytest.mark.multiprocess
+@pytest.mark.netns
+@pytest.mark.slow
+def test_a_run_whose_recorder_heard_no_step_fails_and_says_why(tmp_path, live_gains, prefix,
+                                                               monkeypatch, capsys):
+    """The recorder's endpoint an address of its own namespace that no other host reaches
+    (what ``--listen 127.0.0.1`` did with ``--netns`` before it was refused): the world
+    runs its steps and ends, nobody told the recorder. That run reports no step and exits
+    1 with the reason, not 0 with "-1 steps, mse nan"."""
+    import dataclasses
+
+    from agent.cli.main import main
+    from agent.run import setup
+    from broker_free_net.ports import listen_port
+
+    unreachable = f"tcp/127.0.0.1:{listen_port()}"
+    config_of = setup.run_config
+    monkeypatch.setattr(setup, "run_config", lambda *a, **k: dataclasses.replace(
+        config_of(*a, **k), listen=unreachable))
+    assert main(["up", "paper-14-live", "--steps", "40", "--gains", str(live_gains),
+                 "--out", str(tmp_path / "run"), "--step-ms", "20", "--no-monitor",
+                 "--netns", "--netns-prefix", prefix]) == 1
+    out, err = capsys.readouterr()
+    assert out.splitlines()[0] == "paper-14-live: no step recorded"
+    assert ("the world ran and ended (exit 0), but this command's recorder heard none of "
+            f"its steps: the processes did not reach it through {unreachable}") in err
+    assert "world: done after step 40" in err       # the world's log, quoted
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["steps"] == -1 and "recorder heard none" in summary["error"]
+    assert not [n for n in netns.list_namespaces() if n.startswith(prefix + "-")]
+
+
 @pytest.mark.parametrize("flags, message", [
     (["--fault", "linkdown:100:2:2"], "linkdown brings a host's link down and needs --netns"),
     (["--netns", "--fault", "linkdown:100:2"], "linkdown needs SECONDS > 0"),
     (["--netns-prefix", "abc"], "--netns-prefix: only with --netns"),
+    (["--netns", "--listen", "tcp/127.0.0.1:7447"], "--listen: not with --netns: each "
+     "process is on a host of its own"),
     (["--netns", "--netns-prefix", "a-b"], "--netns-prefix: prefix: expected 1-12 lower-case"),
 ])
 def test_netns_flags_are_checked_before_anything_starts(tmp_path, capsys, flags, message):

@@ -189,8 +189,12 @@ def test_up_through_a_router_equals_the_simulator(tmp_path):
     gains = tmp_path / "g.npz"
     save_gains(gains, [0.3 * rng.normal(size=(s.n, len(m))) for m in s.measure],
                {"method": "fixed random"})
+    from broker_free_net.ports import listen_port
+
+    entry = f"tcp/127.0.0.1:{listen_port()}"       # --listen: the router's, the run's entry
     code, stdout, stderr = _socmon("up", "paper-14", "--router", "--steps", "60", "--gains",
                                    str(gains), "--seed", "3", "--delays", "uniform:2",
+                                   "--listen", entry,
                                    "--out", str(tmp_path / "r"), "--check-simulator",
                                    "--json", "--step-ms", "20")
     assert code == 0, stderr
@@ -200,7 +204,7 @@ def test_up_through_a_router_equals_the_simulator(tmp_path):
     assert summary["exit_status"]["router"] == 0 and summary["orphans"] == []
     assert set(summary["exit_status"].values()) == {0}
     run = json.loads((tmp_path / "r" / "run.json").read_text())
-    assert run["connect"] == run["processes"]["router"]["endpoint"]
+    assert run["connect"] == run["processes"]["router"]["endpoint"] == entry
     # the start line names the endpoint a joining process connects to: the router's
     assert f"run {run['run']} at {run['connect']} (" in stderr
     assert all("endpoint" not in p for name, p in run["processes"].items() if name != "router")

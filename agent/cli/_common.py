@@ -183,9 +183,10 @@ def add_local_transport_arguments(parser) -> None:
                         help="run id (key prefix socmon/<ID>/; default a fresh one); printed "
                              "and written in RUN_FOLDER/run.json")
     parser.add_argument("--listen", default=None, metavar="ENDPOINT",
-                        help="endpoint of this command's own peer, the one every process of "
-                             "the run and every attached tool connects to (default "
-                             "tcp/127.0.0.1:<free port>, tls/ with --secure)")
+                        help="the endpoint every process of the run and every attached tool "
+                             "connects to: this command's own peer's, the router's with "
+                             "--router (default tcp/127.0.0.1:<free port>, tls/ with --secure; "
+                             "not with --netns)")
     parser.add_argument("--secure", action="store_true",
                         help="a fresh key set for this run (RUN_FOLDER/keys): mutual TLS between "
                              "every process and access control on every peer "

@@ -138,7 +138,9 @@ class RunConfig:
     #: :func:`agent.testbed.netns.host_names`: each process, the recorder included, on its own host
     testbed: object = None
     run_id: str | None = None        # default: a fresh id
-    listen: str | None = None        # the recorder's endpoint (every child connects to it)
+    #: the endpoint every process and attached tool connects to: the recorder's, or the
+    #: router's under ``router``
+    listen: str | None = None
     #: one ``socmon router`` process; every other process is its client (no peer mesh)
     router: bool = False
     #: the recorder keeps the states of every k-th step (and the last) only (``--record-every``)
@@ -273,8 +275,8 @@ class LocalRun:
         # standby monitors: on the monitor's host, after the router's endpoint
         standby_ep = [f"{scheme}/{self._host_ip('monitor')}:{p}"
                       for p in rec.ports[M + 3 + c.router:]]
-        if c.listen:
-            ep[0] = c.listen
+        if c.listen:         # the run's entry: the router's under --router, else the recorder's
+            ep[M + 3 if c.router else 0] = c.listen
         net_extra = {}
         if c.secure:
             from agent.protocol.topics import make_run_keys, run_identities
@@ -459,6 +461,14 @@ class LocalRun:
                     peer.wait(timeout=0.05)
                     drain()
                     for child in children.reap():
+                        if child.name == "world" and child.returncode == 0 and \
+                                recorder.step < 0:
+                            # it ran its steps, this recorder heard none: nothing to report
+                            raise RunFailed(
+                                f"the world ran and ended (exit 0), but this command's "
+                                f"recorder heard none of its steps: the processes did not "
+                                f"reach it through {self._entry(ep)}; the world's log ends:\n"
+                                f"{children.tail('world')}")
                         if child.name == "world" and child.returncode == 0:
                             world_end = time.monotonic()
                         elif child.name in ("world", "router") or (world_end is None

@@ -88,6 +88,10 @@ def run_config(args, say, prog="up", design_progress=None):
             check_prefix(args.netns_prefix)
         except ValueError as exc:
             raise InputError(f"--netns-prefix: {exc}") from None
+    if getattr(args, "netns", False) and getattr(args, "listen", None) is not None:
+        raise InputError("--listen: not with --netns: each process is on a host of its own "
+                         "(10.200.0.x) and the run's entry is chosen there; up prints it and "
+                         "writes it in run.json (connect)")
     if getattr(args, "netns", False):
         # what would stop the testbed, said before a gain is designed or a file written
         from agent.testbed.netns import prefix_taken, unavailable_reason

@@ -359,6 +359,8 @@ def period_warning(last_statuses: dict, faulty: bool) -> str | None:
 def headline_lines(summary: dict, scenario) -> list:
     """The lines ``socmon up`` prints of a finished run: the MSE against its prediction for
     the configuration in force, the message counts, each failure, the run folder."""
+    if summary["steps"] < 0:         # why: the error said after these lines
+        return [f"{scenario.name}: no step recorded", f"run folder: {summary['out']}"]
     exact = summary.get("mse_steady_exact_in_force")
     rosters = summary.get("rosters") or []
     now = len(rosters[-1]["ids"]) if rosters else scenario.N
