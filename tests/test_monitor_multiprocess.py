@@ -247,6 +247,10 @@ def test_a_partitioned_agent_rejoins_after_probation_and_replaces_the_next_failu
     (rejoin,) = [r for r in s["rejoins"] if r["agent"] == 2]
     first = s["failures"][0]
     assert first["rejoined_step"] == rejoin["step"] > first["detected_step"]
+    # the summary says the conviction came with its links cut, as the receivers said
+    assert "2->1 cut" in first["links_impaired"], first
+    assert all(x.startswith("2->") and x.endswith(" cut") for x in first["links_impaired"])
+    assert "links_impaired" not in [f for f in s["failures"] if f["agent"] == 4][0]
     assert rejoin["step"] < 700 and 2 in rejoin["standby"]
     assert 2 in s["rosters"][-1]["ids"] and 4 not in s["rosters"][-1]["ids"]
     assert s["recovered"] is True

@@ -229,6 +229,10 @@ def test_a_failure_line_says_every_node_the_replacement_measures_and_the_links_a
     g = {**f, "replacement": {"agent": 4, "node": "8", "measures": ["8"]}, "added_links": []}
     assert failure_lines({"failures": [g]}) == [
         "  failure: agent 1 crash at step 162; agent 4 measures 8 from step 174"]
+    h = {**g, "cause": "silent", "links_impaired": ["1->3 cut", "2->1 drop 0.5"]}
+    assert failure_lines({"failures": [h]}) == [
+        "  failure: agent 1 silent at step 162; agent 4 measures 8 from step 174 (links "
+        "impaired then: 1->3 cut, 2->1 drop 0.5)"]
 
 
 def test_analyze_gives_the_reason_of_each_tolerance(paper14):

@@ -18,7 +18,7 @@ import numpy as np
 from design.metrics import (BATCHES, batch_means_se, mean_recorded, mse_of_step,
                             steady_mse, steady_window)
 
-__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "period_warning", "was_compared", "links_impaired",
+__all__ = ["run_and_summarize", "predicted_mse", "failure_lines", "final_roles", "summarize", "mse_by_step", "specs_in_force", "rosters_in_force", "switch_steps", "compare_simulator", "period_warning", "was_compared", "links_impaired", "impairments_at",
            "write_run_folder", "save_estimates", "CHECK_TOL", "VERDICT_SLACK_S",
            "conviction_bound_s", "no_verdict_due"]
 
@@ -398,7 +398,9 @@ def failure_lines(summary) -> list:
                         + f" from step {f.get('activate_at')}" if rep else "")
                      + ("; link" + ("s" if len(links) > 1 else "") + " added: "
                         + ", ".join(f"{e['to']} listens to {e['from']}" for e in links)
-                        if links else ""))
+                        if links else "")
+                     + (f" (links impaired then: {', '.join(f['links_impaired'])})"
+                        if f.get("links_impaired") else ""))
     lines += [f"  {d['why']}" for d in summary.get("no_verdict_due", [])]
     refused = summary.get("implausible") or {}
     if any(refused.values()):
@@ -821,6 +823,10 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
         if death is not None and (death.get("signal") == "SIGSTOP" or
                                   death.get("link") == "down"):
             entry["detection_ms"] = 1e3 * (at - death["t"])
+        impaired = impairments_at(events, v["agent"], at, scenario, delays) \
+            if at is not None else []
+        if impaired:             # a link fault or `socmon inject` may explain the verdict
+            entry["links_impaired"] = impaired
         since = death["t"] if death is not None else -math.inf
         back = next(iter(of_agent(v["agent"], lambda e: (e.get("signal") == "SIGCONT"
                                                         or e.get("link") == "up")
@@ -1069,12 +1075,67 @@ def links_impaired(events, scenario, delays) -> list:
         process = e.get("process", "")
         if "links" not in e or not process.startswith("agent-"):
             continue
-        i = int(process.removeprefix("agent-")) - 1
-        own = {str(b + 1): {"delay_steps": int(d)} for b, d in enumerate(table[i])
-               if b != i and d > 0}
-        if e["links"] != own:
-            out.append((e.get("step"), i + 1))
+        a = int(process.removeprefix("agent-"))
+        if e["links"] != _run_links(table, a):
+            out.append((e.get("step"), a))
     return out
+
+
+def _run_links(table, a) -> dict:
+    """The links into agent ``a`` as its status shows them with only the run's own delays."""
+    return {str(b + 1): {"delay_steps": int(d)} for b, d in enumerate(table[a - 1])
+            if b != a - 1 and d > 0}
+
+
+def impairments_at(events, agent: int, t: float, scenario, delays) -> list:
+    """The impairments in force at time ``t`` on the links into and out of ``agent`` other
+    than the run's own delays, as the receivers' statuses last showed them before ``t``
+    (each ``"SRC->DST what"``; ``0`` is the world's link, its sensor readings): what a
+    conviction of ``agent`` may owe to a link fault or ``socmon inject`` rather than to
+    the agent itself.
+
+    >>> from design.scenario import load_scenario
+    >>> s, d = load_scenario("paper-14-live"), np.zeros((3, 3), dtype=int)
+    >>> ev = [{"process": "agent-1", "links": {"2": {"partition": True}}, "t": 5.0},
+    ...       {"process": "agent-2", "links": {"3": {"drop": 0.5, "burst": 5.0}}, "t": 6.0},
+    ...       {"process": "agent-1", "links": {}, "t": 9.0}]
+    >>> impairments_at(ev, 2, 7.0, s, d)
+    ['2->1 cut', '3->2 drop 0.5']
+    >>> impairments_at(ev, 2, 9.5, s, d)
+    ['3->2 drop 0.5']
+    >>> impairments_at(ev, 2, 4.0, s, d)
+    []
+    """
+    from design.roster import link_delay_table
+
+    table = link_delay_table(scenario, delays)
+    last = {}
+    for e in events:
+        process = e.get("process", "")
+        if "links" in e and process.startswith("agent-") and e.get("t", math.inf) <= t:
+            last[int(process.removeprefix("agent-"))] = e["links"]
+    out = []
+    for dst, links in sorted(last.items()):
+        own = _run_links(table, dst) if dst <= len(table) else {}
+        for src, params in sorted(links.items(), key=lambda kv: int(kv[0])):
+            if (int(src) == agent or dst == agent) and own.get(src) != params:
+                out.append(f"{src}->{dst} {_impairment_words(params)}")
+    return out
+
+
+def _impairment_words(params: dict) -> str:
+    """``{"partition": True}`` -> ``"cut"``; ``{"drop": 0.5}`` -> ``"drop 0.5"``; ..."""
+    words = []
+    if params.get("partition"):
+        words.append("cut")
+    if params.get("drop"):
+        words.append(f"drop {params['drop']:g}")
+    if params.get("delay_steps"):
+        words.append(f"delay {params['delay_steps']} steps")
+    if params.get("delay_ms"):
+        words.append(f"delay {params['delay_ms']:g} ms"
+                     + (f" ± {params['jitter_ms']:g}" if params.get("jitter_ms") else ""))
+    return ", ".join(words) or "changed"
 
 
 def compare_simulator(config, rec, steps_done):
