@@ -31,7 +31,7 @@ from .codec import MAX_PAYLOAD_BYTES
 from .config import NetConfig, build_zenoh_config, zenoh_message
 from .linger import LingerGuard
 
-__all__ = ["Inbox", "KeySetInbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received",
+__all__ = ["IdInUse", "Inbox", "KeySetInbox", "LivelinessEvent", "LivelinessWatch", "Peer", "Received",
            "SessionError"]
 
 DEFAULT_INBOX_SIZE = 4096
@@ -41,6 +41,18 @@ _log = logging.getLogger(__name__)
 #: zenoh priorities a publisher may be declared with (highest first)
 _PRIORITIES = ("REAL_TIME", "INTERACTIVE_HIGH", "INTERACTIVE_LOW", "DATA_HIGH", "DATA",
                "DATA_LOW", "BACKGROUND")
+
+
+class IdInUse(zenoh.ZError):
+    """Another session holds the liveliness token of this process's ``(role, id)``: two
+    processes would speak for one id (:meth:`Peer.claim`)."""
+
+    def __init__(self, peer, others):
+        super().__init__(
+            f"{peer.role} {peer.id} of run {peer.run} is already running (session "
+            f"{', '.join(sorted(others))} holds its liveliness token): two processes with "
+            "one id would publish the same keys; stop the other one first")
+        self.others = frozenset(others)
 
 
 class SessionError(zenoh.ZError):
@@ -288,6 +300,9 @@ def _undeclare(sub) -> None:
         pass  # session already closed
 
 
+#: How long :meth:`Peer.claim` keeps asking whether another session holds its id after
+#: its first link is up (the links gossip finds come up meanwhile).
+CLAIM_SETTLE_S = 0.3
 #: Sessions a :class:`LivelinessWatch` tracks for one ``(role, id)``: a process declaring
 #: tokens under made-up session chunks cannot grow it beyond this.
 MAX_SESSIONS_PER_ID = 16
@@ -494,6 +509,56 @@ class Peer:
     def zid(self) -> str:
         """Return this session's zenoh id."""
         return str(self.session.zid())
+
+    def other_holders(self, timeout: float = 0.5) -> frozenset:
+        """The zids of the sessions other than this one that hold a liveliness token for
+        this peer's ``(role, id)`` now, as the peers it reaches answer a liveliness query
+        within ``timeout`` seconds."""
+        pattern = keys.token_key(self.alive_prefix, self.role, self.id, "x")[:-1] + "*"
+        own, out = self.zid(), set()
+        for reply in self.session.liveliness().get(pattern, timeout=timeout):
+            sample = reply.ok
+            if sample is None:
+                continue
+            try:
+                _, _, session = keys.parse_token_key(self.alive_prefix, str(sample.key_expr))
+            except keys.InvalidKey:
+                continue
+            if session != own:
+                out.add(session)
+        return frozenset(out)
+
+    def claim(self, wait_s: float | None = None, say=None, stop=lambda: False) -> None:
+        """Make sure this process is the only one of its ``(role, id)``: wait up to
+        ``wait_s`` (default two leases and a second) for any other session holding its
+        token to let go (a process just killed holds it until its lease expires), then
+        raise :class:`IdInUse` naming it. ``say(text)`` is told once that it waits;
+        ``stop()`` true ends the wait."""
+        if wait_s is None:
+            wait_s = 2 * self.net.lease_ms / 1000.0 + 1.0
+        # the peers answer for their own tokens only: ask once the links are up (a peer
+        # found by gossip is linked shortly after the session opens), and again for a
+        # moment after the first one
+        deadline = time.monotonic() + wait_s
+        while not (self.connected_peers() or list(self.session.info.routers_zid())) \
+                and time.monotonic() < deadline and not stop():
+            time.sleep(0.05)
+        others, settled = self.other_holders(), time.monotonic() + CLAIM_SETTLE_S
+        while not others and time.monotonic() < settled and not stop():
+            time.sleep(0.1)
+            others = self.other_holders()
+        if not others:
+            return
+        if say is not None:
+            say(f"another session ({', '.join(sorted(others))}) holds the token of "
+                f"{self.role} {self.id}; waiting up to {wait_s:g} s for it to go (a process "
+                "just stopped holds it for its lease)")
+        deadline = time.monotonic() + wait_s
+        while others and time.monotonic() < deadline and not stop():
+            time.sleep(0.1)
+            others = self.other_holders()
+        if others:
+            raise IdInUse(self, others)
 
     def connected_peers(self) -> list[str]:
         """Return the zenoh ids of directly connected peers."""

@@ -123,6 +123,47 @@ def test_two_peers_in_one_process_wait_and_drain():
     assert a.closed and b.closed
 
 
+def test_a_second_session_of_one_id_is_refused_until_the_first_lets_go():
+    """``Peer.claim``: a process whose (role, id) another session holds waits for it to
+    go, then is refused naming it; once the first closes, a new one of that id is
+    accepted; another id is never in the way."""
+    from broker_free_net.peer import IdInUse
+
+    run = f"claim{listen_port()}"
+    port = listen_port()
+    said = []
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)),
+                          "agent", 3) as first:
+        first.claim(wait_s=0.2)                 # alone: after waiting for a link in vain
+        join = NetConfig(run=run, connect=(f"tcp/127.0.0.1:{port}",))
+        with topics.open_peer(join, "agent", 4) as other:
+            assert other.other_holders(timeout=2.0) == frozenset()
+            other.claim(wait_s=0.0)
+        with topics.open_peer(join, "agent", 3) as second:
+            assert wait_until(lambda: first.zid() in second.other_holders(timeout=2.0), 20)
+            t0 = time.monotonic()
+            with pytest.raises(IdInUse, match=f"agent 3 of run {run} is already running "
+                                              f"\\(session {first.zid()} holds"):
+                second.claim(wait_s=0.3, say=said.append)
+            assert time.monotonic() - t0 >= 0.3        # it waited for the first to go
+            assert said == [f"another session ({first.zid()}) holds the token of agent 3; "
+                            "waiting up to 0.3 s for it to go (a process just stopped holds "
+                            "it for its lease)"]
+            assert second.zid() in first.other_holders(timeout=2.0)
+    with topics.open_peer(NetConfig(run=run, listen=(f"tcp/127.0.0.1:{port}",)),
+                          "agent", 3) as again:
+        again.claim(wait_s=0.0)
+
+
+def wait_until(predicate, timeout):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
 def _linger_of_links(port):
     """SO_LINGER on/off of this process's TCP sockets with `port` at either end."""
     import os

@@ -81,9 +81,25 @@ def test_watch_records_a_hand_started_run(tmp_path, children, live_run):
             argv += ["--gains", str(gains)]
         children.start(f"agent-{a}", argv)
     _wait(lambda: (_watched_step(children, "watch") or -1) >= 80, "step 80 watched", children)
+    # a second agent 2 and a second world started by mistake: each is refused, naming the
+    # session that holds its id, and publishes nothing (the MSE below is the simulator's)
+    children.start("agent-2-again", ["agent", "paper-14-live", "--id", "2", *common,
+                                     "--connect", ep[0], "--gains", str(gains)])
+    children.start("world-again", ["world", "paper-14-live", *common, "--connect", ep[0]])
+    again = ("agent-2-again", "world-again")
+    _wait(lambda: all(children.children[n].returncode is not None for n in again),
+          "the second agent 2 and world to be refused", children, allowed_exit=again,
+          timeout=30)
+    for name, who in zip(again, ("agent 2", "world 0")):
+        assert children.children[name].returncode == 1, _log(children, name)
+        assert f"socmon: {who} of run {run} is already running (session " in \
+            _log(children, name)
+    refused_at = _watched_step(children, "watch")
+    _wait(lambda: (_watched_step(children, "watch") or -1) >= refused_at + 20,
+          "20 steps after", children, allowed_exit=again)
     os.killpg(children.children["watch"].proc.pid, signal.SIGTERM)
     _wait(lambda: children.children["watch"].returncode is not None, "the watch to end",
-          children, allowed_exit=("watch",))   # mse.png: matplotlib is slow on a loaded machine
+          children, allowed_exit=("watch", *again))   # mse.png: matplotlib is slow when loaded
     assert children.children["watch"].returncode == 130, _log(children, "watch")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ended"] == "interrupted" and summary["run"] == run

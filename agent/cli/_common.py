@@ -439,9 +439,10 @@ def run_command(body):
         return EXIT_FOLDER
     except Exception as exc:
         # a zenoh session that could not be opened (an endpoint not reached in time, a
-        # port taken): one line; the transport is loaded only by the commands that open one
+        # port taken) or an id another process of the run holds: one line; the transport
+        # is loaded only by the commands that open one
         peer = sys.modules.get("broker_free_net.peer")
-        if peer is None or not isinstance(exc, peer.SessionError):
+        if peer is None or not isinstance(exc, (peer.SessionError, peer.IdInUse)):
             raise
         print(f"socmon: {exc}", file=sys.stderr)
         return 1

@@ -122,6 +122,8 @@ def run_agent(config: AgentConfig, net, log=sys.stderr, stop=None, crash_at=None
         stats.count_dropped(reason)
 
     with topics.open_peer(net, "agent", me) as peer:
+        # a second process of this id would publish its estimates beside the first
+        peer.claim(say=lambda text: say(f"agent {me}: {text}"), stop=lambda: stop.flag)
         ctl_in = peer.subscribe(topics.ctl_key(run, me))
         roster_in = peer.subscribe(topics.ctl_key(run, 0))
         imp_in = peer.subscribe(topics.impair_key(run))

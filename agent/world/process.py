@@ -114,6 +114,9 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
     k_warn = _warn_resolution(scenario, world, steps, log)
     stats = MessageStats()
     with topics.open_peer(net, "world", 0) as peer:
+        # a second world would run a second clock and a second truth on the same keys
+        peer.claim(say=lambda text: print(f"world: {text}", file=log, flush=True),
+                   stop=lambda: stop.flag)
         status_in = peer.subscribe(topics.any_agent_pattern(run, "status"))
         watch = peer.watch_liveliness()
         sensors_key, truth_key = topics.sensors_key(run), topics.truth_key(run)
