@@ -470,6 +470,17 @@ def test_a_watch_of_a_run_whose_clock_never_started_says_so_and_exits_1():
     assert "before its clock started: no step recorded" in summary_lines(never, config)[0]
     ran = WatchResult(None, {"steps": 150}, [], np.zeros(0), "world ended")
     assert exit_status(ran) == 0
+    # its world killed mid-run: its token went without its end message
+    lost = WatchResult(None, {"steps": 441, "mse_steady": 0.3, "mse_steady_se": None,
+                              "mse_steady_window": None, "mse_steady_exact": None, "drops": 0,
+                              "late": 0, "malformed": 0}, [], np.zeros(0), "world lost")
+    assert exit_status(lost) == 1
+    assert summary_lines(lost, config)[0].startswith(
+        "paper-14-live: run r LOST ITS WORLD (its token went without its end: killed, paused "
+        "past its lease or cut off), last step 441")
+    nothing = WatchResult(None, {"steps": -1}, [], np.zeros(0), "interrupted")
+    assert summary_lines(nothing, config)[0].endswith("no step recorded (nothing of the run "
+                                                      "heard)")
     assert exit_status(WatchResult(None, {"steps": -1}, [], np.zeros(0), "interrupted")) == 130
 
 

@@ -120,6 +120,38 @@ def test_watch_records_a_hand_started_run(tmp_path, children, live_run):
     assert summary["drops"] == 0 and summary["recorder_malformed"] == 0
 
 
+def test_a_watch_whose_world_is_killed_says_it_lost_it_and_exits_1(tmp_path, children,
+                                                                  live_run):
+    """The world SIGKILLed mid-run: its token goes without its end message. The watch
+    ends once the agents stop publishing, says it lost the world (exit 1, ``ended: world
+    lost``, a warning), not that the run "ended with its world"."""
+    s, G, gains = live_run
+    run = f"wl{os.getpid()}"
+    ep = [f"tcp/127.0.0.1:{listen_port()}" for _ in range(s.N + 1)]
+    common = ["--run", run, "--seed", "3"]
+    children.start("world", ["world", "paper-14-live", *common, "--listen", ep[0],
+                             "--step-ms", "20", "--wait-agents", "1,2,3"])
+    out = tmp_path / "watched"
+    children.start("watch", ["watch", "paper-14-live", "--run", run, "--connect", ep[0],
+                             "--gains", str(gains), "--delays", "none", "--seed", "3",
+                             "--out", str(out), "--interval", "0.1"])
+    _wait(lambda: _watched_step(children, "watch") is not None, "the watcher", children)
+    for a in range(1, s.N + 1):
+        children.start(f"agent-{a}", ["agent", "paper-14-live", "--id", str(a), *common,
+                                      "--listen", ep[a], "--connect", ep[0], "--delays",
+                                      "none", "--gains", str(gains)])
+    _wait(lambda: (_watched_step(children, "watch") or -1) >= 60, "step 60 watched", children)
+    os.killpg(children.children["world"].proc.pid, signal.SIGKILL)
+    _wait(lambda: children.children["watch"].returncode is not None, "the watch to end",
+          children, allowed_exit=("watch", "world"))
+    log = _log(children, "watch")
+    assert children.children["watch"].returncode == 1, log
+    assert f"paper-14-live: run {run} LOST ITS WORLD (its token went without its end" in log
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ended"] == "world lost" and summary["steps"] >= 60
+    assert any(w.startswith("the world left after step ") for w in summary["warnings"])
+
+
 @pytest.mark.parametrize("secure", [False, True], ids=["tcp", "secure"])
 def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_run, secure):
     """``up --run --listen`` writes run.json; ``inject --attach`` reaches the run (signed

@@ -481,7 +481,8 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
 
     Ends when step ``steps`` is recorded for the truth and every agent in force (with
     ``steps``); when the world's liveliness token goes, then once the agents' tokens go
-    or no estimate came for ``grace`` seconds; on SIGTERM or Ctrl-C (``"interrupted"``);
+    or no estimate came for ``grace`` seconds (``"world ended"`` after its end message,
+    ``"world lost"`` without it: killed, paused or cut off); on SIGTERM or Ctrl-C (``"interrupted"``);
     when no truth was heard within ``timeout`` seconds (``"no world"``); or, with
     ``steps``, when the first step of the truth heard is already past it (``"behind"``:
     nothing of steps 0..``steps`` is left to record). ``on_view`` gets
@@ -490,7 +491,8 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
     Returns
     -------
     str
-        ``"steps"``, ``"world ended"``, ``"interrupted"``, ``"no world"`` or ``"behind"``.
+        ``"steps"``, ``"world ended"``, ``"world lost"``, ``"interrupted"``, ``"no world"``
+        or ``"behind"``.
     """
     import os
     import signal
@@ -562,7 +564,9 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                 # first) or stop publishing; an agent still catching up keeps the watch
                 if world_gone is not None and (not agents_alive or
                                                now - max(world_gone, last_heard) > grace):
-                    why = "world ended"
+                    # its token went without its end: killed, paused past its lease or
+                    # cut off (the agents wait for it, then leave)
+                    why = "world ended" if world_ended else "world lost"
                     break
                 if not rec.truth and not world_seen and now - t_begin > timeout:
                     why = "no world"

@@ -93,7 +93,8 @@ def watch(config: WatchConfig, view, page=None) -> WatchResult:
         view.close()
         if live is not None:
             live.finish(recorder, {"steps": "recorded up to --steps", "world ended":
-                                   "the world ended", "no world": "no world heard",
+                                   "the world ended", "world lost":
+                                   "the world left without its end", "no world": "no world heard",
                                    "behind": "--steps behind the run"}.get(ended, ended))
     rec = recorder.recording
     if ended == "behind":
@@ -124,6 +125,10 @@ def watch(config: WatchConfig, view, page=None) -> WatchResult:
         run_id=c.net.run)
     summary, steps, mse = summarize(run_config, rec, rho, predicted)
     summary.update(watched=True, ended=ended, connect=list(c.net.connect))
+    if ended == "world lost" and rec.truth:
+        summary["warnings"] = summary.get("warnings", []) + [
+            f"the world left after step {max(rec.truth)} without its end (killed, paused past "
+            "its lease or cut off): the run did not end as planned"]
     if c.out is not None:
         write_run_folder(c.out, summary, steps, mse, predicted, recording=rec, n=s.n)
         summary["out"] = str(c.out)
@@ -235,10 +240,11 @@ def steps_behind_text(steps: int, step: int) -> str:
 
 def exit_status(result: WatchResult) -> int:
     """``socmon watch``'s exit status: 130 interrupted, 1 when the run's clock never
-    started (no step recorded: its world gave up waiting for a process), else 0."""
+    started (no step recorded: its world gave up waiting for a process) or its world left
+    without its end (killed, paused or cut off), else 0."""
     if result.ended == "interrupted":
         return 130
-    return 1 if result.summary.get("steps", -1) < 0 else 0
+    return 1 if result.summary.get("steps", -1) < 0 or result.ended == "world lost" else 0
 
 
 def summary_json(result: WatchResult) -> str:
@@ -257,11 +263,14 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
     summary = result.summary
     pred = summary.get("mse_steady_exact_in_force")
     how = {"steps": "recorded up to --steps", "world ended": "ended with its world",
+           "world lost": "LOST ITS WORLD (its token went without its end: killed, paused "
+                         "past its lease or cut off)",
            "interrupted": "watched until interrupted"}.get(result.ended, result.ended)
     if summary.get("steps", -1) < 0:
+        why = ("nothing of the run heard" if result.ended == "interrupted" else
+               "the world gave up waiting for a process: see its log")
         return [f"{config.scenario.name}: run {config.net.run} {how} before its clock "
-                "started: no step recorded (the world gave up waiting for a process: see "
-                "its log)"] + ([f"run folder: {out}"] if out else [])
+                f"started: no step recorded ({why})"] + ([f"run folder: {out}"] if out else [])
     lines = [f"{config.scenario.name}: run {config.net.run} {how}, last step "
              f"{summary['steps']}: mse_steady {steady_text(summary, 'mse_steady')}"
              + (" (no --gains: no prediction)" if summary.get("mse_steady_exact") is None
