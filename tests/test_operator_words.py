@@ -303,3 +303,41 @@ def test_a_steady_mse_is_printed_with_its_standard_error_and_its_window():
     assert line == f"  after recovery: mse_steady 0.2983 ± {se:.2g} over steps 320-350 " \
                    "(predicted 0.2786 over it: the gains of epoch 1, then of epoch 2 from " \
                    "step 346)"
+
+
+def test_a_record_that_began_after_a_recovery_does_not_invent_a_late_switch():
+    """A watch joined at step 1018 of a run whose epoch 1 came into force at step 788: its
+    estimates are under epoch 1 from its first step. The summary keeps epoch 1 from 788
+    (no "not run by all its agents" warning), and, the assignments never heard, says the
+    roles and their prediction are unknown instead of "not recovered" or "the window
+    spans a switch"."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from agent.run.summary import _failures, headline_lines
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    steps = list(range(1018, 1200))
+    rec = SimpleNamespace(
+        events=[], assigns={}, monitor_events=[],
+        rosters=[(0, (1, 2, 3), 0), (788, (4, 2, 3), 1)],
+        est_epoch={1: {}, 2: {k: 1 for k in steps}, 3: {k: 1 for k in steps[1:]},
+                   4: {k: 1 for k in steps}})
+    out = _failures(None, rec, s, np.zeros((3, 3), int), steps, [0.3] * len(steps),
+                    G0=object())
+    assert out["rosters"] == [{"activate_at": 0, "ids": [1, 2, 3], "epoch": 0},
+                              {"activate_at": 788, "ids": [4, 2, 3], "epoch": 1}]
+    assert out["rosters_not_in_force"] == []
+    assert out["recovered"] is None and out["roles_unheard_before"] == 1018
+    assert out["warnings"] == [
+        "epoch 1 was in force before this record began (step 1018) and its assignments "
+        "were not heard: the roles in force and their exact predictions are unknown; "
+        "recovery is not evaluated"]
+    summary = {**out, "steps": 1199, "mse_steady": 0.3, "mse_steady_se": 0.01,
+               "mse_steady_window": [1150, 1199], "mse_steady_exact": 0.27,
+               "mse_steady_exact_in_force": None, "drops": 0, "late": 0, "malformed": 0,
+               "out": "x"}
+    assert "(predicted n/a: the roles in force were assigned before the record began)" in \
+        headline_lines(summary, s)[0]

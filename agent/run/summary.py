@@ -270,7 +270,7 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     summary["mse_steady_exact_in_force"] = (
         summary.get("mse_steady_exact_after_recovery") if last_switch
         and last_switch <= window_from else predicted if not last_switch else None)
-    if last_switch and last_switch > window_from:
+    if last_switch and last_switch > window_from and "roles_unheard_before" not in summary:
         warnings.append(f"the steady window (from step {window_from}) begins before the last "
                         f"switch (step {last_switch}): no single exact prediction covers it")
     summary["diverged_at"] = diverged_at(
@@ -368,13 +368,22 @@ def headline_lines(summary: dict, scenario) -> list:
              + (f" ({now} in force at the end)" if now != scenario.N else "") + ", mse_steady "
              f"{steady_text(summary, 'mse_steady')} (predicted "
              + (f"{exact:.4g} for the configuration in force" if exact is not None
-                else "n/a: the window spans a switch")
+                else prediction_missing(summary))
              + (f"; DIVERGED at step {summary['diverged_at']}"
                 if summary.get("diverged_at") is not None else "") + "), drops "
              f"{summary['drops']}, late {summary['late']}, malformed {summary['malformed']}"
              + (f", max_rel_diff_vs_simulator {summary['max_rel_diff_vs_simulator']:.3g}"
                 if "max_rel_diff_vs_simulator" in summary else ""))
     return [first, *failure_lines(summary), f"run folder: {summary['out']}"]
+
+
+def prediction_missing(summary) -> str:
+    """Why a summary has no exact prediction for its steady window, in a few words."""
+    if "roles_unheard_before" in summary:
+        return "n/a: the roles in force were assigned before the record began"
+    if summary.get("mse_steady_exact") is None:
+        return "n/a: no gains given"
+    return "n/a: the window spans a switch"
 
 
 def failure_lines(summary) -> list:
@@ -483,23 +492,29 @@ def log_warnings(logs_dir) -> list:
     return found
 
 
-def switch_steps(est_epoch_of_agent: dict, epoch: int):
+def switch_steps(est_epoch_of_agent: dict, epoch: int, activate_at: int | None = None):
     """The first step an agent computed under ``epoch``, from the epochs its estimates
     carried; None if it never did (it rejected that assignment, or ran a newer one first).
 
     An agent that takes a role without an estimate of its own (a standby) first publishes
     the estimate it starts from, stamped ``activate_at - 1`` under the new epoch: its
-    switch is the step after.
+    switch is the step after. A record that begins after the epoch's ``activate_at``
+    with the agent already under it (a watch that joined later) shows no switch: it
+    switched when told, ``activate_at``.
 
     >>> switch_steps({9: 0, 10: 1, 11: 1}, 1), switch_steps({9: 1, 10: 1}, 1)
     (10, 10)
     >>> switch_steps({9: 0, 10: 0}, 1) is None, switch_steps({9: 0, 10: 2}, 1) is None
     (True, True)
+    >>> switch_steps({1018: 1, 1019: 1}, 1, activate_at=788)
+    788
     """
     steps = sorted(k for k, e in est_epoch_of_agent.items() if e == epoch)
     if not steps:
         return None
     first = steps[0]
+    if activate_at is not None and first == min(est_epoch_of_agent) and activate_at <= first:
+        return activate_at
     return first if (first - 1) in est_epoch_of_agent else first + 1
 
 
@@ -559,7 +574,7 @@ def rosters_in_force(rosters, est_epoch, assigns):
         # replays a failed agent kept in an intermediate configuration
         if any(newest.get(b, -1) >= at for b in assigned):
             assigned = [a for a in assigned if a not in newest or newest[a] >= at]
-        switched = {a: switch_steps(est_epoch.get(a, {}), epoch) for a in assigned}
+        switched = {a: switch_steps(est_epoch.get(a, {}), epoch, at) for a in assigned}
         if all(k is None for k in switched.values()):
             if any(est_epoch.get(a) for a in assigned):
                 continue                   # nobody ran it: rejected, or superseded first
@@ -885,9 +900,20 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
             "agents at that step: " + ", ".join(
                 f"agent {a} {'from step ' + str(k) if k is not None else 'never'}"
                 for a, k in sorted(m["switched"].items())))
+    # configurations in force before the record began (a watch that joined later) whose
+    # assignments it never heard: their roles, and so their predictions, are unknown
+    before = [ep for at, _, ep in rosters[1:] if len(steps_done) and at <= steps_done[0]]
+    roles_unheard = bool(before) and not any(0 < e <= max(before) for (_, e) in assigns)
     if len(rosters) > 1 and G0 is None:           # a watcher given no gains
         out["recovered"] = None
         out.setdefault("warnings", []).append("no gains given: recovery not evaluated")
+    elif roles_unheard:
+        out["recovered"] = None
+        out["roles_unheard_before"] = int(steps_done[0])
+        out.setdefault("warnings", []).append(
+            f"epoch {max(before)} was in force before this record began (step "
+            f"{steps_done[0]}) and its assignments were not heard: the roles in force and "
+            "their exact predictions are unknown; recovery is not evaluated")
     elif len(rosters) > 1:
         at = rosters[-1][0]
         # the roles of the last roster in force: a later epoch's assignments (heard, but

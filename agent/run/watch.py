@@ -258,7 +258,7 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
     """What ``socmon watch`` prints at the end: how the watch ended and the MSE against its
     prediction for the configuration in force (as ``up`` prints it), the failures, and the
     run folder ``out`` (as the user named it)."""
-    from agent.run.summary import failure_lines, steady_text
+    from agent.run.summary import failure_lines, prediction_missing, steady_text
 
     summary = result.summary
     pred = summary.get("mse_steady_exact_in_force")
@@ -275,7 +275,7 @@ def summary_lines(result: WatchResult, config: WatchConfig, out: str | None = No
              f"{summary['steps']}: mse_steady {steady_text(summary, 'mse_steady')}"
              + (" (no --gains: no prediction)" if summary.get("mse_steady_exact") is None
                 else f" (predicted {pred:.4g} for the configuration in force)"
-                if pred is not None else " (predicted n/a: the window spans a switch)")
+                if pred is not None else f" (predicted {prediction_missing(summary)})")
              + f", drops {summary['drops']}, late {summary['late']}, malformed "
                f"{summary['malformed']}"]
     lines += failure_lines(summary)
