@@ -341,3 +341,34 @@ def test_a_record_that_began_after_a_recovery_does_not_invent_a_late_switch():
                "out": "x"}
     assert "(predicted n/a: the roles in force were assigned before the record began)" in \
         headline_lines(summary, s)[0]
+
+
+@pytest.mark.parametrize("spoke_at, back_event, dead", [
+    (600, False, False),       # a status of a later step: it was paused, not dead
+    (180, True, False),        # its token came back
+    (180, False, True),        # neither: it died
+])
+def test_a_standby_whose_token_went_and_came_back_is_not_reported_dead(spoke_at, back_event,
+                                                                      dead):
+    """A watch sees a paused standby's token go (its lease lapsed) at step 191: unless
+    the agent spoke again (a status of a later step, or its token back), that is not a
+    death "never convicted"."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from agent.run.summary import _failures
+    from design.scenario import load_scenario
+
+    s = load_scenario("paper-14-live")
+    steps = list(range(0, 700))
+    events = [{"process": "agent-4", "liveliness": False, "step": 191, "t": 10.0}]
+    if back_event:
+        events.append({"process": "agent-4", "liveliness": True, "step": 340, "t": 13.0})
+    rec = SimpleNamespace(events=events, assigns={}, monitor_events=[],
+                          rosters=[(0, (1, 2, 3), 0)], status={4: {"step": spoke_at}},
+                          est_epoch={a: {k: 0 for k in steps} for a in (1, 2, 3)} | {4: {}})
+    out = _failures(None, rec, s, np.zeros((3, 3), int), steps, [0.3] * len(steps),
+                    G0=object())
+    assert [(f["agent"], f["died_step"], f["role"]) for f in out["failures"]] == \
+        ([(4, 191, "standby")] if dead else [])

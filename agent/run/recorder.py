@@ -514,6 +514,7 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
             # are the run's end, not deaths (the world's own token may go after theirs)
             end_in = peer.subscribe(topics.end_key(rec.run_id), maxlen=16)
             world_ended = False
+            gone = set()                               # agents whose token went
             alive_watch = peer.watch_liveliness()
             tokens = MonitorTokens(recorder)
             world_seen = False
@@ -536,6 +537,12 @@ def watch_run(net, recorder: Recorder, *, steps: int | None = None, timeout: flo
                     elif ev.role == "agent" and not ev.any_alive and world_gone is None \
                             and not world_ended:
                         recorder._event(process=f"agent-{ev.id}", liveliness=False,
+                                        step=recorder.step)
+                        gone.add(ev.id)
+                    elif ev.role == "agent" and ev.any_alive and ev.id in gone:
+                        # back (paused past its lease, a link that lapsed): not dead
+                        gone.discard(ev.id)
+                        recorder._event(process=f"agent-{ev.id}", liveliness=True,
                                         step=recorder.step)
                 tokens.settle(("world", "0") in alive_watch.alive())   # (after the drain)
                 if ("world", "0") in alive:

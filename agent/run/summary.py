@@ -872,6 +872,14 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
                                     for a, b in r.get("added_links", [])]
         failures.append(entry)
     absent = _no_monitor_windows(events)
+    # a token that went and came back (a process paused past its lease, a link that
+    # lapsed): the agent spoke again after it, by a status of a later step or its token
+    spoke = {a: st.get("step", -1) for a, st in (getattr(rec, "status", None) or {}).items()}
+    deaths = {a: e for a, e in deaths.items() if not (
+        e.get("liveliness") is False and e.get("exit_status") is None and (
+            spoke.get(a, -1) > e.get("step", -1) or any(
+                x.get("process") == f"agent-{a}" and x.get("liveliness") is True
+                and x.get("t", 0) >= e.get("t", 0) for x in events)))}
     failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},
                             absent, rosters, steps_done[-1] if len(steps_done) else None)
     out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),

@@ -395,6 +395,8 @@ def event_text(e: dict) -> str | None:
         return f"{who} dropped its role (fenced: not in the roster of epoch {e.get('epoch')})"
     if e.get("liveliness") is False:
         return f"{who}: liveliness token gone"
+    if e.get("liveliness") is True:
+        return f"{who}: liveliness token back"
     if e.get("started"):
         return f"{who} started"
     if "monitors_alive" in e:
