@@ -365,7 +365,8 @@ def live_chaos(args, say) -> tuple:
     """``socmon chaos``: a live run under the fault schedule drawn from ``args.seed``,
     checked against the invariants; the run folder gets ``schedule.json``,
     ``invariants.json`` and the timeline besides ``up``'s files. Returns ``(report,
-    status)``: status 1 when the run failed or broke an invariant."""
+    status)``: status 1 when the run failed or broke an invariant, 130 interrupted
+    (:func:`agent.run.setup.exit_status`)."""
     import argparse
     import dataclasses
     import json
@@ -376,7 +377,7 @@ def live_chaos(args, say) -> tuple:
     from agent.run.folder import write_atomic
     from agent.run.inputs import InputError
     from agent.run.jsonable import SCHEMA_VERSION, to_jsonable
-    from agent.run.setup import run_config
+    from agent.run.setup import exit_status, run_config
     from agent.run.summary import run_and_summarize, write_run_folder
 
     check_schedule_flags(args)
@@ -406,12 +407,18 @@ def live_chaos(args, say) -> tuple:
         f"{f.kind}{' ' + str(f.agent) if f.agent else ''}@{f.step}" for f in schedule))
     s = config.scenario
     rec, summary, steps, mse, predicted = run_and_summarize(config, say)
+    status = exit_status(rec, summary)          # writes the summary's error, as up's
     violations = [] if rec.failure else check_invariants(config, rec, summary, steps, mse)
     write_run_folder(config.out, summary, steps, mse, predicted, recording=rec, n=s.n)
+    reached = steps[-1] if len(steps) else -1
     report = {
         "schema_version": SCHEMA_VERSION,
         "scenario": s.name, "seed": args.seed, "duration": args.duration,
         "faults": [f.to_dict() for f in schedule],
+        # the run's last step, and the faults due by then (an interrupted or failed run
+        # stops short of its schedule; its invariants are not checked)
+        "reached": reached,
+        "injected": sum(f.step <= reached for f in schedule),
         "failures": summary.get("failures", []),
         "rosters": summary.get("rosters", []),
         "violations": [v.to_dict() for v in violations],
@@ -424,7 +431,7 @@ def live_chaos(args, say) -> tuple:
     write_atomic(config.out / "invariants.json",
                  json.dumps(to_jsonable(report), indent=2) + "\n")
     write_timeline(config.out, summary, steps, mse, schedule, rec.rosters)
-    return report, 1 if violations or rec.failure else 0
+    return report, status or (1 if violations else 0)
 
 
 def write_timeline(out, summary, steps, mse, schedule, rosters) -> None:

@@ -66,12 +66,27 @@ def live_report_text(report: dict, as_json: bool = False) -> str:
     ...     "replay": "socmon chaos paper-14-live --seed 0"}))
     paper-14-live, seed 0: NO FAULT DRAWN (--rate, --duration): the run tested nothing; 0 verdicts, 0 reassignments, 0 violations
     run folder: runs/c
+
+    A run stopped short (Ctrl-C, or a process that failed) says how far it got and that
+    nothing was checked:
+
+    >>> print(live_report_text({"scenario": "paper-14-live", "seed": 11, "faults": [{}] * 6,
+    ...     "reached": 448, "injected": 1, "failures": [], "violations": [],
+    ...     "error": "interrupted", "out": "runs/c", "replay": "socmon chaos ..."}))
+    paper-14-live, seed 11: INTERRUPTED at step 448, invariants NOT CHECKED; 1 of 6 faults injected; 0 verdicts, 0 reassignments
+    run folder: runs/c
+    replay: socmon chaos ...
     """
     if as_json:
         return json.dumps(to_jsonable(report), indent=2)
     violations = report["violations"]
     drawn = (f"{len(report['faults'])} faults" if report["faults"] else
              "NO FAULT DRAWN (--rate, --duration): the run tested nothing")
+    error = report.get("error")
+    if error:                # stopped short: what it reached, and nothing checked
+        drawn = ("INTERRUPTED" if error == "interrupted" else "FAILED") + \
+            f" at step {report.get('reached', -1)}, invariants NOT CHECKED; " + \
+            f"{report.get('injected', 0)} of {len(report['faults'])} faults injected"
     verdicts = sum(f.get("detected_step") is not None for f in report["failures"])
     unanswered = len(report["failures"]) - verdicts
     rosters = [r["ids"] for r in report.get("rosters", [])]
@@ -81,7 +96,9 @@ def live_report_text(report: dict, as_json: bool = False) -> str:
              + (f" ({unanswered} failures without one)" if unanswered else "")
              + f", {moved} reassignments"
              + (f" (and {regained} new gains for the same roles)" if regained else "")
-             + f", {len(violations)} violations"]
+             + ("" if error else f", {len(violations)} violations")]
+    if error and error != "interrupted":
+        lines.append(f"  error: {error.splitlines()[0]}")
     lines += [f"  {d['why']}" for d in report.get("no_verdict_due", [])]
     lines += [f"  VIOLATION {v['invariant']} at step {v['step']}: {v['evidence']}"
               for v in violations]

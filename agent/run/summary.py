@@ -260,8 +260,9 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     if c.monitor and c.faults and c.step_ms:
         from design.roster import link_delay_table
 
-        summary["no_verdict_due"] = no_verdict_due(
-            c.faults, summary.get("failures", []), c.hang_timeout, c.step_ms / 1000.0,
+        summary["no_verdict_due"] = no_verdict_due(   # of the faults the run reached
+            [f for f in c.faults if steps and f.step <= steps[-1]],
+            summary.get("failures", []), c.hang_timeout, c.step_ms / 1000.0,
             int(link_delay_table(c.scenario, c.delays).max()))
     warnings = []
     # the prediction for what was in force over the steady window (the last quarter)
