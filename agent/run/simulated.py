@@ -860,7 +860,9 @@ def run_schedules(scenario, G, delays, seeds, steps: int, kinds, rate: float,
                          and g.step <= f["detected_step"] + 5), key=lambda g: g.step,
                         default=None)
             if fault is not None and fault.kind in detection:
-                detection[fault.kind].append(f["detected_step"] - fault.step)
+                # a verdict's step is the newest the run had reported then: a kill at
+                # step S convicted before anyone reported step S is 0 steps late, not -1
+                detection[fault.kind].append(max(0, f["detected_step"] - fault.step))
             if f.get("activate_at") is not None:
                 switch.append(f["activate_at"] - f["detected_step"])
         for alert in result.summary.get("residual_alerts", []):
