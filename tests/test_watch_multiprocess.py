@@ -147,6 +147,7 @@ def test_a_watch_whose_world_is_killed_says_it_lost_it_and_exits_1(tmp_path, chi
     log = _log(children, "watch")
     assert children.children["watch"].returncode == 1, log
     assert f"paper-14-live: run {run} LOST ITS WORLD (its token went without its end" in log
+    assert "warning: the world left after step " in log      # the warnings, as up says them
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ended"] == "world lost" and summary["steps"] >= 60
     assert any(w.startswith("the world left after step ") for w in summary["warnings"])

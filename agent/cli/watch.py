@@ -73,6 +73,8 @@ def _watch(args) -> int:
             result = watch(config, live_view_for(sys.stdout, args.json, args.interval), page)
         except NoWorld as exc:
             raise CommandError(str(exc), status=1) from None
+    for warning in result.summary.get("warnings", []):      # as up says them
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         print(summary_json(result), flush=True)
     else:
