@@ -73,6 +73,10 @@ def test_recorder_rosters_assignments_and_monitor_events(fed):
     view = fed.view()
     assert view["roster"] == [1, 3] and view["epoch"] == 1
     assert view["failures"] == [{"agent": 2, "cause": "crash", "step": 1}]
+    # agent 2 came back and passed its probation: no longer shown as failed
+    fed.feed(topics.monitor_events_key(RUN), wire.encode_monitor_event(
+        {"kind": "rejoin", "agent": 2, "step": 3, "healthy_s": 5.0, "standby": [2]}))
+    assert fed.view()["failures"] == []
     # from step 2 the roster is (1, 3): agent 3 sent nothing, so only agent 1 counts
     np.testing.assert_allclose(mse_by_step(rec, 3)[1], [1.5, 1.5, 1.0, 1.0])
 

@@ -445,7 +445,10 @@ class Recorder:
                          else None, "epoch": st["epoch"] if st else None, "mse": err,
                          "drops": st["drops"] if st else 0, "late": st["late"] if st else 0,
                          "malformed": st["malformed"] if st else 0}
-        verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict"]
+        # the verdicts on agents not back since (one that passed probation rejoined)
+        verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict" and not any(
+            r.get("kind") == "rejoin" and r.get("agent") == e.get("agent")
+            and r.get("t", 0) >= e.get("t", 0) for r in rec.monitor_events)]
         return {"run": rec.run_id, "step": self.step, "mse_step": k, "mse": mse,
                 "mse_last100": float(np.mean(recent)) if recent else None,
                 "mse_last100_steps": 0 if k is None else k - first + 1,  # fewer early on
