@@ -160,6 +160,41 @@ def test_sigterm_while_exiting_keeps_the_exit_status():
             proc.wait()
 
 
+_BUSY_COMMAND = """
+import sys, time
+import agent.cli.analyze as analyze
+import agent.cli.main as cli
+
+def busy(args):                        # a command at work that never handles SIGTERM
+    print("working", flush=True)
+    while True:
+        time.sleep(0.05)
+
+analyze.run = busy
+sys.argv = ["socmon", "analyze", "paper-14"]
+cli.run_program()
+"""
+
+
+@pytest.mark.multiprocess
+def test_sigterm_ends_a_command_that_does_not_handle_it_as_ctrl_c_does():
+    """``inject`` or ``reproduce`` stopped by SIGTERM: "socmon: interrupted", status 130,
+    as with Ctrl-C, not killed by the signal with nothing said."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", _BUSY_COMMAND], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        assert proc.stdout.readline() == b"working\n"
+        os.killpg(proc.pid, signal.SIGTERM)
+        assert proc.wait(timeout=60) == 130
+        assert proc.stderr.read() == b"socmon: interrupted\n"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
 # -- warnings of a run ------------------------------------------------------------------------
 
 def test_log_warnings_are_collected_and_bounded(tmp_path):

@@ -155,6 +155,10 @@ class LossyStream:
         return getattr(self._stream, name)
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run_program() -> None:
     """The program (``socmon``, ``python -m agent.cli``): :func:`main`, then exit with its
     status.
@@ -165,6 +169,7 @@ def run_program() -> None:
     shutting down (seen once in a chaos run). Once :func:`main` has returned the work is
     done, and both signals are ignored while the process exits.
 
+    Until a command handles SIGTERM itself it ends the command as Ctrl-C does.
     Standard output and error are :class:`LossyStream`: a process whose log sits on a full
     disk keeps running (``up`` says the disk is full when it writes the run folder).
     """
@@ -172,6 +177,9 @@ def run_program() -> None:
         sys.stdout = LossyStream(sys.stdout)
     if sys.stderr is not None:
         sys.stderr = LossyStream(sys.stderr)
+    # SIGTERM as Ctrl-C ("socmon: interrupted", 130) for the commands that do not handle
+    # it themselves (inject, reproduce, design, ...): killed by it, they said nothing
+    signal.signal(signal.SIGTERM, _interrupt)
     code = main()
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
