@@ -157,6 +157,22 @@ def test_an_agent_on_probation_does_not_grow_the_hang_timeout(core):
     assert core.hang_timeout() > 1.5 * core.config.hang_timeout_s and core.verdicts[1:] == []
 
 
+def test_a_standby_stopped_past_its_lease_does_not_grow_the_hang_timeout(core):
+    """Standby agent 4 stopped 3 s: its token lapses with its lease, so its stall is a
+    stopped process's, not the machine's pace. The timeout stays at its floor (it went
+    to its 5 s ceiling), and agent 2 hung right after is convicted at it."""
+    _advance(core, 0.0, 4.0, lambda t: 50 * t, dt=0.2)
+    _advance(core, 4.2, 5.2, lambda t: 50 * t, skip=(4,), dt=0.2)      # agent 4 stopped
+    core.on_liveliness("agent", 4, False, 5.3)           # its lease lapsed
+    _advance(core, 5.4, 7.0, lambda t: 50 * t, skip=(4,), dt=0.2)
+    core.on_liveliness("agent", 4, True, 7.1)            # resumed
+    _advance(core, 7.2, 9.0, lambda t: 50 * t, dt=0.2)
+    assert core.hang_timeout() == core.config.hang_timeout_s and core.verdicts == []
+    _advance(core, 9.2, 11.0, lambda t: 50 * t, skip=(2,), dt=0.2)     # agent 2 hangs
+    [v] = core.verdicts
+    assert (v.agent, v.cause) == (2, "hang") and v.at - 9.0 <= 1.0 + 0.25
+
+
 def test_hang_needs_both_no_progress_and_the_others_moving_on(core):
     _advance(core, 0.0, 1.0, lambda t: 50 * t)
     out = _advance(core, 1.1, 1.9, lambda t: 50 * t, skip=(2,))

@@ -460,13 +460,16 @@ class FailureDetector:
                 and self._last_tick is not None \
                 and now - self._last_tick < self.config.pause_guard_s \
                 and self.convicted_at.get(msg["agent"], -math.inf) < a.status_at \
-                and msg["agent"] not in self.failed:
+                and msg["agent"] not in self.failed \
+                and not (a.gone_at is not None and a.gone_at >= a.status_at):
             # a healthy gap between two of its statuses: one this monitor watched whole
             # (not across its own pause, nor the world's absence: after either, the
             # backlog's first status of each agent closes a gap as long as the pause), nor
             # across the agent's own conviction, nor of an agent on probation (convicted
             # and not rejoined: its stalls are a fault's, and a stopped standby's gaps
-            # raised the timeout to 3.65 s, so that a later 1.5 s stop went unconvicted)
+            # raised the timeout to 3.65 s, so that a later 1.5 s stop went unconvicted),
+            # nor across the loss of its token (its lease lapsed: the process was stopped
+            # or cut off; a standby stopped 3 s drove the timeout to its 5 s ceiling)
             self.pace.add(now - a.status_at, now)
         a.status_at = now
         if step >= self._clock[0]:
