@@ -151,6 +151,16 @@ def test_a_watch_whose_world_is_killed_says_it_lost_it_and_exits_1(tmp_path, chi
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ended"] == "world lost" and summary["steps"] >= 60
     assert any(w.startswith("the world left after step ") for w in summary["warnings"])
+    # the world started again by hand: it cannot take over a run under way, and says so
+    # at once instead of waiting its start timeout for agents that will never be "ready"
+    children.start("world-again", ["world", "paper-14-live", *common, "--connect", ep[1],
+                                   "--step-ms", "20", "--wait-agents", "1,2,3"])
+    _wait(lambda: children.children["world-again"].returncode is not None,
+          "the world started again to give up", children, timeout=30,
+          allowed_exit=("watch", "world", "world-again"))
+    assert children.children["world-again"].returncode == 1
+    assert f"of run {run} are at step " in _log(children, "world-again")
+    assert "a world cannot join a run under way" in _log(children, "world-again")
 
 
 @pytest.mark.parametrize("secure", [False, True], ids=["tcp", "secure"])

@@ -166,6 +166,16 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 print(f"world: after {now - started:.0f} s, {wait}", file=log, flush=True)
                 next_word = now + START_WORD_S
             read_statuses(timeout=0.05)
+            running = {a: k for a, k in last_step.items() if k >= 0}
+            if running:
+                # agents of a run under way (its world killed, and this one started again):
+                # a new clock and a new state would not be theirs
+                print(f"world: agents {sorted(running)} of run {run} are at step "
+                      f"{max(running.values())}: their clock started with another world; a "
+                      "world cannot join a run under way (its state and clock would start "
+                      "over). Start a new run (another --run) with all its processes",
+                      file=log, flush=True)
+                return 1
         print(f"world: {len(expected)} agents ready; clock starts, step {step_s * 1e3:g} ms",
               file=log)
         # the statuses serve the start and the end only: while the clock runs, N agents'
