@@ -96,7 +96,16 @@ class InvalidNetConfig(ValueError):
 
     def __init__(self, field: str, message: str):
         self.field = field
+        self.reason = message
         super().__init__(f"{field}: {message}")
+
+    def as_flag(self) -> str:
+        """The message as a command line says it, naming the flag.
+
+        >>> InvalidNetConfig("zenoh_config", "no such file 'x'").as_flag()
+        "--zenoh-config: no such file 'x'"
+        """
+        return f"--{self.field.replace('_', '-')}: {self.reason}"
 
 
 def _check_endpoints(name: str, value) -> tuple[str, ...]:
@@ -349,6 +358,15 @@ class NetConfig:
                 if plain:
                     raise InvalidNetConfig(name, f"{plain[0]!r}: with keys every endpoint is tls/ "
                                                  f"(e.g. tls/127.0.0.1:7447)")
+        elif self.zenoh_config is None:
+            # nothing gives this session a certificate: a tls link could never be made,
+            # and zenoh would keep retrying it in silence
+            for name in ("listen", "connect"):
+                tls = [ep for ep in getattr(self, name) if ep.startswith("tls/")]
+                if tls:
+                    raise InvalidNetConfig(name, f"{tls[0]!r}: a tls/ endpoint needs the run's "
+                                                 "keys (--keys DIR, or --attach of a --secure "
+                                                 "run)")
 
     def fragment(self) -> dict | None:
         """The secure zenoh config fragment of this process (None without `keys`)."""

@@ -199,3 +199,13 @@ def test_keys_flag_needs_an_identity(tmp_path):
     assert info.value.field == "keys"
     net = net_config_from_args(args, identity="agent-1")
     assert (net.run, net.identity, net.listen) == ("r9", "agent-1", ("tls/127.0.0.1:0",))
+
+
+def test_a_tls_endpoint_without_keys_is_refused_naming_the_flag():
+    """Without keys (or a zenoh config file of the user's) nothing gives the session a
+    certificate: a tls/ endpoint could never link, and zenoh would retry it in silence."""
+    with pytest.raises(InvalidNetConfig) as caught:
+        NetConfig(run="r", connect=("tls/127.0.0.1:7447",))
+    assert caught.value.as_flag() == ("--connect: 'tls/127.0.0.1:7447': a tls/ endpoint needs "
+                                      "the run's keys (--keys DIR, or --attach of a --secure "
+                                      "run)")

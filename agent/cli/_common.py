@@ -268,10 +268,7 @@ def net_config_arg(args, identity: str):
     try:
         return net_config_from_args(args, identity=identity)
     except InvalidNetConfig as exc:
-        message = str(exc)
-        if message.startswith(f"{exc.field}: "):
-            message = message[len(exc.field) + 2:]
-        raise CommandError(f"--{exc.field.replace('_', '-')}: {message}") from None
+        raise CommandError(exc.as_flag()) from None
 
 
 def _int_or_reason(text, lo: int, hi: int | None):

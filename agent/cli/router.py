@@ -50,8 +50,7 @@ def run(args) -> int:
         try:
             net = net_config_from_args(args)
         except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: "
-                               f"{str(exc).removeprefix(exc.field + ': ')}") from None
+            raise CommandError(exc.as_flag()) from None
 
         def ready(router):
             endpoints = router.endpoints()
@@ -63,8 +62,7 @@ def run(args) -> int:
         try:
             serve_router(net, on_ready=ready)
         except InvalidNetConfig as exc:
-            raise CommandError(f"--{exc.field.replace('_', '-')}: "
-                               f"{str(exc).removeprefix(exc.field + ': ')}") from None
+            raise CommandError(exc.as_flag()) from None
         except zenoh.ZError as exc:  # e.g. the port is taken
             raise CommandError(f"cannot start the router: {zenoh_message(exc)}",
                                status=1) from None

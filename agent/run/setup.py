@@ -177,8 +177,7 @@ def check_run_endpoint(run_id, listen, secure) -> tuple:
     try:                         # the transport's own rules for run ids and endpoints
         NetConfig(run=run_id, listen=None if listen is None else (listen,))
     except InvalidNetConfig as exc:
-        raise InputError(f"--{exc.field}: {str(exc).removeprefix(exc.field + ': ')}") \
-            from None
+        raise InputError(exc.as_flag()) from None
     if listen is None:
         return run_id, None
     scheme = "tls" if secure else "tcp"

@@ -194,7 +194,7 @@ def watch_config(args, info=None) -> WatchConfig:
     try:
         net = net_config_from_args(args, identity="recorder")
     except InvalidNetConfig as exc:
-        raise InputError(f"--{exc.field.replace('_', '-')}: {exc}") from None
+        raise InputError(exc.as_flag()) from None
     check_keys_arg(net.keys, scenario)
     if not net.connect and not net.multicast:
         raise InputError("--connect: give the endpoint of a process of the run "
