@@ -2090,6 +2090,9 @@ def test_a_second_monitor_precomputes_once_the_clock_started_and_stands_down_whe
     seat.decide(2.7, [(1, "a"), (2, "z")])
     assert seat.decide(2.7 + 1.5, [(1, "a"), (2, "z")]) == "idle"
     assert seat.stand_down and not seat.precompute
+    # its record says it took the seat and handed it over, not only that it acted
+    assert [k for k, _ in seat.records] == ["active", "passive"]
+    assert seat.records[-1][1] == {"monitor": 2, "to": 1, "epoch": 0}
 
     first = MonitorSeat(MonitorCore(MonitorConfig(), paper14, G, paper14.delays), 1, 0.0,
                         listen_s=1.5)

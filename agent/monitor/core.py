@@ -1642,6 +1642,8 @@ class MonitorSeat:
             self.active = self._precompute_due = True
         elif not should and self.active:
             self.lines.append(f"another monitor ({others[0]}) is active; passive")
+            self.records.append(("passive", {"monitor": self.id, "to": others[0],
+                                             "epoch": core.epoch}))
             self.active = self._precompute_due = False
             self.stand_down = True
         if self.active and core.behind:

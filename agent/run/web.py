@@ -372,6 +372,8 @@ def event_text(e: dict) -> str | None:
         return (f"evidence refused ({e.get('reason')}) about agent {e.get('agent')}")
     if kind == "active":
         return f"monitor {e.get('monitor')} acts (epoch {e.get('epoch')})"
+    if kind == "passive":
+        return f"monitor {e.get('monitor')} stands by: monitor {e.get('to')} acts"
     if kind == "prepared":
         return (f"monitor foresees the failure of agents {e.get('foreseen')} "
                 f"({_f(e.get('seconds'), 2)} s)")
