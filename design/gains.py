@@ -35,7 +35,7 @@ from numpy.lib import format as npy_format
 from .errors import GainsError
 from .files import UnreadableFile, human_bytes, open_bounded
 
-__all__ = ["Gains", "save_gains", "load_gains", "gains_meta", "check_gains_fit",
+__all__ = ["Gains", "save_gains", "load_gains", "gains_meta", "check_gains_fit", "gain_digest",
            "MAX_GAINS_BYTES", "MAX_META_BYTES", "MAX_MEMBERS"]
 
 #: Largest gains file, and largest total of its arrays once decompressed. The gains of the
@@ -248,6 +248,22 @@ def _read_array(z, info, key, path, budget, kinds, want=None, agent=None) -> np.
 def _few(items, k: int = 10) -> str:
     more = f" and {len(items) - k} more" if len(items) > k else ""
     return f"{items[:k]}{more}"
+
+
+def gain_digest(G) -> str:
+    """A short digest of one agent's gain matrix: what an agent's start status says it
+    runs, for the monitor to check against its own (the same ``--gains`` file).
+
+    >>> gain_digest(np.eye(2)) == gain_digest([[1.0, 0.0], [0.0, 1.0]])
+    True
+    >>> gain_digest(np.eye(2)) == gain_digest(2 * np.eye(2)), len(gain_digest(np.eye(2)))
+    (False, 16)
+    """
+    import hashlib
+
+    # to 1e-9: the default gain designed by each process alone may differ in its last bits
+    a = np.ascontiguousarray(np.round(np.asarray(G, dtype=float), 9) + 0.0, dtype="<f8")
+    return hashlib.sha256(repr(a.shape).encode() + a.tobytes()).hexdigest()[:16]
 
 
 def check_gains_fit(gains, scenario, where: str = "gains") -> None:

@@ -2097,3 +2097,18 @@ def test_a_second_monitor_precomputes_once_the_clock_started_and_stands_down_whe
     first = MonitorSeat(MonitorCore(MonitorConfig(), paper14, G, paper14.delays), 1, 0.0,
                         listen_s=1.5)
     assert first.decide(2.0, [(1, "a")]) == "act" and first.precompute
+
+
+def test_an_agent_started_with_another_gain_is_named_once(core):
+    """Its statuses carry the digest of the gain it started with: the monitor names an
+    agent whose gain is not its own, once, and nobody whose gain is."""
+    from design.gains import gain_digest
+
+    for a in (1, 2, 3):
+        g = core.G[a - 1] * (1.1 if a == 3 else 1.0)
+        for t in (0.0, 0.2):
+            core.on_status({**_status(a, -1), "gains": gain_digest(g)}, t)
+    warned = [e for e in core.events if "warning" in e]
+    assert len(warned) == 1 and warned[0].startswith(
+        "warning: agent 3 was started with another gain than this monitor's (digest "
+        f"{gain_digest(core.G[2] * 1.1)}, here {gain_digest(core.G[2])})")

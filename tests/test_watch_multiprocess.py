@@ -163,6 +163,47 @@ def test_a_watch_whose_world_is_killed_says_it_lost_it_and_exits_1(tmp_path, chi
     assert "a world cannot join a run under way" in _log(children, "world-again")
 
 
+def test_hand_started_processes_with_another_seed_or_gains_are_named(tmp_path, children,
+                                                                    live_run):
+    """By hand, agent 2 started with another --seed and agent 3 with another gains file:
+    the world names agent 2 (its noise is not the run's), the monitor names agent 3 (its
+    predictions assume its own gains), each once, and nobody else."""
+    from design.gains import load_gains, save_gains
+
+    s, G, gains = live_run
+    other = tmp_path / "other.npz"
+    save_gains(other, [g if i != 2 else 0.9 * g for i, g in enumerate(G)],
+               dict(load_gains(gains).meta))
+    run = f"ws{os.getpid()}"
+    ep = [f"tcp/127.0.0.1:{listen_port()}" for _ in range(s.N + s.standby + 2)]
+    common = ["--run", run, "--seed", "3"]
+    children.start("world", ["world", "paper-14-live", *common, "--listen", ep[0],
+                             "--step-ms", "20", "--steps", "40", "--wait-monitor", "1"])
+    children.start("monitor", ["monitor", "paper-14-live", *common, "--gains", str(gains),
+                               "--listen", ep[-1], "--connect", ep[0]])
+    for a in range(1, s.N + s.standby + 1):
+        argv = ["agent", "paper-14-live", "--id", str(a), *common, "--listen", ep[a],
+                "--connect", ep[0]]
+        if a == 2:
+            argv[argv.index("--seed") + 1] = "4"
+        if a <= s.N:
+            argv += ["--gains", str(other if a == 3 else gains)]
+        children.start(f"agent-{a}", argv)
+    _wait(lambda: children.children["world"].returncode is not None, "the world's 40 steps",
+          children, timeout=180, allowed_exit=("world",))
+    world = _log(children, "world")
+    assert children.children["world"].returncode == 0, world
+    warned = [line for line in world.splitlines() if "warning" in line]
+    assert warned == ["world: warning: agent 2 was started with --seed 4, this world with "
+                      "--seed 3: its measurement noise and first estimate are not the run's "
+                      "(a replay differs)"]
+    _wait(lambda: "warning: agent" in _log(children, "monitor"), "the monitor's warning",
+          children, allowed_exit=("world", "monitor", *(f"agent-{a}" for a in range(1, 5))))
+    warned = [line for line in _log(children, "monitor").splitlines() if "warning" in line]
+    assert len(warned) == 1 and warned[0].startswith(
+        "monitor 1: warning: agent 3 was started with another gain than this monitor's"), warned
+
+
 @pytest.mark.parametrize("secure", [False, True], ids=["tcp", "secure"])
 def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_run, secure):
     """``up --run --listen`` writes run.json; ``inject --attach`` reaches the run (signed

@@ -485,6 +485,7 @@ class MonitorCore:
         self.on_probation: set = set()    # convicted, not yet healthy for rejoin_s
         self.barred: set = set()          # on probation for good (NEVER_REJOIN)
         self._epoch_seen = 0              # the highest epoch accepted from the network
+        self._gains_said: set = set()     # agents started with another gain (said once)
         self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
@@ -595,10 +596,28 @@ class MonitorCore:
         if a is None:
             return
         self._epoch_seen = max(self._epoch_seen, a.epoch)
+        self._check_gains(int(msg["agent"]), msg)
         self._note_residuals(int(msg["agent"]), msg)
         if self.epoch < a.epoch:
             self.epoch = a.epoch
             self.behind = True
+
+    def _check_gains(self, agent: int, msg: dict) -> None:
+        """An agent's start status names the gain it was started with: one other than this
+        monitor's (another ``--gains`` file) is said once, as a warning, since the
+        predictions and the replacements designed here assume this monitor's."""
+        said = self._gains_said
+        if "gains" not in msg or agent in said or not 1 <= agent <= len(self.G):
+            return
+        from design.gains import gain_digest
+
+        if msg["gains"] != gain_digest(self.G[agent - 1]):
+            said.add(agent)
+            self.events.append(
+                f"warning: agent {agent} was started with another gain than this monitor's "
+                f"(digest {msg['gains']}, here {gain_digest(self.G[agent - 1])}): another "
+                "--gains file? The predictions and the replacements designed here assume "
+                "this monitor's")
 
     def on_estimate_seen(self, agent, now: float) -> None:
         """The monitor's own observation (:meth:`FailureDetector.on_estimate_seen`)."""

@@ -85,6 +85,7 @@ from design.estimator import (
     hold_limit,
     neighbour_input,
 )
+from design.gains import gain_digest
 from design.plausibility import ESTIMATE_MULTIPLE, READING_MULTIPLE, StateScale
 
 from agent.protocol.wire import STAMP_WINDOW
@@ -361,6 +362,7 @@ class AgentCore:
 
     def __init__(self, config: AgentConfig):
         self.config = config
+        self._gains_digest = None          # of the gain it started with (_started_gains)
         self.id = int(config.agent)
         self.A = np.asarray(config.A, dtype=float)
         self.n = self.A.shape[0]
@@ -952,6 +954,12 @@ class AgentCore:
                               "disturbed": -1 if res.disturbed_at is None else res.disturbed_at,
                               "settle": res.warmup + res.window, "epoch": res.epoch}}
 
+    def _started_gains(self) -> str:
+        """:func:`design.gains.gain_digest` of the gain it started with (once)."""
+        if self._gains_digest is None:
+            self._gains_digest = gain_digest(self.role.gain)
+        return self._gains_digest
+
     def status(self) -> dict:
         """The status fields of this agent (see docs/runtime.md)."""
         role = self.role
@@ -977,6 +985,12 @@ class AgentCore:
             # the start handshake's: once the clock runs, N ids in every status (read by
             # every monitor) would serve nobody
             **({"heard": sorted(self.heard)} if self.step < 0 else {}),
+            # what it was started with, for the world and the monitor to check against
+            # theirs (a hand-started process with another --seed or --gains): the seed
+            # for the start, the gain while it runs the role it started with (a monitor
+            # may join as the clock starts)
+            **({"seed": self.config.seed} if self.step < 0 else {}),
+            **({"gains": self._started_gains()} if role and self.epoch == 0 else {}),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
                       for (src, dst), p in self.impair.links().items() if not p.is_identity},
             "ctl": {"accepted": self.ctl_accepted, "rejected": self.ctl_rejected,

@@ -330,6 +330,11 @@ STATUS_SCHEMA = Schema({
     "sensor": Loose(required=True),
     # the agents whose status it heard: the start handshake, sent until the clock starts
     "heard": AgentIds(required=False),
+    # the run seed it was started with (sent with "heard") and the digest of the gain it
+    # started with (design.gains.gain_digest, while it runs epoch 0's role): for the world
+    # and the monitor to check against theirs
+    "seed": Int(0, 2**63, required=False),
+    "gains": Str(max_len=64, required=False),
     "ctl": Loose(required=True),
     "links": Loose(required=True),
     "overflows": Int(0),

@@ -128,6 +128,7 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
             peer.put(end_key, wire.encode_end(world.step, reason))
         ready: dict = {}
         heard: dict = {}                   # agent -> the agents its last status heard
+        other_seed: set = set()            # agents started with another --seed (said once)
         last_step: dict = {}
 
         def read_statuses(timeout=0.0):
@@ -140,6 +141,12 @@ def run_world(scenario, net, seed: int, steps=None, step_ms=None, wait_agents=No
                 if "heard" in msg:            # (sent until the agent's clock starts)
                     heard[msg["agent"]] = set(msg["heard"])
                     ready[msg["agent"]] = heard[msg["agent"]] >= (expected - {msg["agent"]})
+                if msg.get("seed", seed) != seed and msg["agent"] not in other_seed:
+                    other_seed.add(msg["agent"])
+                    print(f"world: warning: agent {msg['agent']} was started with --seed "
+                          f"{msg['seed']}, this world with --seed {seed}: its measurement "
+                          "noise and first estimate are not the run's (a replay differs)",
+                          file=log, flush=True)
                 last_step[msg["agent"]] = msg["step"]
 
         def monitor_missing():
