@@ -231,8 +231,18 @@ def test_up_run_attached_by_inject_and_watch(tmp_path, children, live_run, secur
           allowed_exit=("inject",))
     assert children.children["inject"].returncode == 0, _log(children, "inject")
     assert "delay applied on link 3 -> 1" in _log(children, "inject")
+    if not secure:
+        # without the run's operator key: agent 1 refuses the change, and inject says so
+        children.start("unsigned", ["inject", "drop", "3", "1", "0.5", "--run",
+                                    "attachme", "--connect", listen])
+        _wait(lambda: children.children["unsigned"].returncode is not None, "unsigned",
+              children, allowed_exit=("inject", "unsigned"))
+        assert children.children["unsigned"].returncode == 1, _log(children, "unsigned")
+        assert "agent 1 refused the change (" in _log(children, "unsigned")
+        assert "sign it with the run's operator key" in _log(children, "unsigned")
     _wait(lambda: all(children.children[n].returncode is not None for n in ("up", "watch")),
-          "up and watch to end", children, timeout=180, allowed_exit=("up", "watch", "inject"))
+          "up and watch to end", children, timeout=180,
+          allowed_exit=("up", "watch", "inject", "unsigned"))
     assert children.children["up"].returncode == 0, _log(children, "up")
     assert children.children["watch"].returncode == 0, _log(children, "watch")
     up = json.loads((up_dir / "summary.json").read_text())

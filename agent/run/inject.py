@@ -180,6 +180,12 @@ def unused_link(change: Change, statuses: dict) -> str | None:
             "the change takes effect only if the roles change")
 
 
+def _rejected(status: dict) -> int:
+    """The control messages (assignments, impairments) an agent's status says it refused."""
+    ctl = status.get("ctl")
+    return int(ctl.get("rejected", 0) or 0) if isinstance(ctl, dict) else 0
+
+
 def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = True,
            say=print) -> None:
     """Publish ``payload`` (``change`` encoded) to the run of ``net`` (a
@@ -204,6 +210,7 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
         key = topics.impair_key(net.run)
         peer.publisher(key, block=True)
         statuses = {}
+        rejected = {}              # agent -> control messages it had refused at the first put
         deadline = time.monotonic() + timeout
         absent_by = time.monotonic() + min(ABSENT_S, timeout)
         next_put = 0.0
@@ -213,7 +220,17 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
                 m = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                 if m is not None:
                     statuses[m["agent"]] = m
+                    if next_put:     # the control messages it refused since the first put
+                        rejected.setdefault(m["agent"], _rejected(m))
             now = time.monotonic()
+            refused = [a for a in ([dst] if dst is not None else sorted(statuses))
+                       if a in rejected and _rejected(statuses[a]) > rejected[a]]
+            if refused:
+                why = (statuses[refused[0]].get("ctl") or {}).get("last_error") or "?"
+                raise InputError(
+                    f"agent {refused[0]} refused the change ({why}): sign it with the run's "
+                    "operator key (--operator-key RUN_FOLDER/operator.key, or --attach "
+                    "RUN_FOLDER)", status=1)
             # (re)publish until confirmed: a change is idempotent
             if now >= next_put and (dst is None or dst in alive):
                 peer.put(key, payload)

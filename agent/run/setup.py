@@ -175,7 +175,10 @@ def check_run_endpoint(run_id, listen, secure) -> tuple:
 
 
     try:                         # the transport's own rules for run ids and endpoints
-        NetConfig(run=run_id, listen=None if listen is None else (listen,))
+        # (the keys of a --secure run are made later: its tls/ endpoint is checked as a
+        # plain one, which alone may go without keys)
+        NetConfig(run=run_id, listen=None if listen is None else (
+            "tcp/" + listen.removeprefix("tls/") if secure else listen,))
     except InvalidNetConfig as exc:
         raise InputError(exc.as_flag()) from None
     if listen is None:
