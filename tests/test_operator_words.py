@@ -372,3 +372,20 @@ def test_a_standby_whose_token_went_and_came_back_is_not_reported_dead(spoke_at,
                     G0=object())
     assert [(f["agent"], f["died_step"], f["role"]) for f in out["failures"]] == \
         ([(4, 191, "standby")] if dead else [])
+
+
+def test_the_failure_lines_say_rejoins_residual_alerts_and_refused_evidence():
+    """What the summary holds beside the failures is said too (up and watch print these
+    lines): an agent that rejoined, a residual alert, evidence refused."""
+    from agent.run.summary import failure_lines
+
+    summary = {"failures": [], "rejoins": [{"agent": 2, "step": 720, "healthy_s": 5.02,
+                                            "standby": [2]}],
+               "residual_alerts": [{"agent": 1, "fault": "inconsistent estimates",
+                                    "step": 3530, "score": 51.83}],
+               "evidence_refused": [{"reason": "contested", "agent": 3, "detail": "x"}] * 2}
+    assert failure_lines(summary) == [
+        "  rejoined: agent 2 at step 720, healthy 5.02 s on probation",
+        "  residual alert: agent 1 inconsistent estimates at step 3530 (level 51.8)",
+        "  evidence refused: 2 (summary.json evidence_refused: forged or contested tokens, "
+        "statuses)"]

@@ -412,6 +412,14 @@ def failure_lines(summary) -> list:
                      + (f" (links impaired then: {', '.join(f['links_impaired'])})"
                         if f.get("links_impaired") else ""))
     lines += [f"  {d['why']}" for d in summary.get("no_verdict_due", [])]
+    lines += [f"  rejoined: agent {r['agent']} at step {r['step']}, healthy "
+              f"{r.get('healthy_s') or 0:g} s on probation" for r in summary.get("rejoins", [])]
+    lines += [f"  residual alert: agent {a['agent']} {a['fault']} at step {a['step']}"
+              + (f" (level {a['score']:.3g})" if isinstance(a.get("score"), (int, float))
+                 else "") for a in summary.get("residual_alerts", [])]
+    if summary.get("evidence_refused"):
+        lines.append(f"  evidence refused: {len(summary['evidence_refused'])} (summary.json "
+                     "evidence_refused: forged or contested tokens, statuses)")
     refused = summary.get("implausible") or {}
     if any(refused.values()):
         lines.append(f"  refused as implausible (far beyond the model's scale): "
