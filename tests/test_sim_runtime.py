@@ -247,7 +247,7 @@ def test_socmon_chaos_simulated_reports_every_seed(tmp_path, capsys, live_gains)
     assert "cannot be simulated" in capsys.readouterr().err
     for flags, says in ((["--rate", "-1"], "--rate: must be in [0, 6.25]"),
                         (["--rate", "nan"], "got nan"),
-                        (["--duration", "50"], "--duration: must be >= 100")):
+                        (["--duration", "50"], "--duration: must be an integer >= 100")):
         assert main(["chaos", "paper-14-live", "--simulated", "0:2", *flags]) == 2
         assert says in capsys.readouterr().err
 

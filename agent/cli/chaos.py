@@ -21,7 +21,7 @@ def add_arguments(parser) -> None:
 
     c.add_scenario_argument(parser)
     c.add_seed_argument(parser, help="seed of the fault schedule and of the run (default 0)")
-    parser.add_argument("--duration", type=c.int_flag(lo=1), default=1000, metavar="STEPS",
+    parser.add_argument("--duration", type=c.int_flag(lo=100), default=1000, metavar="STEPS",
                         help="steps to run (default 1000)")
     parser.add_argument("--faults", default="kill,stop,hang,sensor,monitor,partition,delay,drop",
                         help="fault kinds to draw from (default: kill, stop, hang, "

@@ -27,7 +27,8 @@ def seed_range(text, parse_int) -> range:
     """
     first, _, last = str(text).partition(":")
     a = parse_int(first, "--simulated")
-    b = parse_int(last, "--simulated", lo=a + 1) if last else a + 1
+    b = parse_int(last, "--simulated A:B, B (the seed after the last)", lo=a + 1) if last \
+        else a + 1
     return range(a, b)
 
 
