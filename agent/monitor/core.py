@@ -486,6 +486,7 @@ class MonitorCore:
         self.barred: set = set()          # on probation for good (NEVER_REJOIN)
         self._epoch_seen = 0              # the highest epoch accepted from the network
         self._gains_said: set = set()     # agents started with another gain (said once)
+        self._own_gains = None            # digests of the initial gains (_check_gains)
         self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
@@ -609,13 +610,15 @@ class MonitorCore:
         said = self._gains_said
         if "gains" not in msg or agent in said or not 1 <= agent <= len(self.G):
             return
-        from design.gains import gain_digest
+        if self._own_gains is None:          # the initial gains' digests, made once
+            from design.gains import gain_digest
 
-        if msg["gains"] != gain_digest(self.G[agent - 1]):
+            self._own_gains = [gain_digest(g) for g in self.G]
+        if msg["gains"] != self._own_gains[agent - 1]:
             said.add(agent)
             self.events.append(
                 f"warning: agent {agent} was started with another gain than this monitor's "
-                f"(digest {msg['gains']}, here {gain_digest(self.G[agent - 1])}): another "
+                f"(digest {msg['gains']}, here {self._own_gains[agent - 1]}): another "
                 "--gains file? The predictions and the replacements designed here assume "
                 "this monitor's")
 
