@@ -253,6 +253,9 @@ def test_a_partitioned_agent_rejoins_after_probation_and_replaces_the_next_failu
     assert "2->1 cut" in first["links_impaired"], first
     assert all(x.startswith("2->") and x.endswith(" cut") for x in first["links_impaired"])
     assert "links_impaired" not in [f for f in s["failures"] if f["agent"] == 4][0]
+    assert any(w.startswith("links were impaired during the run (from step ")
+               and "the exact predictions assume the run's own delays only" in w
+               for w in s["warnings"]), s["warnings"]
     assert rejoin["step"] < 700 and 2 in rejoin["standby"]
     assert 2 in s["rosters"][-1]["ids"] and 4 not in s["rosters"][-1]["ids"]
     assert s["recovered"] is True

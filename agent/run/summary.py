@@ -279,6 +279,12 @@ def summarize(config, rec, loop_rho, predicted) -> tuple:
     if summary["diverged_at"] is not None:
         warnings.append(f"the estimates DIVERGED: the MSE at step {summary['diverged_at']} "
                         f"is above {DIVERGED_FACTOR:g}x every exact prediction (or not finite)")
+    impaired = links_impaired(rec.events, c.scenario, c.delays)
+    if impaired:        # the predictions know the run's delays, not what was injected
+        warnings.append(
+            f"links were impaired during the run (from step {impaired[0][0]}, into agent "
+            f"{impaired[0][1]}: a link fault or socmon inject): the exact predictions assume "
+            "the run's own delays only")
     late = period_warning(last, faulty=bool(summary.get("failures") or c.faults))
     if late:
         warnings.append(late)
