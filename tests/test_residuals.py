@@ -654,3 +654,28 @@ def test_agents_run_the_tests_an_assignment_carries_from_its_step(live):
     assert np.isnan(got[A:, [index["innovation 3"], index["link 1->3"]]]).all()
     assert mesh.agents[1].status()["residuals"]["epoch"] == 1
     assert mesh.agents[3].status()["residuals"]["off"] == "the configuration changed"
+
+
+def test_an_injected_delay_the_thresholds_do_not_cover_stops_the_agents_tests(live):
+    """A delay injected on link 2 -> 1 beyond the designed one: once agent 1 has learned
+    it, its inputs are on time again, but at a delay its thresholds were not computed for
+    (its own innovation leaves their distribution: a false "sensor bias" was raised). Its
+    tests start over and stay off while the delay lasts, said in its status."""
+    from broker_free_net.impair import decode_impairment, encode_impairment
+    from tests.runtime_harness import Mesh
+
+    s, G = live
+    test = residual_test(s, G)
+    mesh = Mesh(s, G, seed=4, delays=s.delays, residuals=True)
+    start = test.first_step + 20
+    for k in range(start + 200):
+        if k == start:
+            mesh.agents[1].on_impairment(decode_impairment(
+                encode_impairment("set", 2, 1, delay_steps=int(s.delays[0, 1]) + 6)))
+        mesh.tick()
+        if k == start - 1:
+            assert mesh.agents[1].residual_levels      # testing before the injection
+    core = mesh.agents[1]
+    assert core.learned_delays()[2] == int(s.delays[0, 1]) + 6
+    assert core.residual_levels == {}
+    assert core.status()["residuals"]["disturbed"] == core.step

@@ -910,7 +910,12 @@ class AgentCore:
         innovation when every reading came, and on each link whose estimate used was the
         on-time one at the tested age, ``A^age xhat^j - prior``."""
         res = self.residuals
-        if y is None or any(s != need or src != j for j, (s, need, src) in plan.items()):
+        if y is None or any(s != need or src != j for j, (s, need, src) in plan.items()) \
+                or any(k - need != res.link_age[j] for j, (_, need, _) in plan.items()
+                       if j in res.link_age and need > 0):
+            # inputs missing or late, or on time at a delay learned other than the one
+            # the thresholds were computed for (an injected delay: a healthy agent's own
+            # innovation then left their distribution, a false "sensor bias")
             res.disturb(k)
         innovation = None if y is None else y - prior[list(est_role.measured)]
         disc, ages = {}, res.link_age
