@@ -77,6 +77,15 @@ def test_recorder_rosters_assignments_and_monitor_events(fed):
     fed.feed(topics.monitor_events_key(RUN), wire.encode_monitor_event(
         {"kind": "rejoin", "agent": 2, "step": 3, "healthy_s": 5.0, "standby": [2]}))
     assert fed.view()["failures"] == []
+    # an event whose time is not a number (the wire checks only its kind) breaks nothing
+    fed.feed(topics.monitor_events_key(RUN), wire.encode_monitor_event(
+        {"kind": "rejoin", "agent": 2, "step": 4, "t": None}))
+    fed.feed(topics.monitor_events_key(RUN), wire.encode_monitor_event(
+        {"kind": "verdict", "agent": 2, "cause": "hang", "evidence": "x", "step": 5,
+         "t": "soon"}))
+    assert [f["agent"] for f in fed.view()["failures"]] == []
+    assert fed.recording.monitor_events[-1]["step"] == 3          # both refused...
+    assert fed.stats.dropped["event"] == 2                        # ...and counted
     # from step 2 the roster is (1, 3): agent 3 sent nothing, so only agent 1 counts
     np.testing.assert_allclose(mse_by_step(rec, 3)[1], [1.5, 1.5, 1.0, 1.0])
 

@@ -68,8 +68,11 @@ def run(args) -> int:
         change = change_from_args(args)
         signer = operator_signer(args, warn=lambda text: print(f"inject: warning: {text}",
                                                                file=sys.stderr))
+        encode_change(change, signer, args.run)      # a bad value said before joining
+        # signed afresh at each publication: the agents refuse a signed message seen
+        # before (a replay), and a change is published until it is confirmed
         inject(net_config_arg(args, identity="operator"), change,
-               encode_change(change, signer, args.run), args.timeout,
+               lambda: encode_change(change, signer, args.run), args.timeout,
                confirm=not args.no_confirm,
                say=lambda text: print(f"inject: {text}", file=sys.stderr))
         return 0

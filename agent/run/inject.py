@@ -181,14 +181,18 @@ def unused_link(change: Change, statuses: dict) -> str | None:
 
 
 def _rejected(status: dict) -> int:
-    """The control messages (assignments, impairments) an agent's status says it refused."""
-    ctl = status.get("ctl")
-    return int(ctl.get("rejected", 0) or 0) if isinstance(ctl, dict) else 0
+    """The messages an agent's status says it refused for their signature (an impairment
+    not signed with the run's operator key; not an assignment refused for its epoch)."""
+    reasons = status.get("malformed_reasons")
+    n = reasons.get("signature", 0) if isinstance(reasons, dict) else 0
+    return n if isinstance(n, int) and not isinstance(n, bool) else 0
 
 
 def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = True,
            say=print) -> None:
-    """Publish ``payload`` (``change`` encoded) to the run of ``net`` (a
+    """Publish ``payload`` (``change`` encoded, or a function that encodes and signs it
+    afresh for each publication: a signed message sent again is a replay to the agents)
+    to the run of ``net`` (a
     :class:`broker_free_net.config.NetConfig`) and, with ``confirm``, wait until the
     agents' statuses show it. ``say(text)`` is told what was done (and a warning when the
     receiving agent does not listen to the link now). InputError (status 1) when agent DST
@@ -220,20 +224,22 @@ def inject(net, change: Change, payload: bytes, timeout: float, confirm: bool = 
                 m = try_decode(item.payload, wire.STATUS_SCHEMA, stats)
                 if m is not None:
                     statuses[m["agent"]] = m
-                    if next_put:     # the control messages it refused since the first put
+                    if next_put:     # the signatures it refused since the first put
                         rejected.setdefault(m["agent"], _rejected(m))
             now = time.monotonic()
             refused = [a for a in ([dst] if dst is not None else sorted(statuses))
                        if a in rejected and _rejected(statuses[a]) > rejected[a]]
-            if refused:
-                why = (statuses[refused[0]].get("ctl") or {}).get("last_error") or "?"
+            if refused and not is_confirmed(change, statuses, alive):
+                # with the agent's reason: its last refused control message's
+                ctl = statuses[refused[0]].get("ctl")
+                why = str(ctl.get("last_error") or "?")[:200] if isinstance(ctl, dict) else "?"
                 raise InputError(
                     f"agent {refused[0]} refused the change ({why}): sign it with the run's "
                     "operator key (--operator-key RUN_FOLDER/operator.key, or --attach "
                     "RUN_FOLDER)", status=1)
             # (re)publish until confirmed: a change is idempotent
             if now >= next_put and (dst is None or dst in alive):
-                peer.put(key, payload)
+                peer.put(key, payload() if callable(payload) else payload)
                 next_put = now + REPUBLISH_S
                 if not confirm:
                     say(f"published {change.what} on {key}")

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -332,7 +333,7 @@ class Recorder:
                 except ValueError:
                     event = None
                 if isinstance(event, dict) and isinstance(event.get("kind"), str) and \
-                        len(rec.monitor_events) < MAX_EVENTS:
+                        _plain_times(event) and len(rec.monitor_events) < MAX_EVENTS:
                     rec.monitor_events.append(event)
                 else:
                     self.stats.count_dropped("event")
@@ -448,7 +449,7 @@ class Recorder:
         # the verdicts on agents not back since (one that passed probation rejoined)
         verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict" and not any(
             r.get("kind") == "rejoin" and r.get("agent") == e.get("agent")
-            and r.get("t", 0) >= e.get("t", 0) for r in rec.monitor_events)]
+            and _time_of(r) >= _time_of(e) for r in rec.monitor_events)]
         return {"run": rec.run_id, "step": self.step, "mse_step": k, "mse": mse,
                 "mse_last100": float(np.mean(recent)) if recent else None,
                 "mse_last100_steps": 0 if k is None else k - first + 1,  # fewer early on
@@ -462,6 +463,26 @@ class Recorder:
                 "failures": [{"agent": v.get("agent"), "cause": v.get("cause"),
                               "step": v.get("step")} for v in verdicts],
                 "agents": agents}
+
+
+def _plain_times(event: dict) -> bool:
+    """Whether a monitor event heard has its times, step and agent (when present) as
+    numbers: what the summary and the live view compare and order them by."""
+    for name in ("t", "mono", "detected_t"):
+        t = event.get(name)
+        if name in event and not (isinstance(t, (int, float)) and not isinstance(t, bool)
+                                  and math.isfinite(t)):
+            return False
+    return all(name not in event or (isinstance(event[name], int)
+                                     and not isinstance(event[name], bool))
+               for name in ("step", "agent", "epoch"))
+
+
+def _time_of(event: dict) -> float:
+    """An event's ``t`` as heard on the wire (0 when missing or not a number)."""
+    t = event.get("t")
+    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) \
+        and math.isfinite(t) else 0.0
 
 
 class WatchEnd(Exception):
