@@ -301,8 +301,11 @@ def _undeclare(sub) -> None:
 
 
 #: How long :meth:`Peer.claim` keeps asking whether another session holds its id after
-#: its first link is up (the links gossip finds come up meanwhile).
+#: its first link is up (the links gossip finds come up meanwhile); how long it waits for
+#: a first link; the longest it waits for another holder to let go.
 CLAIM_SETTLE_S = 0.3
+CLAIM_LINK_S = 1.0
+CLAIM_WAIT_MAX_S = 10.0
 #: Sessions a :class:`LivelinessWatch` tracks for one ``(role, id)``: a process declaring
 #: tokens under made-up session chunks cannot grow it beyond this.
 MAX_SESSIONS_PER_ID = 16
@@ -530,24 +533,30 @@ class Peer:
 
     def claim(self, wait_s: float | None = None, say=None, stop=lambda: False) -> None:
         """Make sure this process is the only one of its ``(role, id)``: wait up to
-        ``wait_s`` (default two leases and a second) for any other session holding its
-        token to let go (a process just killed holds it until its lease expires), then
-        raise :class:`IdInUse` naming it. ``say(text)`` is told once that it waits;
-        ``stop()`` true ends the wait."""
+        ``wait_s`` (default two leases and a second, at most :data:`CLAIM_WAIT_MAX_S`)
+        for any other session holding its token to let go (a process just killed holds it
+        until its lease expires), then raise :class:`IdInUse` naming it. ``say(text)`` is
+        told once that it waits; ``stop()`` true ends the wait (no refusal).
+
+        Best effort: a peer answers for its own tokens only, so a holder is found when
+        this session links to it within :data:`CLAIM_SETTLE_S` of its first link: in a
+        mesh that gossips (by hand, as docs/runtime.md runs it) or through a router; in
+        ``socmon up``'s mesh, where each process links only to those started before it,
+        not always (``up`` starts each id once)."""
         if wait_s is None:
-            wait_s = 2 * self.net.lease_ms / 1000.0 + 1.0
-        # the peers answer for their own tokens only: ask once the links are up (a peer
-        # found by gossip is linked shortly after the session opens), and again for a
-        # moment after the first one
-        deadline = time.monotonic() + wait_s
+            wait_s = min(2 * self.net.lease_ms / 1000.0 + 1.0, CLAIM_WAIT_MAX_S)
+        # the peers answer for their own tokens only: ask once a link is up (a peer found
+        # by gossip is linked shortly after the session opens), and again for a moment
+        # after; a process that is first of its run has nobody to ask
+        first_link = time.monotonic() + min(wait_s, CLAIM_LINK_S)
         while not (self.connected_peers() or list(self.session.info.routers_zid())) \
-                and time.monotonic() < deadline and not stop():
+                and time.monotonic() < first_link and not stop():
             time.sleep(0.05)
         others, settled = self.other_holders(), time.monotonic() + CLAIM_SETTLE_S
         while not others and time.monotonic() < settled and not stop():
             time.sleep(0.1)
             others = self.other_holders()
-        if not others:
+        if not others or stop():
             return
         if say is not None:
             say(f"another session ({', '.join(sorted(others))}) holds the token of "
@@ -557,7 +566,7 @@ class Peer:
         while others and time.monotonic() < deadline and not stop():
             time.sleep(0.1)
             others = self.other_holders()
-        if others:
+        if others and not stop():      # stopped meanwhile: the caller stops, no refusal
             raise IdInUse(self, others)
 
     def connected_peers(self) -> list[str]:

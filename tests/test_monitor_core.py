@@ -2112,3 +2112,6 @@ def test_an_agent_started_with_another_gain_is_named_once(core):
     assert len(warned) == 1 and warned[0].startswith(
         "warning: agent 3 was started with another gain than this monitor's (digest "
         f"{gain_digest(core.G[2] * 1.1)}, here {gain_digest(core.G[2])})")
+    core.G = None                  # as after an adoption: the initial digests still serve
+    core.on_status({**_status(2, 5), "gains": gain_digest(np.ones((14, 1)))}, 0.4)
+    assert [e for e in core.events if "warning" in e][1].startswith("warning: agent 2 ")

@@ -347,6 +347,7 @@ def test_a_record_that_began_after_a_recovery_does_not_invent_a_late_switch():
     (600, False, False),       # a status of a later step: it was paused, not dead
     (180, True, False),        # its token came back
     (180, False, True),        # neither: it died
+    (350, "again", True),      # it came back, then its token went for good at step 400
 ])
 def test_a_standby_whose_token_went_and_came_back_is_not_reported_dead(spoke_at, back_event,
                                                                       dead):
@@ -365,13 +366,15 @@ def test_a_standby_whose_token_went_and_came_back_is_not_reported_dead(spoke_at,
     events = [{"process": "agent-4", "liveliness": False, "step": 191, "t": 10.0}]
     if back_event:
         events.append({"process": "agent-4", "liveliness": True, "step": 340, "t": 13.0})
+    if back_event == "again":
+        events.append({"process": "agent-4", "liveliness": False, "step": 400, "t": 15.0})
     rec = SimpleNamespace(events=events, assigns={}, monitor_events=[],
                           rosters=[(0, (1, 2, 3), 0)], status={4: {"step": spoke_at}},
                           est_epoch={a: {k: 0 for k in steps} for a in (1, 2, 3)} | {4: {}})
     out = _failures(None, rec, s, np.zeros((3, 3), int), steps, [0.3] * len(steps),
                     G0=object())
     assert [(f["agent"], f["died_step"], f["role"]) for f in out["failures"]] == \
-        ([(4, 191, "standby")] if dead else [])
+        ([(4, 400 if back_event == "again" else 191, "standby")] if dead else [])
 
 
 def test_the_failure_lines_say_rejoins_residual_alerts_and_refused_evidence():

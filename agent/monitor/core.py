@@ -46,6 +46,7 @@ import numpy as np
 from agent.monitor.detector import FailureDetector, Verdict
 from agent.protocol.timing import DEFAULT as TIMING
 from agent.protocol.timing import Timing
+from design.gains import gain_digest
 
 __all__ = ["MonitorConfig", "MonitorCore", "Verdict", "Assignment", "RosterUpdate",
            "GainSource"]
@@ -486,7 +487,8 @@ class MonitorCore:
         self.barred: set = set()          # on probation for good (NEVER_REJOIN)
         self._epoch_seen = 0              # the highest epoch accepted from the network
         self._gains_said: set = set()     # agents started with another gain (said once)
-        self._own_gains = None            # digests of the initial gains (_check_gains)
+        # the initial gains' digests (_check_gains; kept when an adoption drops self.G)
+        self._own_gains = [gain_digest(g) for g in self.G]
         self.rejoins: list = []           # {"agent", "step", "healthy_s", "standby"}
         self.unrecoverable = False
         self.outbox: list = []            # (Assignment | RosterUpdate) to (re)send
@@ -608,12 +610,8 @@ class MonitorCore:
         monitor's (another ``--gains`` file) is said once, as a warning, since the
         predictions and the replacements designed here assume this monitor's."""
         said = self._gains_said
-        if "gains" not in msg or agent in said or not 1 <= agent <= len(self.G):
+        if "gains" not in msg or agent in said or not 1 <= agent <= len(self._own_gains):
             return
-        if self._own_gains is None:          # the initial gains' digests, made once
-            from design.gains import gain_digest
-
-            self._own_gains = [gain_digest(g) for g in self.G]
         if msg["gains"] != self._own_gains[agent - 1]:
             said.add(agent)
             self.events.append(

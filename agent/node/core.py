@@ -994,7 +994,8 @@ class AgentCore:
             # theirs (a hand-started process with another --seed or --gains): the seed
             # for the start, the gain while it runs the role it started with (a monitor
             # may join as the clock starts)
-            **({"seed": self.config.seed} if self.step < 0 else {}),
+            **({"seed": self.config.seed}
+               if self.step < 0 and 0 <= self.config.seed < 2**63 else {}),
             **({"gains": self._started_gains()} if role and self.epoch == 0 else {}),
             "links": {str(src): {k: v for k, v in vars(p).items() if v not in (None, 0, 0.0, False)}
                       for (src, dst), p in self.impair.links().items() if not p.is_identity},

@@ -333,7 +333,7 @@ STATUS_SCHEMA = Schema({
     # the run seed it was started with (sent with "heard") and the digest of the gain it
     # started with (design.gains.gain_digest, while it runs epoch 0's role): for the world
     # and the monitor to check against theirs
-    "seed": Int(0, 2**63, required=False),
+    "seed": Int(0, 2**63 - 1, required=False),   # a larger seed is not sent
     "gains": Str(max_len=64, required=False),
     "ctl": Loose(required=True),
     "links": Loose(required=True),

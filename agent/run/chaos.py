@@ -419,6 +419,7 @@ def live_chaos(args, say) -> tuple:
         # stops short of its schedule; its invariants are not checked)
         "reached": reached,
         "injected": sum(f.step <= reached for f in schedule),
+        "diverged_at": summary.get("diverged_at"),     # a negative result beside them
         "failures": summary.get("failures", []),
         "rosters": summary.get("rosters", []),
         "violations": [v.to_dict() for v in violations],

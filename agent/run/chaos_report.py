@@ -100,6 +100,9 @@ def live_report_text(report: dict, as_json: bool = False) -> str:
              + ("" if error else f", {len(violations)} violations")]
     if error and error != "interrupted":
         lines.append(f"  error: {error.splitlines()[0]}")
+    if report.get("diverged_at") is not None:
+        lines.append(f"  the estimates DIVERGED at step {report['diverged_at']} (exit 1; "
+                     "summary.json warnings)")
     lines += [f"  {d['why']}" for d in report.get("no_verdict_due", [])]
     lines += [f"  VIOLATION {v['invariant']} at step {v['step']}: {v['evidence']}"
               for v in violations]

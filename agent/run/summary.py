@@ -507,28 +507,32 @@ def log_warnings(logs_dir) -> list:
     return found
 
 
-def switch_steps(est_epoch_of_agent: dict, epoch: int, activate_at: int | None = None):
+def switch_steps(est_epoch_of_agent: dict, epoch: int, activate_at: int | None = None,
+                 record_start: int | None = None):
     """The first step an agent computed under ``epoch``, from the epochs its estimates
     carried; None if it never did (it rejected that assignment, or ran a newer one first).
 
     An agent that takes a role without an estimate of its own (a standby) first publishes
     the estimate it starts from, stamped ``activate_at - 1`` under the new epoch: its
-    switch is the step after. A record that begins after the epoch's ``activate_at``
-    with the agent already under it (a watch that joined later) shows no switch: it
-    switched when told, ``activate_at``.
+    switch is the step after. A record that begins (``record_start``) after the
+    epoch's ``activate_at`` with the agent already under it from its beginning (a watch
+    that joined later) shows no switch: it switched when told, ``activate_at``.
 
     >>> switch_steps({9: 0, 10: 1, 11: 1}, 1), switch_steps({9: 1, 10: 1}, 1)
     (10, 10)
     >>> switch_steps({9: 0, 10: 0}, 1) is None, switch_steps({9: 0, 10: 2}, 1) is None
     (True, True)
-    >>> switch_steps({1018: 1, 1019: 1}, 1, activate_at=788)
+    >>> switch_steps({1018: 1, 1019: 1}, 1, activate_at=788, record_start=1018)
     788
+    >>> switch_steps({820: 1, 821: 1}, 1, activate_at=788, record_start=0)   # late
+    821
     """
     steps = sorted(k for k, e in est_epoch_of_agent.items() if e == epoch)
     if not steps:
         return None
     first = steps[0]
-    if activate_at is not None and first == min(est_epoch_of_agent) and activate_at <= first:
+    if activate_at is not None and record_start is not None and activate_at <= first \
+            and first == min(est_epoch_of_agent) and first <= record_start + 1:
         return activate_at
     return first if (first - 1) in est_epoch_of_agent else first + 1
 
@@ -567,6 +571,7 @@ def rosters_in_force(rosters, est_epoch, assigns):
     """
     out, mixed = [rosters[0]], []
     newest = {a: max(e) for a, e in est_epoch.items() if e}    # each agent's last step
+    record_start = min((min(e) for e in est_epoch.values() if e), default=None)
     last = max(newest.values(), default=-1)
     newest_at: dict = {}
     for at, ids, epoch in rosters[1:]:
@@ -589,7 +594,8 @@ def rosters_in_force(rosters, est_epoch, assigns):
         # replays a failed agent kept in an intermediate configuration
         if any(newest.get(b, -1) >= at for b in assigned):
             assigned = [a for a in assigned if a not in newest or newest[a] >= at]
-        switched = {a: switch_steps(est_epoch.get(a, {}), epoch, at) for a in assigned}
+        switched = {a: switch_steps(est_epoch.get(a, {}), epoch, at, record_start)
+                    for a in assigned}
         if all(k is None for k in switched.values()):
             if any(est_epoch.get(a) for a in assigned):
                 continue                   # nobody ran it: rejected, or superseded first
@@ -890,11 +896,18 @@ def _failures(events_path, rec, scenario, delays, steps_done, mse, G0):
     # a token that went and came back (a process paused past its lease, a link that
     # lapsed): the agent spoke again after it, by a status of a later step or its token
     spoke = {a: st.get("step", -1) for a, st in (getattr(rec, "status", None) or {}).items()}
-    deaths = {a: e for a, e in deaths.items() if not (
-        e.get("liveliness") is False and e.get("exit_status") is None and (
-            spoke.get(a, -1) > e.get("step", -1) or any(
-                x.get("process") == f"agent-{a}" and x.get("liveliness") is True
-                and x.get("t", 0) >= e.get("t", 0) for x in events)))}
+    for a, e in list(deaths.items()):
+        if e.get("liveliness") is not False or e.get("exit_status") is not None:
+            continue
+        # its last loss of the token not followed by a return: a standby paused past its
+        # lease and killed later died at the second
+        tokens = [x for x in events if x.get("process") == f"agent-{a}"
+                  and x.get("liveliness") in (True, False)]
+        last = tokens[-1] if tokens else e
+        if last.get("liveliness") is True or spoke.get(a, -1) > last.get("step", -1):
+            del deaths[a]
+        else:
+            deaths[a] = last
     failures += _undetected(deaths, {v["agent"] for v in records if v.get("kind") == "verdict"},
                             absent, rosters, steps_done[-1] if len(steps_done) else None)
     out = {"failures": failures, "rosters": [{"activate_at": at, "ids": list(ids),
