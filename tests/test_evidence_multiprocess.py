@@ -127,6 +127,12 @@ def test_an_insider_with_agent2s_certificate_convicts_nobody(tmp_path, live_gain
     with _attached(tmp_path, live_gains, "--secure", "--kill", "450:1",
                    steps=650) as (run, alive, result):
         rid = run["run"]
+        # joined once the real agent 2 runs: a session holding agent 2's token before it
+        # starts makes it refuse to start (Peer.claim), which is not what is tested here
+        log = tmp_path / "run" / "logs" / "agent-2.log"
+        while not (log.is_file() and "clock started" in log.read_text()):
+            assert alive()
+            time.sleep(0.05)
         net = NetConfig(run=rid, listen=(f"tls/127.0.0.1:{listen_port()}",),
                         connect=(run["connect"],), keys=str(tmp_path / "run" / "keys"),
                         identity="agent-2")
