@@ -449,7 +449,7 @@ class Recorder:
         # the verdicts on agents not back since (one that passed probation rejoined)
         verdicts = [e for e in rec.monitor_events if e.get("kind") == "verdict" and not any(
             r.get("kind") == "rejoin" and r.get("agent") == e.get("agent")
-            and _time_of(r) >= _time_of(e) for r in rec.monitor_events)]
+            and r.get("t", 0.0) >= e.get("t", 0.0) for r in rec.monitor_events)]
         return {"run": rec.run_id, "step": self.step, "mse_step": k, "mse": mse,
                 "mse_last100": float(np.mean(recent)) if recent else None,
                 "mse_last100_steps": 0 if k is None else k - first + 1,  # fewer early on
@@ -476,13 +476,6 @@ def _plain_times(event: dict) -> bool:
     return all(name not in event or (isinstance(event[name], int)
                                      and not isinstance(event[name], bool))
                for name in ("step", "agent", "epoch"))
-
-
-def _time_of(event: dict) -> float:
-    """An event's ``t`` as heard on the wire (0 when missing or not a number)."""
-    t = event.get("t")
-    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) \
-        and math.isfinite(t) else 0.0
 
 
 class WatchEnd(Exception):
